@@ -1,0 +1,1 @@
+"""Hammerstein identification of the piezo bender: ARX under bounded noise, neural NLS."""

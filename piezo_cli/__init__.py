@@ -1,0 +1,1 @@
+"""The ``piezo`` command line: a thin dispatcher over the packages."""

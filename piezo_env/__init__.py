@@ -1,0 +1,1 @@
+"""Piezoelectric bender physics and the PiezoBender-v0 Gymnasium environment."""
