@@ -1,0 +1,188 @@
+"""Estimation of ARX models (paper eq. 20) from input/output records.
+
+:func:`fit_arx` is the one entry point. Methods:
+
+``"bayes-uniform"``
+    The recursive approximate Bayesian estimator for uniformly bounded noise
+    (:class:`identification.bayes_uniform.BayesUniformEstimator`, Pavelkova and Karny 2012).
+``"chebyshev"``
+    The exact maximum-a-posteriori estimate of the same model: ``min r`` subject to
+    ``|y_t - psi_t^T theta| <= r`` for all t (L-infinity regression), one linear program solved by
+    HiGHS (:func:`scipy.optimize.linprog`) with a sparse constraint matrix.
+``"least-squares"``
+    Ordinary least squares for comparison; its noise bound is the largest absolute residual.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.optimize
+import scipy.sparse
+
+from identification.arx import ARXModel, check_io, regressors
+from identification.bayes_uniform import BayesUniformEstimator
+
+__all__ = ["METHODS", "fit_arx", "fit_chebyshev", "fit_least_squares"]
+
+METHODS = ("bayes-uniform", "chebyshev", "least-squares")
+
+_BAYES_OPTIONS = ("window", "reorient_every", "n_init", "record_history", "theta_estimate")
+
+
+def _check_data(u: Any, y: Any, na: int, nb: int) -> tuple[np.ndarray, np.ndarray]:
+    """Reject data an ARX fit cannot use, with a message that says why."""
+    u, y = check_io(u, y)
+    psi, target = regressors(u, y, na, nb)
+    unknowns = na + nb + 1
+    if target.size < 2 * unknowns:
+        raise ValueError(
+            f"too few samples for an ARX({na},{nb}): {u.size} given, need at least "
+            f"{max(na, nb) + 2 * unknowns} ({2 * unknowns} regression rows)"
+        )
+    if np.ptp(u) == 0.0:
+        raise ValueError(
+            "the input is constant, so it is not persistently exciting: the b coefficients "
+            "cannot be identified (use a PRBS or random input)"
+        )
+    scale = np.abs(psi).max(axis=0)
+    if np.any(scale == 0.0):
+        raise ValueError("a regressor column is identically zero: the data are not exciting")
+    singular = np.linalg.svd(psi / scale, compute_uv=False)
+    if singular[-1] <= 1e-9 * singular[0]:
+        raise ValueError(
+            f"the regressors are linearly dependent (condition number "
+            f"{singular[0] / max(singular[-1], 1e-300):.3g}): the input is not persistently "
+            f"exciting of order {nb}, or the orders are too high for these data"
+        )
+    return u, y
+
+
+def fit_least_squares(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1.0) -> ARXModel:
+    """Least-squares ARX fit; ``noise_bound`` is the largest absolute residual (output unit)."""
+    u, y = _check_data(u, y, na, nb)
+    psi, target = regressors(u, y, na, nb)
+    theta = np.linalg.lstsq(psi, target, rcond=None)[0]
+    bound = float(np.max(np.abs(target - psi @ theta)))
+    return ARXModel(theta[:na], theta[na:], noise_bound=bound, dt=dt, method="least-squares")
+
+
+def fit_chebyshev(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1.0) -> ARXModel:
+    """Exact MAP estimate under uniform noise: the Chebyshev (L-infinity) ARX fit.
+
+    Solves ``min r s.t. -r <= y_t - psi_t^T theta <= r`` as one LP with HiGHS; the constraint
+    matrix is sparse (two rows of ``na + nb + 1`` nonzeros per sample). Columns are scaled to
+    unit peak before solving so that the solver tolerances mean the same for any units.
+    """
+    u, y = _check_data(u, y, na, nb)
+    psi, target = regressors(u, y, na, nb)
+    column_scale = np.abs(psi).max(axis=0)
+    output_scale = np.abs(target).max()
+    psi_n = psi / column_scale
+    target_n = target / output_scale
+    m, p = psi_n.shape
+    ones = np.ones((m, 1))
+    a_ub = scipy.sparse.csr_array(np.block([[psi_n, -ones], [-psi_n, -ones]]))
+    b_ub = np.concatenate([target_n, -target_n])
+    cost = np.zeros(p + 1)
+    cost[-1] = 1.0
+    res = scipy.optimize.linprog(
+        cost,
+        A_ub=a_ub,
+        b_ub=b_ub,
+        bounds=[(None, None)] * p + [(0.0, None)],
+        method="highs",
+    )
+    if res.status != 0:
+        raise RuntimeError(f"the Chebyshev LP did not solve: {res.message}")
+    theta = res.x[:p] * output_scale / column_scale
+    bound = float(np.max(np.abs(target - psi @ theta)))
+    return ARXModel(theta[:na], theta[na:], noise_bound=bound, dt=dt, method="chebyshev")
+
+
+def fit_arx(
+    u: Any,
+    y: Any,
+    *,
+    na: int = 2,
+    nb: int = 2,
+    method: str = "bayes-uniform",
+    dt: float = 1.0,
+    **options: Any,
+) -> ARXModel:
+    """Fit an ARX(na, nb) model ``y_t = sum a_i y_{t-i} + sum b_j u_{t-j} + nu_t`` to data.
+
+    Parameters
+    ----------
+    u, y
+        Input (e.g. V) and output (e.g. um) records of equal length, sampled every ``dt``.
+    na, nb
+        Orders: past outputs and past inputs.
+    method
+        ``"bayes-uniform"``, ``"chebyshev"`` or ``"least-squares"`` (see the module docstring).
+    dt
+        Sampling period, s, stored in the model.
+    **options
+        For ``"bayes-uniform"`` only: ``point_estimate`` (``"final"``, default, or ``"mean"``:
+        the mean of the recorded time course over its steady part), ``steady_fraction`` (the
+        trailing fraction of the time course averaged by ``"mean"``, default 0.5), and the
+        :class:`~identification.bayes_uniform.BayesUniformEstimator` keywords ``window``,
+        ``reorient_every``, ``n_init``, ``record_history``, ``theta_estimate``.
+
+    Returns
+    -------
+    ARXModel
+        With ``noise_bound`` (r, output unit), ``method`` and, for ``"bayes-uniform"``, the
+        ``history`` of the estimates.
+
+    Raises
+    ------
+    ValueError
+        Unknown method or option; data that cannot identify the model (mismatched lengths,
+        NaN/inf, too few samples, constant or otherwise not persistently exciting input).
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; valid methods: {', '.join(METHODS)}")
+    if method != "bayes-uniform":
+        if options:
+            raise ValueError(f"method {method!r} takes no options, got {', '.join(options)}")
+        fit = fit_chebyshev if method == "chebyshev" else fit_least_squares
+        return fit(u, y, na=na, nb=nb, dt=dt)
+
+    point_estimate = options.pop("point_estimate", "final")
+    steady_fraction = float(options.pop("steady_fraction", 0.5))
+    unknown = sorted(set(options) - set(_BAYES_OPTIONS))
+    if unknown:
+        raise ValueError(
+            f"unknown option(s) {', '.join(unknown)} for 'bayes-uniform'; accepted: "
+            f"point_estimate, steady_fraction, {', '.join(_BAYES_OPTIONS)}"
+        )
+    if point_estimate not in ("final", "mean"):
+        raise ValueError(f"point_estimate must be 'final' or 'mean', got {point_estimate!r}")
+    if not 0.0 < steady_fraction <= 1.0:
+        raise ValueError(f"steady_fraction must be in (0, 1], got {steady_fraction}")
+    if point_estimate == "mean":
+        options["record_history"] = True
+    u, y = _check_data(u, y, na, nb)
+    estimator = BayesUniformEstimator(na, nb, dt=dt, **options)
+    estimator.update_many(u, y)
+    if not estimator.initialized:
+        raise ValueError(
+            "the data never bounded the noise-bound support (not persistently exciting)"
+        )
+    model = estimator.model()
+    if point_estimate == "mean":
+        history = model.history
+        start = int(len(history["t"]) * (1.0 - steady_fraction))
+        theta = history["theta"][start:].mean(axis=0)
+        bound = float(history["noise_bound"][start:].mean())
+        model = ARXModel(
+            theta[:na],
+            theta[na:],
+            noise_bound=bound,
+            dt=dt,
+            history=history,
+            method="bayes-uniform",
+        )
+    return model

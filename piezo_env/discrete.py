@@ -1,0 +1,266 @@
+"""Exact zero-order-hold discretisation of the bender's linear dynamics, with modal reduction.
+
+The beam is linear time-invariant and the drive is held constant over a sample, so the
+step is exact: each mode k of the FE model (plus the optional creep states that feed it) is
+discretised once with the matrix exponential of the augmented matrix [[A, B], [0, 0]] dt, and
+a step is then one matrix-vector product. No ODE solver runs in the loop; any dt is stable.
+
+Modal reduction (exact to ``tolerance``). Under stiffness-proportional damping the high FE
+modes are overdamped (zeta_k = beta omega_k / 2 grows with frequency) and their discrete
+transition blocks are ~1e-11 or smaller: whatever state they hold is gone one sample later.
+Such a mode's state at step k+1 is, to that accuracy, its one-step response to the inputs
+at step k, so it is replaced by what the outputs need of it: its contribution to the tip
+deflection and tip rotation, carried as two extra states. A 10-element beam (40 states)
+shrinks to 2 x 4 slow-mode states + 2 at dt = 1 ms with differences ~1e-14 m. Which modes
+are dropped depends on dt (fewer at small dt), so the model stays exact at every dt.
+
+Creep (optional): Kelvin-Voigt terms x_i' = (u_eff - x_i) / tau_i with the beam driven by
+u_eff + sum_i c_i x_i: the static gain grows by c_i per decade of time around each tau_i,
+which gives the logarithmic creep (1-2 % per decade) of piezo ceramics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from piezo_env.fem import BeamFE
+
+__all__ = ["Creep", "DiscreteBender", "discretize"]
+
+
+@dataclass(frozen=True)
+class Creep:
+    """Linear creep as Kelvin-Voigt terms.
+
+    Parameters
+    ----------
+    time_constants : tuple of float
+        tau_i (s), one per decade.
+    weights : tuple of float
+        c_i (-): the static gain grows by c_i around t ~ tau_i (1.5 % per decade by default).
+    """
+
+    time_constants: tuple[float, ...] = (0.01, 0.1, 1.0, 10.0, 100.0)
+    weights: tuple[float, ...] = (0.015, 0.015, 0.015, 0.015, 0.015)
+
+    def __post_init__(self) -> None:
+        if len(self.time_constants) != len(self.weights):
+            raise ValueError("creep time_constants and weights must have equal length")
+        if any(t <= 0 for t in self.time_constants) or any(c < 0 for c in self.weights):
+            raise ValueError("creep time constants must be > 0 s and weights >= 0")
+
+    @property
+    def size(self) -> int:
+        """Number of creep states."""
+        return len(self.time_constants)
+
+
+@dataclass(frozen=True)
+class DiscreteBender:
+    """Reduced exact discrete model from effective voltage u_eff (V) to tip outputs.
+
+    State s = [creep states (V), (eta_k, eta_k') of the kept modes, fast tip deflection (m),
+    fast tip rotation (rad)]. One step is ``[s_next; y_next; theta_next] = step_matrix @ [s; u]``.
+
+    Attributes
+    ----------
+    dt : float
+        Sample time (s).
+    step_matrix : ndarray, shape (n_s + 2, n_s + 1)
+        [[A, B], [C_y A, C_y B], [C_theta A, C_theta B]]: next state and next outputs.
+    output_matrix : ndarray, shape (2, n_s)
+        Rows giving the tip deflection (m) and tip rotation (rad) from the state.
+    kept_modes : ndarray of int
+        Indices of the FE modes carried as states.
+    nodal_matrix : ndarray, shape (n + 1, n_s)
+        Nodal deflections (m, root first) from the kept modes' states (for drawing).
+    n_creep : int
+        Number of creep states at the start of the state vector.
+    """
+
+    dt: float
+    step_matrix: np.ndarray
+    output_matrix: np.ndarray
+    kept_modes: np.ndarray
+    nodal_matrix: np.ndarray
+    n_creep: int
+
+    @property
+    def n_states(self) -> int:
+        """Length of the reduced state vector."""
+        return self.step_matrix.shape[1] - 1
+
+    @property
+    def a(self) -> np.ndarray:
+        """State transition matrix A."""
+        return self.step_matrix[: self.n_states, : self.n_states]
+
+    @property
+    def b(self) -> np.ndarray:
+        """Input vector B (per volt of u_eff)."""
+        return self.step_matrix[: self.n_states, -1]
+
+    def static_state(self, u_eff: float) -> np.ndarray:
+        """Equilibrium state under a constant effective voltage (V)."""
+        n = self.n_states
+        return scipy.linalg.solve(np.eye(n) - self.a, self.b * u_eff)
+
+    def simulate(self, u_eff: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+        """Tip deflection (m) for a u_eff sequence (V), y[k] after applying u_eff[k]."""
+        s = np.zeros(self.n_states) if state is None else np.array(state, dtype=float)
+        out = np.empty(len(u_eff))
+        su = np.empty(self.n_states + 1)
+        for i, u in enumerate(u_eff):
+            su[:-1] = s
+            su[-1] = u
+            nxt = self.step_matrix @ su
+            s = nxt[:-2]
+            out[i] = nxt[-2]
+        return out
+
+    def impulse_l1_bound(self, creep_gain: float = 1.0) -> float:
+        """Proven upper bound of sum_k |h_k| of the impulse response u_eff -> y (m / V).
+
+        The beam's response is summed over its modes' geometric decay with an analytic tail;
+        creep is a positive filter in series whose L1 norm is its static gain ``creep_gain``.
+        """
+        nc = self.n_creep
+        a = self.a[nc:, nc:]
+        b = self.b[nc:]
+        c = self.output_matrix[0, nc:]
+        lam, vec = np.linalg.eig(a)
+        residues = (c @ vec) * np.linalg.solve(vec, b)
+        radius = np.abs(lam)
+        direct = abs(float(c @ b))  # h_1
+        # h_k = sum_j residues_j lam_j^(k-1), k >= 1
+        n = int(min(max(50.0, np.log(1e-16) / np.log(max(radius.max(), 1e-300))), 2_000_000))
+        total = 0.0
+        power = np.ones_like(lam)
+        chunk = 4096
+        k = 0
+        while k < n:
+            m = min(chunk, n - k)
+            powers = power[None, :] * lam[None, :] ** np.arange(m)[:, None]
+            total += float(np.abs((powers * residues).sum(axis=1).real).sum())
+            power = power * lam**m
+            k += m
+        with np.errstate(divide="ignore"):
+            tail = float(
+                np.sum(np.abs(residues) * np.abs(power) / np.maximum(1.0 - radius, 1e-300))
+            )
+        # The relative margin covers the rounding of the sum itself.
+        return creep_gain * (max(total, direct) + tail) * (1.0 + 1e-9)
+
+
+def _mode_block(omega: float, zeta: float, phi_b: float, creep: Creep | None, dt: float):
+    """Exact ZOH of [creep; eta; eta'] for one mode driven by u_eff (creep rows included)."""
+    nc = 0 if creep is None else creep.size
+    n = nc + 2
+    a = np.zeros((n, n))
+    b = np.zeros(n)
+    if creep is not None:
+        tau = np.asarray(creep.time_constants)
+        a[np.arange(nc), np.arange(nc)] = -1.0 / tau
+        b[:nc] = 1.0 / tau
+        a[nc + 1, :nc] = phi_b * np.asarray(creep.weights)
+    a[nc, nc + 1] = 1.0
+    a[nc + 1, nc] = -(omega**2)
+    a[nc + 1, nc + 1] = -2.0 * zeta * omega
+    b[nc + 1] = phi_b
+    aug = np.zeros((n + 1, n + 1))
+    aug[:n, :n] = a
+    aug[:n, n] = b
+    e = scipy.linalg.expm(aug * dt)
+    return e[:n, :n], e[:n, n]
+
+
+def discretize(
+    beam: BeamFE,
+    dt: float,
+    *,
+    creep: Creep | None = None,
+    tolerance: float = 1e-10,
+    reduce: bool = True,
+) -> DiscreteBender:
+    """Exact ZOH discretisation of the FE beam, keeping the modes that outlive one sample.
+
+    Parameters
+    ----------
+    beam : BeamFE
+        Assembled beam with its modes.
+    dt : float
+        Sample time (s), > 0.
+    creep : Creep or None
+        Optional creep terms.
+    tolerance : float
+        A mode whose discrete transition block has spectral radius below this is replaced by
+        its one-step contribution to the tip outputs.
+    reduce : bool
+        False keeps every mode (for checks).
+
+    Returns
+    -------
+    DiscreteBender
+    """
+    if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+    nc = 0 if creep is None else creep.size
+    omega = 2.0 * np.pi * beam.frequencies
+    phi_b = beam.modes.T @ beam.piezo_input
+    tip_w = beam.modes[-2, :]
+    tip_theta = beam.modes[-1, :]
+
+    blocks = [
+        _mode_block(w, z, pb, creep, dt)
+        for w, z, pb in zip(omega, beam.damping_ratios, phi_b, strict=True)
+    ]
+    radius = np.array([np.abs(np.linalg.eigvals(ad[nc:, nc:])).max() for ad, _ in blocks])
+    kept = np.arange(len(blocks)) if not reduce else np.flatnonzero(radius >= tolerance)
+    fast = np.setdiff1d(np.arange(len(blocks)), kept)
+
+    n_s = nc + 2 * len(kept) + 2
+    a = np.zeros((n_s, n_s))
+    b = np.zeros(n_s)
+    c = np.zeros((2, n_s))
+    if nc:
+        ad0, bd0 = blocks[0]
+        a[:nc, :nc] = ad0[:nc, :nc]
+        b[:nc] = bd0[:nc]
+    for i, k in enumerate(kept):
+        ad, bd = blocks[k]
+        rows = slice(nc + 2 * i, nc + 2 * i + 2)
+        a[rows, rows] = ad[nc:, nc:]
+        a[rows, :nc] = ad[nc:, :nc]
+        b[rows] = bd[nc:]
+        c[0, rows] = [tip_w[k], 0.0]
+        c[1, rows] = [tip_theta[k], 0.0]
+    fast_rows = slice(n_s - 2, n_s)
+    for k in fast:
+        ad, bd = blocks[k]
+        # Next-step displacement of a fast mode from the current creep states and input.
+        gain = np.array([tip_w[k], tip_theta[k]])
+        a[fast_rows, :nc] += np.outer(gain, ad[nc, :nc])
+        b[fast_rows] += gain * bd[nc]
+    c[0, n_s - 2] = 1.0
+    c[1, n_s - 1] = 1.0
+
+    step = np.zeros((n_s + 2, n_s + 1))
+    step[:n_s, :n_s] = a
+    step[:n_s, n_s] = b
+    step[n_s:, :n_s] = c @ a
+    step[n_s:, n_s] = c @ b
+
+    nodal = np.zeros((beam.n_elements + 1, n_s))
+    for i, k in enumerate(kept):
+        nodal[1:, nc + 2 * i] = beam.modes[0::2, k]
+    return DiscreteBender(
+        dt=float(dt),
+        step_matrix=step,
+        output_matrix=c,
+        kept_modes=kept,
+        nodal_matrix=nodal,
+        n_creep=nc,
+    )

@@ -1,0 +1,372 @@
+"""PiezoBender-v0: a PI PICMA piezoelectric bender as a Gymnasium environment.
+
+## Description
+A clamped-free piezoelectric bimorph bender (PL140 by default, or any bender of the PICMA
+family) modelled with Euler-Bernoulli finite elements built from its datasheet, with
+rate-independent input hysteresis (Bouc-Wen by default), optional creep and a bounded-noise
+displacement sensor. The dynamics are discretised exactly (zero-order hold) at ``dt``. The task
+is to make the tip deflection track a reference.
+
+## Action Space
+``Box(-U_r, U_r, (1,), float32)``: the drive voltage in volts (one-sided; the physical drive is
+0..60 V around a 30 V bias, so U_r = 30 V for the whole family). A voltage beyond the range is
+clipped, as the amplifier saturates, and ``info["saturated"]`` is True. NaN, inf or a wrong
+shape raise ValueError.
+
+## Observation Space
+float32 vector, all entries in micrometres:
+
+| index | observation |
+|---|---|
+| 0 | measured tip deflection y_t + nu_t, nu_t ~ U(-noise_bound, noise_bound) |
+| 1 | reference r_t (only with a reference) |
+| 2 .. 1 + preview | the next reference samples r_{t+1} .. r_{t+preview} |
+
+The bounds are proven, not guessed: the peak-to-peak gain of the beam (L1 norm of its impulse
+response) times the largest effective voltage the hysteresis can produce, plus the noise bound.
+
+## Rewards
+``-((y_{t+1} - r_{t+1}) / stroke)^2`` after the action a_t: the squared tracking error of the
+true (noise-free) deflection, normalised by the datasheet stroke. Without a reference it
+regulates to zero deflection.
+
+## Episode End
+Truncated after ``max_episode_steps`` (default 2000 steps = 2 s at dt = 1 ms) by TimeLimit.
+Terminated only if ``deflection_limit`` (um) is set and exceeded, as a bender driven into its
+mechanical stop would be.
+
+## Info
+``deflection_um`` (true tip deflection), ``voltage_V`` (applied, after clipping),
+``effective_voltage_V`` (after hysteresis), ``charge_uC`` (drive charge), ``saturated``, and
+``reference_um`` when the env has a reference.
+
+## Reset options
+``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this
+voltage (V) instead of 0 V.
+
+## Arguments
+See :class:`PiezoBenderEnv`. The physics object is ``env.unwrapped.model``
+(:class:`piezo_env.model.PiezoBenderModel`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from piezo_env.datasheet import BenderDatasheet
+from piezo_env.discrete import Creep
+from piezo_env.fem import DEFAULT_ELEMENTS
+from piezo_env.hysteresis import Hysteresis
+from piezo_env.model import BenderSimulator, PiezoBenderModel
+from piezo_env.reference import make_reference
+
+__all__ = ["PiezoBenderEnv", "check_reset_options", "observation_bound", "prepare_reference"]
+
+DEFAULT_HORIZON = 2000
+_NOISE_BLOCK = 1024
+_TRACE = 500
+
+
+def observation_bound(model: PiezoBenderModel, noise_bound: float) -> float:
+    """Finite bound (um) of every observation entry: deflection bound plus noise, rounded up."""
+    return float(np.float32(math.ceil((model.deflection_bound_um() + noise_bound) * 1.001 + 1.0)))
+
+
+def prepare_reference(
+    reference: object, n: int, *, model: PiezoBenderModel, bound: float, rng: np.random.Generator
+) -> np.ndarray | None:
+    """Reference samples (um, float32) for one episode: None, a named shape or an array.
+
+    Arrays are used as given; past their end the last value holds. Raises ValueError for
+    non-finite values or values outside the observation bound.
+    """
+    if reference is None:
+        return None
+    if isinstance(reference, str):
+        values = make_reference(reference, n, dt=model.dt, stroke_um=model.stroke_um, rng=rng)
+    else:
+        values = np.asarray(reference, dtype=np.float64).ravel()
+        if values.size == 0 or not np.all(np.isfinite(values)):
+            raise ValueError("reference array must be non-empty and finite (um)")
+        if np.abs(values).max() > bound:
+            raise ValueError(
+                f"reference reaches {np.abs(values).max():.1f} um, beyond what the bender can "
+                f"reach (observation bound {bound:.1f} um); scale it down"
+            )
+    return values.astype(np.float32)
+
+
+def check_reset_options(options: dict[str, Any], u_max: float) -> float:
+    """Validate reset options; returns the initial voltage (V)."""
+    unknown = set(options) - {"reference", "initial_voltage"}
+    if unknown:
+        raise ValueError(
+            f"unknown reset options {sorted(unknown)}; "
+            "valid: 'reference' (array, um) and 'initial_voltage' (V)"
+        )
+    voltage = float(options.get("initial_voltage", 0.0))
+    if not (math.isfinite(voltage) and abs(voltage) <= u_max):
+        raise ValueError(f"initial_voltage must be within [-{u_max}, {u_max}] V, got {voltage}")
+    return voltage
+
+
+def _check_noise_bound(noise_bound: float) -> float:
+    if not (
+        isinstance(noise_bound, (int, float)) and math.isfinite(noise_bound) and noise_bound >= 0
+    ):
+        raise ValueError(f"noise_bound must be a finite number >= 0 (um), got {noise_bound!r}")
+    return float(noise_bound)
+
+
+def _check_preview(preview: int) -> int:
+    if isinstance(preview, bool) or not isinstance(preview, (int, np.integer)) or preview < 0:
+        raise ValueError(f"preview must be an integer >= 0 (samples), got {preview!r}")
+    return int(preview)
+
+
+class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
+    """Piezoelectric bender tracking task (see the module docstring for spaces and reward).
+
+    Parameters
+    ----------
+    bender : str or BenderDatasheet
+        ``"PL140"`` (default), ``"PL112"``, ``"PL122"``, ``"PL127"``, ``"PL128"`` or a datasheet.
+    n_elements : int
+        Finite elements (default 10).
+    dt : float
+        Sample time (s), default 1e-3.
+    hysteresis : {"bouc-wen", "prandtl-ishlinskii", None} or Hysteresis
+        Input hysteresis, default Bouc-Wen.
+    creep : bool or Creep
+        Linear creep, default off.
+    noise_bound : float
+        Sensor noise bound r (um): nu ~ U(-r, r); default 1.0, 0 allowed.
+    reference : None, str or array_like
+        None (regulate to zero, no reference in the observation), a named reference
+        (``"random"`` default, ``"steps"``, ``"sine"``, ``"triangle"``, ``"multisine"``) drawn
+        from ``np_random`` at each reset, or an array in um.
+    preview : int
+        Number of future reference samples appended to the observation (default 0).
+    deflection_limit : float or None
+        Terminate when |deflection| exceeds this (um); default None (never).
+    damping_ratio : float
+        First-mode damping ratio (default 0.02).
+    render_mode : {None, "rgb_array", "human"}
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}
+
+    def __init__(
+        self,
+        *,
+        bender: str | BenderDatasheet = "PL140",
+        n_elements: int = DEFAULT_ELEMENTS,
+        dt: float = 1e-3,
+        hysteresis: str | Hysteresis | None = "bouc-wen",
+        creep: bool | Creep = False,
+        noise_bound: float = 1.0,
+        reference: str | np.ndarray | None = "random",
+        preview: int = 0,
+        deflection_limit: float | None = None,
+        damping_ratio: float = 0.02,
+        render_mode: str | None = None,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be one of {self.metadata['render_modes']} or None, "
+                f"got {render_mode!r}"
+            )
+        if deflection_limit is not None and not deflection_limit > 0:
+            raise ValueError(f"deflection_limit must be > 0 um or None, got {deflection_limit!r}")
+        self.model = PiezoBenderModel(
+            bender,
+            n_elements=n_elements,
+            dt=dt,
+            hysteresis=hysteresis,
+            creep=creep,
+            damping_ratio=damping_ratio,
+        )
+        self.noise_bound = _check_noise_bound(noise_bound)
+        self.preview = _check_preview(preview)
+        self.deflection_limit = deflection_limit
+        self.render_mode = render_mode
+        self._reference_spec = reference
+        self._stroke = self.model.stroke_um
+        self._u_max = self.model.rated_voltage
+
+        self.bound = observation_bound(self.model, self.noise_bound)
+        if reference is not None and not isinstance(reference, str):
+            prepare_reference(reference, 1, model=self.model, bound=self.bound, rng=None)
+        elif isinstance(reference, str):
+            prepare_reference(
+                reference, 2, model=self.model, bound=self.bound, rng=np.random.default_rng(0)
+            )
+        obs_size = 1 if reference is None else 2 + self.preview
+        self.observation_space = spaces.Box(-self.bound, self.bound, (obs_size,), np.float32)
+        self.action_space = spaces.Box(-self._u_max, self._u_max, (1,), np.float32)
+        self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / dt)}
+
+        self._plant = BenderSimulator(self.model)
+        self._reference: np.ndarray | None = None
+        self._noise = np.zeros(_NOISE_BLOCK)
+        self._noise_index = 0
+        self._t = 0
+        self._trace = np.zeros(_TRACE) if render_mode is not None else None
+        self._renderer = None
+
+    # -- Gymnasium API -------------------------------------------------------------------------
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        options = dict(options or {})
+        voltage = check_reset_options(options, self._u_max)
+        self._plant.reset(voltage)
+        spec = options.get("reference", self._reference_spec)
+        if spec is None and "reference" in options and self._reference_spec is not None:
+            raise ValueError("this env was made with a reference; pass an array, not None")
+        if spec is not None and self._reference_spec is None:
+            raise ValueError(
+                "this env was made with reference=None; make it with a reference to track one"
+            )
+        horizon = (
+            self.spec.max_episode_steps
+            if self.spec and self.spec.max_episode_steps
+            else DEFAULT_HORIZON
+        )
+        self._reference = prepare_reference(
+            spec, horizon + self.preview + 1, model=self.model, bound=self.bound, rng=self.np_random
+        )
+        self._draw_noise()
+        self._t = 0
+        if self._trace is not None:
+            self._trace[:] = self._plant.deflection * 1e6
+        deflection_um = self._plant.deflection * 1e6
+        info = self._info(deflection_um, voltage, voltage, 0.0, False)
+        info["effective_voltage_V"] = float(
+            self.model.hysteresis.step(self._plant.get_state()[1], voltage)[1]
+        )
+        info["charge_uC"] = self.model.charge(voltage, self._plant.tip_rotation) * 1e6
+        return self._observe(deflection_um + self._next_noise()), info
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        voltage, saturated = self._drive_voltage(action)
+        deflection, u_eff, charge = self._plant.step(voltage)
+        self._t += 1
+        deflection_um = deflection * 1e6
+        error = deflection_um - self._reference_at(self._t)
+        reward = -((error / self._stroke) ** 2)
+        terminated = (
+            self.deflection_limit is not None and abs(deflection_um) > self.deflection_limit
+        )
+        if self._trace is not None:
+            self._trace[self._t % _TRACE] = deflection_um
+        observation = self._observe(deflection_um + self._next_noise())
+        info = self._info(deflection_um, voltage, u_eff, charge * 1e6, saturated)
+        if self.render_mode == "human":
+            self.render()
+        return observation, reward, terminated, False, info
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn(
+                "You are calling render method without specifying any render mode. "
+                "You can specify the render_mode at initialization, "
+                'e.g. gym.make("piezo_env:PiezoBender-v0", render_mode="rgb_array")'
+            )
+            return None
+        from piezo_env.render import BenderRenderer
+
+        if self._renderer is None:
+            self._renderer = BenderRenderer(self.model, human=self.render_mode == "human")
+        trace = np.roll(self._trace, -(self._t % _TRACE) - 1)
+        reference = None if self._reference is None else self._reference_at(self._t)
+        frame = self._renderer.draw(
+            self._plant.nodal_deflection * 1e6,
+            self._plant.deflection * 1e6,
+            trace,
+            reference,
+            self._t,
+        )
+        return frame if self.render_mode == "rgb_array" else None
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_renderer"] = None
+        return state
+
+    # -- helpers -------------------------------------------------------------------------------
+
+    def _drive_voltage(self, action: np.ndarray) -> tuple[float, bool]:
+        """Validated, clipped voltage (V) and whether it was clipped."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (1,) and a.shape != ():
+            raise ValueError(
+                f"action must have shape (1,) (one voltage in V), got shape {a.shape}: {action!r}"
+            )
+        u = a.item()
+        u_max = self._u_max
+        if -u_max <= u <= u_max:  # False for NaN
+            return u, False
+        if not math.isfinite(u):
+            raise ValueError(f"action must be a finite voltage in V, got {u!r}")
+        return (u_max, True) if u > 0 else (-u_max, True)
+
+    def _reference_at(self, t: int) -> float:
+        ref = self._reference
+        if ref is None:
+            return 0.0
+        return float(ref[t]) if t < len(ref) else float(ref[-1])
+
+    def _observe(self, measured_um: float) -> np.ndarray:
+        ref = self._reference
+        if ref is None:
+            return np.array([measured_um], dtype=np.float32)
+        obs = np.empty(2 + self.preview, dtype=np.float32)
+        obs[0] = measured_um
+        t, end = self._t, self._t + self.preview + 1
+        if end <= len(ref):
+            obs[1:] = ref[t:end]
+        else:
+            window = ref[t:end] if t < len(ref) else ref[:0]
+            obs[1 : 1 + len(window)] = window
+            obs[1 + len(window) :] = ref[-1]
+        return obs
+
+    def _draw_noise(self) -> None:
+        r = self.noise_bound
+        if r > 0:
+            self._noise = self.np_random.uniform(-r, r, _NOISE_BLOCK)
+        self._noise_index = 0
+
+    def _next_noise(self) -> float:
+        if self._noise_index == _NOISE_BLOCK:
+            self._draw_noise()
+        value = self._noise.item(self._noise_index)
+        self._noise_index += 1
+        return value
+
+    def _info(
+        self, deflection_um: float, voltage: float, u_eff: float, charge_uc: float, saturated: bool
+    ) -> dict[str, Any]:
+        info = {
+            "deflection_um": deflection_um,
+            "voltage_V": voltage,
+            "effective_voltage_V": u_eff,
+            "charge_uC": charge_uc,
+            "saturated": saturated,
+        }
+        if self._reference is not None:
+            info["reference_um"] = self._reference_at(self._t)
+        return info

@@ -1,0 +1,308 @@
+"""Natively batched PiezoBender-v0: N benders stepped with one matrix product.
+
+Each sub-environment i has its own random generator, seeded ``seed + i`` on ``reset(seed=seed)``
+(as SyncVectorEnv seeds its copies), and draws its reference and noise exactly as a single
+``PiezoBenderEnv`` does, so sub-environment i reproduces the single env reset with seed + i
+sample for sample. Autoreset follows Gymnasium's next-step mode: the step after an episode ends
+resets that sub-environment (its action is ignored, reward 0).
+
+Performance: the batched state update is split into blocks of at most 1024 rows so that each
+matrix product stays below OpenBLAS's multi-threading threshold (tiny threaded products stall
+on small machines).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from piezo_env.datasheet import BenderDatasheet
+from piezo_env.discrete import Creep
+from piezo_env.env import (
+    DEFAULT_HORIZON,
+    _check_noise_bound,
+    _check_preview,
+    check_reset_options,
+    observation_bound,
+    prepare_reference,
+)
+from piezo_env.fem import DEFAULT_ELEMENTS
+from piezo_env.hysteresis import Hysteresis
+from piezo_env.model import PiezoBenderModel
+
+__all__ = ["PiezoBenderVectorEnv"]
+
+_NOISE_BLOCK = 1024
+_ROW_BLOCK = 1024
+_INFO_KEYS = (
+    "deflection_um",
+    "voltage_V",
+    "effective_voltage_V",
+    "charge_uC",
+    "reference_um",
+    "saturated",
+)
+
+
+class PiezoBenderVectorEnv(VectorEnv):
+    """``num_envs`` PiezoBender-v0 environments in one batched model.
+
+    Takes the keyword arguments of :class:`piezo_env.env.PiezoBenderEnv` (except rendering)
+    plus ``num_envs`` and ``max_episode_steps``.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {
+        "render_modes": [],
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+    }
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        *,
+        max_episode_steps: int = DEFAULT_HORIZON,
+        bender: str | BenderDatasheet = "PL140",
+        n_elements: int = DEFAULT_ELEMENTS,
+        dt: float = 1e-3,
+        hysteresis: str | Hysteresis | None = "bouc-wen",
+        creep: bool | Creep = False,
+        noise_bound: float = 1.0,
+        reference: str | np.ndarray | None = "random",
+        preview: int = 0,
+        deflection_limit: float | None = None,
+        damping_ratio: float = 0.02,
+        render_mode: str | None = None,
+    ) -> None:
+        if (
+            isinstance(num_envs, bool)
+            or not isinstance(num_envs, (int, np.integer))
+            or num_envs < 1
+        ):
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if render_mode is not None:
+            raise ValueError("the vector env does not render; make single envs to render")
+        if deflection_limit is not None and not deflection_limit > 0:
+            raise ValueError(f"deflection_limit must be > 0 um or None, got {deflection_limit!r}")
+        self.num_envs = int(num_envs)
+        self.max_episode_steps = int(max_episode_steps)
+        self.model = PiezoBenderModel(
+            bender,
+            n_elements=n_elements,
+            dt=dt,
+            hysteresis=hysteresis,
+            creep=creep,
+            damping_ratio=damping_ratio,
+        )
+        self.noise_bound = _check_noise_bound(noise_bound)
+        self.preview = _check_preview(preview)
+        self.deflection_limit = deflection_limit
+        self.render_mode = None
+        self._reference_spec = reference
+        self.bound = observation_bound(self.model, self.noise_bound)
+        if reference is not None:
+            prepare_reference(
+                reference, 2, model=self.model, bound=self.bound, rng=np.random.default_rng(0)
+            )
+        obs_size = 1 if reference is None else 2 + self.preview
+        u_max = self.model.rated_voltage
+        self._u_max = u_max
+        self.single_observation_space = spaces.Box(-self.bound, self.bound, (obs_size,), np.float32)
+        self.single_action_space = spaces.Box(-u_max, u_max, (1,), np.float32)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+
+        n, k = self.num_envs, self.model.discrete.n_states
+        # Square step matrix on rows [state, u_eff, unused] -> [next state, y, theta]; writing the
+        # next u_eff over y turns the product into the next input, so two buffers ping-pong.
+        step = np.zeros((k + 2, k + 2))
+        step[:, : k + 1] = self.model.discrete.step_matrix
+        self._step_t = np.ascontiguousarray(step.T)
+        self._k = k
+        self._x = np.zeros((n, k + 2))
+        self._out = np.zeros((n, k + 2))
+        self._hyst = np.zeros((n, self.model.hysteresis.state_size))
+        self._y = np.zeros(n)  # true tip deflection (m)
+        self._theta = np.zeros(n)
+        self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
+        self._ref_len = self.max_episode_steps + self.preview + 1
+        self._ref = np.zeros((n, self._ref_len), dtype=np.float32)
+        self._noise = np.zeros((n, _NOISE_BLOCK))
+        self._noise_index = np.zeros(n, dtype=np.int64)
+        self._t = np.zeros(n, dtype=np.int64)
+        self._prev_done = np.zeros(n, dtype=bool)
+        # True while every sub-env is at the same step (reset together): then the reference and
+        # noise are read as one column instead of a gather.
+        self._lockstep = True
+        self._rows = np.arange(n)
+        self._all_true = np.ones(n, dtype=bool)
+        self._window = np.arange(self.preview + 1)
+
+    # -- Gymnasium API -------------------------------------------------------------------------
+
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is None:
+            seeds: list[int | None] = [None] * self.num_envs
+        elif isinstance(seed, (int, np.integer)):
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(
+                    f"seed list must have num_envs = {self.num_envs} entries, got {len(seeds)}"
+                )
+        options = dict(options or {})
+        check_reset_options(options, self._u_max)
+        if seed is not None:
+            self._rngs = [seeding.np_random(s)[0] for s in seeds]
+        self._prev_done[:] = False
+        self._reset_rows(self._rows, options)
+        zeros = np.zeros(self.num_envs)
+        deflection = self._y * 1e6
+        reference = self._reference_now()
+        measured = deflection + self._take_noise()
+        voltage = np.full(self.num_envs, float(options.get("initial_voltage", 0.0)))
+        _, u_eff = self.model.hysteresis.step(self._hyst, voltage)
+        info = self._info(deflection, reference, voltage, u_eff, zeros.astype(bool))
+        return self._observe(measured), info
+
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape not in ((self.num_envs, 1), (self.num_envs,)):
+            raise ValueError(
+                f"actions must have shape ({self.num_envs}, 1) (one voltage in V per env), "
+                f"got {a.shape}"
+            )
+        a = a.reshape(self.num_envs)
+        if not math.isfinite(a.sum()):
+            bad = a[~np.isfinite(a)][0] if not np.all(np.isfinite(a)) else a.sum()
+            raise ValueError(f"actions must be finite voltages in V, got {bad!r}")
+        voltage = np.clip(a, -self._u_max, self._u_max)
+        saturated = voltage != a
+
+        self._hyst, u_eff = self.model.hysteresis.step(self._hyst, voltage)
+        k, x, out = self._k, self._x, self._out
+        x[:, k] = u_eff
+        for start in range(0, self.num_envs, _ROW_BLOCK):
+            rows = slice(start, start + _ROW_BLOCK)
+            np.matmul(x[rows], self._step_t, out=out[rows])
+        self._y[:] = out[:, k]
+        self._theta[:] = out[:, k + 1]
+        self._x, self._out = out, x
+        self._t += 1
+
+        done = self._prev_done
+        any_done = bool(done.any())
+        if any_done:
+            self._reset_rows(np.flatnonzero(done), {})
+        deflection = self._y * 1e6
+        reference = self._reference_now()
+        reward = -np.square((deflection - reference) / self.model.stroke_um)
+        if self.deflection_limit is not None:
+            terminated = np.abs(deflection) > self.deflection_limit
+        else:
+            terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = self._t >= self.max_episode_steps
+        if any_done:
+            reward[done] = 0.0
+            terminated[done] = False
+            truncated[done] = False
+        self._prev_done = terminated | truncated
+        measured = deflection + self._take_noise()
+        info = self._info(deflection, reference, voltage, u_eff, saturated)
+        return self._observe(measured), reward, terminated, truncated, info
+
+    # -- helpers -------------------------------------------------------------------------------
+
+    def _reset_rows(self, rows: np.ndarray, options: dict[str, Any]) -> None:
+        voltage = check_reset_options(options, self._u_max)
+        state, hyst = self.model.static_state(voltage)
+        self._x[rows, : self._k] = state
+        self._x[rows, self._k :] = 0.0
+        self._hyst[rows] = hyst
+        self._y[rows] = self.model.discrete.output_matrix[0] @ state
+        self._theta[rows] = self.model.discrete.output_matrix[1] @ state
+        self._t[rows] = 0
+        self._lockstep = len(rows) == self.num_envs or (
+            self._lockstep and bool(np.all(self._t == 0))
+        )
+        spec = options.get("reference", self._reference_spec)
+        r = self.noise_bound
+        for i in rows:
+            rng = self._rngs[i]
+            ref = prepare_reference(
+                spec, self._ref_len, model=self.model, bound=self.bound, rng=rng
+            )
+            if ref is not None:
+                m = min(len(ref), self._ref_len)
+                self._ref[i, :m] = ref[:m]
+                self._ref[i, m:] = ref[-1]
+            if r > 0:
+                self._noise[i] = rng.uniform(-r, r, _NOISE_BLOCK)
+            self._noise_index[i] = 0
+
+    def _take_noise(self) -> np.ndarray:
+        if self.noise_bound == 0:
+            return np.zeros(self.num_envs)
+        r = self.noise_bound
+        if self._lockstep:
+            j = int(self._noise_index[0])
+            if j == _NOISE_BLOCK:
+                for i in range(self.num_envs):
+                    self._noise[i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
+                self._noise_index[:] = j = 0
+            self._noise_index += 1
+            return self._noise[:, j].copy()
+        for i in np.flatnonzero(self._noise_index == _NOISE_BLOCK):
+            self._noise[i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
+            self._noise_index[i] = 0
+        values = self._noise[self._rows, self._noise_index]
+        self._noise_index += 1
+        return values
+
+    def _reference_now(self) -> np.ndarray:
+        if self._reference_spec is None:
+            return np.zeros(self.num_envs)
+        if self._lockstep:
+            return self._ref[:, min(int(self._t[0]), self._ref_len - 1)].astype(np.float64)
+        t = np.minimum(self._t, self._ref_len - 1)
+        return self._ref[self._rows, t].astype(np.float64)
+
+    def _observe(self, measured: np.ndarray) -> np.ndarray:
+        if self._reference_spec is None:
+            return measured.astype(np.float32)[:, None]
+        obs = np.empty((self.num_envs, 2 + self.preview), dtype=np.float32)
+        obs[:, 0] = measured
+        t = int(self._t[0])
+        if self._lockstep and t + self.preview < self._ref_len:
+            obs[:, 1:] = self._ref[:, t : t + self.preview + 1]
+        else:
+            idx = np.minimum(self._t[:, None] + self._window, self._ref_len - 1)
+            obs[:, 1:] = self._ref[self._rows[:, None], idx]
+        return obs
+
+    def _info(self, deflection, reference, voltage, u_eff, saturated) -> dict[str, Any]:
+        values = (
+            deflection,
+            voltage,
+            np.asarray(u_eff, dtype=float),
+            self.model.charge(voltage, self._theta) * 1e6,
+            reference,
+            saturated,
+        )
+        info: dict[str, Any] = {}
+        for key, value in zip(_INFO_KEYS, values, strict=True):
+            if key == "reference_um" and self._reference_spec is None:
+                continue
+            info[key] = value
+            info["_" + key] = self._all_true
+        return info

@@ -1,0 +1,138 @@
+"""ARX model: simulation, prediction, transfer function, poles/zeros, JSON files."""
+
+import json
+
+import control
+import numpy as np
+import pytest
+
+from identification.arx import ARXModel, regressors
+
+DT = 1e-3
+
+
+def beam_like(noise_bound=0.0):
+    """Lightly damped second-order system, a bending mode at 50 Hz sampled at 1 kHz."""
+    rho, w = 0.99, 2 * np.pi * 50 * DT
+    return ARXModel([2 * rho * np.cos(w), -(rho**2)], [0.5, 0.3], noise_bound=noise_bound, dt=DT)
+
+
+def loop_simulate(model, u, nu):
+    y = np.zeros(len(u))
+    for t in range(len(u)):
+        y[t] = nu[t]
+        y[t] += sum(model.a[i - 1] * y[t - i] for i in range(1, model.na + 1) if t - i >= 0)
+        y[t] += sum(model.b[j - 1] * u[t - j] for j in range(1, model.nb + 1) if t - j >= 0)
+    return y
+
+
+def test_simulate_matches_the_difference_equation():
+    model = ARXModel([0.5, -0.2, 0.1], [1.0, -0.4], noise_bound=0.1)
+    u = np.random.default_rng(0).standard_normal(200)
+    np.testing.assert_allclose(model.simulate(u), loop_simulate(model, u, np.zeros(200)))
+    nu = np.random.default_rng(5).uniform(-0.1, 0.1, 200)
+    np.testing.assert_allclose(
+        model.simulate(u, rng=np.random.default_rng(5)), loop_simulate(model, u, nu)
+    )
+
+
+def test_simulate_continues_from_given_initial_outputs():
+    model = beam_like()
+    u = np.random.default_rng(1).standard_normal(100)
+    y = model.simulate(u, rng=np.random.default_rng(2))
+    y_free = model.simulate(u, y0=y[:2])
+    np.testing.assert_array_equal(y_free[:2], y[:2])
+    expected = (
+        model.a[0] * y_free[1] + model.a[1] * y_free[0] + model.b[0] * u[1] + model.b[1] * u[0]
+    )
+    assert y_free[2] == pytest.approx(expected)
+
+
+def test_predict_is_one_step_ahead_with_the_record_start_taken_as_zero():
+    model = beam_like(noise_bound=0.05)
+    u = np.random.default_rng(3).standard_normal(300)
+    y = model.simulate(u, rng=np.random.default_rng(4))
+    y_hat = model.predict(u, y)
+    psi, _ = regressors(u, y, 2, 2)
+    np.testing.assert_allclose(y_hat[2:], psi @ model.theta)
+    assert np.max(np.abs(y_hat[2:] - y[2:])) <= 0.05
+    assert y_hat[0] == 0.0
+    assert y_hat[1] == pytest.approx(model.a[0] * y[0] + model.b[0] * u[0])
+
+
+def test_transfer_function_agrees_with_simulate_on_a_step():
+    model = ARXModel([1.2, -0.5, 0.1], [0.3, 0.2], dt=DT)
+    u = np.ones(200)
+    response = control.forced_response(model.to_transfer_function(), T=np.arange(200) * DT, U=u)
+    np.testing.assert_allclose(response.outputs, model.simulate(u), atol=1e-12)
+    assert model.to_transfer_function().dt == DT
+    assert model.simulate(np.ones(5000))[-1] == pytest.approx(model.static_gain())
+
+
+def test_poles_zeros_and_phase():
+    model = beam_like()
+    np.testing.assert_allclose(np.abs(model.poles()), [0.99, 0.99])
+    np.testing.assert_allclose(model.zeros(), [-0.6])
+    assert model.is_stable() and model.is_minimum_phase()
+    tf = model.to_transfer_function()
+    np.testing.assert_allclose(np.sort_complex(tf.poles()), np.sort_complex(model.poles()))
+    assert not ARXModel([0.5], [0.2, 0.5]).is_minimum_phase()
+
+
+def test_regressors_layout():
+    u = np.arange(10.0)
+    y = 100 + np.arange(10.0)
+    psi, target = regressors(u, y, 2, 3)
+    assert psi.shape == (7, 5)
+    np.testing.assert_array_equal(psi[0], [102, 101, 2, 1, 0])
+    np.testing.assert_array_equal(target, y[3:])
+
+
+def test_json_round_trip_with_and_without_history(tmp_path):
+    history = {"t": np.arange(3.0), "theta": np.ones((3, 4)), "noise_bound": [np.nan, 2, 3]}
+    model = ARXModel(
+        [1.8, -0.9], [0.1, 0.2], noise_bound=0.3, dt=DT, history=history, method="chebyshev"
+    )
+    path = tmp_path / "arx.json"
+    model.save(path)
+    loaded = ARXModel.load(path)
+    np.testing.assert_array_equal(loaded.theta, model.theta)
+    assert (loaded.noise_bound, loaded.dt, loaded.method) == (0.3, DT, "chebyshev")
+    np.testing.assert_array_equal(loaded.history["noise_bound"], [np.nan, 2, 3])
+    model.save(path, include_history=False)
+    assert ARXModel.load(path).history is None
+    json.loads(path.read_text())  # strict JSON, no NaN tokens
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        ("{not json", "not valid JSON"),
+        ('{"format": "something-else"}', "not an ARX model"),
+        ('{"format": "piezo-arx", "version": 1, "a": [1.0]}', "lacks"),
+        (
+            '{"format": "piezo-arx", "version": 1, "a": [1.0], "b": [1.0], "noise_bound": -1,'
+            ' "dt": 1.0}',
+            "noise_bound",
+        ),
+        (
+            '{"format": "piezo-arx", "version": 1, "a": [1.0], "b": [1.0], "noise_bound": 0,'
+            ' "dt": 1.0, "history": {"theta": [[1.0]]}}',
+            "history",
+        ),
+    ],
+)
+def test_corrupted_files_raise_value_error(tmp_path, content, match):
+    path = tmp_path / "bad.json"
+    path.write_text(content)
+    with pytest.raises(ValueError, match=match):
+        ARXModel.load(path)
+
+
+def test_constructor_rejects_bad_values():
+    with pytest.raises(ValueError, match="finite"):
+        ARXModel([np.nan], [1.0])
+    with pytest.raises(ValueError, match="dt"):
+        ARXModel([0.5], [1.0], dt=0.0)
+    with pytest.raises(ValueError, match="na \\+ nb"):
+        ARXModel([], [])

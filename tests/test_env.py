@@ -1,0 +1,265 @@
+"""PiezoBender-v0 against Gymnasium's and stable-baselines3's checkers and its own contract."""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import piezo_env  # noqa: F401  (registers the ids)
+from piezo_env.env import PiezoBenderEnv
+
+ENV_ID = "piezo_env:PiezoBender-v0"
+
+
+def _rollout(env, actions, seed):
+    obs, _ = env.reset(seed=seed)
+    out = [obs]
+    for a in actions:
+        obs, reward, _terminated, _truncated, info = env.step(np.array([a], dtype=np.float32))
+        out.append(np.r_[obs, reward, info["deflection_um"]])
+    return out
+
+
+def test_make_works_in_a_fresh_interpreter():
+    code = (
+        "import gymnasium as gym; env = gym.make('piezo_env:PiezoBender-v0'); "
+        "obs, _ = env.reset(seed=0); print(env.spec.max_episode_steps, obs.dtype)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["2000", "float32"]
+
+
+def _checker_warnings(check, env) -> list[str]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check(env)
+    return [str(w.message) for w in caught]
+
+
+# The action is a voltage in volts, as the physics asks; both checkers recommend a [-1, 1] action
+# for RL, which gymnasium.wrappers.RescaleAction gives. That recommendation is the only remark.
+_RESCALE_HINT = "symmetric and normalized"
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {},
+        {"reference": None},
+        {"preview": 5, "hysteresis": "prandtl-ishlinskii"},
+        {"bender": "PL112", "noise_bound": 0.0},
+    ],
+)
+def test_gymnasium_checker_passes_without_warnings(kwargs):
+    env = gym.make(ENV_ID, **kwargs)
+    remarks = _checker_warnings(lambda e: check_env(e, skip_render_check=True), env.unwrapped)
+    assert all(_RESCALE_HINT in r for r in remarks), remarks
+
+
+def test_stable_baselines3_checker_passes_without_warnings():
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    env = gym.make(ENV_ID, preview=3)
+    remarks = _checker_warnings(lambda e: sb3_checker.check_env(e, warn=True), env)
+    assert all(_RESCALE_HINT in r for r in remarks), remarks
+    rescaled = gym.wrappers.RescaleAction(gym.make(ENV_ID, preview=3), -1.0, 1.0)
+    assert _checker_warnings(lambda e: sb3_checker.check_env(e, warn=True), rescaled) == []
+
+
+def test_step_types_and_spaces():
+    env = gym.make(ENV_ID)
+    obs, info = env.reset(seed=3)
+    assert obs.dtype == np.float32 and obs.shape == (2,)
+    assert env.action_space.low[0] == -30.0 and env.action_space.high[0] == 30.0
+    obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+    assert type(reward) is float and type(terminated) is bool and type(truncated) is bool
+    assert set(info) == {
+        "deflection_um",
+        "voltage_V",
+        "effective_voltage_V",
+        "charge_uC",
+        "reference_um",
+        "saturated",
+    }
+    assert env.observation_space.contains(obs)
+
+
+def test_same_seed_same_trajectory_bitwise():
+    actions = np.random.default_rng(0).uniform(-30, 30, 300)
+    a = _rollout(gym.make(ENV_ID), actions, seed=42)
+    b = _rollout(gym.make(ENV_ID), actions, seed=42)
+    c = _rollout(gym.make(ENV_ID), actions, seed=43)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    assert not all(np.array_equal(x, y) for x, y in zip(a, c, strict=True))
+
+
+def test_pickle_round_trip_continues_identically():
+    env = gym.make(ENV_ID)
+    env.reset(seed=5)
+    for _ in range(50):
+        env.step(np.array([7.0], dtype=np.float32))
+    clone = pickle.loads(pickle.dumps(env))
+    for v in np.linspace(-30, 30, 40):
+        a = np.array([v], dtype=np.float32)
+        assert np.array_equal(env.step(a)[0], clone.step(a)[0])
+
+
+def test_vector_env_equals_single_envs():
+    n, seed = 3, 11
+    vec = gym.make_vec(
+        "PiezoBender-v0", num_envs=n, vectorization_mode="vector_entry_point", preview=2
+    )
+    singles = [gym.make(ENV_ID, preview=2) for _ in range(n)]
+    rng = np.random.default_rng(1)
+    actions = rng.uniform(-35, 35, (400, n, 1)).astype(np.float32)
+    obs_v, _ = vec.reset(seed=seed)
+    obs_s = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
+    np.testing.assert_array_equal(obs_v, np.stack(obs_s))
+    for a in actions:
+        obs_v, rew_v, _term_v, _trunc_v, info_v = vec.step(a)
+        for i, env in enumerate(singles):
+            obs, rew, _term, _trunc, info = env.step(a[i])
+            np.testing.assert_array_equal(obs_v[i], obs)
+            assert rew_v[i] == pytest.approx(rew, rel=1e-12, abs=1e-15)
+            assert info_v["deflection_um"][i] == pytest.approx(
+                info["deflection_um"], rel=1e-12, abs=1e-9
+            )
+            assert info_v["saturated"][i] == info["saturated"]
+
+
+def test_vector_env_autoresets_next_step():
+    vec = gym.make_vec(
+        "PiezoBender-v0", num_envs=2, vectorization_mode="vector_entry_point", max_episode_steps=5
+    )
+    vec.reset(seed=0)
+    for _ in range(4):
+        _, _, _, truncated, _ = vec.step(np.full((2, 1), 10.0, np.float32))
+        assert not truncated.any()
+    _, _, _, truncated, _ = vec.step(np.full((2, 1), 10.0, np.float32))
+    assert truncated.all()
+    _, reward, _, truncated, info = vec.step(np.full((2, 1), 10.0, np.float32))
+    assert not truncated.any() and np.all(reward == 0.0)
+    assert np.all(info["deflection_um"] == 0.0)
+
+
+def test_observations_stay_inside_bounds_under_bang_bang_at_resonance():
+    env = gym.make(ENV_ID, max_episode_steps=6000)
+    env.reset(seed=0)
+    f1 = env.unwrapped.model.beam.frequencies[0]
+    env.observation_space.high[0]
+    peak = 0.0
+    for k in range(6000):
+        v = 30.0 if np.sin(2 * np.pi * f1 * k * 1e-3) >= 0 else -30.0
+        obs, *_, info = env.step(np.array([v], dtype=np.float32))
+        assert env.observation_space.contains(obs)
+        peak = max(peak, abs(info["deflection_um"]))
+    assert peak > 10 * env.unwrapped.model.stroke_um  # resonance really was excited
+
+
+def test_long_random_run_stays_finite_and_bounded():
+    env = PiezoBenderEnv(hysteresis="bouc-wen", creep=True)
+    env.reset(seed=1)
+    actions = env.np_random.uniform(-30, 30, 100_000).astype(np.float32)
+    high = env.observation_space.high[0]
+    worst = 0.0
+    for a in actions:
+        obs, *_ = env.step(a.reshape(1))
+        worst = max(worst, abs(float(obs[0])))
+    assert np.isfinite(worst) and worst <= high
+
+
+def test_saturation_is_clipped_and_reported():
+    env = gym.make(ENV_ID)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([45.0], dtype=np.float32))
+    assert info["saturated"] and info["voltage_V"] == 30.0
+    _, _, _, _, info = env.step(np.array([-12.0], dtype=np.float32))
+    assert not info["saturated"] and info["voltage_V"] == pytest.approx(-12.0)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_action_raises(bad):
+    env = gym.make(ENV_ID)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([bad], dtype=np.float32))
+
+
+def test_wrong_action_shape_raises():
+    env = gym.make(ENV_ID)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape"):
+        env.unwrapped.step(np.zeros(2, dtype=np.float32))
+
+
+def test_bad_construction_raises():
+    with pytest.raises(TypeError, match="voltage_gain"):
+        gym.make(ENV_ID, voltage_gain=2.0)
+    with pytest.raises(ValueError, match="unknown bender"):
+        gym.make(ENV_ID, bender="PL999")
+    with pytest.raises(ValueError, match="noise_bound"):
+        gym.make(ENV_ID, noise_bound=-1.0)
+    with pytest.raises(ValueError, match="reference"):
+        gym.make(ENV_ID, reference="sawtooth")
+    with pytest.raises(ValueError, match="render_mode"):
+        gym.make(ENV_ID, render_mode="ascii")
+
+
+def test_reference_array_and_initial_voltage_options():
+    env = gym.make(ENV_ID, noise_bound=0.0, preview=2)
+    ref = np.linspace(0, 500, 10)
+    obs, _info = env.reset(seed=0, options={"reference": ref, "initial_voltage": 15.0})
+    model = env.unwrapped.model
+    state, _ = model.static_state(15.0)
+    assert obs[0] == pytest.approx(model.discrete.output_matrix[0] @ state * 1e6, rel=1e-6)
+    np.testing.assert_allclose(obs[1:], ref[:3], rtol=1e-6)
+    for _ in range(20):
+        obs, *_ = env.step(np.array([15.0], dtype=np.float32))
+    np.testing.assert_allclose(obs[1:], [500.0] * 3)  # the last value holds past the end
+    with pytest.raises(ValueError, match="reset options"):
+        env.reset(options={"reference_um": ref})
+    with pytest.raises(ValueError, match="beyond"):
+        env.reset(options={"reference": np.full(5, 1e9)})
+
+
+def test_reward_is_normalised_squared_tracking_error():
+    env = gym.make(ENV_ID, noise_bound=0.0, reference=np.full(50, 200.0))
+    env.reset(seed=0)
+    _, reward, _, _, info = env.step(np.array([10.0], dtype=np.float32))
+    expected = -(((info["deflection_um"] - 200.0) / env.unwrapped.model.stroke_um) ** 2)
+    assert reward == pytest.approx(expected)
+
+
+def test_deflection_limit_terminates():
+    env = gym.make(ENV_ID, deflection_limit=300.0)
+    env.reset(seed=0)
+    terminated = False
+    for _ in range(100):
+        _, _, terminated, _, info = env.step(np.array([30.0], dtype=np.float32))
+        if terminated:
+            break
+    assert terminated and abs(info["deflection_um"]) > 300.0
+
+
+def test_truncation_at_max_episode_steps():
+    env = gym.make(ENV_ID, max_episode_steps=10)
+    env.reset(seed=0)
+    flags = [env.step(np.zeros(1, np.float32))[3] for _ in range(10)]
+    assert flags == [False] * 9 + [True]
+
+
+def test_rgb_array_render_draws_the_beam():
+    env = gym.make(ENV_ID, render_mode="rgb_array")
+    env.reset(seed=0)
+    for _ in range(20):
+        env.step(np.array([25.0], dtype=np.float32))
+    frame = env.render()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert frame.std() > 10  # something was drawn
+    env.close()
