@@ -12,13 +12,11 @@ Run: ``python benchmarks/arx_estimation.py`` (about a minute on 2 cores).
 
 from __future__ import annotations
 
-import datetime
-import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import threadpoolctl
+from _common import header, markdown_table, write_result
 
 from identification.arx import ARXModel
 from identification.bayes_uniform import BayesUniformEstimator
@@ -26,7 +24,6 @@ from identification.estimation import METHODS, fit_arx
 from piezo_env.signals import prbs
 
 DT = 1e-3
-RESULTS = Path(__file__).parent / "results" / "arx_estimation.md"
 
 
 def systems() -> dict[str, ARXModel]:
@@ -41,16 +38,6 @@ def systems() -> dict[str, ARXModel]:
             dt=DT,
         ),
     }
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def accuracy_rows(seed: int = 0) -> list[list[str]]:
@@ -117,44 +104,28 @@ def speed_rows(seed: int = 1) -> list[list[str]]:
     return rows
 
 
-def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(row) + " |" for row in rows]
-    return "\n".join(lines)
-
-
 def main() -> None:
     accuracy = markdown_table(
         ["system", "r / peak(y)", "samples", "method", "theta error %", "r error %", "time s"],
         accuracy_rows(),
     )
     speed = markdown_table(["estimator", "samples", "time s", "samples/s"], speed_rows())
-    machine = f"{platform.platform()}, {cpu_name()}, {platform.python_version()}"
-    text = "\n".join(
-        [
-            "# ARX estimation benchmark",
-            "",
-            f"Date: {datetime.date.today().isoformat()}  ",
-            f"Machine: {machine}  ",
-            "Produced by `python benchmarks/arx_estimation.py`. PRBS input +-1, lightly damped",
-            "poles (0.99 at 50 Hz, 1 kHz sampling), uniform equation noise U(-r, r). theta error:",
-            "||theta_hat - theta|| / ||theta||; r error: r_hat / r - 1. The recursive estimator",
-            "runs single-threaded BLAS (threadpoolctl), with default window 16 and reorientation",
-            "every 32 samples.",
-            "",
-            "## Accuracy",
-            "",
-            accuracy,
-            "",
-            "## Speed (ARX(2,2))",
-            "",
-            speed,
-            "",
-        ]
-    )
-    print(text)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(text, encoding="utf-8")
+    lines = [
+        *header("ARX estimation benchmark", "arx_estimation.py"),
+        "PRBS input +-1, lightly damped poles (0.99 at 50 Hz, 1 kHz sampling), uniform equation",
+        "noise U(-r, r). theta error: ||theta_hat - theta|| / ||theta||; r error: r_hat / r - 1.",
+        "The recursive estimator runs single-threaded BLAS (threadpoolctl), with default window 16",
+        "and reorientation every 32 samples.",
+        "",
+        "## Accuracy",
+        "",
+        accuracy,
+        "",
+        "## Speed (ARX(2,2))",
+        "",
+        speed,
+    ]
+    write_result("arx_estimation", lines)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,66 @@
+"""Shared pieces of the benchmark scripts: machine description, Markdown tables, result files."""
+
+from __future__ import annotations
+
+import datetime
+import os
+import platform
+from pathlib import Path
+
+import numpy as np
+import threadpoolctl
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def cpu_name() -> str:
+    """CPU model from /proc/cpuinfo, or platform.processor()."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def machine_line() -> str:
+    """One line naming the machine, Python, numpy and the BLAS threading in force."""
+    blas = ", ".join(
+        f"{info['internal_api']} {info['num_threads']} thread(s)"
+        for info in threadpoolctl.threadpool_info()
+        if info.get("user_api") == "blas"
+    )
+    return (
+        f"{platform.platform()}, {cpu_name()}, {os.cpu_count()} cores, Python "
+        f"{platform.python_version()}, numpy {np.__version__}; BLAS: {blas or 'unknown'}"
+    )
+
+
+def header(title: str, script: str) -> list[str]:
+    """Title, date, machine and the command that produced the file."""
+    return [
+        f"# {title}",
+        "",
+        f"Date: {datetime.date.today().isoformat()}  ",
+        f"Machine: {machine_line()}  ",
+        f"Produced by `python benchmarks/{script}`.",
+        "",
+    ]
+
+
+def markdown_table(head: list[str], rows: list[list[str]]) -> str:
+    """A Markdown table from a header and string rows."""
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def write_result(name: str, lines: list[str]) -> Path:
+    """Print the report and write it to benchmarks/results/<name>.md."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.md"
+    path.write_text(text, encoding="utf-8")
+    return path

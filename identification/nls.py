@@ -1,0 +1,1507 @@
+"""Neural static-nonlinearity block (NLS) of the Hammerstein model: voltage u (V) -> hidden z.
+
+The NLS maps the drive voltage ``u`` (V) to the hidden signal ``z`` (equivalent volts, i.e. the
+voltage a linear, hysteresis-free actuator would need for the same deflection) that feeds the
+linear ARX block. The paper (section 3.4, step e) fits it as a multilayer perceptron with three
+hidden tanh layers. A static map ``u -> z`` cannot draw a hysteresis loop, so the network takes
+*memory features* of the input:
+
+``"play"``
+    ``F_t = [u_t, p_1,t, ..., p_n,t]`` with Prandtl-Ishlinskii play (backlash) operators of radii
+    ``r_i`` spread over the input range, ``p_i,t = max(u_t - r_i, min(u_t + r_i, p_i,t-1))``.
+    Rate-independent memory: the output depends on the input's turning points, not on its speed.
+    The feature state is the vector of play outputs.
+``"past-inputs"``
+    ``F_t = [u_t, u_t-1, ..., u_t-k]``: the paper's nlarx regressors. The feature state is the
+    buffer ``[u_t-1, ..., u_t-k]``.
+``"bouc-wen"``
+    ``F_t = [u_t, h_1,t, ..., h_n,t]`` with normalized Bouc-Wen operators
+    ``dh = du - b |du| h - b du |h|`` (``b = 1 / (2 level)``), saturation levels spread over the
+    input range, integrated exactly in ``u`` (:func:`bouc_wen_update`): rate-independent like
+    plays, but with the rounded loops of piezo hysteresis. Beyond the paper: a single-state
+    Bouc-Wen hysteresis is not a Prandtl-Ishlinskii operator, so play features plateau on it,
+    while these represent it closely. The state is ``[u_t-1, h_1, ..., h_n]``.
+
+Network
+-------
+With ``x = (F - m) / s`` (feature normalization stored in the model)::
+
+    z = z_m + z_s (w^T x + c + MLP(x)),   MLP: tanh, tanh, tanh hidden layers, linear output
+
+The affine skip term ``w^T x + c`` is initialised by weighted least squares and the MLP's output
+layer by zeros, so training starts from the best affine map of the features and the MLP learns
+the residual. Consequences:
+
+- an identity NLS (``z = u``) and a Prandtl-Ishlinskii hysteresis with the feature radii (``z`` a
+  weighted sum of plays) are represented exactly and are the starting point of training;
+- outside the training range the tanh units saturate and the map continues along the affine
+  part, i.e. it extrapolates linearly, as the bender's small-signal physics does, instead of
+  flattening (a pure tanh network) or growing without bound in arbitrary directions.
+
+Run time
+--------
+After training the numpy arrays are the source of truth: the NLS evaluates in numpy (a 3 x 32
+MLP step costs ~10 us), exports to a pure-numpy evaluator (:meth:`NLS.to_numpy`) and to casadi
+(:meth:`NLS.to_casadi`, :meth:`NLS.to_casadi_step`), and builds a torch module only for training
+(:meth:`NLS.to_torch`). Nothing here needs torch at run time except :func:`fit_nls`.
+
+Inverse
+-------
+:meth:`NLS.inverse` gives the voltage that produces a desired ``z`` given the current memory
+state (for controllers that plan in ``z``). It is a scalar root find: bracketing on a grid over
+the drive range, then Illinois regula falsi in the bracket. When ``z`` is not reachable on the
+range the closest reachable voltage is returned; when the map is not monotone on the range
+(several roots) the root nearest to a reference voltage is returned and a
+:class:`NLSInverseWarning` says so.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = [
+    "FEATURE_SETS",
+    "NLS",
+    "BoucWenFeatures",
+    "NLSInverse",
+    "NLSInverseWarning",
+    "NumpyMLP",
+    "PastInputFeatures",
+    "PlayFeatures",
+    "bouc_wen_update",
+    "default_bouc_wen_levels",
+    "default_play_radii",
+    "fit_nls",
+    "play_operators",
+]
+
+FEATURE_SETS = ("play", "past-inputs", "bouc-wen")
+"""Names of the memory feature sets accepted by :func:`fit_nls`."""
+
+NLS_FORMAT = "piezo-nls"
+NLS_FORMAT_VERSION = 1
+
+
+class NLSInverseWarning(RuntimeWarning):
+    """The NLS inverse found several voltages for one target (map not monotone on the range)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# validation helpers
+
+
+def _as_signal(name: str, values: ArrayLike) -> np.ndarray:
+    """Return ``values`` as a finite float64 1-D array or raise a ValueError naming it."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D sequence; got shape {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        index = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} contains a non-finite value at index {index}: {arr[index]}")
+    return arr
+
+
+def _as_scalar(name: str, value: float) -> float:
+    """Return ``value`` as a finite float or raise a ValueError naming it."""
+    try:
+        result = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a finite number; got {value!r}") from None
+    if not math.isfinite(result):
+        raise ValueError(f"{name} must be a finite number; got {value!r}")
+    return result
+
+
+def _as_range(name: str, value: Sequence[float]) -> tuple[float, float]:
+    """Return ``value`` as a finite ``(low, high)`` pair with ``low < high``."""
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high) of numbers; got {value!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise ValueError(f"{name} must be finite with low < high; got {value!r}")
+    return low, high
+
+
+# ---------------------------------------------------------------------------------------------
+# memory features
+
+
+def default_play_radii(u_range: Sequence[float], n_play: int) -> np.ndarray:
+    """Play radii spread evenly over the input range, ``r_i = i (hi - lo) / (2 (n + 1))``.
+
+    The largest radius stays below half the span, so every play operator moves on a full sweep.
+
+    Parameters
+    ----------
+    u_range : (float, float)
+        Input range ``(lo, hi)`` in V.
+    n_play : int
+        Number of play operators (>= 1).
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_play,)
+        Radii in V, increasing.
+    """
+    low, high = _as_range("u_range", u_range)
+    if int(n_play) != n_play or n_play < 1:
+        raise ValueError(f"n_play must be a positive integer; got {n_play!r}")
+    n = int(n_play)
+    return (high - low) / (2.0 * (n + 1)) * np.arange(1, n + 1, dtype=np.float64)
+
+
+def play_operators(
+    u: ArrayLike, radii: ArrayLike, state: ArrayLike | None = None, *, initial_input: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Outputs of Prandtl-Ishlinskii play operators, ``p_t = max(u_t - r, min(u_t + r, p_t-1))``.
+
+    Parameters
+    ----------
+    u : array_like, shape (T,)
+        Input sequence, V.
+    radii : array_like, shape (n,)
+        Play radii (half backlash widths), V, non-negative.
+    state : array_like, shape (n,), optional
+        Play outputs before ``u[0]``, V. Default: all equal to ``initial_input`` (a relaxed
+        operator at rest).
+    initial_input : float, optional
+        Rest input used when ``state`` is None, V.
+
+    Returns
+    -------
+    P : numpy.ndarray, shape (T, n)
+        Play outputs, V.
+    final_state : numpy.ndarray, shape (n,)
+        Play outputs after the last sample (pass back as ``state`` to continue).
+    """
+    u_arr = _as_signal("u", u)
+    r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(r)) or np.any(r < 0.0):
+        raise ValueError(f"radii must be finite and non-negative; got {r}")
+    if state is None:
+        p = np.full(r.shape, _as_scalar("initial_input", initial_input))
+    else:
+        p = np.array(state, dtype=np.float64).reshape(-1)
+        if p.shape != r.shape or not np.all(np.isfinite(p)):
+            raise ValueError(
+                f"play state must be {r.size} finite values (one per radius); got {state!r}"
+            )
+    upper = u_arr[:, None] + r
+    lower = u_arr[:, None] - r
+    out = np.empty((u_arr.size, r.size))
+    for t in range(u_arr.size):
+        np.minimum(upper[t], p, out=p)
+        np.maximum(lower[t], p, out=p)
+        out[t] = p
+    return out, p.copy()
+
+
+def _check_state(state: ArrayLike | None, feature_map: Any, message: str) -> np.ndarray:
+    """Return ``state`` as a finite float64 vector of the map's state length, or raise.
+
+    A float64 vector of the right length is returned as is (no copy: feature maps never write
+    into a state, they return new ones), which keeps per-step calls cheap.
+    """
+    if state is None:
+        return feature_map.initial_state()
+    if type(state) is np.ndarray and state.dtype == np.float64 and state.ndim == 1:
+        s = state
+    else:
+        try:
+            s = np.array(state, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"{message}; got {state!r}") from None
+    if s.shape != (feature_map.n_state,) or not np.isfinite(s).all():
+        raise ValueError(f"{message}; got {np.asarray(state).tolist()}")
+    return s
+
+
+@dataclass(frozen=True)
+class PlayFeatures:
+    """Play-operator features ``F_t = [u_t, p_1,t, ..., p_n,t]``; state: play outputs (V).
+
+    Attributes
+    ----------
+    radii : tuple of float
+        Play radii, V, positive and increasing.
+    initial_input : float
+        Rest input, V: the default state has every play output equal to it.
+    """
+
+    radii: tuple[float, ...]
+    initial_input: float = 0.0
+
+    name = "play"
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.radii, dtype=np.float64)
+        if r.ndim != 1 or r.size < 1 or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
+            raise ValueError(f"play radii must be one or more positive numbers; got {self.radii}")
+        object.__setattr__(self, "radii", tuple(float(x) for x in r))
+        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+        object.__setattr__(self, "_r", r)
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the input plus one per play operator."""
+        return 1 + len(self.radii)
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector (one play output per radius)."""
+        return len(self.radii)
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: every play output equal to ``initial_input`` (V)."""
+        return np.full(self.n_state, self.initial_input)
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
+        return _check_state(
+            state,
+            self,
+            f"play feature state must be {self.n_state} finite play outputs (V)",
+        )
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        plays, final = play_operators(u, self._r, state)
+        return np.column_stack([u, plays]), final
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        r = self._r
+        plays = np.maximum(u[:, None] - r, np.minimum(u[:, None] + r, state))
+        return np.column_stack([u, plays])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        r = self._r
+        new = np.maximum(u - r, np.minimum(u + r, state))
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = new
+        return f, new
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state (max/min form)."""
+        import casadi
+
+        new = casadi.vertcat(
+            *[casadi.fmax(u - r, casadi.fmin(u + r, state[i])) for i, r in enumerate(self.radii)]
+        )
+        return casadi.vertcat(u, new), new
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {"name": self.name, "radii": list(self.radii), "initial_input": self.initial_input}
+
+
+@dataclass(frozen=True)
+class PastInputFeatures:
+    """Past-input (nlarx) features ``F_t = [u_t, u_t-1, ..., u_t-k]``; state: ``[u_t-1..u_t-k]``.
+
+    Attributes
+    ----------
+    n_past : int
+        Number of past inputs ``k`` (>= 1).
+    initial_input : float
+        Rest input, V: the default state is a buffer filled with it.
+    """
+
+    n_past: int
+    initial_input: float = 0.0
+
+    name = "past-inputs"
+
+    def __post_init__(self) -> None:
+        if int(self.n_past) != self.n_past or self.n_past < 1:
+            raise ValueError(f"n_past must be a positive integer; got {self.n_past!r}")
+        object.__setattr__(self, "n_past", int(self.n_past))
+        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the current input plus ``n_past`` past inputs."""
+        return 1 + self.n_past
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector (the input buffer)."""
+        return self.n_past
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: the buffer filled with ``initial_input`` (V)."""
+        return np.full(self.n_state, self.initial_input)
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
+        return _check_state(
+            state,
+            self,
+            f"past-input feature state must be the {self.n_state} previous inputs "
+            "[u_t-1, ..., u_t-k] (V), finite",
+        )
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        k = self.n_past
+        extended = np.concatenate([state[::-1], u])
+        windows = np.lib.stride_tricks.sliding_window_view(extended, k + 1)
+        features = np.ascontiguousarray(windows[:, ::-1])
+        return features, extended[-k:][::-1].copy()
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        return np.column_stack([u, np.broadcast_to(state, (u.size, self.n_state))])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = state
+        return f, f[:-1].copy()
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state (a shift register)."""
+        import casadi
+
+        features = casadi.vertcat(u, state)
+        return features, features[: self.n_past]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {"name": self.name, "n_past": self.n_past, "initial_input": self.initial_input}
+
+
+def bouc_wen_update(h: np.ndarray, du: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """Exact update of normalized Bouc-Wen operators over an input change ``du`` (V).
+
+    Each operator obeys ``dh = du - b |du| h - b du |h|`` with ``b = 1 / (2 level)`` (Bouc-Wen
+    with exponent 1, ``alpha = 1``, ``beta = gamma = b``). While ``du`` and ``h`` have opposite
+    signs, ``h`` follows the input linearly (``dh = du``); once they share a sign it relaxes
+    exponentially towards ``sign(du) level``. Integrated in ``u`` rather than in time, so it is
+    exact for any step size and rate-independent. Broadcasts over ``h``, ``du`` and ``levels``.
+    """
+    sign = np.sign(du)
+    size = np.abs(du)
+    linear = np.minimum(size, np.maximum(-sign * h, 0.0))
+    rest = size - linear
+    target = sign * levels
+    return target + (h + sign * linear - target) * np.exp(-rest / levels)
+
+
+@dataclass(frozen=True)
+class BoucWenFeatures:
+    """Bouc-Wen operator features ``F_t = [u_t, h_1,t, ..., h_n,t]``.
+
+    Smooth, saturating relatives of play operators (see :func:`bouc_wen_update`) with
+    saturation levels spread over the input range: rate-independent memory whose loops have the
+    rounded shape of piezo hysteresis. The state is ``[u_t-1, h_1,t-1, ..., h_n,t-1]``.
+
+    Attributes
+    ----------
+    levels : tuple of float
+        Saturation levels, V, positive and increasing.
+    initial_input : float
+        Rest input, V: the default state is ``[initial_input, 0, ..., 0]``.
+    """
+
+    levels: tuple[float, ...]
+    initial_input: float = 0.0
+
+    name = "bouc-wen"
+
+    def __post_init__(self) -> None:
+        lv = np.asarray(self.levels, dtype=np.float64)
+        if lv.ndim != 1 or lv.size < 1 or not np.all(np.isfinite(lv)) or np.any(lv <= 0.0):
+            raise ValueError(f"Bouc-Wen levels must be positive numbers; got {self.levels}")
+        object.__setattr__(self, "levels", tuple(float(x) for x in lv))
+        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+        object.__setattr__(self, "_lv", lv)
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the input plus one per operator."""
+        return 1 + len(self.levels)
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector: the previous input and one value per operator."""
+        return 1 + len(self.levels)
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: previous input ``initial_input``, operators at 0 (V)."""
+        state = np.zeros(self.n_state)
+        state[0] = self.initial_input
+        return state
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
+        return _check_state(
+            state,
+            self,
+            f"Bouc-Wen feature state must be [u_t-1, h_1, ..., h_{len(self.levels)}] (V), finite",
+        )
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        out = np.empty((u.size, self.n_features))
+        out[:, 0] = u
+        du = np.diff(u, prepend=state[0])
+        h = state[1:]
+        lv = self._lv
+        for t in range(u.size):
+            h = bouc_wen_update(h, du[t], lv)
+            out[t, 1:] = h
+        final = np.empty(self.n_state)
+        final[0] = u[-1] if u.size else state[0]
+        final[1:] = h
+        return out, final
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        h = bouc_wen_update(state[1:], (u - state[0])[:, None], self._lv)
+        return np.column_stack([u, h])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = bouc_wen_update(state[1:], u - state[0], self._lv)
+        return f, f.copy()
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state (closed-form update)."""
+        import casadi
+
+        du = u - state[0]
+        sign, size = casadi.sign(du), casadi.fabs(du)
+        new = []
+        for i, level in enumerate(self.levels):
+            h = state[1 + i]
+            linear = casadi.fmin(size, casadi.fmax(-sign * h, 0.0))
+            target = sign * level
+            new.append(target + (h + sign * linear - target) * casadi.exp(-(size - linear) / level))
+        features = casadi.vertcat(u, *new)
+        return features, features
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {"name": self.name, "levels": list(self.levels), "initial_input": self.initial_input}
+
+
+def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
+    """Saturation levels spaced geometrically from 0.1 to 2 half-spans of the input range (V).
+
+    Parameters
+    ----------
+    u_range : (float, float)
+        Input range ``(lo, hi)`` in V.
+    n : int
+        Number of operators (>= 1).
+
+    Returns
+    -------
+    numpy.ndarray, shape (n,)
+        Levels in V, increasing.
+    """
+    low, high = _as_range("u_range", u_range)
+    if int(n) != n or n < 1:
+        raise ValueError(f"n_bouc_wen must be a positive integer; got {n!r}")
+    half = 0.5 * (high - low)
+    return half * np.geomspace(0.1, 2.0, int(n))
+
+
+FeatureMap = PlayFeatures | PastInputFeatures | BoucWenFeatures
+
+
+def _feature_map_from_dict(config: dict[str, Any]) -> FeatureMap:
+    """Rebuild a feature map from :meth:`to_dict` output."""
+    name = config.get("name")
+    if name == "play":
+        return PlayFeatures(radii=tuple(config["radii"]), initial_input=config["initial_input"])
+    if name == "past-inputs":
+        return PastInputFeatures(n_past=config["n_past"], initial_input=config["initial_input"])
+    if name == "bouc-wen":
+        return BoucWenFeatures(
+            levels=tuple(config["levels"]), initial_input=config["initial_input"]
+        )
+    raise ValueError(f"unknown NLS feature set {name!r}; expected one of {FEATURE_SETS}")
+
+
+def _illinois(
+    fun: Any, a: float, b: float, fa: float, fb: float, xtol: float, maxiter: int = 100
+) -> float:
+    """Root of ``fun`` in ``[a, b]`` with ``fa * fb < 0``: Illinois (modified regula falsi).
+
+    An interpolation point outside the bracket is replaced by the midpoint, so the bracket
+    always shrinks.
+    """
+    a, b, fa, fb = float(a), float(b), float(fa), float(fb)
+    side = 0
+    c = 0.5 * (a + b)
+    for _ in range(maxiter):
+        c = (a * fb - b * fa) / (fb - fa)
+        if not a < c < b:
+            c = 0.5 * (a + b)
+        fc = fun(c)
+        if fc == 0.0:
+            return c
+        if (fc > 0.0) == (fa > 0.0):
+            step = c - a
+            a, fa = c, fc
+            if side == -1:
+                fb *= 0.5
+            side = -1
+        else:
+            step = b - c
+            b, fb = c, fc
+            if side == 1:
+                fa *= 0.5
+            side = 1
+        if b - a <= xtol or step <= 0.5 * xtol:
+            return c
+    return c
+
+
+# ---------------------------------------------------------------------------------------------
+# the network in numpy
+
+
+@dataclass(frozen=True)
+class NumpyMLP:
+    """Pure-numpy evaluator ``F -> z`` of the NLS network, normalization folded into the weights.
+
+    ``z = c + w^T F + v^T h_L``, ``h_i = tanh(W_i h_i-1 + b_i)``, ``h_0 = F``.
+
+    Attributes
+    ----------
+    weights : tuple of numpy.ndarray
+        Hidden-layer weights ``W_i``, shapes (n_i, n_i-1).
+    biases : tuple of numpy.ndarray
+        Hidden-layer biases ``b_i``, shapes (n_i,).
+    out_weight : numpy.ndarray, shape (n_L,)
+        Output weights ``v`` (equivalent V per unit activation).
+    skip_weight : numpy.ndarray, shape (n_features,)
+        Affine skip weights ``w`` (equivalent V per feature V).
+    out_bias : float
+        Output offset ``c``, equivalent V.
+    """
+
+    weights: tuple[np.ndarray, ...]
+    biases: tuple[np.ndarray, ...]
+    out_weight: np.ndarray
+    skip_weight: np.ndarray
+    out_bias: float
+
+    @property
+    def n_features(self) -> int:
+        """Number of input features."""
+        return int(self.skip_weight.size)
+
+    def __call__(self, features: ArrayLike) -> np.ndarray | float:
+        """Evaluate on features ``(T, n_f)`` -> z ``(T,)``, or ``(n_f,)`` -> float (equiv. V)."""
+        f = np.asarray(features, dtype=np.float64)
+        if f.ndim == 1:
+            return self.evaluate_one(f)
+        if f.ndim != 2 or f.shape[1] != self.n_features:
+            raise ValueError(f"features must have shape (T, {self.n_features}); got {f.shape}")
+        h = f
+        for w, b in zip(self.weights, self.biases, strict=True):
+            h = np.tanh(h @ w.T + b)
+        return h @ self.out_weight + f @ self.skip_weight + self.out_bias
+
+    def evaluate_one(self, f: np.ndarray) -> float:
+        """Evaluate one feature vector ``(n_f,)`` -> z (equivalent V), without validation."""
+        h = f
+        for w, b in zip(self.weights, self.biases, strict=True):
+            h = np.tanh(w @ h + b)
+        return float(self.out_weight @ h + self.skip_weight @ f + self.out_bias)
+
+
+# ---------------------------------------------------------------------------------------------
+# the NLS
+
+
+@dataclass(frozen=True)
+class NLSInverse:
+    """Result of one NLS inversion.
+
+    Attributes
+    ----------
+    u : float
+        Voltage, V.
+    z : float
+        NLS output at ``u`` from the given state, equivalent V (equals the target when
+        ``status == "ok"``).
+    status : str
+        ``"ok"`` (unique root), ``"out-of-range"`` (target not reachable on the voltage range:
+        ``u`` is the closest reachable) or ``"non-monotone"`` (several roots: ``u`` is the one
+        nearest the reference voltage).
+    state : numpy.ndarray
+        Feature state after applying ``u``.
+    """
+
+    u: float
+    z: float
+    status: str
+    state: np.ndarray
+
+
+_ARRAY_NAMES = (
+    "feature_mean",
+    "feature_scale",
+    "z_mean",
+    "z_scale",
+    "skip_weight",
+    "skip_bias",
+    "out_weight",
+    "out_bias",
+)
+
+
+class NLS:
+    """Neural static nonlinearity with memory features: voltage u (V) -> hidden z (equiv. V).
+
+    Build it with :func:`fit_nls` or :meth:`from_dict`. Evaluation is numpy only.
+
+    Parameters
+    ----------
+    feature_map : PlayFeatures, PastInputFeatures or BoucWenFeatures
+        Memory features of the input.
+    params : dict of numpy.ndarray
+        Network parameters in normalized coordinates: ``feature_mean``, ``feature_scale``
+        (n_f,), ``z_mean``, ``z_scale`` (scalars, equivalent V), ``layer{i}_weight`` (n_i,
+        n_i-1), ``layer{i}_bias`` (n_i,), ``out_weight`` (n_L,), ``out_bias`` (scalar),
+        ``skip_weight`` (n_f,), ``skip_bias`` (scalar).
+    u_range : (float, float)
+        Input range the network was trained on, V; the default search range of the inverse.
+    training : dict, optional
+        JSON-safe training record (epochs, losses, time).
+    """
+
+    def __init__(
+        self,
+        feature_map: FeatureMap,
+        params: dict[str, np.ndarray],
+        *,
+        u_range: Sequence[float],
+        training: dict[str, Any] | None = None,
+    ) -> None:
+        if not isinstance(feature_map, PlayFeatures | PastInputFeatures | BoucWenFeatures):
+            raise ValueError(
+                "feature_map must be PlayFeatures, PastInputFeatures or BoucWenFeatures; "
+                f"got {type(feature_map)}"
+            )
+        self.feature_map = feature_map
+        self.u_range = _as_range("u_range", u_range)
+        self.training = dict(training or {})
+        self._params = _check_params(params, feature_map.n_features)
+        self._mlp = _fold(self._params)
+        self._grid_cache: tuple[tuple[float, float, int], np.ndarray] | None = None
+
+    # -- structure ---------------------------------------------------------------------------
+
+    @property
+    def hidden(self) -> tuple[int, ...]:
+        """Hidden-layer widths."""
+        return tuple(int(w.shape[0]) for w in self._mlp.weights)
+
+    @property
+    def n_features(self) -> int:
+        """Number of network input features."""
+        return self.feature_map.n_features
+
+    @property
+    def n_state(self) -> int:
+        """Length of the feature state vector."""
+        return self.feature_map.n_state
+
+    @property
+    def feature_set(self) -> str:
+        """Name of the feature set: ``"play"``, ``"past-inputs"`` or ``"bouc-wen"``."""
+        return self.feature_map.name
+
+    def initial_state(self) -> np.ndarray:
+        """Feature state at rest (V)."""
+        return self.feature_map.initial_state()
+
+    def __repr__(self) -> str:
+        return (
+            f"NLS(features={self.feature_set!r}, n_features={self.n_features}, "
+            f"hidden={self.hidden}, u_range={self.u_range})"
+        )
+
+    # -- evaluation --------------------------------------------------------------------------
+
+    def features(
+        self, u_seq: ArrayLike, state: ArrayLike | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Memory features of an input sequence.
+
+        Parameters
+        ----------
+        u_seq : array_like, shape (T,)
+            Input voltage, V.
+        state : array_like, optional
+            Feature state before ``u_seq[0]``; None for the rest state.
+
+        Returns
+        -------
+        F : numpy.ndarray, shape (T, n_features)
+            Features, V.
+        final_state : numpy.ndarray, shape (n_state,)
+            State after the last sample.
+        """
+        u = _as_signal("u_seq", u_seq)
+        return self.feature_map.features(u, self.feature_map.check_state(state))
+
+    def evaluate(self, u_seq: ArrayLike, state: ArrayLike | None = None) -> np.ndarray:
+        """NLS output ``z`` (equivalent V) of an input sequence ``u_seq`` (V) from ``state``."""
+        features, _ = self.features(u_seq, state)
+        return self._mlp(features)
+
+    __call__ = evaluate
+
+    def step(self, u_t: float, state: ArrayLike | None) -> tuple[float, np.ndarray]:
+        """Advance one sample: input ``u_t`` (V) -> ``(z_t, next_state)`` (equivalent V)."""
+        u = _as_scalar("u_t", u_t)
+        f, new_state = self.feature_map.step(u, self.feature_map.check_state(state))
+        return self._mlp.evaluate_one(f), new_state
+
+    # -- inverse -----------------------------------------------------------------------------
+
+    def solve_inverse(
+        self,
+        z_target: float,
+        state: ArrayLike | None = None,
+        *,
+        u_range: Sequence[float] | None = None,
+        u_ref: float | None = None,
+        n_grid: int = 65,
+        xtol: float = 1e-10,
+    ) -> NLSInverse:
+        """Voltage giving ``z_target`` from the memory ``state``, with a status.
+
+        The map ``u -> z(u; state)`` is evaluated on ``n_grid`` points of ``u_range``; sign
+        changes of ``z - z_target`` bracket the roots, refined by the Illinois variant of regula
+        falsi (bracketing, superlinear, reusing the grid values at the bracket ends).
+
+        Parameters
+        ----------
+        z_target : float
+            Desired hidden signal, equivalent V.
+        state : array_like, optional
+            Feature state before this sample; None for the rest state.
+        u_range : (float, float), optional
+            Voltage search range, V. Default: the training input range :attr:`u_range`.
+        u_ref : float, optional
+            Reference voltage, V, used to choose among several roots (the nearest wins).
+            Default: the previous input for past-input and Bouc-Wen features (their state holds
+            it), else the middle of the range.
+        n_grid : int, optional
+            Number of grid points used to bracket the roots; non-monotonicity finer than the
+            grid spacing goes unnoticed.
+        xtol : float, optional
+            Absolute voltage tolerance of the root, V.
+
+        Returns
+        -------
+        NLSInverse
+            Voltage, achieved ``z``, status (``"ok"``, ``"out-of-range"``, ``"non-monotone"``)
+            and the state after applying the voltage.
+        """
+        target = _as_scalar("z_target", z_target)
+        s = self.feature_map.check_state(state)
+        low, high = self.u_range if u_range is None else _as_range("u_range", u_range)
+        grid = self._grid(low, high, n_grid)
+        residual = self._mlp(self.feature_map.candidates(grid, s)) - target
+        if u_ref is None:
+            if isinstance(self.feature_map, PastInputFeatures | BoucWenFeatures):
+                u_ref = float(s[0])
+            else:
+                u_ref = 0.5 * (low + high)
+        exact = np.flatnonzero(residual == 0.0)
+        brackets = np.flatnonzero(np.sign(residual[:-1]) * np.sign(residual[1:]) < 0.0)
+        roots: list[float] = [float(grid[i]) for i in exact]
+
+        def residual_at(u: float) -> float:
+            f, _ = self.feature_map.step(u, s)
+            return self._mlp.evaluate_one(f) - target
+
+        for i in brackets:
+            roots.append(
+                _illinois(residual_at, grid[i], grid[i + 1], residual[i], residual[i + 1], xtol)
+            )
+        if not roots:
+            u = float(grid[int(np.argmin(np.abs(residual)))])
+            status = "out-of-range"
+        else:
+            u = min(roots, key=lambda root: abs(root - u_ref))
+            status = "ok" if len(roots) == 1 else "non-monotone"
+        f, new_state = self.feature_map.step(u, s)
+        return NLSInverse(u=u, z=self._mlp.evaluate_one(f), status=status, state=new_state)
+
+    def inverse(
+        self,
+        z_target: float,
+        state: ArrayLike | None = None,
+        *,
+        u_range: Sequence[float] | None = None,
+        u_ref: float | None = None,
+    ) -> float:
+        """Voltage (V) that gives ``z_target`` (equivalent V) from the memory ``state``.
+
+        A target outside the reachable set gives the closest reachable voltage (saturation).
+        When the map is not monotone on the range, several voltages reach the target: the one
+        nearest ``u_ref`` is returned and a :class:`NLSInverseWarning` is issued. See
+        :meth:`solve_inverse` for the parameters and a status-returning variant.
+        """
+        result = self.solve_inverse(z_target, state, u_range=u_range, u_ref=u_ref)
+        if result.status == "non-monotone":
+            warnings.warn(
+                f"NLS is not monotone in u on the range for z_target={z_target}: several "
+                f"voltages reach it; returned the one nearest the reference ({result.u:.6g} V)",
+                NLSInverseWarning,
+                stacklevel=2,
+            )
+        return result.u
+
+    def inverse_sequence(
+        self,
+        z_seq: ArrayLike,
+        state: ArrayLike | None = None,
+        *,
+        u_range: Sequence[float] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Voltages that reproduce a hidden-signal sequence, inverting sample by sample.
+
+        Each step inverts from the memory left by the previous voltages; among several roots
+        the one nearest the previous voltage is chosen. Unreachable targets saturate silently;
+        a non-monotone map gives one :class:`NLSInverseWarning` for the whole sequence.
+
+        Parameters
+        ----------
+        z_seq : array_like, shape (T,)
+            Desired hidden signal, equivalent V.
+        state : array_like, optional
+            Feature state before the first sample; None for the rest state.
+        u_range : (float, float), optional
+            Voltage search range, V (default: the training input range).
+
+        Returns
+        -------
+        u : numpy.ndarray, shape (T,)
+            Voltages, V.
+        final_state : numpy.ndarray
+            Feature state after the last voltage.
+        """
+        z = _as_signal("z_seq", z_seq)
+        s = self.feature_map.check_state(state)
+        u = np.empty_like(z)
+        u_ref = None
+        n_non_monotone = 0
+        for t, target in enumerate(z):
+            result = self.solve_inverse(target, s, u_range=u_range, u_ref=u_ref)
+            u[t] = u_ref = result.u
+            s = result.state
+            n_non_monotone += result.status == "non-monotone"
+        if n_non_monotone:
+            warnings.warn(
+                f"NLS is not monotone in u on the range at {n_non_monotone} of {z.size} "
+                "samples; chose the root nearest the previous voltage there",
+                NLSInverseWarning,
+                stacklevel=2,
+            )
+        return u, s
+
+    def _grid(self, low: float, high: float, n_grid: int) -> np.ndarray:
+        """Bracketing grid of the inverse, cached for the last range used."""
+        key = (low, high, n_grid)
+        if self._grid_cache is None or self._grid_cache[0] != key:
+            if isinstance(n_grid, bool) or int(n_grid) != n_grid or n_grid < 2:
+                raise ValueError(f"n_grid must be an integer >= 2; got {n_grid!r}")
+            self._grid_cache = (key, np.linspace(low, high, int(n_grid)))
+        return self._grid_cache[1]
+
+    # -- exports -----------------------------------------------------------------------------
+
+    def to_numpy(self) -> NumpyMLP:
+        """Pure-numpy evaluator ``features -> z`` (normalization folded into the weights)."""
+        return self._mlp
+
+    def to_casadi(self) -> Any:
+        """casadi.Function ``nls(F) -> z`` (F: n_features x 1, V; z: equivalent V)."""
+        import casadi
+
+        f = casadi.SX.sym("F", self.n_features)
+        return casadi.Function("nls", [f], [self._casadi_network(f)], ["F"], ["z"])
+
+    def to_casadi_features(self) -> Any:
+        """casadi.Function ``(u, state) -> (F, next_state)``: the feature state update.
+
+        Play operators use the max/min form ``max(u - r, min(u + r, p))``.
+        """
+        import casadi
+
+        u = casadi.SX.sym("u")
+        s = casadi.SX.sym("state", self.n_state)
+        f, new = self.feature_map.casadi_step(u, s)
+        return casadi.Function(
+            "nls_features", [u, s], [f, new], ["u", "state"], ["F", "next_state"]
+        )
+
+    def to_casadi_step(self) -> Any:
+        """casadi.Function ``(u, state) -> (z, next_state)``: one NLS step for NMPC."""
+        import casadi
+
+        u = casadi.SX.sym("u")
+        s = casadi.SX.sym("state", self.n_state)
+        f, new = self.feature_map.casadi_step(u, s)
+        return casadi.Function(
+            "nls_step", [u, s], [self._casadi_network(f), new], ["u", "state"], ["z", "next_state"]
+        )
+
+    def _casadi_network(self, f: Any) -> Any:
+        import casadi
+
+        h = f
+        for w, b in zip(self._mlp.weights, self._mlp.biases, strict=True):
+            h = casadi.tanh(casadi.mtimes(casadi.DM(w), h) + casadi.DM(b))
+        return (
+            casadi.dot(casadi.DM(self._mlp.out_weight), h)
+            + casadi.dot(casadi.DM(self._mlp.skip_weight), f)
+            + self._mlp.out_bias
+        )
+
+    def to_torch(self) -> Any:
+        """torch.nn.Module ``F (T, n_f) -> z (T,)`` in float64 with this network's weights."""
+        return _TorchNLS.from_params(self._params)
+
+    # -- serialization -----------------------------------------------------------------------
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe configuration (format, features, widths, input range, training record)."""
+        return {
+            "format": NLS_FORMAT,
+            "version": NLS_FORMAT_VERSION,
+            "features": self.feature_map.to_dict(),
+            "hidden": list(self.hidden),
+            "u_range": list(self.u_range),
+            "training": self.training,
+        }
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Network parameters as a dict of float64 arrays (copies), for ``np.savez``."""
+        return {name: value.copy() for name, value in self._params.items()}
+
+    @classmethod
+    def from_dict(cls, config: dict[str, Any], arrays: dict[str, np.ndarray]) -> NLS:
+        """Rebuild an NLS from :meth:`to_dict` and :meth:`arrays` output.
+
+        Raises
+        ------
+        ValueError
+            If the format or version does not match, a key is missing, or an array has the
+            wrong shape for the configuration.
+        """
+        if not isinstance(config, dict):
+            raise ValueError(f"NLS config must be a dict; got {type(config).__name__}")
+        if config.get("format") != NLS_FORMAT:
+            raise ValueError(
+                f"NLS config format is {config.get('format')!r}; expected {NLS_FORMAT!r}"
+            )
+        if config.get("version") != NLS_FORMAT_VERSION:
+            raise ValueError(
+                f"NLS config version is {config.get('version')!r}; this code reads version "
+                f"{NLS_FORMAT_VERSION}"
+            )
+        missing = [k for k in ("features", "hidden", "u_range") if k not in config]
+        if missing:
+            raise ValueError(f"NLS config is missing key(s) {missing}")
+        try:
+            feature_map = _feature_map_from_dict(config["features"])
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"NLS config 'features' is incomplete: {exc!r}") from None
+        nls = cls(
+            feature_map,
+            dict(arrays),
+            u_range=config["u_range"],
+            training=config.get("training") or {},
+        )
+        if list(nls.hidden) != list(config["hidden"]):
+            raise ValueError(
+                f"NLS weights have hidden widths {list(nls.hidden)} but the config says "
+                f"{config['hidden']}"
+            )
+        return nls
+
+
+def _check_params(params: dict[str, np.ndarray], n_features: int) -> dict[str, np.ndarray]:
+    """Validate the raw parameter arrays and return float64 copies."""
+    out: dict[str, np.ndarray] = {}
+    layer_names = sorted(
+        (k for k in params if k.startswith("layer") and k.endswith("_weight")),
+        key=lambda k: int(k[len("layer") : -len("_weight")]),
+    )
+    if not layer_names:
+        raise ValueError("NLS weights have no hidden layer (expected 'layer0_weight', ...)")
+    expected = [*(_ARRAY_NAMES)]
+    for i in range(len(layer_names)):
+        expected += [f"layer{i}_weight", f"layer{i}_bias"]
+    missing = [k for k in expected if k not in params]
+    if missing:
+        raise ValueError(f"NLS weights are missing array(s) {missing}")
+    unknown = sorted(set(params) - set(expected))
+    if unknown:
+        raise ValueError(f"NLS weights have unexpected array(s) {unknown}")
+    for key in expected:
+        arr = np.array(params[key], dtype=np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"NLS weight array {key!r} contains non-finite values")
+        out[key] = arr
+    shapes: dict[str, tuple[int, ...]] = {
+        "feature_mean": (n_features,),
+        "feature_scale": (n_features,),
+        "z_mean": (),
+        "z_scale": (),
+        "skip_weight": (n_features,),
+        "skip_bias": (),
+        "out_bias": (),
+    }
+    width = n_features
+    for i in range(len(layer_names)):
+        w = out[f"layer{i}_weight"]
+        if w.ndim != 2 or w.shape[1] != width:
+            raise ValueError(
+                f"NLS weight array 'layer{i}_weight' has shape {w.shape}; expected (n, {width})"
+            )
+        width = w.shape[0]
+        shapes[f"layer{i}_bias"] = (width,)
+    shapes["out_weight"] = (width,)
+    for key, shape in shapes.items():
+        if out[key].shape != shape:
+            raise ValueError(
+                f"NLS weight array {key!r} has shape {out[key].shape}; expected {shape}"
+            )
+    if np.any(out["feature_scale"] <= 0.0) or out["z_scale"] <= 0.0:
+        raise ValueError("NLS normalization scales must be positive")
+    return out
+
+
+def _fold(p: dict[str, np.ndarray]) -> NumpyMLP:
+    """Fold the feature and output normalization into the weights of a :class:`NumpyMLP`."""
+    inv_scale = 1.0 / p["feature_scale"]
+    shift = p["feature_mean"] * inv_scale
+    n_layers = sum(1 for k in p if k.startswith("layer") and k.endswith("_weight"))
+    weights = [p[f"layer{i}_weight"].copy() for i in range(n_layers)]
+    biases = [p[f"layer{i}_bias"].copy() for i in range(n_layers)]
+    biases[0] = biases[0] - weights[0] @ shift
+    weights[0] = weights[0] * inv_scale
+    z_scale = float(p["z_scale"])
+    skip = p["skip_weight"] * inv_scale * z_scale
+    bias = float(p["z_mean"]) + z_scale * (
+        float(p["out_bias"]) + float(p["skip_bias"]) - float(p["skip_weight"] @ shift)
+    )
+    for arr in (*weights, *biases):
+        arr.setflags(write=False)
+    out_weight = p["out_weight"] * z_scale
+    for arr in (out_weight, skip):
+        arr.setflags(write=False)
+    return NumpyMLP(tuple(weights), tuple(biases), out_weight, skip, bias)
+
+
+# ---------------------------------------------------------------------------------------------
+# torch network and training
+
+
+def _torch() -> Any:
+    import torch
+
+    return torch
+
+
+class _TorchNLS:
+    """Builders of the torch module (lazy: importing this module does not import torch)."""
+
+    @staticmethod
+    def build(n_features: int, hidden: Sequence[int]) -> Any:
+        torch = _torch()
+        nn = torch.nn
+
+        class TorchNLS(nn.Module):
+            """``z = z_m + z_s (w^T x + c + MLP(x))``, ``x = (F - m) / s``; float64."""
+
+            def __init__(self) -> None:
+                super().__init__()
+                widths = [n_features, *hidden]
+                self.layers = nn.ModuleList(
+                    nn.Linear(a, b, dtype=torch.float64) for a, b in itertools.pairwise(widths)
+                )
+                self.out = nn.Linear(widths[-1], 1, dtype=torch.float64)
+                self.skip = nn.Linear(n_features, 1, dtype=torch.float64)
+                self.register_buffer("feature_mean", torch.zeros(n_features, dtype=torch.float64))
+                self.register_buffer("feature_scale", torch.ones(n_features, dtype=torch.float64))
+                self.register_buffer("z_mean", torch.zeros((), dtype=torch.float64))
+                self.register_buffer("z_scale", torch.ones((), dtype=torch.float64))
+
+            def normalized(self, x: Any) -> Any:
+                h = x
+                for layer in self.layers:
+                    h = torch.tanh(layer(h))
+                return (self.out(h) + self.skip(x)).squeeze(-1)
+
+            def forward(self, features: Any) -> Any:
+                x = (features - self.feature_mean) / self.feature_scale
+                return self.z_mean + self.z_scale * self.normalized(x)
+
+        return TorchNLS()
+
+    @staticmethod
+    def from_params(params: dict[str, np.ndarray]) -> Any:
+        torch = _torch()
+        n_layers = sum(1 for k in params if k.startswith("layer") and k.endswith("_weight"))
+        hidden = [params[f"layer{i}_weight"].shape[0] for i in range(n_layers)]
+        module = _TorchNLS.build(params["feature_mean"].size, hidden)
+        state = {
+            "feature_mean": params["feature_mean"],
+            "feature_scale": params["feature_scale"],
+            "z_mean": params["z_mean"],
+            "z_scale": params["z_scale"],
+            "out.weight": params["out_weight"][None, :],
+            "out.bias": params["out_bias"].reshape(1),
+            "skip.weight": params["skip_weight"][None, :],
+            "skip.bias": params["skip_bias"].reshape(1),
+        }
+        for i in range(n_layers):
+            state[f"layers.{i}.weight"] = params[f"layer{i}_weight"]
+            state[f"layers.{i}.bias"] = params[f"layer{i}_bias"]
+        module.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
+        return module
+
+    @staticmethod
+    def to_params(module: Any) -> dict[str, np.ndarray]:
+        sd = {k: v.detach().numpy().astype(np.float64) for k, v in module.state_dict().items()}
+        params = {
+            "feature_mean": sd["feature_mean"],
+            "feature_scale": sd["feature_scale"],
+            "z_mean": sd["z_mean"].reshape(()),
+            "z_scale": sd["z_scale"].reshape(()),
+            "out_weight": sd["out.weight"].reshape(-1),
+            "out_bias": sd["out.bias"].reshape(()),
+            "skip_weight": sd["skip.weight"].reshape(-1),
+            "skip_bias": sd["skip.bias"].reshape(()),
+        }
+        for i in range(len(module.layers)):
+            params[f"layer{i}_weight"] = sd[f"layers.{i}.weight"]
+            params[f"layer{i}_bias"] = sd[f"layers.{i}.bias"]
+        return params
+
+
+def _positive_int(name: str, value: int, minimum: int = 1) -> int:
+    if isinstance(value, bool) or int(value) != value or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
+    return int(value)
+
+
+def _ridge_skip(x: np.ndarray, t: np.ndarray, w: np.ndarray, ridge: float) -> np.ndarray:
+    """Weighted ridge fit ``t ~ x @ coef[:-1] + coef[-1]``; column 0 (u) and the offset free."""
+    n, n_f = x.shape
+    design = np.column_stack([x, np.ones(n)])
+    gram = design.T @ (design * w[:, None])
+    rhs = design.T @ (w * t)
+    penalty = np.full(n_f + 1, ridge * float(w.sum()))
+    penalty[0] = penalty[-1] = 0.0
+    return np.linalg.lstsq(gram + np.diag(penalty), rhs, rcond=None)[0]
+
+
+def fit_nls(
+    u: ArrayLike,
+    z: ArrayLike,
+    *,
+    features: str = "play",
+    n_play: int = 10,
+    radii: ArrayLike | None = None,
+    n_past: int = 5,
+    n_bouc_wen: int = 8,
+    levels: ArrayLike | None = None,
+    hidden: Sequence[int] = (32, 32, 32),
+    u_range: Sequence[float] | None = None,
+    initial_input: float = 0.0,
+    seed: int = 0,
+    max_epochs: int = 200,
+    batch_size: int = 1024,
+    learning_rate: float = 1e-2,
+    weight_decay: float = 0.0,
+    validation_fraction: float = 0.2,
+    patience: int = 25,
+    lbfgs_iterations: int = 0,
+    skip_ridge: float | None = None,
+    z_weights: ArrayLike | None = None,
+    num_threads: int = 1,
+) -> NLS:
+    """Fit the NLS network to input/hidden-signal data ``(u_t, z_t)`` (paper section 3.4 e).
+
+    Training minimizes the (weighted) mean squared error of ``z`` on a contiguous training block;
+    the last ``validation_fraction`` of the record (a contiguous block, never shuffled across
+    time) is held out for early stopping, and the best-validating weights are kept. Adam on
+    mini-batches (samples shuffled inside the training block: the features carry the memory), then
+    optionally full-batch L-BFGS, kept only if it improves the validation loss. The affine skip
+    term starts at the weighted least-squares fit and the MLP output at zero (see the module
+    docstring), so a map affine in the features is learnt exactly.
+
+    Deterministic: float64, a seeded ``torch.Generator`` for initialization and batches, and
+    ``num_threads`` torch threads during training (the previous setting is restored).
+
+    Parameters
+    ----------
+    u : array_like, shape (T,)
+        Input voltage, V, starting from the rest state (memory at ``initial_input``).
+    z : array_like, shape (T,)
+        Hidden signal, equivalent V (e.g. estimated by the inverse ARX model).
+    features : {"play", "past-inputs", "bouc-wen"}
+        Memory feature set.
+    n_play : int
+        Number of play operators (``features="play"``), radii by :func:`default_play_radii`.
+    radii : array_like, optional
+        Explicit play radii, V (overrides ``n_play``).
+    n_past : int
+        Number of past inputs (``features="past-inputs"``).
+    n_bouc_wen : int
+        Number of Bouc-Wen operators (``features="bouc-wen"``), levels by
+        :func:`default_bouc_wen_levels`.
+    levels : array_like, optional
+        Explicit Bouc-Wen saturation levels, V (overrides ``n_bouc_wen``).
+    hidden : sequence of int
+        Hidden-layer widths (three tanh layers in the paper).
+    u_range : (float, float), optional
+        Input range, V, for the play radii and as the inverse's default search range.
+        Default: ``(min(u), max(u))``.
+    initial_input : float
+        Rest input, V: the memory state before ``u[0]``.
+    seed : int
+        Seed of the torch generator (initialization and batch order).
+    max_epochs : int
+        Maximum number of Adam epochs.
+    batch_size : int
+        Adam mini-batch size, samples.
+    learning_rate : float
+        Adam learning rate.
+    weight_decay : float
+        L2 penalty on the MLP weights (not on the affine skip), added to the loss.
+    validation_fraction : float
+        Fraction of samples held out at the end, in [0, 0.9]; 0 trains ``max_epochs`` epochs
+        without early stopping.
+    patience : int
+        Epochs without validation improvement before stopping.
+    lbfgs_iterations : int
+        Full-batch L-BFGS iterations after Adam (0: none).
+    skip_ridge : float, optional
+        Ridge penalty (relative, on normalized features) of the memory features' weights in the
+        initial affine skip; the weight of ``u`` itself is not penalized, so the identity stays
+        exact. It keeps nearly collinear features (past inputs of a slow signal) from getting
+        large cancelling weights that extrapolate wildly on faster inputs. Default: 1e-3 for
+        play features (rate-independent, safe to extrapolate in rate), 1.0 for past inputs
+        (their spread grows with the input's rate, so they get a strong prior towards ``u``).
+    z_weights : array_like, shape (T,), optional
+        Non-negative per-sample loss weights (e.g. inverse squared uncertainty of ``z``).
+    num_threads : int
+        Torch threads used during training.
+
+    Returns
+    -------
+    NLS
+        The fitted nonlinearity; ``nls.training`` records epochs, losses and wall time.
+    """
+    torch = _torch()
+    start = time.perf_counter()
+    u_arr = _as_signal("u", u)
+    z_arr = _as_signal("z", z)
+    if u_arr.shape != z_arr.shape:
+        raise ValueError(f"u and z must have the same length; got {u_arr.size} and {z_arr.size}")
+    if features not in FEATURE_SETS:
+        raise ValueError(f"features must be one of {FEATURE_SETS}; got {features!r}")
+    hidden_t = tuple(_positive_int("hidden width", h) for h in hidden)
+    if not hidden_t:
+        raise ValueError("hidden must list at least one layer width")
+    max_epochs = _positive_int("max_epochs", max_epochs, 0)
+    batch_size = _positive_int("batch_size", batch_size)
+    patience = _positive_int("patience", patience)
+    lbfgs_iterations = _positive_int("lbfgs_iterations", lbfgs_iterations, 0)
+    num_threads = _positive_int("num_threads", num_threads)
+    learning_rate = _as_scalar("learning_rate", learning_rate)
+    weight_decay = _as_scalar("weight_decay", weight_decay)
+    if skip_ridge is None:
+        skip_ridge = 1.0 if features == "past-inputs" else 1e-3
+    skip_ridge = _as_scalar("skip_ridge", skip_ridge)
+    if skip_ridge < 0.0:
+        raise ValueError(f"skip_ridge must be >= 0; got {skip_ridge}")
+    if learning_rate <= 0.0 or weight_decay < 0.0:
+        raise ValueError("learning_rate must be > 0 and weight_decay >= 0")
+    validation_fraction = _as_scalar("validation_fraction", validation_fraction)
+    if not 0.0 <= validation_fraction <= 0.9:
+        raise ValueError(f"validation_fraction must be in [0, 0.9]; got {validation_fraction}")
+    n = u_arr.size
+    n_val = round(validation_fraction * n)
+    n_train = n - n_val
+    if n_train < 8 or (validation_fraction > 0.0 and n_val < 2):
+        raise ValueError(
+            f"too few samples ({n}) for a training block and a validation block "
+            f"(validation_fraction={validation_fraction})"
+        )
+    if z_weights is None:
+        weights = np.ones(n)
+    else:
+        weights = _as_signal("z_weights", z_weights)
+        if weights.shape != u_arr.shape or np.any(weights < 0.0):
+            raise ValueError("z_weights must be non-negative with the same length as u")
+        if weights[:n_train].sum() <= 0.0:
+            raise ValueError("z_weights are all zero on the training block")
+        weights = weights / weights[:n_train].mean()
+    if u_range is None:
+        if np.ptp(u_arr) == 0.0:
+            raise ValueError("u is constant; give u_range or an input that varies")
+        u_range = (float(u_arr.min()), float(u_arr.max()))
+    u_range = _as_range("u_range", u_range)
+    feature_map: FeatureMap
+    if features == "play":
+        r = default_play_radii(u_range, n_play) if radii is None else np.asarray(radii, float)
+        feature_map = PlayFeatures(radii=tuple(np.sort(r)), initial_input=initial_input)
+    elif features == "bouc-wen":
+        lv = default_bouc_wen_levels(u_range, n_bouc_wen) if levels is None else levels
+        feature_map = BoucWenFeatures(
+            levels=tuple(np.sort(np.asarray(lv, float))), initial_input=initial_input
+        )
+    else:
+        feature_map = PastInputFeatures(n_past=n_past, initial_input=initial_input)
+
+    feats, _ = feature_map.features(u_arr, feature_map.initial_state())
+    f_train, z_train, w_train = feats[:n_train], z_arr[:n_train], weights[:n_train]
+    feature_mean = f_train.mean(axis=0)
+    feature_scale = f_train.std(axis=0)
+    feature_scale[feature_scale < 1e-12] = 1.0
+    z_mean = float(z_train.mean())
+    z_scale = float(z_train.std()) or 1.0
+    x_all = (feats - feature_mean) / feature_scale
+    t_all = (z_arr - z_mean) / z_scale
+
+    coef = _ridge_skip(x_all[:n_train], t_all[:n_train], w_train, skip_ridge)
+
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(num_threads)
+    try:
+        generator = torch.Generator().manual_seed(int(seed))
+        net = _TorchNLS.build(feature_map.n_features, hidden_t)
+        with torch.no_grad():
+            for layer in net.layers:
+                bound = math.sqrt(6.0 / (layer.in_features + layer.out_features))
+                layer.weight.uniform_(-bound, bound, generator=generator)
+                layer.bias.zero_()
+            net.out.weight.zero_()
+            net.out.bias.zero_()
+            net.skip.weight.copy_(torch.from_numpy(coef[:-1][None, :]))
+            net.skip.bias.fill_(float(coef[-1]))
+            net.feature_mean.copy_(torch.from_numpy(feature_mean))
+            net.feature_scale.copy_(torch.from_numpy(feature_scale))
+            net.z_mean.fill_(z_mean)
+            net.z_scale.fill_(z_scale)
+        x = torch.from_numpy(x_all)
+        t = torch.from_numpy(t_all)
+        w = torch.from_numpy(weights)
+        x_tr, t_tr, w_tr = x[:n_train], t[:n_train], w[:n_train]
+        x_va, t_va, w_va = x[n_train:], t[n_train:], w[n_train:]
+        mlp_params = [p for m in (*net.layers, net.out) for p in m.parameters()]
+
+        def data_loss(xb: Any, tb: Any, wb: Any) -> Any:
+            return torch.mean(wb * (net.normalized(xb) - tb) ** 2)
+
+        def penalty() -> Any:
+            return weight_decay * sum(torch.sum(p**2) for p in mlp_params)
+
+        def validation_loss() -> float:
+            with torch.no_grad():
+                if n_val == 0:
+                    return float(data_loss(x_tr, t_tr, w_tr))
+                return float(data_loss(x_va, t_va, w_va))
+
+        optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
+        best_loss = validation_loss()
+        initial_loss = best_loss
+        best_state = {k: v.clone() for k, v in net.state_dict().items()}
+        best_epoch = 0
+        epochs_run = 0
+        for epoch in range(1, max_epochs + 1):
+            epochs_run = epoch
+            order = torch.randperm(n_train, generator=generator)
+            for i in range(0, n_train, batch_size):
+                idx = order[i : i + batch_size]
+                optimizer.zero_grad()
+                loss = data_loss(x_tr[idx], t_tr[idx], w_tr[idx])
+                if weight_decay:
+                    loss = loss + penalty()
+                loss.backward()
+                optimizer.step()
+            current = validation_loss()
+            if current < best_loss:
+                best_loss, best_epoch = current, epoch
+                best_state = {k: v.clone() for k, v in net.state_dict().items()}
+            elif n_val > 0 and epoch - best_epoch >= patience:
+                break
+        net.load_state_dict(best_state)
+        lbfgs_improved = False
+        if lbfgs_iterations:
+            lbfgs = torch.optim.LBFGS(
+                net.parameters(),
+                max_iter=lbfgs_iterations,
+                history_size=20,
+                line_search_fn="strong_wolfe",
+            )
+
+            def closure() -> Any:
+                lbfgs.zero_grad()
+                loss = data_loss(x_tr, t_tr, w_tr)
+                if weight_decay:
+                    loss = loss + penalty()
+                loss.backward()
+                return loss
+
+            lbfgs.step(closure)
+            current = validation_loss()
+            if math.isfinite(current) and current < best_loss:
+                best_loss, lbfgs_improved = current, True
+            else:
+                net.load_state_dict(best_state)
+        params = _TorchNLS.to_params(net)
+        with torch.no_grad():
+            train_loss = float(data_loss(x_tr, t_tr, w_tr))
+    finally:
+        torch.set_num_threads(previous_threads)
+
+    training = {
+        "seed": int(seed),
+        "n_train": int(n_train),
+        "n_validation": int(n_val),
+        "epochs": int(epochs_run),
+        "best_epoch": int(best_epoch),
+        "lbfgs_improved": lbfgs_improved,
+        "affine_validation_mse": initial_loss * z_scale**2,
+        "validation_mse": best_loss * z_scale**2,
+        "train_mse": train_loss * z_scale**2,
+        "wall_time_s": time.perf_counter() - start,
+        "mse_unit": "equivalent V^2",
+    }
+    return NLS(feature_map, params, u_range=u_range, training=training)

@@ -1,0 +1,105 @@
+"""Markdown summary of an identification report (the dict of IdentificationResult.report)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["markdown_report"]
+
+
+def _row(cells: list[Any]) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
+
+
+def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
+    """Render the report as Markdown, with the figure files linked."""
+    env, arx, nls, val = report["environment"], report["arx"], report["nls"], report["validation"]
+    lines = [
+        f"# Hammerstein identification of {env['bender']}",
+        "",
+        f"dt = {env['dt_s'] * 1e3:g} ms, plant hysteresis {env['hysteresis']}, sensor noise "
+        f"+-{env['noise_bound_um']:g} um, stroke {env['stroke_um']:g} um.",
+        "",
+        "## Validation (free run on fresh data)",
+        "",
+        f"Signal: {val['signal']}, {val['samples']} samples.",
+        "",
+        _row(["model", "fit %", "RMSE (um)", "RMSE (% stroke)", "max error (um)"]),
+        _row(["---"] * 5),
+    ]
+    for name, key in (
+        ("Hammerstein (free run)", "hammerstein"),
+        ("linear ARX (free run)", "linear_arx"),
+        ("Hammerstein (one step ahead)", "hammerstein_one_step"),
+    ):
+        m = val[key]
+        lines.append(
+            _row(
+                [
+                    name,
+                    f"{m['fit_percent']:.2f}",
+                    f"{m['rmse']:.2f}",
+                    f"{m['rmse_percent_stroke']:.2f}",
+                    f"{m['max_abs_error']:.1f}",
+                ]
+            )
+        )
+    lines += [
+        "",
+        f"RMSE ratio Hammerstein / linear ARX: {val['rmse_ratio_hammerstein_to_arx']:.3f}.",
+        "",
+        "## ARX part",
+        "",
+        f"Order ARX({arx['order']},{arx['order']}), chosen by held-out PRBS free-run fit: "
+        + ", ".join(f"n = {k}: {v:.2f} %" for k, v in arx["order_scores_fit_percent"].items())
+        + ".",
+        "",
+        _row(["", "bayes-uniform", "chebyshev (exact MAP)", "least squares"]),
+        _row(["---"] * 4),
+    ]
+    theta = arx["a"] + arx["b"]
+    names = [f"a{i + 1}" for i in range(len(arx["a"]))] + [
+        f"b{i + 1}" for i in range(len(arx["b"]))
+    ]
+    for i, name in enumerate(names):
+        lines.append(
+            _row(
+                [
+                    name,
+                    f"{theta[i]:.6g}",
+                    f"{arx['chebyshev']['theta'][i]:.6g}",
+                    f"{arx['least_squares']['theta'][i]:.6g}",
+                ]
+            )
+        )
+    lines.append(
+        _row(
+            [
+                "r (um)",
+                f"{arx['noise_bound_um']:.4g}",
+                f"{arx['chebyshev']['noise_bound_um']:.4g}",
+                "",
+            ]
+        )
+    )
+    lines += [
+        "",
+        f"{arx['noise_bound_note']}. Minimum-phase B: {arx['minimum_phase']}; hidden signal by "
+        f"{report['inversion']['method']}.",
+        "",
+        "## NLS",
+        "",
+        f"Features: {nls['features']} (selection fits: "
+        + ", ".join(f"{k} {v:.2f} %" for k, v in nls["selection_fit_percent"].items())
+        + ").",
+        "",
+        "## Timings (s)",
+        "",
+        ", ".join(f"{k}: {v}" for k, v in report["timings_s"].items()),
+        "",
+        "## Figures",
+        "",
+        *[f"![{name}]({name})" for name in figures],
+        "",
+    ]
+    return "\n".join(lines)

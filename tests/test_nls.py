@@ -1,0 +1,368 @@
+"""Neural static nonlinearity: features, exports, inverse, training, serialization."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from identification.metrics import fit_percent
+from identification.nls import (
+    NLS,
+    BoucWenFeatures,
+    NLSInverseWarning,
+    PastInputFeatures,
+    PlayFeatures,
+    bouc_wen_update,
+    default_play_radii,
+    fit_nls,
+    play_operators,
+)
+
+torch = pytest.importorskip("torch")
+casadi = pytest.importorskip("casadi")
+
+TRUE_RADII = np.array([1.5, 4.0, 8.0, 13.0, 19.0])
+TRUE_WEIGHTS = np.array([0.25, 0.2, 0.12, 0.08, 0.05])
+
+
+def pi_hysteresis(u):
+    """A Prandtl-Ishlinskii hysteresis with a mild saturation: the NLS has to learn it."""
+    plays, _ = play_operators(u, TRUE_RADII)
+    return 0.6 * u + plays @ TRUE_WEIGHTS - 2e-4 * u**3
+
+
+def rich_input(n, seed):
+    """Random turning points joined by ramps of random length, within +-30 V."""
+    rng = np.random.default_rng(seed)
+    knots = rng.uniform(-30.0, 30.0, size=n // 20 + 2)
+    knots[0] = 0.0
+    times = np.concatenate([[0], np.cumsum(rng.integers(5, 40, size=knots.size - 1))])
+    return np.interp(np.arange(n), times, knots)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    """Small, quickly trained NLS of each feature set on the PI hysteresis."""
+    u = rich_input(3000, seed=1)
+    z = pi_hysteresis(u)
+    return {
+        name: fit_nls(u, z, features=name, max_epochs=15, seed=3, u_range=(-30.0, 30.0))
+        for name in ("play", "past-inputs", "bouc-wen")
+    }
+
+
+# -- play operators ---------------------------------------------------------------------------
+
+
+def test_play_operator_on_triangle_gives_trapezoid():
+    amplitude, radius = 10.0, 3.0
+    # 0 -> A -> -A -> A -> -A, 0.01 V steps
+    knots = [0.0, amplitude, -amplitude, amplitude, -amplitude]
+    u = np.interp(np.linspace(0, 4, 8001), np.arange(5), knots)
+    p, final = play_operators(u, [radius])
+    p = p[:, 0]
+    rising = np.r_[True, np.diff(u) > 0]
+    # after the first peak: on falling branches p = min(A - r, u + r), on rising max(-A + r, u - r)
+    expected = np.where(
+        rising,
+        np.maximum(-amplitude + radius, u - radius),
+        np.minimum(amplitude - radius, u + radius),
+    )
+    start = 2001  # index of the first peak
+    np.testing.assert_allclose(p[start:], expected[start:], atol=1e-12)
+    # first rise from rest at 0: dead band until u reaches r
+    np.testing.assert_allclose(p[:start], np.maximum(0.0, u[:start] - radius), atol=1e-12)
+    assert final[0] == pytest.approx(-amplitude + radius)
+
+
+def test_play_operator_is_rate_independent():
+    knots = np.array([0.0, 25.0, -10.0, 18.0, -30.0, 5.0, -2.0, 30.0])
+    coarse_t = np.arange(0, knots.size * 10 - 9)
+    fine_t = np.linspace(0, coarse_t[-1], coarse_t.size * 13 - 12)
+    u_coarse = np.interp(coarse_t, np.arange(knots.size) * 10, knots)
+    u_fine = np.interp(fine_t, np.arange(knots.size) * 10, knots)
+    radii = default_play_radii((-30.0, 30.0), 8)
+    p_coarse, _ = play_operators(u_coarse, radii)
+    p_fine, _ = play_operators(u_fine, radii)
+    np.testing.assert_allclose(p_fine[::13], p_coarse, atol=1e-12)
+
+
+def test_default_radii_span_half_range():
+    r = default_play_radii((-30.0, 30.0), 5)
+    np.testing.assert_allclose(r, [5.0, 10.0, 15.0, 20.0, 25.0])
+
+
+@pytest.mark.parametrize(
+    "feature_map",
+    [
+        PlayFeatures(radii=(1.0, 4.0, 9.0)),
+        PastInputFeatures(n_past=4),
+        BoucWenFeatures(levels=(3.0, 10.0, 40.0)),
+    ],
+)
+def test_features_continue_across_calls_and_steps(feature_map):
+    u = rich_input(200, seed=5)
+    full, final = feature_map.features(u, feature_map.initial_state())
+    first, mid = feature_map.features(u[:77], feature_map.initial_state())
+    second, final2 = feature_map.features(u[77:], mid)
+    np.testing.assert_array_equal(np.vstack([first, second]), full)
+    np.testing.assert_array_equal(final, final2)
+    state = feature_map.initial_state()
+    for t in range(u.size):
+        f, state = feature_map.step(u[t], state)
+        np.testing.assert_array_equal(f, full[t])
+    np.testing.assert_array_equal(state, final)
+
+
+def test_past_input_features_layout():
+    fm = PastInputFeatures(n_past=2, initial_input=0.5)
+    f, state = fm.features(np.array([1.0, 2.0, 3.0]), fm.initial_state())
+    np.testing.assert_array_equal(f, [[1.0, 0.5, 0.5], [2.0, 1.0, 0.5], [3.0, 2.0, 1.0]])
+    np.testing.assert_array_equal(state, [3.0, 2.0])
+
+
+def test_bouc_wen_operator_matches_fine_integration_and_is_rate_independent():
+    levels = np.array([4.0, 15.0])
+    knots = np.array([0.0, 25.0, -10.0, 18.0, -30.0, 5.0])
+    u = np.interp(np.linspace(0, 5, 51), np.arange(6), knots)
+    fm = BoucWenFeatures(levels=tuple(levels))
+    exact, _ = fm.features(u, fm.initial_state())
+    # explicit Euler in u with tiny steps of dh = du - b|du|h - b du|h|
+    fine = np.interp(np.linspace(0, 5, 50001), np.arange(6), knots)
+    h = np.zeros(2)
+    euler = [h.copy()]
+    b = 1.0 / (2.0 * levels)
+    for du in np.diff(fine):
+        h = h + du - b * abs(du) * h - b * du * np.abs(h)
+        euler.append(h.copy())
+    np.testing.assert_allclose(exact[:, 1:], np.array(euler)[::1000], atol=2e-3)
+    coarse, _ = fm.features(u[::10], fm.initial_state())
+    np.testing.assert_allclose(coarse, exact[::10], atol=1e-12)
+    # saturation towards +-level, linear tracking while du and h have opposite signs
+    assert bouc_wen_update(np.array([0.0]), 1e3, np.array([4.0]))[0] == pytest.approx(4.0)
+    assert bouc_wen_update(np.array([-2.0]), 1.5, np.array([4.0]))[0] == pytest.approx(-0.5)
+
+
+# -- exports ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["play", "past-inputs", "bouc-wen"])
+def test_numpy_and_casadi_exports_equal_torch(trained, name):
+    nls = trained[name]
+    u = rich_input(400, seed=9) * 1.2  # includes extrapolation beyond the training range
+    features, _ = nls.features(u)
+    with torch.no_grad():
+        z_torch = nls.to_torch()(torch.from_numpy(features)).numpy()
+    z_numpy = nls.to_numpy()(features)
+    np.testing.assert_allclose(z_numpy, z_torch, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(nls(u), z_torch, rtol=0, atol=1e-6)
+    f_cas = nls.to_casadi()
+    z_casadi = np.array([float(f_cas(row)) for row in features[::20]])
+    np.testing.assert_allclose(z_casadi, z_torch[::20], rtol=0, atol=1e-6)
+    # step-by-step: numpy step and casadi step (with the max/min play update) agree
+    step_cas = nls.to_casadi_step()
+    feat_cas = nls.to_casadi_features()
+    state_np = state_cas = nls.initial_state()
+    for t in range(120):
+        z_np, state_np = nls.step(u[t], state_np)
+        f_t, _ = feat_cas(u[t], state_cas)
+        z_c, state_cas = step_cas(u[t], state_cas)
+        state_cas = np.array(state_cas).ravel()
+        assert abs(z_np - z_torch[t]) < 1e-6
+        assert abs(float(z_c) - z_torch[t]) < 1e-6
+        np.testing.assert_allclose(np.array(f_t).ravel(), features[t], atol=1e-12)
+        np.testing.assert_allclose(state_cas, state_np, atol=1e-12)
+
+
+def test_casadi_export_is_differentiable(trained):
+    nls = trained["play"]
+    step = nls.to_casadi_step()
+    u = casadi.SX.sym("u")
+    z, _ = step(u, nls.initial_state())
+    dz = casadi.Function("dz", [u], [casadi.jacobian(z, u)])
+    h = 1e-6
+    numeric = (nls.step(10.0 + h, None)[0] - nls.step(10.0 - h, None)[0]) / (2 * h)
+    assert float(dz(10.0)) == pytest.approx(numeric, rel=1e-5)
+
+
+# -- inverse ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["play", "past-inputs", "bouc-wen"])
+def test_inverse_round_trip_over_operating_range(trained, name):
+    nls = trained[name]
+    u = rich_input(300, seed=11) * 0.95
+    z = nls(u)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NLSInverseWarning)
+        u_back, final = nls.inverse_sequence(z)
+    np.testing.assert_allclose(u_back, u, atol=1e-6)
+    np.testing.assert_allclose(final, nls.features(u)[1], atol=1e-6)
+    # scalar inverse from a mid-sequence memory state
+    _, state = nls.features(u[:150])
+    u_t = nls.inverse(z[150], state)
+    assert u_t == pytest.approx(u[150], abs=1e-6)
+
+
+def test_inverse_saturates_out_of_range(trained):
+    nls = trained["play"]
+    result = nls.solve_inverse(1e6, None, u_range=(-30.0, 30.0))
+    assert result.status == "out-of-range"
+    assert result.u == pytest.approx(30.0)
+    assert nls.inverse(-1e6) == pytest.approx(-30.0)
+
+
+def _handmade_nls(out_weight):
+    """z = u + out_weight * tanh(u) with identity normalization (past-input features)."""
+    params = {
+        "feature_mean": np.zeros(2),
+        "feature_scale": np.ones(2),
+        "z_mean": np.array(0.0),
+        "z_scale": np.array(1.0),
+        "layer0_weight": np.array([[1.0, 0.0]]),
+        "layer0_bias": np.zeros(1),
+        "out_weight": np.array([out_weight]),
+        "out_bias": np.array(0.0),
+        "skip_weight": np.array([1.0, 0.0]),
+        "skip_bias": np.array(0.0),
+    }
+    return NLS(PastInputFeatures(n_past=1), params, u_range=(-5.0, 5.0))
+
+
+def test_inverse_of_non_monotone_map_warns_and_picks_nearest_root():
+    nls = _handmade_nls(-2.0)  # z = u - 2 tanh(u): roots of z = 0 at 0 and about +-1.915
+    result = nls.solve_inverse(0.0, [1.8])  # previous input 1.8 V is the reference
+    assert result.status == "non-monotone"
+    assert result.u == pytest.approx(1.91501, abs=1e-4)
+    with pytest.warns(NLSInverseWarning, match="not monotone"):
+        nls.inverse(0.0, [0.1])
+    with pytest.warns(NLSInverseWarning):
+        nls.inverse_sequence([0.0, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _handmade_nls(2.0).inverse(0.0) == pytest.approx(0.0, abs=1e-9)
+
+
+# -- training ---------------------------------------------------------------------------------
+
+
+def test_bouc_wen_features_learn_bouc_wen_hysteresis():
+    u = rich_input(4000, seed=23)
+
+    def bouc_wen(u):  # the plant's hysteresis form, z = k u - alpha k h (beta = gamma)
+        fm = BoucWenFeatures(levels=(1.0 / (2 * 0.0233),))
+        h = fm.features(u, fm.initial_state())[0][:, 1]
+        return 1.245 * u - 0.32 * 1.245 * h
+
+    nls = fit_nls(u, bouc_wen(u), features="bouc-wen", max_epochs=30)
+    u_test = rich_input(2000, seed=24)
+    assert fit_percent(bouc_wen(u_test), nls(u_test)) > 99.5
+
+
+def test_learns_known_prandtl_ishlinskii_hysteresis():
+    u = rich_input(6000, seed=21)
+    nls = fit_nls(u, pi_hysteresis(u), features="play", seed=0)
+    u_test = rich_input(3000, seed=22)
+    assert fit_percent(pi_hysteresis(u_test), nls(u_test)) > 99.0  # measured 99.25
+    assert nls.training["validation_mse"] < nls.training["affine_validation_mse"]
+
+
+@pytest.mark.parametrize("name", ["play", "past-inputs", "bouc-wen"])
+def test_learns_identity_exactly(name):
+    u = rich_input(1500, seed=4)
+    nls = fit_nls(u, u, features=name, max_epochs=5)
+    u_test = rich_input(500, seed=5) * 1.5
+    np.testing.assert_allclose(nls(u_test), u_test, atol=1e-9)
+
+
+def test_same_seed_same_model_bitwise(trained):
+    u = rich_input(1500, seed=2)
+    z = pi_hysteresis(u)
+    a = fit_nls(u, z, max_epochs=4, seed=7, lbfgs_iterations=5)
+    b = fit_nls(u, z, max_epochs=4, seed=7, lbfgs_iterations=5)
+    c = fit_nls(u, z, max_epochs=4, seed=8, lbfgs_iterations=5)
+    for key, value in a.arrays().items():
+        np.testing.assert_array_equal(value, b.arrays()[key])
+    assert any(not np.array_equal(v, c.arrays()[k]) for k, v in a.arrays().items())
+
+
+def test_training_restores_torch_threads():
+    before = torch.get_num_threads()
+    u = rich_input(600, seed=2)
+    fit_nls(u, u, max_epochs=1, num_threads=1)
+    assert torch.get_num_threads() == before
+
+
+def test_z_weights_validation_and_effect():
+    u = rich_input(800, seed=2)
+    with pytest.raises(ValueError, match="z_weights"):
+        fit_nls(u, u, z_weights=-np.ones(800))
+    fit_nls(u, u, z_weights=np.linspace(0.5, 1.0, 800), max_epochs=1)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"features": "bouc"}, "features must be one of"),
+        ({"hidden": (32, 0)}, "hidden width"),
+        ({"validation_fraction": 0.95}, "validation_fraction"),
+        ({"max_epochs": -1}, "max_epochs"),
+        ({"learning_rate": 0.0}, "learning_rate"),
+    ],
+)
+def test_fit_rejects_bad_configuration(kwargs, match):
+    u = rich_input(200, seed=1)
+    with pytest.raises(ValueError, match=match):
+        fit_nls(u, u, **kwargs)
+
+
+def test_fit_rejects_bad_data():
+    with pytest.raises(ValueError, match="same length"):
+        fit_nls(np.zeros(10), np.zeros(11))
+    with pytest.raises(ValueError, match="non-finite"):
+        fit_nls([0.0, np.nan, 1.0], [0.0, 1.0, 2.0])
+    with pytest.raises(ValueError, match="too few samples"):
+        fit_nls(np.arange(6.0), np.arange(6.0))
+
+
+# -- evaluation API and serialization ---------------------------------------------------------
+
+
+def test_step_matches_evaluate_and_validates_state(trained):
+    nls = trained["play"]
+    u = rich_input(100, seed=3)
+    z = nls(u)
+    state = None
+    for t in range(u.size):
+        z_t, state = nls.step(u[t], state)
+        assert z_t == pytest.approx(z[t], abs=1e-12)
+    with pytest.raises(ValueError, match="play feature state"):
+        nls.step(0.0, np.zeros(3))
+    with pytest.raises(ValueError, match="non-finite"):
+        nls.evaluate([0.0, np.inf])
+
+
+@pytest.mark.parametrize("name", ["play", "past-inputs", "bouc-wen"])
+def test_dict_round_trip(trained, name):
+    nls = trained[name]
+    config = json.loads(json.dumps(nls.to_dict(), allow_nan=False))
+    again = NLS.from_dict(config, nls.arrays())
+    u = rich_input(300, seed=8)
+    np.testing.assert_array_equal(again(u), nls(u))
+    assert again.feature_set == name
+    assert again.u_range == nls.u_range
+
+
+def test_from_dict_reports_problems(trained):
+    nls = trained["play"]
+    arrays = nls.arrays()
+    with pytest.raises(ValueError, match="version"):
+        NLS.from_dict({**nls.to_dict(), "version": 99}, arrays)
+    with pytest.raises(ValueError, match="missing array"):
+        NLS.from_dict(nls.to_dict(), {k: v for k, v in arrays.items() if k != "out_bias"})
+    bad = dict(arrays, layer1_weight=arrays["layer1_weight"][:, :5])
+    with pytest.raises(ValueError, match="layer1_weight"):
+        NLS.from_dict(nls.to_dict(), bad)
+    with pytest.raises(ValueError, match="hidden widths"):
+        NLS.from_dict({**nls.to_dict(), "hidden": [8, 8, 8]}, arrays)
