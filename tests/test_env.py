@@ -263,3 +263,15 @@ def test_rgb_array_render_draws_the_beam():
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
     assert frame.std() > 10  # something was drawn
     env.close()
+
+
+def test_default_env_reproduces_the_golden_trajectory():
+    from golden import GOLDEN, golden_trajectory
+
+    expected = np.load(GOLDEN, allow_pickle=False)
+    actual = golden_trajectory()
+    np.testing.assert_allclose(actual["voltage"], expected["voltage"])
+    np.testing.assert_allclose(
+        actual["deflection_um"], expected["deflection_um"], rtol=1e-9, atol=1e-6
+    )
+    np.testing.assert_allclose(actual["observation"], expected["observation"], rtol=1e-6, atol=1e-3)
