@@ -12,9 +12,10 @@
 from identification.arx import ARXModel, regressors
 from identification.bayes_uniform import BayesUniformEstimator
 from identification.estimation import METHODS, fit_arx, fit_chebyshev, fit_least_squares
+from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.metrics import fit_metrics, fit_percent, max_abs_error, rmse
-from identification.nls import FEATURE_SETS, NLS, fit_nls
+from identification.nls import NLS, fit_nls
 from identification.pipeline import IdentificationConfig, IdentificationResult, identify
 
 __all__ = [

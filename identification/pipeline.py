@@ -35,9 +35,10 @@ import scipy.sparse.linalg
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from identification.arx import ARXModel
 from identification.estimation import fit_arx
+from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.metrics import fit_metrics
-from identification.nls import FEATURE_SETS, fit_nls
+from identification.nls import fit_nls
 from piezo_env.signals import make_signal
 
 __all__ = [

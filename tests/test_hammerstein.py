@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from identification.arx import ARXModel
+from identification.features import play_operators
 from identification.hammerstein import HammersteinModel
-from identification.nls import fit_nls, play_operators
+from identification.nls import fit_nls
 
 pytest.importorskip("torch")
 

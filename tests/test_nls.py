@@ -6,18 +6,16 @@ import warnings
 import numpy as np
 import pytest
 
-from identification.metrics import fit_percent
-from identification.nls import (
-    NLS,
+from identification.features import (
     BoucWenFeatures,
-    NLSInverseWarning,
     PastInputFeatures,
     PlayFeatures,
     bouc_wen_update,
     default_play_radii,
-    fit_nls,
     play_operators,
 )
+from identification.metrics import fit_percent
+from identification.nls import NLS, NLSInverseWarning, fit_nls
 
 torch = pytest.importorskip("torch")
 casadi = pytest.importorskip("casadi")

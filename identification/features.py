@@ -1,0 +1,495 @@
+"""Memory features of the NLS: what the network sees of the voltage history.
+
+A static map u -> z cannot draw a hysteresis loop, so the NLS network (identification.nls)
+takes memory features of the input. Each feature map is stateful, so that a controller can run
+it step by step, and serialises to a plain dict.
+
+``"play"``
+    ``F_t = [u_t, p_1,t, ..., p_n,t]`` with Prandtl-Ishlinskii play (backlash) operators of radii
+    ``r_i`` spread over the input range, ``p_i,t = max(u_t - r_i, min(u_t + r_i, p_i,t-1))``.
+    Rate-independent memory: the output depends on the input's turning points, not on its speed.
+    The feature state is the vector of play outputs.
+``"past-inputs"``
+    ``F_t = [u_t, u_t-1, ..., u_t-k]``: the paper's nlarx regressors. The feature state is the
+    buffer ``[u_t-1, ..., u_t-k]``.
+``"bouc-wen"``
+    ``F_t = [u_t, h_1,t, ..., h_n,t]`` with normalized Bouc-Wen operators
+    ``dh = du - b |du| h - b du |h|`` (``b = 1 / (2 level)``), saturation levels spread over the
+    input range, integrated exactly in ``u`` (:func:`bouc_wen_update`): rate-independent like
+    plays, but with the rounded loops of piezo hysteresis. Beyond the paper: a single-state
+    Bouc-Wen hysteresis is not a Prandtl-Ishlinskii operator, so play features plateau on it,
+    while these represent it closely. The state is ``[u_t-1, h_1, ..., h_n]``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = [
+    "FEATURE_SETS",
+    "BoucWenFeatures",
+    "FeatureMap",
+    "PastInputFeatures",
+    "PlayFeatures",
+    "bouc_wen_update",
+    "default_bouc_wen_levels",
+    "default_play_radii",
+    "feature_map_from_dict",
+    "play_operators",
+]
+
+FEATURE_SETS = ("play", "past-inputs", "bouc-wen")
+"""Names of the memory feature sets accepted by :func:`identification.nls.fit_nls`."""
+
+# ---------------------------------------------------------------------------------------------
+# validation helpers
+
+
+def _as_signal(name: str, values: ArrayLike) -> np.ndarray:
+    """Return ``values`` as a finite float64 1-D array or raise a ValueError naming it."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be a 1-D sequence; got shape {arr.shape}")
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        index = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name} contains a non-finite value at index {index}: {arr[index]}")
+    return arr
+
+
+def _as_scalar(name: str, value: float) -> float:
+    """Return ``value`` as a finite float or raise a ValueError naming it."""
+    try:
+        result = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a finite number; got {value!r}") from None
+    if not math.isfinite(result):
+        raise ValueError(f"{name} must be a finite number; got {value!r}")
+    return result
+
+
+def _as_range(name: str, value: Sequence[float]) -> tuple[float, float]:
+    """Return ``value`` as a finite ``(low, high)`` pair with ``low < high``."""
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high) of numbers; got {value!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise ValueError(f"{name} must be finite with low < high; got {value!r}")
+    return low, high
+
+
+# ---------------------------------------------------------------------------------------------
+# memory features
+
+
+def default_play_radii(u_range: Sequence[float], n_play: int) -> np.ndarray:
+    """Play radii spread evenly over the input range, ``r_i = i (hi - lo) / (2 (n + 1))``.
+
+    The largest radius stays below half the span, so every play operator moves on a full sweep.
+
+    Parameters
+    ----------
+    u_range : (float, float)
+        Input range ``(lo, hi)`` in V.
+    n_play : int
+        Number of play operators (>= 1).
+
+    Returns
+    -------
+    numpy.ndarray, shape (n_play,)
+        Radii in V, increasing.
+    """
+    low, high = _as_range("u_range", u_range)
+    if int(n_play) != n_play or n_play < 1:
+        raise ValueError(f"n_play must be a positive integer; got {n_play!r}")
+    n = int(n_play)
+    return (high - low) / (2.0 * (n + 1)) * np.arange(1, n + 1, dtype=np.float64)
+
+
+def play_operators(
+    u: ArrayLike, radii: ArrayLike, state: ArrayLike | None = None, *, initial_input: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Outputs of Prandtl-Ishlinskii play operators, ``p_t = max(u_t - r, min(u_t + r, p_t-1))``.
+
+    Parameters
+    ----------
+    u : array_like, shape (T,)
+        Input sequence, V.
+    radii : array_like, shape (n,)
+        Play radii (half backlash widths), V, non-negative.
+    state : array_like, shape (n,), optional
+        Play outputs before ``u[0]``, V. Default: all equal to ``initial_input`` (a relaxed
+        operator at rest).
+    initial_input : float, optional
+        Rest input used when ``state`` is None, V.
+
+    Returns
+    -------
+    P : numpy.ndarray, shape (T, n)
+        Play outputs, V.
+    final_state : numpy.ndarray, shape (n,)
+        Play outputs after the last sample (pass back as ``state`` to continue).
+    """
+    u_arr = _as_signal("u", u)
+    r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(r)) or np.any(r < 0.0):
+        raise ValueError(f"radii must be finite and non-negative; got {r}")
+    if state is None:
+        p = np.full(r.shape, _as_scalar("initial_input", initial_input))
+    else:
+        p = np.array(state, dtype=np.float64).reshape(-1)
+        if p.shape != r.shape or not np.all(np.isfinite(p)):
+            raise ValueError(
+                f"play state must be {r.size} finite values (one per radius); got {state!r}"
+            )
+    upper = u_arr[:, None] + r
+    lower = u_arr[:, None] - r
+    out = np.empty((u_arr.size, r.size))
+    for t in range(u_arr.size):
+        np.minimum(upper[t], p, out=p)
+        np.maximum(lower[t], p, out=p)
+        out[t] = p
+    return out, p.copy()
+
+
+def _check_state(state: ArrayLike | None, feature_map: Any, message: str) -> np.ndarray:
+    """Return ``state`` as a finite float64 vector of the map's state length, or raise.
+
+    A float64 vector of the right length is returned as is (no copy: feature maps never write
+    into a state, they return new ones), which keeps per-step calls cheap.
+    """
+    if state is None:
+        return feature_map.initial_state()
+    if type(state) is np.ndarray and state.dtype == np.float64 and state.ndim == 1:
+        s = state
+    else:
+        try:
+            s = np.array(state, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise ValueError(f"{message}; got {state!r}") from None
+    if s.shape != (feature_map.n_state,) or not np.isfinite(s).all():
+        raise ValueError(f"{message}; got {np.asarray(state).tolist()}")
+    return s
+
+
+@dataclass(frozen=True)
+class PlayFeatures:
+    """Play-operator features ``F_t = [u_t, p_1,t, ..., p_n,t]``; state: play outputs (V).
+
+    Attributes
+    ----------
+    radii : tuple of float
+        Play radii, V, positive and increasing.
+    initial_input : float
+        Rest input, V: the default state has every play output equal to it.
+    """
+
+    radii: tuple[float, ...]
+    initial_input: float = 0.0
+
+    name = "play"
+
+    def __post_init__(self) -> None:
+        r = np.asarray(self.radii, dtype=np.float64)
+        if r.ndim != 1 or r.size < 1 or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
+            raise ValueError(f"play radii must be one or more positive numbers; got {self.radii}")
+        object.__setattr__(self, "radii", tuple(float(x) for x in r))
+        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+        object.__setattr__(self, "_r", r)
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the input plus one per play operator."""
+        return 1 + len(self.radii)
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector (one play output per radius)."""
+        return len(self.radii)
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: every play output equal to ``initial_input`` (V)."""
+        return np.full(self.n_state, self.initial_input)
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
+        return _check_state(
+            state,
+            self,
+            f"play feature state must be {self.n_state} finite play outputs (V)",
+        )
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        plays, final = play_operators(u, self._r, state)
+        return np.column_stack([u, plays]), final
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        r = self._r
+        plays = np.maximum(u[:, None] - r, np.minimum(u[:, None] + r, state))
+        return np.column_stack([u, plays])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        r = self._r
+        new = np.maximum(u - r, np.minimum(u + r, state))
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = new
+        return f, new
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state (max/min form)."""
+        import casadi
+
+        new = casadi.vertcat(
+            *[casadi.fmax(u - r, casadi.fmin(u + r, state[i])) for i, r in enumerate(self.radii)]
+        )
+        return casadi.vertcat(u, new), new
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {"name": self.name, "radii": list(self.radii), "initial_input": self.initial_input}
+
+
+@dataclass(frozen=True)
+class PastInputFeatures:
+    """Past-input (nlarx) features ``F_t = [u_t, u_t-1, ..., u_t-k]``; state: ``[u_t-1..u_t-k]``.
+
+    Attributes
+    ----------
+    n_past : int
+        Number of past inputs ``k`` (>= 1).
+    initial_input : float
+        Rest input, V: the default state is a buffer filled with it.
+    """
+
+    n_past: int
+    initial_input: float = 0.0
+
+    name = "past-inputs"
+
+    def __post_init__(self) -> None:
+        if int(self.n_past) != self.n_past or self.n_past < 1:
+            raise ValueError(f"n_past must be a positive integer; got {self.n_past!r}")
+        object.__setattr__(self, "n_past", int(self.n_past))
+        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the current input plus ``n_past`` past inputs."""
+        return 1 + self.n_past
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector (the input buffer)."""
+        return self.n_past
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: the buffer filled with ``initial_input`` (V)."""
+        return np.full(self.n_state, self.initial_input)
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
+        return _check_state(
+            state,
+            self,
+            f"past-input feature state must be the {self.n_state} previous inputs "
+            "[u_t-1, ..., u_t-k] (V), finite",
+        )
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        k = self.n_past
+        extended = np.concatenate([state[::-1], u])
+        windows = np.lib.stride_tricks.sliding_window_view(extended, k + 1)
+        features = np.ascontiguousarray(windows[:, ::-1])
+        return features, extended[-k:][::-1].copy()
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        return np.column_stack([u, np.broadcast_to(state, (u.size, self.n_state))])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = state
+        return f, f[:-1].copy()
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state (a shift register)."""
+        import casadi
+
+        features = casadi.vertcat(u, state)
+        return features, features[: self.n_past]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {"name": self.name, "n_past": self.n_past, "initial_input": self.initial_input}
+
+
+def bouc_wen_update(h: np.ndarray, du: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """Exact update of normalized Bouc-Wen operators over an input change ``du`` (V).
+
+    Each operator obeys ``dh = du - b |du| h - b du |h|`` with ``b = 1 / (2 level)`` (Bouc-Wen
+    with exponent 1, ``alpha = 1``, ``beta = gamma = b``). While ``du`` and ``h`` have opposite
+    signs, ``h`` follows the input linearly (``dh = du``); once they share a sign it relaxes
+    exponentially towards ``sign(du) level``. Integrated in ``u`` rather than in time, so it is
+    exact for any step size and rate-independent. Broadcasts over ``h``, ``du`` and ``levels``.
+    """
+    sign = np.sign(du)
+    size = np.abs(du)
+    linear = np.minimum(size, np.maximum(-sign * h, 0.0))
+    rest = size - linear
+    target = sign * levels
+    return target + (h + sign * linear - target) * np.exp(-rest / levels)
+
+
+@dataclass(frozen=True)
+class BoucWenFeatures:
+    """Bouc-Wen operator features ``F_t = [u_t, h_1,t, ..., h_n,t]``.
+
+    Smooth, saturating relatives of play operators (see :func:`bouc_wen_update`) with
+    saturation levels spread over the input range: rate-independent memory whose loops have the
+    rounded shape of piezo hysteresis. The state is ``[u_t-1, h_1,t-1, ..., h_n,t-1]``.
+
+    Attributes
+    ----------
+    levels : tuple of float
+        Saturation levels, V, positive and increasing.
+    initial_input : float
+        Rest input, V: the default state is ``[initial_input, 0, ..., 0]``.
+    """
+
+    levels: tuple[float, ...]
+    initial_input: float = 0.0
+
+    name = "bouc-wen"
+
+    def __post_init__(self) -> None:
+        lv = np.asarray(self.levels, dtype=np.float64)
+        if lv.ndim != 1 or lv.size < 1 or not np.all(np.isfinite(lv)) or np.any(lv <= 0.0):
+            raise ValueError(f"Bouc-Wen levels must be positive numbers; got {self.levels}")
+        object.__setattr__(self, "levels", tuple(float(x) for x in lv))
+        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+        object.__setattr__(self, "_lv", lv)
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the input plus one per operator."""
+        return 1 + len(self.levels)
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector: the previous input and one value per operator."""
+        return 1 + len(self.levels)
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: previous input ``initial_input``, operators at 0 (V)."""
+        state = np.zeros(self.n_state)
+        state[0] = self.initial_input
+        return state
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
+        return _check_state(
+            state,
+            self,
+            f"Bouc-Wen feature state must be [u_t-1, h_1, ..., h_{len(self.levels)}] (V), finite",
+        )
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        out = np.empty((u.size, self.n_features))
+        out[:, 0] = u
+        du = np.diff(u, prepend=state[0])
+        h = state[1:]
+        lv = self._lv
+        for t in range(u.size):
+            h = bouc_wen_update(h, du[t], lv)
+            out[t, 1:] = h
+        final = np.empty(self.n_state)
+        final[0] = u[-1] if u.size else state[0]
+        final[1:] = h
+        return out, final
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        h = bouc_wen_update(state[1:], (u - state[0])[:, None], self._lv)
+        return np.column_stack([u, h])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = bouc_wen_update(state[1:], u - state[0], self._lv)
+        return f, f.copy()
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state (closed-form update)."""
+        import casadi
+
+        du = u - state[0]
+        sign, size = casadi.sign(du), casadi.fabs(du)
+        new = []
+        for i, level in enumerate(self.levels):
+            h = state[1 + i]
+            linear = casadi.fmin(size, casadi.fmax(-sign * h, 0.0))
+            target = sign * level
+            new.append(target + (h + sign * linear - target) * casadi.exp(-(size - linear) / level))
+        features = casadi.vertcat(u, *new)
+        return features, features
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {"name": self.name, "levels": list(self.levels), "initial_input": self.initial_input}
+
+
+def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
+    """Saturation levels spaced geometrically from 0.1 to 2 half-spans of the input range (V).
+
+    Parameters
+    ----------
+    u_range : (float, float)
+        Input range ``(lo, hi)`` in V.
+    n : int
+        Number of operators (>= 1).
+
+    Returns
+    -------
+    numpy.ndarray, shape (n,)
+        Levels in V, increasing.
+    """
+    low, high = _as_range("u_range", u_range)
+    if int(n) != n or n < 1:
+        raise ValueError(f"n_bouc_wen must be a positive integer; got {n!r}")
+    half = 0.5 * (high - low)
+    return half * np.geomspace(0.1, 2.0, int(n))
+
+
+FeatureMap = PlayFeatures | PastInputFeatures | BoucWenFeatures
+
+
+def feature_map_from_dict(config: dict[str, Any]) -> FeatureMap:
+    """Rebuild a feature map from :meth:`to_dict` output."""
+    name = config.get("name")
+    if name == "play":
+        return PlayFeatures(radii=tuple(config["radii"]), initial_input=config["initial_input"])
+    if name == "past-inputs":
+        return PastInputFeatures(n_past=config["n_past"], initial_input=config["initial_input"])
+    if name == "bouc-wen":
+        return BoucWenFeatures(
+            levels=tuple(config["levels"]), initial_input=config["initial_input"]
+        )
+    raise ValueError(f"unknown NLS feature set {name!r}; expected one of {FEATURE_SETS}")
