@@ -63,9 +63,15 @@ from piezo_env.discrete import Creep
 from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
 from piezo_env.model import BenderSimulator, PiezoBenderModel
-from piezo_env.reference import make_reference
+from piezo_env.reference import ReferenceStream
 
-__all__ = ["PiezoBenderEnv", "check_reset_options", "observation_bound", "prepare_reference"]
+__all__ = [
+    "PiezoBenderEnv",
+    "check_reset_options",
+    "episode_generators",
+    "episode_reference",
+    "observation_bound",
+]
 
 DEFAULT_HORIZON = 2000
 _NOISE_BLOCK = 1024
@@ -77,28 +83,31 @@ def observation_bound(model: PiezoBenderModel, noise_bound: float) -> float:
     return float(np.float32(math.ceil((model.deflection_bound_um() + noise_bound) * 1.001 + 1.0)))
 
 
-def prepare_reference(
-    reference: object, n: int, *, model: PiezoBenderModel, bound: float, rng: np.random.Generator
-) -> np.ndarray | None:
-    """Reference samples (um, float32) for one episode: None, a named shape or an array.
+def episode_reference(options: dict[str, Any], made_with: object) -> object:
+    """The reference spec of an episode: ``options["reference"]`` or the env's own.
 
-    Arrays are used as given; past their end the last value holds. Raises ValueError for
-    non-finite values or values outside the observation bound.
+    Raises ValueError when the options ask for a reference the env was not made for.
     """
-    if reference is None:
-        return None
-    if isinstance(reference, str):
-        values = make_reference(reference, n, dt=model.dt, stroke_um=model.stroke_um, rng=rng)
-    else:
-        values = np.asarray(reference, dtype=np.float64).ravel()
-        if values.size == 0 or not np.all(np.isfinite(values)):
-            raise ValueError("reference array must be non-empty and finite (um)")
-        if np.abs(values).max() > bound:
-            raise ValueError(
-                f"reference reaches {np.abs(values).max():.1f} um, beyond what the bender can "
-                f"reach (observation bound {bound:.1f} um); scale it down"
-            )
-    return values.astype(np.float32)
+    if "reference" not in options:
+        return made_with
+    spec = options["reference"]
+    if made_with is None:
+        raise ValueError(
+            "this env was made with reference=None (no reference in the observation); "
+            "make it with a reference to track one"
+        )
+    if spec is None:
+        raise ValueError("this env was made with a reference; pass an array (um), not None")
+    return spec
+
+
+def episode_generators(rng: np.random.Generator) -> tuple[np.random.Generator, np.random.Generator]:
+    """Independent generators for an episode's reference and sensor noise, drawn from ``rng``.
+
+    Keeping the two streams apart makes the samples independent of when each is drawn.
+    """
+    ref_seed, noise_seed = rng.integers(0, 2**63 - 1, size=2)
+    return np.random.default_rng(int(ref_seed)), np.random.default_rng(int(noise_seed))
 
 
 def check_reset_options(options: dict[str, Any], u_max: float) -> float:
@@ -200,19 +209,17 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         self._u_max = self.model.rated_voltage
 
         self.bound = observation_bound(self.model, self.noise_bound)
-        if reference is not None and not isinstance(reference, str):
-            prepare_reference(reference, 1, model=self.model, bound=self.bound, rng=None)
-        elif isinstance(reference, str):
-            prepare_reference(
-                reference, 2, model=self.model, bound=self.bound, rng=np.random.default_rng(0)
-            )
+        if reference is not None:  # fail at construction, not at the first reset
+            self._stream(reference, np.random.default_rng(0))
         obs_size = 1 if reference is None else 2 + self.preview
         self.observation_space = spaces.Box(-self.bound, self.bound, (obs_size,), np.float32)
         self.action_space = spaces.Box(-self._u_max, self._u_max, (1,), np.float32)
         self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / dt)}
 
         self._plant = BenderSimulator(self.model)
-        self._reference: np.ndarray | None = None
+        self._reference: ReferenceStream | None = None
+        self._ref_values = np.zeros(0, dtype=np.float32)
+        self._noise_rng = np.random.default_rng(0)
         self._noise = np.zeros(_NOISE_BLOCK)
         self._noise_index = 0
         self._t = 0
@@ -228,23 +235,12 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         options = dict(options or {})
         voltage = check_reset_options(options, self._u_max)
         self._plant.reset(voltage)
-        spec = options.get("reference", self._reference_spec)
-        if spec is None and "reference" in options and self._reference_spec is not None:
-            raise ValueError("this env was made with a reference; pass an array, not None")
-        if spec is not None and self._reference_spec is None:
-            raise ValueError(
-                "this env was made with reference=None; make it with a reference to track one"
-            )
-        horizon = (
-            self.spec.max_episode_steps
-            if self.spec and self.spec.max_episode_steps
-            else DEFAULT_HORIZON
-        )
-        self._reference = prepare_reference(
-            spec, horizon + self.preview + 1, model=self.model, bound=self.bound, rng=self.np_random
-        )
-        self._draw_noise()
+        spec = episode_reference(options, self._reference_spec)
+        ref_rng, self._noise_rng = episode_generators(self.np_random)
+        self._reference = None if spec is None else self._stream(spec, ref_rng)
         self._t = 0
+        self._ref_values = self._window_values()
+        self._draw_noise()
         if self._trace is not None:
             self._trace[:] = self._plant.deflection * 1e6
         deflection_um = self._plant.deflection * 1e6
@@ -259,6 +255,8 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         voltage, saturated = self._drive_voltage(action)
         deflection, u_eff, charge = self._plant.step(voltage)
         self._t += 1
+        if self._t + self.preview >= len(self._ref_values) and self._reference is not None:
+            self._ref_values = self._window_values()
         deflection_um = deflection * 1e6
         error = deflection_um - self._reference_at(self._t)
         reward = -((error / self._stroke) ** 2)
@@ -323,31 +321,33 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"action must be a finite voltage in V, got {u!r}")
         return (u_max, True) if u > 0 else (-u_max, True)
 
+    def _stream(self, spec: object, rng: np.random.Generator) -> ReferenceStream:
+        model = self.model
+        return ReferenceStream(
+            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng
+        )
+
+    def _window_values(self) -> np.ndarray:
+        """Reference samples covering at least the coming preview window."""
+        if self._reference is None:
+            return np.zeros(0, dtype=np.float32)
+        return self._reference.ensure(self._t + self.preview + 1)
+
     def _reference_at(self, t: int) -> float:
-        ref = self._reference
-        if ref is None:
-            return 0.0
-        return float(ref[t]) if t < len(ref) else float(ref[-1])
+        return 0.0 if self._reference is None else self._ref_values.item(t)
 
     def _observe(self, measured_um: float) -> np.ndarray:
-        ref = self._reference
-        if ref is None:
+        if self._reference is None:
             return np.array([measured_um], dtype=np.float32)
         obs = np.empty(2 + self.preview, dtype=np.float32)
         obs[0] = measured_um
-        t, end = self._t, self._t + self.preview + 1
-        if end <= len(ref):
-            obs[1:] = ref[t:end]
-        else:
-            window = ref[t:end] if t < len(ref) else ref[:0]
-            obs[1 : 1 + len(window)] = window
-            obs[1 + len(window) :] = ref[-1]
+        obs[1:] = self._ref_values[self._t : self._t + self.preview + 1]
         return obs
 
     def _draw_noise(self) -> None:
         r = self.noise_bound
         if r > 0:
-            self._noise = self.np_random.uniform(-r, r, _NOISE_BLOCK)
+            self._noise = self._noise_rng.uniform(-r, r, _NOISE_BLOCK)
         self._noise_index = 0
 
     def _next_noise(self) -> float:

@@ -115,20 +115,6 @@ class BeamFE:
         return 2 * self.n_elements
 
     @property
-    def tip_deflection_row(self) -> np.ndarray:
-        """Row vector picking the tip deflection w_tip (m) from q."""
-        row = np.zeros(self.n_dofs)
-        row[-2] = 1.0
-        return row
-
-    @property
-    def tip_rotation_row(self) -> np.ndarray:
-        """Row vector picking the tip rotation theta_tip (rad) from q."""
-        row = np.zeros(self.n_dofs)
-        row[-1] = 1.0
-        return row
-
-    @property
     def node_positions(self) -> np.ndarray:
         """Axial positions of the n + 1 nodes, root first (m)."""
         return np.linspace(0.0, self.params.length, self.n_elements + 1)
@@ -159,7 +145,7 @@ def assemble_beam(
     n_elements : int
         Number of Hermite elements (>= 1).
     damping_ratio : float
-        First-mode damping ratio zeta_1 (-), in [0, 1).
+        First-mode damping ratio zeta_1 (-), in [1e-4, 1).
     damping : {"rayleigh", "modal"}
         ``"rayleigh"``: D = beta K with beta = 2 zeta_1 / omega_1 (zeta grows with frequency).
         ``"modal"``: every mode gets zeta_1.
@@ -174,8 +160,11 @@ def assemble_beam(
         or n_elements < 1
     ):
         raise ValueError(f"n_elements must be a positive integer, got {n_elements!r}")
-    if not (0.0 <= damping_ratio < 1.0):
-        raise ValueError(f"damping_ratio must be in [0, 1), got {damping_ratio!r}")
+    if not (1e-4 <= damping_ratio < 1.0):
+        raise ValueError(
+            f"damping_ratio must be in [1e-4, 1), got {damping_ratio!r}: an undamped bender has "
+            "no finite peak-to-peak gain, so its deflection could not be bounded"
+        )
     if damping not in ("rayleigh", "modal"):
         raise ValueError(f"damping must be 'rayleigh' or 'modal', got {damping!r}")
 

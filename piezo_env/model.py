@@ -86,11 +86,6 @@ class PiezoBenderModel:
         """Datasheet free deflection at U_r (um): the one-sided stroke."""
         return self.params.datasheet.free_deflection * 1e6
 
-    @property
-    def creep_gain(self) -> float:
-        """Long-time static gain factor of the creep filter (1 without creep)."""
-        return 1.0 + (sum(self.creep.weights) if self.creep else 0.0)
-
     def deflection_bound_um(self) -> float:
         """Proven bound of |true tip deflection| (um) for any drive within [-U_r, U_r] from rest.
 
@@ -98,7 +93,7 @@ class PiezoBenderModel:
         effective voltage the hysteresis can produce.
         """
         u_eff_max = self.hysteresis.max_effective_voltage(self.rated_voltage)
-        return self.discrete.impulse_l1_bound(self.creep_gain) * u_eff_max * 1e6
+        return self.discrete.impulse_l1_bound() * u_eff_max * 1e6
 
     def charge(self, voltage: float | np.ndarray, tip_rotation: float | np.ndarray):
         """Drive charge Q = C_p u + Gamma theta_tip (C) for voltage (V) and tip rotation (rad)."""
@@ -168,11 +163,7 @@ class BenderSimulator:
     def __init__(self, model: PiezoBenderModel) -> None:
         self.model = model
         n = model.discrete.n_states
-        # Square step matrix on v = [state, u_eff, unused]: the product is [next state, y, theta];
-        # writing the next u_eff over y makes it the next input, so two buffers ping-pong.
-        matrix = np.zeros((n + 2, n + 2))
-        matrix[:, : n + 1] = model.discrete.step_matrix
-        self._matrix = matrix
+        self._matrix = model.discrete.square_step_matrix()
         self._n = n
         self._v = np.zeros(n + 2)
         self._w = np.zeros(n + 2)

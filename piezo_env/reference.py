@@ -11,6 +11,8 @@ reset under a seed gives the same reference.
 - ``"multisine"``: 5 tones in 0.5..20 Hz with random phases.
 
 Amplitudes are 20..80 % of the stroke, so every reference is reachable inside the drive range.
+An episode's reference is a :class:`ReferenceStream`: segments of 2000 samples, each a fresh
+draw, as many as the episode needs.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 
 from piezo_env import signals
 
-__all__ = ["REFERENCE_SHAPES", "make_reference"]
+__all__ = ["REFERENCE_SHAPES", "SEGMENT", "ReferenceStream", "make_reference"]
 
 REFERENCE_SHAPES = ("steps", "sine", "triangle", "multisine")
 """Shapes a named reference can take; ``"random"`` draws one of them."""
@@ -66,3 +68,82 @@ def make_reference(
     phase = rng.uniform(0.0, 2.0 * math.pi)
     shape = signals.sine if kind == "sine" else signals.triangle
     return shape(n, dt=dt, amplitude=amplitude, frequency=frequency, phase=phase)
+
+
+SEGMENT = 2000
+"""Samples per drawn segment of a named reference."""
+
+
+class ReferenceStream:
+    """The reference of one episode (um, float32), drawn lazily in segments.
+
+    A named reference draws ``SEGMENT`` samples at a time from its own generator, so an episode
+    of any length has a reference, and envs that draw the segments at different moments (the
+    single env lazily, the vector env up front) see the same samples. An array reference is
+    used as given and its last value holds past its end.
+
+    Parameters
+    ----------
+    spec : str or array_like
+        A reference name (see :func:`make_reference`) or an array (um).
+    dt : float
+        Sample time (s).
+    stroke_um : float
+        One-sided stroke (um), the scale of named references.
+    bound : float
+        Largest admissible |reference| (um); arrays beyond it raise ValueError.
+    rng : numpy.random.Generator or None
+        Source of the named reference's segments (unused for arrays).
+    """
+
+    def __init__(
+        self,
+        spec: str | np.ndarray,
+        *,
+        dt: float,
+        stroke_um: float,
+        bound: float,
+        rng: np.random.Generator | None,
+    ) -> None:
+        self._name = spec if isinstance(spec, str) else None
+        self._dt, self._stroke, self._rng = dt, stroke_um, rng
+        if self._name is not None:
+            first = make_reference(self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng)
+            self._values = first.astype(np.float32)
+        else:
+            values = np.asarray(spec, dtype=np.float64)
+            if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
+                raise ValueError(
+                    "a reference array must be one-dimensional, non-empty and finite (um), "
+                    f"got shape {values.shape}"
+                )
+            if np.abs(values).max() > bound:
+                raise ValueError(
+                    f"reference reaches {np.abs(values).max():.1f} um, beyond what the bender "
+                    f"can reach (observation bound {bound:.1f} um); scale it down"
+                )
+            self._values = values.astype(np.float32)
+
+    @property
+    def values(self) -> np.ndarray:
+        """The samples drawn so far (um, float32)."""
+        return self._values
+
+    def ensure(self, n: int) -> np.ndarray:
+        """Make at least ``n`` samples available; returns all samples drawn so far."""
+        missing = n - len(self._values)
+        if missing > 0:
+            if self._name is None:
+                extra = np.full(max(missing, len(self._values)), self._values[-1], np.float32)
+            else:
+                count = -(-missing // SEGMENT)
+                extra = np.concatenate(
+                    [
+                        make_reference(
+                            self._name, SEGMENT, dt=self._dt, stroke_um=self._stroke, rng=self._rng
+                        ).astype(np.float32)
+                        for _ in range(count)
+                    ]
+                )
+            self._values = np.concatenate([self._values, extra])
+        return self._values

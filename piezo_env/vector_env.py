@@ -29,12 +29,14 @@ from piezo_env.env import (
     _check_noise_bound,
     _check_preview,
     check_reset_options,
+    episode_generators,
+    episode_reference,
     observation_bound,
-    prepare_reference,
 )
 from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
 from piezo_env.model import PiezoBenderModel
+from piezo_env.reference import ReferenceStream
 
 __all__ = ["PiezoBenderVectorEnv"]
 
@@ -105,10 +107,8 @@ class PiezoBenderVectorEnv(VectorEnv):
         self.render_mode = None
         self._reference_spec = reference
         self.bound = observation_bound(self.model, self.noise_bound)
-        if reference is not None:
-            prepare_reference(
-                reference, 2, model=self.model, bound=self.bound, rng=np.random.default_rng(0)
-            )
+        if reference is not None:  # fail at construction, not at the first reset
+            self._stream(reference, np.random.default_rng(0))
         obs_size = 1 if reference is None else 2 + self.preview
         u_max = self.model.rated_voltage
         self._u_max = u_max
@@ -118,11 +118,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
 
         n, k = self.num_envs, self.model.discrete.n_states
-        # Square step matrix on rows [state, u_eff, unused] -> [next state, y, theta]; writing the
-        # next u_eff over y turns the product into the next input, so two buffers ping-pong.
-        step = np.zeros((k + 2, k + 2))
-        step[:, : k + 1] = self.model.discrete.step_matrix
-        self._step_t = np.ascontiguousarray(step.T)
+        self._step_t = np.ascontiguousarray(self.model.discrete.square_step_matrix().T)
         self._k = k
         self._x = np.zeros((n, k + 2))
         self._out = np.zeros((n, k + 2))
@@ -130,6 +126,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._y = np.zeros(n)  # true tip deflection (m)
         self._theta = np.zeros(n)
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
+        self._noise_rngs = [np.random.default_rng(0) for _ in range(n)]
         self._ref_len = self.max_episode_steps + self.preview + 1
         self._ref = np.zeros((n, self._ref_len), dtype=np.float32)
         self._noise = np.zeros((n, _NOISE_BLOCK))
@@ -235,20 +232,21 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._lockstep = len(rows) == self.num_envs or (
             self._lockstep and bool(np.all(self._t == 0))
         )
-        spec = options.get("reference", self._reference_spec)
+        spec = episode_reference(options, self._reference_spec)
         r = self.noise_bound
         for i in rows:
-            rng = self._rngs[i]
-            ref = prepare_reference(
-                spec, self._ref_len, model=self.model, bound=self.bound, rng=rng
-            )
-            if ref is not None:
-                m = min(len(ref), self._ref_len)
-                self._ref[i, :m] = ref[:m]
-                self._ref[i, m:] = ref[-1]
+            ref_rng, self._noise_rngs[i] = episode_generators(self._rngs[i])
+            if spec is not None:
+                self._ref[i] = self._stream(spec, ref_rng).ensure(self._ref_len)[: self._ref_len]
             if r > 0:
-                self._noise[i] = rng.uniform(-r, r, _NOISE_BLOCK)
+                self._noise[i] = self._noise_rngs[i].uniform(-r, r, _NOISE_BLOCK)
             self._noise_index[i] = 0
+
+    def _stream(self, spec: object, rng: np.random.Generator) -> ReferenceStream:
+        model = self.model
+        return ReferenceStream(
+            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng
+        )
 
     def _take_noise(self) -> np.ndarray:
         if self.noise_bound == 0:
@@ -258,12 +256,12 @@ class PiezoBenderVectorEnv(VectorEnv):
             j = int(self._noise_index[0])
             if j == _NOISE_BLOCK:
                 for i in range(self.num_envs):
-                    self._noise[i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
+                    self._noise[i] = self._noise_rngs[i].uniform(-r, r, _NOISE_BLOCK)
                 self._noise_index[:] = j = 0
             self._noise_index += 1
             return self._noise[:, j].copy()
         for i in np.flatnonzero(self._noise_index == _NOISE_BLOCK):
-            self._noise[i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
+            self._noise[i] = self._noise_rngs[i].uniform(-r, r, _NOISE_BLOCK)
             self._noise_index[i] = 0
         values = self._noise[self._rows, self._noise_index]
         self._noise_index += 1

@@ -110,27 +110,56 @@ def test_pickle_round_trip_continues_identically():
         assert np.array_equal(env.step(a)[0], clone.step(a)[0])
 
 
-def test_vector_env_equals_single_envs():
-    n, seed = 3, 11
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"preview": 2},
+        {"max_episode_steps": 7, "reference": "sine", "hysteresis": "prandtl-ishlinskii"},
+        {"max_episode_steps": 40, "deflection_limit": 600.0, "preview": 3},
+    ],
+)
+def test_vector_env_equals_single_envs_across_autoresets(kwargs):
+    """Sub-env i of the vector env is the single env seeded seed + i, autoresets included."""
+    n, seed, steps = 3, 11, 300
+    horizon = kwargs.pop("max_episode_steps", 2000)
     vec = gym.make_vec(
-        "PiezoBender-v0", num_envs=n, vectorization_mode="vector_entry_point", preview=2
+        "PiezoBender-v0",
+        num_envs=n,
+        vectorization_mode="vector_entry_point",
+        max_episode_steps=horizon,
+        **kwargs,
     )
-    singles = [gym.make(ENV_ID, preview=2) for _ in range(n)]
-    rng = np.random.default_rng(1)
-    actions = rng.uniform(-35, 35, (400, n, 1)).astype(np.float32)
+    singles = [gym.make(ENV_ID, max_episode_steps=horizon, **kwargs) for _ in range(n)]
+    actions = np.random.default_rng(1).uniform(-35, 35, (steps, n, 1)).astype(np.float32)
     obs_v, _ = vec.reset(seed=seed)
     obs_s = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
     np.testing.assert_array_equal(obs_v, np.stack(obs_s))
+    done = [False] * n
+    resets = 0
     for a in actions:
-        obs_v, rew_v, _term_v, _trunc_v, info_v = vec.step(a)
+        obs_v, rew_v, term_v, trunc_v, info_v = vec.step(a)
         for i, env in enumerate(singles):
-            obs, rew, _term, _trunc, info = env.step(a[i])
+            if done[i]:  # next-step autoreset
+                obs, _ = env.reset()
+                rew, term, trunc = 0.0, False, False
+                resets += 1
+            else:
+                obs, rew, term, trunc, info = env.step(a[i])
+                assert info_v["deflection_um"][i] == pytest.approx(info["deflection_um"], abs=1e-9)
+                assert info_v["saturated"][i] == info["saturated"]
             np.testing.assert_array_equal(obs_v[i], obs)
             assert rew_v[i] == pytest.approx(rew, rel=1e-12, abs=1e-15)
-            assert info_v["deflection_um"][i] == pytest.approx(
-                info["deflection_um"], rel=1e-12, abs=1e-9
-            )
-            assert info_v["saturated"][i] == info["saturated"]
+            assert (term_v[i], trunc_v[i]) == (term, trunc)
+            done[i] = term or trunc
+    if horizon < steps:
+        assert resets >= n
+
+
+def test_named_reference_continues_past_its_first_segment():
+    env = gym.make(ENV_ID, max_episode_steps=5000, reference="sine", noise_bound=0.0)
+    env.reset(seed=2)
+    refs = [env.step(np.zeros(1, np.float32))[0][1] for _ in range(5000)]
+    assert np.std(refs[:2000]) > 1.0 and np.std(refs[2100:]) > 1.0
 
 
 def test_vector_env_autoresets_next_step():

@@ -235,3 +235,20 @@ def test_parameters_reject_bad_input():
         PiezoBenderModel(dt=0.0)
     with pytest.raises(ValueError, match="hysteresis"):
         PiezoBenderModel(hysteresis="preisach")
+
+
+def test_undamped_bender_is_rejected_because_it_has_no_deflection_bound():
+    with pytest.raises(ValueError, match="damping_ratio"):
+        PiezoBenderModel(damping_ratio=0.0)
+
+
+def test_deflection_bound_covers_creep():
+    plain = PiezoBenderModel(hysteresis=None)
+    creeping = PiezoBenderModel(hysteresis=None, creep=True)
+    u_max = creeping.rated_voltage
+    # Charge the creep states for 200 s, then drive the beam's worst-case sequence.
+    impulse = plain.discrete.simulate(np.r_[1.0, np.zeros(5999)])
+    drive = np.r_[np.full(200_000, u_max), u_max * np.sign(impulse[::-1])]
+    peak = np.abs(creeping.simulate(drive).deflection_um).max()
+    assert peak > plain.deflection_bound_um()  # creep really adds to the worst case
+    assert peak <= creeping.deflection_bound_um()
