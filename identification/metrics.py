@@ -118,7 +118,8 @@ def fit_metrics(y: ArrayLike, y_hat: ArrayLike, *, stroke: float | None = None) 
     y, y_hat : array_like, shape (T,)
         Measured and model output, same unit (normally um).
     stroke : float, optional
-        Full stroke of the actuator in the unit of ``y`` (e.g. 2000 um for a +-1000 um bender).
+        One-sided stroke of the actuator in the unit of ``y``: the datasheet free deflection
+        (1000 um for the +-1000 um PL140).
         When given, RMSE and maximum error are also reported in percent of it.
 
     Returns

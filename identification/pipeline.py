@@ -39,7 +39,7 @@ from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
-from piezo_env.signals import make_signal
+from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 
 __all__ = [
     "IdentificationConfig",
@@ -49,6 +49,10 @@ __all__ = [
     "inverse_arx",
     "write_outputs",
 ]
+
+
+ORDER_TIE_PERCENT = 0.25
+"""Held-out fits (percentage points) this close to the best count as a tie between orders."""
 
 
 @dataclass(frozen=True)
@@ -69,13 +73,15 @@ class IdentificationConfig:
     prbs_samples : int
         Length of the PRBS record; its last quarter scores the candidate orders.
     orders : tuple of int
-        Candidate ARX orders n (na = nb = n).
+        Candidate ARX orders n (na = nb = n), scored by free-run fit on the last quarter of the
+        PRBS record; near-ties (ORDER_TIE_PERCENT) go to the larger order.
     rich_signal : str
         Rich excitation for the NLS: ``"sine"`` (paper), ``"multisine"``, ``"random"``, ...
     rich_amplitude : float
         Its amplitude (V).
-    rich_params : dict
-        Further parameters of the rich signal (e.g. frequency, Hz).
+    rich_params : dict or None
+        Further parameters of the rich signal (e.g. frequency, Hz); None: 5 Hz for the sine,
+        ``piezo_env.signals.SIGNAL_DEFAULTS`` for the others.
     rich_samples : int
         Length of the rich record.
     features : str
@@ -101,7 +107,7 @@ class IdentificationConfig:
     orders: tuple[int, ...] = (2, 3, 4, 5, 6)
     rich_signal: str = "sine"
     rich_amplitude: float = 30.0
-    rich_params: dict = field(default_factory=lambda: {"frequency": 5.0})
+    rich_params: dict | None = None
     rich_samples: int = 12000
     features: str = "auto"
     hidden: tuple[int, ...] = (32, 32, 32)
@@ -115,13 +121,41 @@ class IdentificationConfig:
             raise ValueError(
                 f"features must be 'auto' or one of {FEATURE_SETS}, got {self.features!r}"
             )
-        if not self.orders or min(self.orders) < 1:
+        if not self.orders or not all(isinstance(n, int) and n >= 1 for n in self.orders):
             raise ValueError(f"orders must be positive integers, got {self.orders!r}")
+        if not self.hidden or not all(isinstance(h, int) and h >= 1 for h in self.hidden):
+            raise ValueError(f"hidden must be positive layer widths, got {self.hidden!r}")
         for name in ("prbs_samples", "rich_samples", "validation_samples"):
             if getattr(self, name) < 200:
                 raise ValueError(f"{name} must be at least 200 samples, got {getattr(self, name)}")
+        for name in ("prbs_clock", "validation_hold", "max_epochs"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        for name in ("prbs_amplitude", "rich_amplitude", "validation_amplitude"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number of volts, got {value!r}")
         if "reference" in self.env_kwargs:
             raise ValueError("env_kwargs must not set 'reference': identification runs open loop")
+        # Build a few samples of the rich signal now, so that a wrong name or parameter fails
+        # here and not after the PRBS experiment.
+        make_signal(
+            self.rich_signal,
+            16,
+            dt=float(self.env_kwargs.get("dt", 1e-3)),
+            rng=np.random.default_rng(0),
+            amplitude=self.rich_amplitude,
+            **self.rich_signal_params(),
+        )
+
+    def rich_signal_params(self) -> dict:
+        """Parameters of the rich signal besides its amplitude."""
+        if self.rich_params is not None:
+            return dict(self.rich_params)
+        if self.rich_signal == "sine":
+            return {"frequency": 5.0}
+        return dict(SIGNAL_DEFAULTS.get(self.rich_signal, {}))
 
 
 @dataclass
@@ -147,13 +181,19 @@ def collect(env: gym.Env, u: np.ndarray, *, seed: int) -> tuple[np.ndarray, np.n
     """Drive ``env`` open loop with ``u`` (V) from rest and return (u, y) sample-aligned.
 
     ``y[t]`` is the measured deflection (um) before ``u[t]`` is applied, so that
-    ``y[t]`` depends on ``u[t-1], u[t-2], ...`` (the ARX convention).
+    ``y[t]`` depends on ``u[t-1], u[t-2], ...`` (the ARX convention). Truncation flags are
+    ignored (a record may be longer than an episode); termination raises ValueError.
     """
     obs, _ = env.reset(seed=seed)
     y = np.empty(len(u))
     y[0] = obs[0]
     for t in range(len(u) - 1):
-        obs, *_ = env.step(np.array([u[t]], dtype=np.float32))
+        obs, _, terminated, _, _ = env.step(np.array([u[t]], dtype=np.float32))
+        if terminated:
+            raise ValueError(
+                f"the env terminated at sample {t + 1} (deflection limit); identify on an env "
+                "without deflection_limit or with a smaller excitation"
+            )
         y[t + 1] = obs[0]
     return np.clip(u, env.action_space.low[0], env.action_space.high[0]), y
 
@@ -296,7 +336,10 @@ def identify(
             if candidate.is_stable() and np.all(np.isfinite(sim))
             else -math.inf
         )
-    order = max(order_scores, key=order_scores.get)
+    # Near-ties go to the larger order: the higher bending modes it captures barely show in a
+    # PRBS free run, but they shrink the equation-error bound r and so the noise of z_hat.
+    best_fit = max(order_scores.values())
+    order = max(n for n, fit in order_scores.items() if fit >= best_fit - ORDER_TIE_PERCENT)
     arx = fit_arx(u_prbs, y_prbs, na=order, nb=order, dt=dt, method="bayes-uniform")
     cheb = fit_arx(u_prbs, y_prbs, na=order, nb=order, dt=dt, method="chebyshev")
     lsq = fit_arx(u_prbs, y_prbs, na=order, nb=order, dt=dt, method="least-squares")
@@ -314,14 +357,17 @@ def identify(
         dt=dt,
         rng=np.random.default_rng(seeds["rich"]),
         amplitude=config.rich_amplitude,
-        **config.rich_params,
+        **config.rich_signal_params(),
     )
     u_rich, y_rich = collect(env, u_rich, seed=seeds["env"] + 1)
     say(f"c) {config.rich_signal} {config.rich_amplitude:g} V, {len(u_rich)} samples")
     lap("c_rich_experiment")
 
-    # d) hidden signal by the inverse ARX model.
+    # d) hidden signal by the inverse ARX model, on the rich record and on the PRBS record,
+    # where z = u by the scale convention: training on both pins the NLS's small-signal gain.
     z_hat, inversion = inverse_arx(arx, y_rich)
+    z_prbs, _ = inverse_arx(arx, y_prbs)
+    u_train, z_train = np.r_[u_prbs, u_rich], np.r_[z_prbs, z_hat]
     z_support = arx.noise_bound / abs(arx.b[0]) if arx.b[0] != 0 else math.inf
     say(f"d) z_hat by {inversion}; noise support +-r/b_1 = +-{z_support:.2f} V")
     lap("d_inverse_arx")
@@ -336,8 +382,8 @@ def identify(
     fitted, selection_scores = {}, {}
     for features in candidates:
         nls = fit_nls(
-            u_rich,
-            z_hat,
+            u_train,
+            z_train,
             features=features,
             hidden=config.hidden,
             seed=seeds["nls"] % 2**31,
@@ -362,6 +408,9 @@ def identify(
         },
     )
     lap("e_nls_training")
+    z_small = model.nls_output(u_prbs)
+    small_signal_gain = float(np.polyfit(u_prbs, z_small, 1)[0])
+    say(f"   NLS small-signal gain on the PRBS record: {small_signal_gain:.3f} (1 by construction)")
 
     # f) validation on fresh RAND data, free run.
     u_val, y_val = collect(
@@ -413,6 +462,7 @@ def identify(
         "inversion": {"method": inversion, "z_noise_support_V": z_support},
         "nls": {
             "features": best,
+            "small_signal_gain": small_signal_gain,
             "selection_fit_percent": selection_scores,
             "training": _jsonable(getattr(fitted[best], "training", {})),
         },
@@ -428,6 +478,8 @@ def identify(
     }
     data = {
         "arx_history": arx.history,
+        "u_prbs": u_prbs,
+        "y_prbs": y_prbs,
         "u_rich": u_rich,
         "y_rich": y_rich,
         "z_hat": z_hat,

@@ -91,7 +91,12 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         "",
         f"Features: {nls['features']} (selection fits: "
         + ", ".join(f"{k} {v:.2f} %" for k, v in nls["selection_fit_percent"].items())
-        + ").",
+        + f"). Small-signal gain on the PRBS record: {nls['small_signal_gain']:.3f} "
+        "(1 by the scale convention: z is in equivalent volts).",
+        "",
+        "The default simulated plant's hysteresis is Bouc-Wen, the family of the bouc-wen "
+        "features, so those features can represent it closely; on other plants the selection "
+        "record decides (see benchmarks/results/identification.md).",
         "",
         "## Timings (s)",
         "",

@@ -38,6 +38,7 @@ import scipy.signal
 
 __all__ = [
     "SIGNALS",
+    "SIGNAL_DEFAULTS",
     "chirp",
     "decaying_multisine",
     "make_signal",
@@ -454,6 +455,21 @@ SIGNALS: dict[str, Callable[..., np.ndarray]] = {
     "decaying-multisine": decaying_multisine,
 }
 """Signal generators by name; :func:`make_signal` dispatches on these keys."""
+
+
+SIGNAL_DEFAULTS: dict[str, dict[str, float]] = {
+    "prbs": {"clock_period": 5},
+    "random": {"hold": 20},
+    "sine": {"frequency": 1.0},
+    "triangle": {"frequency": 1.0},
+    "square": {"frequency": 1.0},
+    "step": {},
+    "multisine": {"f_min": 1.0, "f_max": 40.0, "n_tones": 10},
+    "chirp": {"f0": 0.5, "f1": 50.0},
+    "decaying-multisine": {},
+}
+"""Typical parameters of each signal besides its amplitude (Hz, samples), for command lines and
+defaults; explicit parameters override them."""
 
 
 def make_signal(

@@ -14,21 +14,9 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from piezo_env.signals import make_signal
+from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 
 __all__ = ["OpenLoopRecord", "plot_record", "run_open_loop", "write_csv"]
-
-_SIGNAL_DEFAULTS = {
-    "step": {},
-    "sine": {"frequency": 1.0},
-    "triangle": {"frequency": 1.0},
-    "square": {"frequency": 1.0},
-    "random": {"hold": 20},
-    "prbs": {"clock_period": 5},
-    "multisine": {"f_min": 1.0, "f_max": 40.0, "n_tones": 10},
-    "chirp": {"f0": 0.5, "f1": 50.0},
-    "decaying-multisine": {},
-}
 
 
 @dataclass(frozen=True)
@@ -81,15 +69,15 @@ def run_open_loop(
     **env_kwargs
         Keyword arguments of PiezoBender-v0 (``bender``, ``hysteresis``, ``noise_bound``, ...).
     """
-    if signal not in _SIGNAL_DEFAULTS:
-        raise ValueError(f"unknown signal {signal!r}; choose one of {sorted(_SIGNAL_DEFAULTS)}")
+    if signal not in SIGNAL_DEFAULTS:
+        raise ValueError(f"unknown signal {signal!r}; choose one of {sorted(SIGNAL_DEFAULTS)}")
     if not duration > 0:
         raise ValueError(f"duration must be > 0 s, got {duration!r}")
     env_kwargs.setdefault("reference", None)
     env = gym.make("piezo_env:PiezoBender-v0", max_episode_steps=-1, **env_kwargs)
     dt = env.unwrapped.model.dt
     n = max(1, round(duration / dt))
-    params = {**_SIGNAL_DEFAULTS[signal], **(signal_params or {}), "amplitude": amplitude}
+    params = {**SIGNAL_DEFAULTS[signal], **(signal_params or {}), "amplitude": amplitude}
     u = make_signal(signal, n, dt=dt, rng=np.random.default_rng(seed), **params)
     env.reset(seed=seed)
     rows = np.empty((n, 5))

@@ -10,13 +10,12 @@ from identification.arx import ARXModel
 from identification.metrics import fit_percent
 from identification.pipeline import IdentificationConfig, identify, inverse_arx
 
-# A short run: a fraction of the default record lengths, one feature set, few epochs.
+# A short run: half the default record lengths and epochs.
 SHORT = {
     "prbs_samples": 4000,
     "rich_samples": 6000,
     "validation_samples": 3000,
-    "orders": (3, 4, 5),
-    "max_epochs": 60,
+    "max_epochs": 100,
 }
 
 
@@ -31,6 +30,15 @@ def test_short_default_run_fits_held_out_rand_and_beats_linear_arx(short_default
     assert val["hammerstein"]["fit_percent"] > 95.0
     assert val["hammerstein"]["rmse"] < val["linear_arx"]["rmse"] / 3
     assert short_default_run.report["arx"]["minimum_phase"]
+
+
+def test_nls_has_unit_small_signal_gain(short_default_run):
+    """Under the two-level PRBS the NLS is affine with slope 1 (z in equivalent volts)."""
+    data = short_default_run.data
+    z = short_default_run.model.nls_output(data["u_prbs"])
+    slope = np.polyfit(data["u_prbs"], z, 1)[0]
+    assert slope == pytest.approx(1.0, abs=0.03)
+    assert short_default_run.report["nls"]["small_signal_gain"] == pytest.approx(slope)
 
 
 def test_report_is_complete_and_consistent(short_default_run):
@@ -94,3 +102,12 @@ def test_bad_configuration_is_rejected():
         IdentificationConfig(env_kwargs={"reference": "sine"})
     with pytest.raises(ValueError, match="prbs_samples"):
         IdentificationConfig(prbs_samples=10)
+    with pytest.raises(ValueError, match="prbs_amplitude"):
+        IdentificationConfig(prbs_amplitude=-1.0)
+    with pytest.raises(ValueError, match="hidden"):
+        IdentificationConfig(hidden=())
+    with pytest.raises(ValueError, match="unknown signal"):
+        IdentificationConfig(rich_signal="nope")
+    with pytest.raises(ValueError, match="does not accept"):
+        IdentificationConfig(rich_signal="multisine", rich_params={"frequency": 5.0})
+    assert IdentificationConfig(rich_signal="multisine").rich_signal_params()["n_tones"] == 10
