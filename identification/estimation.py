@@ -8,7 +8,7 @@
 ``"chebyshev"``
     The exact maximum-a-posteriori estimate of the same model: ``min r`` subject to
     ``|y_t - psi_t^T theta| <= r`` for all t (L-infinity regression), one linear program solved by
-    HiGHS (:func:`scipy.optimize.linprog`) with a sparse constraint matrix.
+    HiGHS (:func:`scipy.optimize.linprog`), constraints in CSR form.
 ``"least-squares"``
     Ordinary least squares for comparison; its noise bound is the largest absolute residual.
 """
@@ -71,8 +71,9 @@ def fit_least_squares(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1
 def fit_chebyshev(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1.0) -> ARXModel:
     """Exact MAP estimate under uniform noise: the Chebyshev (L-infinity) ARX fit.
 
-    Solves ``min r s.t. -r <= y_t - psi_t^T theta <= r`` as one LP with HiGHS; the constraint
-    matrix is sparse (two rows of ``na + nb + 1`` nonzeros per sample). Columns are scaled to
+    Solves ``min r s.t. -r <= y_t - psi_t^T theta <= r`` as one LP with HiGHS. The constraint
+    matrix has two rows per sample but only ``na + nb + 1`` columns, so its rows are full; it is
+    handed over in CSR form, HiGHS's own layout, to avoid a dense copy inside. Columns are scaled to
     unit peak before solving so that the solver tolerances mean the same for any units.
     """
     u, y = _check_data(u, y, na, nb)

@@ -302,8 +302,8 @@ class NLS:
         """Voltage giving ``z_target`` from the memory ``state``, with a status.
 
         The map ``u -> z(u; state)`` is evaluated on ``n_grid`` points of ``u_range``; sign
-        changes of ``z - z_target`` bracket the roots, refined by the Illinois variant of regula
-        falsi (bracketing, superlinear, reusing the grid values at the bracket ends).
+        changes of ``z - z_target`` bracket the roots, each refined by Brent's method
+        (:func:`scipy.optimize.brentq`).
 
         Parameters
         ----------

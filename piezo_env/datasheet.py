@@ -56,7 +56,9 @@ class BenderDatasheet:
             if field.name == "name":
                 continue
             value = getattr(self, field.name)
-            if not (isinstance(value, (int, float)) and value > 0 and value < float("inf")):
+            if isinstance(value, bool) or not (
+                isinstance(value, (int, float)) and 0 < value < float("inf")
+            ):
                 raise ValueError(
                     f"BenderDatasheet.{field.name} must be a positive finite number, got {value!r}"
                 )

@@ -21,6 +21,7 @@ which gives the logarithmic creep (1-2 % per decade) of piezo ceramics.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
@@ -213,7 +214,7 @@ def discretize(
     -------
     DiscreteBender
     """
-    if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
+    if not (isinstance(dt, numbers.Real) and np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
     nc = 0 if creep is None else creep.size
     omega = 2.0 * np.pi * beam.frequencies

@@ -52,6 +52,7 @@ See :class:`PiezoBenderEnv`. The physics object is ``env.unwrapped.model``
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -126,7 +127,7 @@ def check_reset_options(options: dict[str, Any], u_max: float) -> float:
 
 def _check_noise_bound(noise_bound: float) -> float:
     if not (
-        isinstance(noise_bound, (int, float)) and math.isfinite(noise_bound) and noise_bound >= 0
+        isinstance(noise_bound, numbers.Real) and math.isfinite(noise_bound) and noise_bound >= 0
     ):
         raise ValueError(f"noise_bound must be a finite number >= 0 (um), got {noise_bound!r}")
     return float(noise_bound)

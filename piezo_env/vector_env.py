@@ -13,7 +13,6 @@ on small machines).
 
 from __future__ import annotations
 
-import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -180,9 +179,9 @@ class PiezoBenderVectorEnv(VectorEnv):
                 f"got {a.shape}"
             )
         a = a.reshape(self.num_envs)
-        if not math.isfinite(a.sum()):
-            bad = a[~np.isfinite(a)][0] if not np.all(np.isfinite(a)) else a.sum()
-            raise ValueError(f"actions must be finite voltages in V, got {bad!r}")
+        finite = np.isfinite(a)
+        if not finite.all():
+            raise ValueError(f"actions must be finite voltages in V, got {a[~finite][0]!r}")
         voltage = np.clip(a, -self._u_max, self._u_max)
         saturated = voltage != a
 

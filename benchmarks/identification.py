@@ -1,0 +1,327 @@
+"""Identification benchmark: Hammerstein models against the linear ARX and NARX networks.
+
+1. Identifies the default bender (PL140, dt 1 ms, Bouc-Wen hysteresis, 1 um sensor noise) with
+   ``identification.identify``: once with ``features="auto"`` (the default ``piezo identify``
+   path; its wall time, plus that of writing the model files, reports and figures, is the
+   end-to-end figure) and once per NLS feature set ("play", "past-inputs", "bouc-wen"), all
+   with the same seed, hence the same PRBS, rich and selection records and the same ARX part.
+2. Baselines on the same identification data: the linear ARX part alone, and a NARX network
+   without the Hammerstein split (``benchmarks/_narx.py``) trained one step ahead on the PRBS
+   and rich records of the pipeline, in two forms: an MLP with an affine skip initialised by
+   least squares, and a plain MLP.
+3. Scores every model by free-run simulation on held-out test records, each collected fresh
+   from the env from rest with its own seeds: RAND +-30 V (hold 1, 10, 50 samples), SINE
+   (1, 5, 20 Hz at 30 V and at 10 V), triangle, multisine and chirp.
+4. Generalisation: identifies PL122 with Bouc-Wen and PL140 with Prandtl-Ishlinskii hysteresis
+   (``features="auto"``) and scores them on held-out RAND (hold 10).
+
+Writes ``benchmarks/results/identification.md``. Run: ``python benchmarks/identification.py``
+from the repository root (about three minutes on two cores).
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+# This script's own name shadows the ``identification`` package while its folder leads
+# sys.path: import the package first with the folder removed, then put the folder back last
+# for the benchmark helpers.
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+import piezo_env  # noqa: E402, F401  (registers PiezoBender-v0)
+from identification.features import FEATURE_SETS  # noqa: E402
+from identification.metrics import fit_metrics  # noqa: E402
+from identification.pipeline import (  # noqa: E402
+    IdentificationConfig,
+    collect,
+    identify,
+    write_outputs,
+)
+from piezo_env.signals import make_signal  # noqa: E402
+
+sys.path.append(str(_HERE))
+from _common import header, markdown_table, write_result  # noqa: E402
+from _narx import NARXNetwork  # noqa: E402
+
+SEED = 0
+"""Seed of every identification run (the ``piezo identify`` default)."""
+TEST_SEED = 20_240_000
+"""Base seed of the held-out test records (signal draws and env noise)."""
+TEST_SAMPLES = 6000
+"""Length of every test record (6 s at dt = 1 ms)."""
+NARX_LAGS = 6
+"""Output and input lags of the NARX networks (one above the usual selected ARX order)."""
+
+# label, signal name, parameters (amplitude in V, frequencies in Hz)
+TEST_SIGNALS: list[tuple[str, str, dict]] = [
+    ("RAND +-30 V, hold 1", "random", {"amplitude": 30.0, "hold": 1}),
+    ("RAND +-30 V, hold 10", "random", {"amplitude": 30.0, "hold": 10}),
+    ("RAND +-30 V, hold 50", "random", {"amplitude": 30.0, "hold": 50}),
+    ("SINE 1 Hz, 30 V", "sine", {"amplitude": 30.0, "frequency": 1.0}),
+    ("SINE 5 Hz, 30 V (rich input)", "sine", {"amplitude": 30.0, "frequency": 5.0}),
+    ("SINE 20 Hz, 30 V", "sine", {"amplitude": 30.0, "frequency": 20.0}),
+    ("SINE 1 Hz, 10 V", "sine", {"amplitude": 10.0, "frequency": 1.0}),
+    ("SINE 5 Hz, 10 V", "sine", {"amplitude": 10.0, "frequency": 5.0}),
+    ("SINE 20 Hz, 10 V", "sine", {"amplitude": 10.0, "frequency": 20.0}),
+    ("triangle 2 Hz, 30 V", "triangle", {"amplitude": 30.0, "frequency": 2.0}),
+    (
+        "multisine 1-40 Hz, 30 V",
+        "multisine",
+        {"amplitude": 30.0, "f_min": 1.0, "f_max": 40.0, "n_tones": 40},
+    ),
+    ("chirp 1-50 Hz, 30 V", "chirp", {"amplitude": 30.0, "f0": 1.0, "f1": 50.0}),
+]
+
+GENERALISATION = [
+    ("PL122, Bouc-Wen", {"bender": "PL122", "hysteresis": "bouc-wen"}),
+    ("PL140, Prandtl-Ishlinskii", {"bender": "PL140", "hysteresis": "prandtl-ishlinskii"}),
+]
+
+
+def make_env(env_kwargs: dict) -> gym.Env:
+    """PiezoBender-v0 without reference and without episode limit (open-loop experiments)."""
+    return gym.make("piezo_env:PiezoBender-v0", reference=None, max_episode_steps=-1, **env_kwargs)
+
+
+def test_records(env: gym.Env, signals=TEST_SIGNALS) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Held-out (u, y) records, one per test signal, each with its own signal and noise seed."""
+    dt = env.unwrapped.model.dt
+    records = {}
+    for i, (label, name, params) in enumerate(signals):
+        u = make_signal(
+            name, TEST_SAMPLES, dt=dt, rng=np.random.default_rng(TEST_SEED + i), **params
+        )
+        records[label] = collect(env, u, seed=TEST_SEED + 1000 + i)
+    return records
+
+
+def identification_records(result) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The PRBS and rich (u, y) records the pipeline identified from (``result.data``)."""
+    data = result.data
+    return [
+        (np.asarray(data["u_prbs"]), np.asarray(data["y_prbs"])),
+        (np.asarray(data["u_rich"]), np.asarray(data["y_rich"])),
+    ]
+
+
+def score(y: np.ndarray, y_hat: np.ndarray, stroke: float) -> dict | None:
+    """Fit metrics of a free run, or None when the run diverged (non-finite output)."""
+    if not np.all(np.isfinite(y_hat)):
+        return None
+    return fit_metrics(y, y_hat, stroke=stroke)
+
+
+def cell(metrics: dict | None) -> str:
+    """Table cell "fit % / RMSE um"."""
+    if metrics is None:
+        return "diverged"
+    return f"{metrics['fit_percent']:.1f} / {metrics['rmse']:.1f}"
+
+
+def main() -> None:
+    script_start = time.perf_counter()
+    base = IdentificationConfig(seed=SEED)
+    env = make_env(base.env_kwargs)
+    stroke = env.unwrapped.model.stroke_um
+
+    # 1. Identification: the default path once (timed), then each feature set.
+    start = time.perf_counter()
+    auto = identify(config=base, progress=print)
+    identify_time = time.perf_counter() - start
+    with tempfile.TemporaryDirectory() as out:
+        start = time.perf_counter()
+        n_files = len(write_outputs(auto, out))
+        write_time = time.perf_counter() - start
+    selected = auto.report["nls"]["features"]
+    results = {}
+    for features in FEATURE_SETS:
+        print(f"-- identify with features={features}")
+        results[features] = identify(config=replace(base, features=features))
+    models = {f"Hammerstein {f}": results[f].model for f in FEATURE_SETS}
+    models["linear ARX"] = auto.model.arx
+
+    # 2. NARX baselines on the pipeline's PRBS and rich records.
+    records = identification_records(auto)
+    narx = {}
+    for label, skip in (("NARX (skip)", True), ("NARX (plain)", False)):
+        print(f"-- train {label}")
+        narx[label] = NARXNetwork(ny=NARX_LAGS, nu=NARX_LAGS, seed=SEED, skip=skip).fit(records)
+        models[label] = narx[label]
+
+    # 3. Held-out test records.
+    tests = test_records(env)
+    scores = {
+        label: {name: score(y, model.simulate(u), stroke) for name, model in models.items()}
+        for label, (u, y) in tests.items()
+    }
+    u_check = tests["RAND +-30 V, hold 10"][0]
+    same_as_selected = float(
+        np.max(np.abs(auto.model.simulate(u_check) - results[selected].model.simulate(u_check)))
+    )
+
+    # 4. Other benders and hysteresis models.
+    general_rows = []
+    for label, env_kwargs in GENERALISATION:
+        print(f"-- identify {label}")
+        config = replace(base, env_kwargs=env_kwargs)
+        t0 = time.perf_counter()
+        other = identify(config=config)
+        elapsed = time.perf_counter() - t0
+        other_env = make_env(env_kwargs)
+        u, y = test_records(other_env, [TEST_SIGNALS[1]])[TEST_SIGNALS[1][0]]
+        other_stroke = other_env.unwrapped.model.stroke_um
+        ham = score(y, other.model.simulate(u), other_stroke)
+        lin = score(y, other.model.arx.simulate(u), other_stroke)
+        sel = other.report["nls"]["selection_fit_percent"]
+        general_rows.append(
+            [
+                label,
+                f"{other_stroke:.0f}",
+                f"ARX({other.report['arx']['order']},{other.report['arx']['order']})",
+                other.report["nls"]["features"],
+                ", ".join(f"{k} {v:.1f}" for k, v in sel.items()),
+                cell(ham),
+                cell(lin),
+                f"{ham['rmse'] / lin['rmse']:.3f}" if ham and lin else "-",
+                f"{elapsed:.1f}",
+            ]
+        )
+
+    # Report.
+    names = list(models)
+    head = [
+        "test signal",
+        *[
+            n.replace("Hammerstein ", "H ")
+            + (" (selected)" if n == f"Hammerstein {selected}" else "")
+            for n in names
+        ],
+    ]
+    head.insert(1, "peak abs(y) um")
+    rows = [
+        [label, f"{np.abs(tests[label][1]).max():.0f}", *[cell(scores[label][n]) for n in names]]
+        for label in tests
+    ]
+    worst = []
+    for n in names:
+        fits = {
+            label: (s[n]["fit_percent"] if s[n] is not None else -np.inf)
+            for label, s in scores.items()
+        }
+        label = min(fits, key=fits.get)
+        worst.append(f"{fits[label]:.1f} ({label})")
+    rows.append(["**worst fit %**", "", *worst])
+    rand10 = scores["RAND +-30 V, hold 10"]
+    h_sel, h_lin = rand10[f"Hammerstein {selected}"], rand10["linear ARX"]
+    timings = auto.report["timings_s"]
+    arx_report = auto.report["arx"]
+    nls_rows = [
+        [
+            f,
+            f"{auto.report['nls']['selection_fit_percent'][f]:.2f}",
+            f"{results[f].report['validation']['hammerstein']['fit_percent']:.2f}",
+            f"{results[f].report['timings_s']['e_nls_training']:.1f}",
+            f"{results[f].report['nls']['training']['epochs']}",
+        ]
+        for f in FEATURE_SETS
+    ]
+    narx_rows = [
+        [
+            label,
+            f"{m.training['epochs']}",
+            f"{m.training['best_epoch']}",
+            f"{m.training['validation_free_run_fit_percent']:.2f}",
+            f"{m.training['wall_time_s']:.1f}",
+        ]
+        for label, m in narx.items()
+    ]
+
+    lines = [
+        *header("Identification benchmark", "identification.py"),
+        f"Default bender: {auto.report['environment']['bender']}, dt = "
+        f"{auto.report['environment']['dt_s'] * 1e3:g} ms, "
+        f"{auto.report['environment']['hysteresis']} hysteresis, "
+        f"+-{auto.report['environment']['noise_bound_um']:g} um sensor noise, stroke "
+        f"{stroke:.0f} um; drive +-30 V. Identification seed {SEED} (pipeline defaults: PRBS "
+        f"+-{base.prbs_amplitude:g} V x {base.prbs_samples}, rich SINE "
+        f"{base.rich_params.get('frequency', '-')} Hz {base.rich_amplitude:g} V x "
+        f"{base.rich_samples}).",
+        "",
+        '## End-to-end time of `identify` (features="auto", the `piezo identify` path)',
+        "",
+        f"`identify`: **{identify_time:.1f} s** wall time, of which "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items() if k != "total")
+        + f"; writing the model files, reports and figures (`write_outputs`, {n_files} files): "
+        f"{write_time:.1f} s; together **{identify_time + write_time:.1f} s** (target for "
+        "`piezo identify`: under 120 s). Selected ARX order "
+        f"{arx_report['order']} (held-out PRBS fit "
+        + ", ".join(f"n={k}: {v:.1f} %" for k, v in arx_report["order_scores_fit_percent"].items())
+        + f"), r_hat = {arx_report['noise_bound_um']:.2f} um, B minimum-phase: "
+        f"{arx_report['minimum_phase']}; selected NLS features: **{selected}**.",
+        "",
+        markdown_table(
+            ["NLS features", "selection fit %", "pipeline validation fit %", "NLS fit s", "epochs"],
+            nls_rows,
+        ),
+        "",
+        "Selection: RAND +-30 V hold 10 record of the pipeline; validation: its fresh RAND record.",
+        f"The auto model equals the {selected} model (max |difference| of the free runs "
+        f"{same_as_selected:.1e} um).",
+        "",
+        "## Free-run fit on held-out test records: fit % / RMSE um",
+        "",
+        f"Each record: {TEST_SAMPLES} samples from rest, signal and noise seeds disjoint from "
+        "identification. H = Hammerstein model with that NLS feature set (same ARX part); "
+        "linear ARX = that ARX part alone; NARX = "
+        f"y_t = MLP(y_t-1..t-{NARX_LAGS}, u_t-1..t-{NARX_LAGS}), 3 x 32 tanh, trained one step "
+        "ahead on the pipeline's PRBS + rich records, early-stopped on the free-run fit of their "
+        "last 20 %; (skip): plus an affine skip initialised by least squares, (plain): MLP only. "
+        "SINE 5 Hz 30 V is the rich identification input (fresh noise).",
+        "",
+        markdown_table(head, rows),
+        "",
+        f"Targets on RAND +-30 V hold 10 (selected model, {selected}): fit "
+        f"{h_sel['fit_percent']:.2f} % (target >= 95 %), RMSE ratio Hammerstein / ARX "
+        f"{h_sel['rmse'] / h_lin['rmse']:.3f} (target <= 0.333).",
+        "",
+        markdown_table(
+            ["NARX", "epochs", "best epoch", "validation free-run fit %", "training s"], narx_rows
+        ),
+        "",
+        f"NARX training data: {sum(len(u) for u, _ in records)} samples: the pipeline's PRBS and "
+        "rich records.",
+        "",
+        '## Other benders and hysteresis models (features="auto")',
+        "",
+        "Held-out RAND +-30 V hold 10, free run, fit % / RMSE um.",
+        "",
+        markdown_table(
+            [
+                "env",
+                "stroke um",
+                "ARX order",
+                "selected",
+                "selection fit % per feature set",
+                "Hammerstein",
+                "linear ARX",
+                "RMSE ratio",
+                "identify s",
+            ],
+            general_rows,
+        ),
+        "",
+        f"Whole script: {time.perf_counter() - script_start:.0f} s.",
+    ]
+    write_result("identification", lines)
+
+
+if __name__ == "__main__":
+    main()
