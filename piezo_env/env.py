@@ -69,7 +69,6 @@ from piezo_env.reference import ReferenceStream
 __all__ = [
     "PiezoBenderEnv",
     "check_reset_options",
-    "episode_generators",
     "episode_reference",
     "observation_bound",
 ]
@@ -100,15 +99,6 @@ def episode_reference(options: dict[str, Any], made_with: object) -> object:
     if spec is None:
         raise ValueError("this env was made with a reference; pass an array (um), not None")
     return spec
-
-
-def episode_generators(rng: np.random.Generator) -> tuple[np.random.Generator, np.random.Generator]:
-    """Independent generators for an episode's reference and sensor noise, drawn from ``rng``.
-
-    Keeping the two streams apart makes the samples independent of when each is drawn.
-    """
-    ref_seed, noise_seed = rng.integers(0, 2**63 - 1, size=2)
-    return np.random.default_rng(int(ref_seed)), np.random.default_rng(int(noise_seed))
 
 
 def check_reset_options(options: dict[str, Any], u_max: float) -> float:
@@ -220,7 +210,6 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         self._plant = BenderSimulator(self.model)
         self._reference: ReferenceStream | None = None
         self._ref_values = np.zeros(0, dtype=np.float32)
-        self._noise_rng = np.random.default_rng(0)
         self._noise = np.zeros(_NOISE_BLOCK)
         self._noise_index = 0
         self._t = 0
@@ -237,8 +226,7 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         voltage = check_reset_options(options, self._u_max)
         self._plant.reset(voltage)
         spec = episode_reference(options, self._reference_spec)
-        ref_rng, self._noise_rng = episode_generators(self.np_random)
-        self._reference = None if spec is None else self._stream(spec, ref_rng)
+        self._reference = None if spec is None else self._stream(spec, self.np_random)
         self._t = 0
         self._ref_values = self._window_values()
         self._draw_noise()
@@ -348,7 +336,7 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
     def _draw_noise(self) -> None:
         r = self.noise_bound
         if r > 0:
-            self._noise = self._noise_rng.uniform(-r, r, _NOISE_BLOCK)
+            self._noise = self.np_random.uniform(-r, r, _NOISE_BLOCK)
         self._noise_index = 0
 
     def _next_noise(self) -> float:

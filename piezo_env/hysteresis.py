@@ -133,40 +133,48 @@ class BoucWen(Hysteresis):
         return h, self.k * u - h
 
     def _step_batch(self, state: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Batched closed-form jump; the same algebra as :func:`_bouc_wen_jump`."""
+        """Batched closed-form jump; the same algebra as :func:`_bouc_wen_jump`.
+
+        In g = sign(du) h: a negative g first climbs linearly (beta = gamma) or exponentially
+        towards 0 over the distance d0, then the rest of the jump relaxes g towards g_inf.
+        """
         ak, rate, lam = self.alpha * self.k, self.beta + self.gamma, self.beta - self.gamma
         g_inf = ak / rate
         du = u - state[:, 0]
         s = np.copysign(1.0, du)
-        d = np.abs(du)
-        g = s * state[:, 1]
-        # Distance d0 along which a negative g climbs to 0 (0 when g >= 0; inf if it never does),
-        # and the value g_neg reached on that branch if the jump ends before it.
+        d = np.abs(du, out=du)
+        g = state[:, 1] * s
         if abs(lam) < 1e-12:
-            d0 = np.minimum(g, 0.0)
-            d0 *= -1.0 / ak
-            g_neg = ak * d
-            g_neg += g
+            # climb = min(d, d0) with d0 = max(-g, 0) / ak; g1 = g + ak climb is <= 0.
+            climb = np.maximum(g, 0.0)
+            climb -= g
+            climb *= 1.0 / ak
+            np.minimum(climb, d, out=climb)
+            d -= climb  # the rest of the jump, >= 0
+            climb *= ak
+            g += climb
         else:
             negative = g < 0.0
             arg = 1.0 - lam * g / ak
             with np.errstate(divide="ignore", invalid="ignore"):
                 d0 = np.where(negative, np.where(arg > 0.0, np.log(arg) / lam, np.inf), 0.0)
-            g_neg = ak / lam + (g - ak / lam) * np.exp(-lam * d)
-        rest = d - d0
-        crossed = rest >= 0.0
-        # On the g >= 0 branch: relax towards g_inf from g (or from 0 after a crossing).
-        np.maximum(rest, 0.0, out=rest)
-        rest *= -rate
-        g_pos = np.exp(rest, out=rest)
-        g_pos *= np.maximum(g, 0.0) - g_inf
-        g_pos += g_inf
-        h_new = np.where(crossed, g_pos, g_neg)
-        h_new *= s
+            climb = np.minimum(d, d0)
+            g = np.where(negative, ak / lam + (g - ak / lam) * np.exp(-lam * climb), g)
+            g[negative & (d > d0)] = 0.0
+            d -= climb
+        # Relax towards g_inf over the rest of the jump: g_inf + (g1 - g_inf) exp(-rate rest).
+        d *= -rate
+        np.exp(d, out=d)
+        g -= g_inf
+        g *= d
+        g += g_inf
+        g *= s  # h_new
         new_state = np.empty_like(state)
         new_state[:, 0] = u
-        new_state[:, 1] = h_new
-        return new_state, self.k * u - h_new
+        new_state[:, 1] = g
+        u_eff = self.k * u
+        u_eff -= g
+        return new_state, u_eff
 
 
 def _bouc_wen_jump(h: float, du: float, ak: float, beta: float, gamma: float) -> float:

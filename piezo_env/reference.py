@@ -11,7 +11,7 @@ reset under a seed gives the same reference.
 - ``"multisine"``: 5 tones in 0.5..20 Hz with random phases.
 
 Amplitudes are 20..80 % of the stroke, so every reference is reachable inside the drive range.
-An episode's reference is a :class:`ReferenceStream`: segments of 2000 samples, each a fresh
+An episode's reference is a :class:`ReferenceStream`: segments of 2048 samples, each a fresh
 draw, as many as the episode needs.
 """
 
@@ -70,17 +70,18 @@ def make_reference(
     return shape(n, dt=dt, amplitude=amplitude, frequency=frequency, phase=phase)
 
 
-SEGMENT = 2000
+SEGMENT = 2048
 """Samples per drawn segment of a named reference."""
 
 
 class ReferenceStream:
     """The reference of one episode (um, float32), drawn lazily in segments.
 
-    A named reference draws ``SEGMENT`` samples at a time from its own generator, so an episode
-    of any length has a reference, and envs that draw the segments at different moments (the
-    single env lazily, the vector env up front) see the same samples. An array reference is
-    used as given and its last value holds past its end.
+    A named reference draws ``SEGMENT`` samples at a time from the env's generator: the first
+    segment at reset, each further one at the step whose preview first reaches past the samples
+    drawn so far, so an episode of any length has a reference and the draws happen at the same
+    moments in the single and the vector env. An array reference is used as given and its last
+    value holds past its end.
 
     Parameters
     ----------

@@ -28,14 +28,13 @@ from piezo_env.env import (
     _check_noise_bound,
     _check_preview,
     check_reset_options,
-    episode_generators,
     episode_reference,
     observation_bound,
 )
 from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
 from piezo_env.model import PiezoBenderModel
-from piezo_env.reference import ReferenceStream
+from piezo_env.reference import SEGMENT, ReferenceStream
 
 __all__ = ["PiezoBenderVectorEnv"]
 
@@ -125,10 +124,15 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._y = np.zeros(n)  # true tip deflection (m)
         self._theta = np.zeros(n)
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
-        self._noise_rngs = [np.random.default_rng(0) for _ in range(n)]
-        self._ref_len = self.max_episode_steps + self.preview + 1
-        self._ref = np.zeros((n, self._ref_len), dtype=np.float32)
-        self._noise = np.zeros((n, _NOISE_BLOCK))
+        # References and noise are stored sample-major, (time, env): in lockstep one step reads
+        # one contiguous row.
+        needed = self.max_episode_steps + self.preview + 1
+        self._ref_len = -(-needed // SEGMENT) * SEGMENT
+        self._ref = np.zeros((self._ref_len, n), dtype=np.float32)
+        self._ref_filled = np.zeros(n, dtype=np.int64)
+        self._streams: list[ReferenceStream | None] = [None] * n
+        self._ref_filled_min = 0
+        self._noise = np.zeros((_NOISE_BLOCK, n))
         self._noise_index = np.zeros(n, dtype=np.int64)
         self._t = np.zeros(n, dtype=np.int64)
         self._prev_done = np.zeros(n, dtype=bool)
@@ -200,9 +204,13 @@ class PiezoBenderVectorEnv(VectorEnv):
         any_done = bool(done.any())
         if any_done:
             self._reset_rows(np.flatnonzero(done), {})
+        if self._reference_spec is not None:
+            self._extend_references()
         deflection = self._y * 1e6
         reference = self._reference_now()
-        reward = -np.square((deflection - reference) / self.model.stroke_um)
+        reward = np.subtract(deflection, reference)
+        reward *= reward
+        reward *= -1.0 / self.model.stroke_um**2
         if self.deflection_limit is not None:
             terminated = np.abs(deflection) > self.deflection_limit
         else:
@@ -234,12 +242,29 @@ class PiezoBenderVectorEnv(VectorEnv):
         spec = episode_reference(options, self._reference_spec)
         r = self.noise_bound
         for i in rows:
-            ref_rng, self._noise_rngs[i] = episode_generators(self._rngs[i])
+            rng = self._rngs[i]
             if spec is not None:
-                self._ref[i] = self._stream(spec, ref_rng).ensure(self._ref_len)[: self._ref_len]
+                stream = self._stream(spec, rng)
+                values = stream.values if isinstance(spec, str) else stream.ensure(self._ref_len)
+                self._ref[: len(values), i] = values[: self._ref_len]
+                self._ref_filled[i] = len(values)
+                self._streams[i] = stream
             if r > 0:
-                self._noise[i] = self._noise_rngs[i].uniform(-r, r, _NOISE_BLOCK)
+                self._noise[:, i] = rng.uniform(-r, r, _NOISE_BLOCK)
             self._noise_index[i] = 0
+        self._ref_filled_min = int(self._ref_filled.min())
+
+    def _extend_references(self) -> None:
+        """Draw further reference segments where the coming preview reaches past them."""
+        if self._lockstep and int(self._t[0]) + self.preview < self._ref_filled_min:
+            return
+        need = self._t + (self.preview + 1)
+        for i in np.flatnonzero(need > self._ref_filled):
+            values = self._streams[i].ensure(int(need[i]))
+            end = min(len(values), self._ref_len)
+            self._ref[self._ref_filled[i] : end, i] = values[self._ref_filled[i] : end]
+            self._ref_filled[i] = end
+        self._ref_filled_min = int(self._ref_filled.min())
 
     def _stream(self, spec: object, rng: np.random.Generator) -> ReferenceStream:
         model = self.model
@@ -255,14 +280,14 @@ class PiezoBenderVectorEnv(VectorEnv):
             j = int(self._noise_index[0])
             if j == _NOISE_BLOCK:
                 for i in range(self.num_envs):
-                    self._noise[i] = self._noise_rngs[i].uniform(-r, r, _NOISE_BLOCK)
+                    self._noise[:, i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
                 self._noise_index[:] = j = 0
             self._noise_index += 1
-            return self._noise[:, j].copy()
+            return self._noise[j].copy()
         for i in np.flatnonzero(self._noise_index == _NOISE_BLOCK):
-            self._noise[i] = self._noise_rngs[i].uniform(-r, r, _NOISE_BLOCK)
+            self._noise[:, i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
             self._noise_index[i] = 0
-        values = self._noise[self._rows, self._noise_index]
+        values = self._noise[self._noise_index, self._rows]
         self._noise_index += 1
         return values
 
@@ -270,21 +295,19 @@ class PiezoBenderVectorEnv(VectorEnv):
         if self._reference_spec is None:
             return np.zeros(self.num_envs)
         if self._lockstep:
-            return self._ref[:, min(int(self._t[0]), self._ref_len - 1)].astype(np.float64)
-        t = np.minimum(self._t, self._ref_len - 1)
-        return self._ref[self._rows, t].astype(np.float64)
+            return self._ref[int(self._t[0])].astype(np.float64)
+        return self._ref[self._t, self._rows].astype(np.float64)
 
     def _observe(self, measured: np.ndarray) -> np.ndarray:
         if self._reference_spec is None:
             return measured.astype(np.float32)[:, None]
         obs = np.empty((self.num_envs, 2 + self.preview), dtype=np.float32)
         obs[:, 0] = measured
-        t = int(self._t[0])
-        if self._lockstep and t + self.preview < self._ref_len:
-            obs[:, 1:] = self._ref[:, t : t + self.preview + 1]
+        if self._lockstep:
+            t = int(self._t[0])
+            obs[:, 1:] = self._ref[t : t + self.preview + 1].T
         else:
-            idx = np.minimum(self._t[:, None] + self._window, self._ref_len - 1)
-            obs[:, 1:] = self._ref[self._rows[:, None], idx]
+            obs[:, 1:] = self._ref[self._t[:, None] + self._window, self._rows[:, None]]
         return obs
 
     def _info(self, deflection, reference, voltage, u_eff, saturated) -> dict[str, Any]:
