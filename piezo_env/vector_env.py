@@ -120,7 +120,8 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._k = k
         self._x = np.zeros((n, k + 2))
         self._out = np.zeros((n, k + 2))
-        self._hyst = np.zeros((n, self.model.hysteresis.state_size))
+        # Column-major, so each state component of all envs is contiguous.
+        self._hyst = np.zeros((n, self.model.hysteresis.state_size), order="F")
         self._y = np.zeros(n)  # true tip deflection (m)
         self._theta = np.zeros(n)
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
@@ -310,12 +311,19 @@ class PiezoBenderVectorEnv(VectorEnv):
             obs[:, 1:] = self._ref[self._t[:, None] + self._window, self._rows[:, None]]
         return obs
 
+    def _charge_uc(self, voltage: np.ndarray) -> np.ndarray:
+        """Drive charge (uC) from the applied voltage and the tip rotation."""
+        params = self.model.params
+        charge = np.multiply(self._theta, params.piezo_moment * 1e6)
+        charge += (params.capacitance * 1e6) * voltage
+        return charge
+
     def _info(self, deflection, reference, voltage, u_eff, saturated) -> dict[str, Any]:
         values = (
             deflection,
             voltage,
             np.asarray(u_eff, dtype=float),
-            self.model.charge(voltage, self._theta) * 1e6,
+            self._charge_uc(voltage),
             reference,
             saturated,
         )
