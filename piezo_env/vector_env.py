@@ -242,18 +242,25 @@ class PiezoBenderVectorEnv(VectorEnv):
         )
         spec = episode_reference(options, self._reference_spec)
         r = self.noise_bound
+        references, noise = [], []
         for i in rows:
             rng = self._rngs[i]
             if spec is not None:
                 stream = self._stream(spec, rng)
                 values = stream.values if isinstance(spec, str) else stream.ensure(self._ref_len)
-                self._ref[: len(values), i] = values[: self._ref_len]
-                self._ref_filled[i] = len(values)
+                references.append(values[: self._ref_len])
                 self._streams[i] = stream
             if r > 0:
-                self._noise[:, i] = rng.uniform(-r, r, _NOISE_BLOCK)
-            self._noise_index[i] = 0
-        self._ref_filled_min = int(self._ref_filled.min())
+                noise.append(rng.uniform(-r, r, _NOISE_BLOCK))
+        # One transposed write each instead of a strided column write per env.
+        if references:
+            filled = len(references[0])
+            self._ref[:filled, rows] = np.stack(references, axis=1)
+            self._ref_filled[rows] = filled
+            self._ref_filled_min = int(self._ref_filled.min())
+        if noise:
+            self._noise[:, rows] = np.stack(noise, axis=1)
+        self._noise_index[rows] = 0
 
     def _extend_references(self) -> None:
         """Draw further reference segments where the coming preview reaches past them."""
@@ -280,8 +287,8 @@ class PiezoBenderVectorEnv(VectorEnv):
         if self._lockstep:
             j = int(self._noise_index[0])
             if j == _NOISE_BLOCK:
-                for i in range(self.num_envs):
-                    self._noise[:, i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
+                blocks = [rng.uniform(-r, r, _NOISE_BLOCK) for rng in self._rngs]
+                self._noise[:] = np.stack(blocks, axis=1)
                 self._noise_index[:] = j = 0
             self._noise_index += 1
             return self._noise[j].copy()
