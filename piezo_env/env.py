@@ -52,81 +52,23 @@ See :class:`PiezoBenderEnv`. The physics object is ``env.unwrapped.model``
 from __future__ import annotations
 
 import math
-import numbers
 from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
 from piezo_env.datasheet import BenderDatasheet
 from piezo_env.discrete import Creep
 from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
-from piezo_env.model import BenderSimulator, PiezoBenderModel
+from piezo_env.model import BenderSimulator
 from piezo_env.reference import ReferenceStream
+from piezo_env.task import BenderTask, check_reset_options, episode_reference
 
-__all__ = [
-    "PiezoBenderEnv",
-    "check_reset_options",
-    "episode_reference",
-    "observation_bound",
-]
+__all__ = ["PiezoBenderEnv"]
 
-DEFAULT_HORIZON = 2000
 _NOISE_BLOCK = 1024
 _TRACE = 500
-
-
-def observation_bound(model: PiezoBenderModel, noise_bound: float) -> float:
-    """Finite bound (um) of every observation entry: deflection bound plus noise, rounded up."""
-    return float(np.float32(math.ceil((model.deflection_bound_um() + noise_bound) * 1.001 + 1.0)))
-
-
-def episode_reference(options: dict[str, Any], made_with: object) -> object:
-    """The reference spec of an episode: ``options["reference"]`` or the env's own.
-
-    Raises ValueError when the options ask for a reference the env was not made for.
-    """
-    if "reference" not in options:
-        return made_with
-    spec = options["reference"]
-    if made_with is None:
-        raise ValueError(
-            "this env was made with reference=None (no reference in the observation); "
-            "make it with a reference to track one"
-        )
-    if spec is None:
-        raise ValueError("this env was made with a reference; pass an array (um), not None")
-    return spec
-
-
-def check_reset_options(options: dict[str, Any], u_max: float) -> float:
-    """Validate reset options; returns the initial voltage (V)."""
-    unknown = set(options) - {"reference", "initial_voltage"}
-    if unknown:
-        raise ValueError(
-            f"unknown reset options {sorted(unknown)}; "
-            "valid: 'reference' (array, um) and 'initial_voltage' (V)"
-        )
-    voltage = float(options.get("initial_voltage", 0.0))
-    if not (math.isfinite(voltage) and abs(voltage) <= u_max):
-        raise ValueError(f"initial_voltage must be within [-{u_max}, {u_max}] V, got {voltage}")
-    return voltage
-
-
-def _check_noise_bound(noise_bound: float) -> float:
-    if not (
-        isinstance(noise_bound, numbers.Real) and math.isfinite(noise_bound) and noise_bound >= 0
-    ):
-        raise ValueError(f"noise_bound must be a finite number >= 0 (um), got {noise_bound!r}")
-    return float(noise_bound)
-
-
-def _check_preview(preview: int) -> int:
-    if isinstance(preview, bool) or not isinstance(preview, (int, np.integer)) or preview < 0:
-        raise ValueError(f"preview must be an integer >= 0 (samples), got {preview!r}")
-    return int(preview)
 
 
 class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -181,30 +123,29 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
                 f"render_mode must be one of {self.metadata['render_modes']} or None, "
                 f"got {render_mode!r}"
             )
-        if deflection_limit is not None and not deflection_limit > 0:
-            raise ValueError(f"deflection_limit must be > 0 um or None, got {deflection_limit!r}")
-        self.model = PiezoBenderModel(
-            bender,
+        self.task = BenderTask(
+            bender=bender,
             n_elements=n_elements,
             dt=dt,
             hysteresis=hysteresis,
             creep=creep,
+            noise_bound=noise_bound,
+            reference=reference,
+            preview=preview,
+            deflection_limit=deflection_limit,
             damping_ratio=damping_ratio,
         )
-        self.noise_bound = _check_noise_bound(noise_bound)
-        self.preview = _check_preview(preview)
-        self.deflection_limit = deflection_limit
+        self.model = self.task.model
+        self.noise_bound = self.task.noise_bound
+        self.preview = self.task.preview
+        self.deflection_limit = self.task.deflection_limit
+        self.bound = self.task.bound
         self.render_mode = render_mode
         self._reference_spec = reference
         self._stroke = self.model.stroke_um
         self._u_max = self.model.rated_voltage
-
-        self.bound = observation_bound(self.model, self.noise_bound)
-        if reference is not None:  # fail at construction, not at the first reset
-            self._stream(reference, np.random.default_rng(0))
-        obs_size = 1 if reference is None else 2 + self.preview
-        self.observation_space = spaces.Box(-self.bound, self.bound, (obs_size,), np.float32)
-        self.action_space = spaces.Box(-self._u_max, self._u_max, (1,), np.float32)
+        self.observation_space = self.task.observation_space()
+        self.action_space = self.task.action_space()
         self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / dt)}
 
         self._plant = BenderSimulator(self.model)
@@ -226,7 +167,7 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         voltage = check_reset_options(options, self._u_max)
         self._plant.reset(voltage)
         spec = episode_reference(options, self._reference_spec)
-        self._reference = None if spec is None else self._stream(spec, self.np_random)
+        self._reference = None if spec is None else self.task.reference_stream(spec, self.np_random)
         self._t = 0
         self._ref_values = self._window_values()
         self._draw_noise()
@@ -309,12 +250,6 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         if not math.isfinite(u):
             raise ValueError(f"action must be a finite voltage in V, got {u!r}")
         return (u_max, True) if u > 0 else (-u_max, True)
-
-    def _stream(self, spec: object, rng: np.random.Generator) -> ReferenceStream:
-        model = self.model
-        return ReferenceStream(
-            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng
-        )
 
     def _window_values(self) -> np.ndarray:
         """Reference samples covering at least the coming preview window."""

@@ -16,25 +16,21 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
-from gymnasium import spaces
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from piezo_env.datasheet import BenderDatasheet
 from piezo_env.discrete import Creep
-from piezo_env.env import (
-    DEFAULT_HORIZON,
-    _check_noise_bound,
-    _check_preview,
-    check_reset_options,
-    episode_reference,
-    observation_bound,
-)
 from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
-from piezo_env.model import PiezoBenderModel
 from piezo_env.reference import SEGMENT, ReferenceStream
+from piezo_env.task import (
+    DEFAULT_HORIZON,
+    BenderTask,
+    check_reset_options,
+    episode_reference,
+)
 
 __all__ = ["PiezoBenderVectorEnv"]
 
@@ -87,31 +83,30 @@ class PiezoBenderVectorEnv(VectorEnv):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         if render_mode is not None:
             raise ValueError("the vector env does not render; make single envs to render")
-        if deflection_limit is not None and not deflection_limit > 0:
-            raise ValueError(f"deflection_limit must be > 0 um or None, got {deflection_limit!r}")
         self.num_envs = int(num_envs)
         self.max_episode_steps = int(max_episode_steps)
-        self.model = PiezoBenderModel(
-            bender,
+        self.task = BenderTask(
+            bender=bender,
             n_elements=n_elements,
             dt=dt,
             hysteresis=hysteresis,
             creep=creep,
+            noise_bound=noise_bound,
+            reference=reference,
+            preview=preview,
+            deflection_limit=deflection_limit,
             damping_ratio=damping_ratio,
         )
-        self.noise_bound = _check_noise_bound(noise_bound)
-        self.preview = _check_preview(preview)
-        self.deflection_limit = deflection_limit
+        self.model = self.task.model
+        self.noise_bound = self.task.noise_bound
+        self.preview = self.task.preview
+        self.deflection_limit = self.task.deflection_limit
+        self.bound = self.task.bound
         self.render_mode = None
         self._reference_spec = reference
-        self.bound = observation_bound(self.model, self.noise_bound)
-        if reference is not None:  # fail at construction, not at the first reset
-            self._stream(reference, np.random.default_rng(0))
-        obs_size = 1 if reference is None else 2 + self.preview
-        u_max = self.model.rated_voltage
-        self._u_max = u_max
-        self.single_observation_space = spaces.Box(-self.bound, self.bound, (obs_size,), np.float32)
-        self.single_action_space = spaces.Box(-u_max, u_max, (1,), np.float32)
+        self._u_max = self.model.rated_voltage
+        self.single_observation_space = self.task.observation_space()
+        self.single_action_space = self.task.action_space()
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
 
@@ -246,7 +241,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         for i in rows:
             rng = self._rngs[i]
             if spec is not None:
-                stream = self._stream(spec, rng)
+                stream = self.task.reference_stream(spec, rng)
                 values = stream.values if isinstance(spec, str) else stream.ensure(self._ref_len)
                 references.append(values[: self._ref_len])
                 self._streams[i] = stream
@@ -261,6 +256,18 @@ class PiezoBenderVectorEnv(VectorEnv):
         if noise:
             self._noise[:, rows] = np.stack(noise, axis=1)
         self._noise_index[rows] = 0
+
+    def _extend_references(self) -> None:
+        """Draw further reference segments where the coming preview reaches past them."""
+        if self._lockstep and int(self._t[0]) + self.preview < self._ref_filled_min:
+            return
+        need = self._t + (self.preview + 1)
+        for i in np.flatnonzero(need > self._ref_filled):
+            values = self._streams[i].ensure(int(need[i]))
+            end = min(len(values), self._ref_len)
+            self._ref[self._ref_filled[i] : end, i] = values[self._ref_filled[i] : end]
+            self._ref_filled[i] = end
+        self._ref_filled_min = int(self._ref_filled.min())
 
     def _extend_references(self) -> None:
         """Draw further reference segments where the coming preview reaches past them."""
