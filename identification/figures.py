@@ -79,21 +79,23 @@ def _validation(data: dict, report: dict, path: Path) -> Path:
     t = np.arange(len(data["y_val"])) * data["dt"]
     val = report["validation"]
     fig, ax = plt.subplots(figsize=(10, 4.8), dpi=110)
-    ax.plot(t, data["y_val"], color="0.55", lw=1.2, label="measured")
-    ax.plot(
-        t,
-        data["y_sim"],
-        color="tab:red",
-        lw=0.9,
-        label=f"Hammerstein, free run ({val['hammerstein']['fit_percent']:.1f} %)",
-    )
+    # The linear ARX underneath, the measurement and the identified model on top.
     ax.plot(
         t,
         data["y_lin"],
         color="tab:blue",
         lw=0.7,
-        alpha=0.7,
+        alpha=0.6,
         label=f"linear ARX ({val['linear_arx']['fit_percent']:.1f} %)",
+    )
+    ax.plot(t, data["y_val"], color="0.35", lw=1.2, label="measured")
+    ax.plot(
+        t,
+        data["y_sim"],
+        color="tab:red",
+        lw=0.8,
+        ls="--",
+        label=f"Hammerstein, free run ({val['hammerstein']['fit_percent']:.1f} %)",
     )
     ax.set_xlabel("time (s)")
     ax.set_ylabel("tip deflection (um)")
@@ -101,12 +103,12 @@ def _validation(data: dict, report: dict, path: Path) -> Path:
     ax.legend(loc="lower left", fontsize=8)
     # Zoomed inset on a short window around the largest excursion.
     centre = int(np.argmax(np.abs(data["y_val"])))
-    half = max(25, len(t) // 120)
+    half = max(25, len(t) // 200)
     lo, hi = max(0, centre - half), min(len(t), centre + half)
     inset = ax.inset_axes([0.68, 0.62, 0.3, 0.34])
-    inset.plot(t[lo:hi], data["y_val"][lo:hi], color="0.55", lw=1.5)
-    inset.plot(t[lo:hi], data["y_sim"][lo:hi], color="tab:red", lw=1)
-    inset.plot(t[lo:hi], data["y_lin"][lo:hi], color="tab:blue", lw=0.8, alpha=0.7)
+    inset.plot(t[lo:hi], data["y_lin"][lo:hi], color="tab:blue", lw=0.8, alpha=0.6)
+    inset.plot(t[lo:hi], data["y_val"][lo:hi], color="0.35", lw=1.5)
+    inset.plot(t[lo:hi], data["y_sim"][lo:hi], color="tab:red", lw=1, ls="--")
     inset.tick_params(labelsize=7)
     ax.indicate_inset_zoom(inset, edgecolor="0.3")
     fig.tight_layout()

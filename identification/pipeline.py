@@ -405,6 +405,7 @@ def identify(
             "dt": dt,
             "features": best,
             "seed": config.seed,
+            "z_noise_support_V": z_support,
         },
     )
     lap("e_nls_training")

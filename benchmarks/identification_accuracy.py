@@ -15,41 +15,26 @@
 4. Generalisation: identifies PL122 with Bouc-Wen and PL140 with Prandtl-Ishlinskii hysteresis
    (``features="auto"``) and scores them on held-out RAND (hold 10).
 
-Writes ``benchmarks/results/identification.md``. Run: ``python benchmarks/identification.py``
-from the repository root (about three minutes on two cores).
+Writes ``benchmarks/results/identification_accuracy.md``. Run:
+``python benchmarks/identification_accuracy.py`` (about three minutes on two cores).
 """
 
 from __future__ import annotations
 
-import sys
 import tempfile
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+from _common import header, markdown_table, write_result
+from _narx import NARXNetwork
 
-# This script's own name shadows the ``identification`` package while its folder leads
-# sys.path: import the package first with the folder removed, then put the folder back last
-# for the benchmark helpers.
-_HERE = Path(__file__).resolve().parent
-sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
-
-import piezo_env  # noqa: E402, F401  (registers PiezoBender-v0)
-from identification.features import FEATURE_SETS  # noqa: E402
-from identification.metrics import fit_metrics  # noqa: E402
-from identification.pipeline import (  # noqa: E402
-    IdentificationConfig,
-    collect,
-    identify,
-    write_outputs,
-)
-from piezo_env.signals import make_signal  # noqa: E402
-
-sys.path.append(str(_HERE))
-from _common import header, markdown_table, write_result  # noqa: E402
-from _narx import NARXNetwork  # noqa: E402
+import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from identification.features import FEATURE_SETS
+from identification.metrics import fit_metrics
+from identification.pipeline import IdentificationConfig, collect, identify, write_outputs
+from piezo_env.signals import make_signal
 
 SEED = 0
 """Seed of every identification run (the ``piezo identify`` default)."""
@@ -245,14 +230,14 @@ def main() -> None:
     ]
 
     lines = [
-        *header("Identification benchmark", "identification.py"),
+        *header("Identification benchmark", "identification_accuracy.py"),
         f"Default bender: {auto.report['environment']['bender']}, dt = "
         f"{auto.report['environment']['dt_s'] * 1e3:g} ms, "
         f"{auto.report['environment']['hysteresis']} hysteresis, "
         f"+-{auto.report['environment']['noise_bound_um']:g} um sensor noise, stroke "
         f"{stroke:.0f} um; drive +-30 V. Identification seed {SEED} (pipeline defaults: PRBS "
         f"+-{base.prbs_amplitude:g} V x {base.prbs_samples}, rich SINE "
-        f"{base.rich_params.get('frequency', '-')} Hz {base.rich_amplitude:g} V x "
+        f"{base.rich_signal_params().get('frequency', '-')} Hz {base.rich_amplitude:g} V x "
         f"{base.rich_samples}).",
         "",
         '## End-to-end time of `identify` (features="auto", the `piezo identify` path)',
@@ -320,7 +305,7 @@ def main() -> None:
         "",
         f"Whole script: {time.perf_counter() - script_start:.0f} s.",
     ]
-    write_result("identification", lines)
+    write_result("identification_accuracy", lines)
 
 
 if __name__ == "__main__":
