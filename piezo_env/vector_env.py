@@ -111,14 +111,19 @@ class PiezoBenderVectorEnv(VectorEnv):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
 
         n, k = self.num_envs, self.model.discrete.n_states
-        self._step_t = np.ascontiguousarray(self.model.discrete.square_step_matrix().T)
+        # The output columns come out scaled: deflection in um, Gamma theta_tip in uC.
+        self._q_per_rad = self.model.params.piezo_moment * 1e6
+        step_t = np.ascontiguousarray(self.model.discrete.square_step_matrix().T)
+        step_t[:, k] *= 1e6
+        step_t[:, k + 1] *= self._q_per_rad
+        self._step_t = step_t
         self._k = k
         self._x = np.zeros((n, k + 2))
         self._out = np.zeros((n, k + 2))
         # Column-major, so each state component of all envs is contiguous.
         self._hyst = np.zeros((n, self.model.hysteresis.state_size), order="F")
-        self._y = np.zeros(n)  # true tip deflection (m)
-        self._theta = np.zeros(n)
+        self._y = np.zeros(n)  # true tip deflection (um)
+        self._q_rot = np.zeros(n)  # rotation part of the charge, Gamma theta_tip (uC)
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
         # References and noise are stored sample-major, (time, env): in lockstep one step reads
         # one contiguous row.
@@ -161,7 +166,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._prev_done[:] = False
         self._reset_rows(self._rows, options)
         zeros = np.zeros(self.num_envs)
-        deflection = self._y * 1e6
+        deflection = self._y.copy()
         reference = self._reference_now()
         measured = deflection + self._take_noise()
         voltage = np.full(self.num_envs, float(options.get("initial_voltage", 0.0)))
@@ -191,8 +196,8 @@ class PiezoBenderVectorEnv(VectorEnv):
         for start in range(0, self.num_envs, _ROW_BLOCK):
             rows = slice(start, start + _ROW_BLOCK)
             np.matmul(x[rows], self._step_t, out=out[rows])
-        self._y[:] = out[:, k]
-        self._theta[:] = out[:, k + 1]
+        self._y = out[:, k].copy()  # a new array each step: the info returned keeps its own
+        self._q_rot = out[:, k + 1].copy()
         self._x, self._out = out, x
         self._t += 1
 
@@ -202,7 +207,7 @@ class PiezoBenderVectorEnv(VectorEnv):
             self._reset_rows(np.flatnonzero(done), {})
         if self._reference_spec is not None:
             self._extend_references()
-        deflection = self._y * 1e6
+        deflection = self._y
         reference = self._reference_now()
         reward = np.subtract(deflection, reference)
         reward *= reward
@@ -229,8 +234,8 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._x[rows, : self._k] = state
         self._x[rows, self._k :] = 0.0
         self._hyst[rows] = hyst
-        self._y[rows] = self.model.discrete.output_matrix[0] @ state
-        self._theta[rows] = self.model.discrete.output_matrix[1] @ state
+        self._y[rows] = self.model.discrete.output_matrix[0] @ state * 1e6
+        self._q_rot[rows] = self.model.discrete.output_matrix[1] @ state * self._q_per_rad
         self._t[rows] = 0
         self._lockstep = len(rows) == self.num_envs or (
             self._lockstep and bool(np.all(self._t == 0))
@@ -328,8 +333,8 @@ class PiezoBenderVectorEnv(VectorEnv):
     def _charge_uc(self, voltage: np.ndarray) -> np.ndarray:
         """Drive charge (uC) from the applied voltage and the tip rotation."""
         params = self.model.params
-        charge = np.multiply(self._theta, params.piezo_moment * 1e6)
-        charge += (params.capacitance * 1e6) * voltage
+        charge = np.multiply(voltage, params.capacitance * 1e6)
+        charge += self._q_rot
         return charge
 
     def _info(self, deflection, reference, voltage, u_eff, saturated) -> dict[str, Any]:
