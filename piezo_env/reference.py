@@ -1,4 +1,4 @@
-"""Tracking references for the environment, built from piezo_env.signals.
+"""Tracking references for the environment: the shapes of piezo_env.signals, drawn per episode.
 
 A reference is a deflection trajectory in micrometres, one sample per environment step.
 Named references draw their free parameters from the environment's ``np_random``, so each
@@ -12,23 +12,146 @@ reset under a seed gives the same reference.
 
 Amplitudes are 20..80 % of the stroke, so every reference is reachable inside the drive range.
 An episode's reference is a :class:`ReferenceStream`: segments of 2048 samples, each a fresh
-draw, as many as the episode needs.
+draw, as many as the episode needs. Drawing (:func:`draw_reference`) and rendering
+(:func:`render_references`) are split so that the vector env renders the references of all
+sub-envs that reset together in one batch; the shapes are those of piezo_env.signals
+(random_hold, sine, triangle, multisine), rendered element-wise so that a batch and a single
+env give the same samples.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_env import signals
-
-__all__ = ["REFERENCE_SHAPES", "SEGMENT", "ReferenceStream", "make_reference"]
+__all__ = [
+    "REFERENCE_SHAPES",
+    "SEGMENT",
+    "ReferenceDraw",
+    "ReferenceStream",
+    "draw_reference",
+    "make_reference",
+    "render_references",
+]
 
 REFERENCE_SHAPES = ("steps", "sine", "triangle", "multisine")
 """Shapes a named reference can take; ``"random"`` draws one of them."""
 
 _F_MIN, _F_MAX = 0.5, 20.0
+_TONES = 5
+_BLOCK = 64
+
+
+@dataclass(frozen=True)
+class ReferenceDraw:
+    """The random parameters of one reference segment (every draw already made).
+
+    Attributes
+    ----------
+    shape : str
+        One of REFERENCE_SHAPES.
+    amplitude : float
+        Peak value (um).
+    frequency : float
+        Frequency (Hz) of the sine and triangle shapes.
+    phase : float
+        Phase at t = 0 (rad) of the sine and triangle shapes.
+    levels : ndarray or None
+        Step levels (um), one per hold period, for ``"steps"``.
+    hold : int
+        Samples per step level.
+    tone_phases : ndarray or None
+        Phases (rad) of the multisine tones.
+    """
+
+    shape: str
+    amplitude: float
+    frequency: float
+    phase: float = 0.0
+    levels: np.ndarray | None = None
+    hold: int = 1
+    tone_phases: np.ndarray | None = None
+
+
+def draw_reference(
+    kind: str, n: int, *, dt: float, stroke_um: float, rng: np.random.Generator
+) -> ReferenceDraw:
+    """Draw the parameters of an ``n``-sample reference of the named ``kind`` from ``rng``."""
+    if kind == "random":
+        kind = REFERENCE_SHAPES[int(rng.integers(len(REFERENCE_SHAPES)))]
+    if kind not in REFERENCE_SHAPES:
+        raise ValueError(
+            f"unknown reference {kind!r}; use 'random', one of {REFERENCE_SHAPES}, or an array (um)"
+        )
+    amplitude = stroke_um * rng.uniform(0.2, 0.8)
+    f_max = min(_F_MAX, 0.25 / dt)
+    frequency = math.exp(rng.uniform(math.log(_F_MIN), math.log(f_max)))
+    if kind == "steps":
+        hold = int(rng.integers(50, 401))
+        levels = rng.uniform(-amplitude, amplitude, size=-(-n // hold))
+        return ReferenceDraw(kind, amplitude, frequency, levels=levels, hold=hold)
+    if kind == "multisine":
+        phases = rng.uniform(0.0, 2.0 * np.pi, size=_TONES)
+        return ReferenceDraw(kind, amplitude, f_max, tone_phases=phases)
+    return ReferenceDraw(kind, amplitude, frequency, phase=rng.uniform(0.0, 2.0 * math.pi))
+
+
+def render_references(draws: list[ReferenceDraw], n: int, *, dt: float) -> np.ndarray:
+    """Samples of the drawn references, shape (len(draws), n), in um.
+
+    Shapes are rendered in batches with element-wise operations only, so a reference comes
+    out the same, bit for bit, whether it is rendered alone or among many.
+    """
+    out = np.empty((len(draws), n))
+    t = np.arange(n) * dt
+    for shape in REFERENCE_SHAPES:
+        index = [i for i, d in enumerate(draws) if d.shape == shape]
+        if not index:
+            continue
+        group = [draws[i] for i in index]
+        amplitude = np.array([d.amplitude for d in group])[:, None]
+        if shape == "steps":
+            out[index] = [np.repeat(d.levels, d.hold)[:n] for d in group]
+        elif shape == "triangle":
+            frequency = np.array([d.frequency for d in group])[:, None]
+            phase = np.array([d.phase for d in group])[:, None]
+            # Fraction of the period, shifted so that phase 0 starts at 0 and rising.
+            cycles = frequency * t
+            cycles += phase / (2.0 * np.pi) + 0.75
+            cycles %= 1.0
+            cycles -= 0.5
+            np.abs(cycles, out=cycles)
+            cycles *= 4.0 * amplitude
+            cycles -= amplitude
+            out[index] = cycles
+        elif shape == "sine":
+            w = 2.0 * np.pi * dt * np.array([d.frequency for d in group])[:, None]
+            phase = np.array([d.phase for d in group])[:, None]
+            out[index] = amplitude * _sines(w, phase, n)
+        else:  # multisine: _TONES tones spread from _F_MIN to the draw's top frequency
+            tones = np.array([np.linspace(_F_MIN, d.frequency, _TONES) for d in group])
+            phase = np.array([d.tone_phases for d in group])
+            x = _sines(2.0 * np.pi * dt * tones, phase, n)
+            out[index] = x * (amplitude / np.abs(x).max(axis=1, keepdims=True))
+    return out
+
+
+def _sines(w: np.ndarray, phase: np.ndarray, n: int) -> np.ndarray:
+    """sum_j sin(w_j k + phase_j) for k < n, one row per reference, tones along axis 1.
+
+    With k = 64 a + b, sin(w k + phase) = sin(64 w a + phase) cos(w b) + cos(64 w a + phase)
+    sin(w b), so each reference is one (n / 64 x 2 tones) @ (2 tones x 64) product: n / 32
+    sines and cosines per tone instead of n. The products are stacked, one per reference, so
+    a reference's samples do not depend on which others are rendered with it.
+    """
+    blocks = -(-n // _BLOCK)
+    coarse = w[:, :, None] * (np.arange(blocks) * float(_BLOCK)) + phase[:, :, None]
+    fine = w[:, :, None] * np.arange(_BLOCK, dtype=np.float64)
+    left = np.concatenate([np.sin(coarse), np.cos(coarse)], axis=1).transpose(0, 2, 1)
+    right = np.concatenate([np.cos(fine), np.sin(fine)], axis=1)
+    return np.matmul(left, right).reshape(len(w), blocks * _BLOCK)[:, :n]
 
 
 def make_reference(
@@ -49,25 +172,8 @@ def make_reference(
     rng : numpy.random.Generator
         Source of every random parameter.
     """
-    if kind == "random":
-        kind = REFERENCE_SHAPES[int(rng.integers(len(REFERENCE_SHAPES)))]
-    if kind not in REFERENCE_SHAPES:
-        raise ValueError(
-            f"unknown reference {kind!r}; use 'random', one of {REFERENCE_SHAPES}, or an array (um)"
-        )
-    amplitude = stroke_um * rng.uniform(0.2, 0.8)
-    f_max = min(_F_MAX, 0.25 / dt)
-    frequency = math.exp(rng.uniform(math.log(_F_MIN), math.log(f_max)))
-    if kind == "steps":
-        hold = int(rng.integers(50, 401))
-        return signals.random_hold(n, amplitude=amplitude, hold=hold, rng=rng)
-    if kind == "multisine":
-        return signals.multisine(
-            n, dt=dt, amplitude=amplitude, f_min=_F_MIN, f_max=f_max, n_tones=5, rng=rng
-        )
-    phase = rng.uniform(0.0, 2.0 * math.pi)
-    shape = signals.sine if kind == "sine" else signals.triangle
-    return shape(n, dt=dt, amplitude=amplitude, frequency=frequency, phase=phase)
+    draw = draw_reference(kind, n, dt=dt, stroke_um=stroke_um, rng=rng)
+    return render_references([draw], n, dt=dt)[0]
 
 
 SEGMENT = 2048
@@ -95,6 +201,9 @@ class ReferenceStream:
         Largest admissible |reference| (um); arrays beyond it raise ValueError.
     rng : numpy.random.Generator or None
         Source of the named reference's segments (unused for arrays).
+    first : ndarray, optional
+        The first segment of a named reference, already drawn from ``rng`` and rendered (the
+        vector env renders the segments of many sub-envs in one batch).
     """
 
     def __init__(
@@ -105,12 +214,14 @@ class ReferenceStream:
         stroke_um: float,
         bound: float,
         rng: np.random.Generator | None,
+        first: np.ndarray | None = None,
     ) -> None:
         self._name = spec if isinstance(spec, str) else None
         self._dt, self._stroke, self._rng = dt, stroke_um, rng
         if self._name is not None:
-            first = make_reference(self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng)
-            self._values = first.astype(np.float32)
+            if first is None:
+                first = make_reference(self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng)
+            self._values = np.asarray(first, dtype=np.float32)
         else:
             values = np.asarray(spec, dtype=np.float64)
             if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):

@@ -78,11 +78,13 @@ class BenderTask:
         u_max = self.model.rated_voltage
         return spaces.Box(-u_max, u_max, (1,), np.float32)
 
-    def reference_stream(self, spec: object, rng: np.random.Generator) -> ReferenceStream:
-        """The reference of one episode, drawn from ``rng``."""
+    def reference_stream(
+        self, spec: object, rng: np.random.Generator, first: np.ndarray | None = None
+    ) -> ReferenceStream:
+        """The reference of one episode, drawn from ``rng`` (``first``: its rendered start)."""
         model = self.model
         return ReferenceStream(
-            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng
+            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng, first=first
         )
 
 

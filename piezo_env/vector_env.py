@@ -24,7 +24,7 @@ from piezo_env.datasheet import BenderDatasheet
 from piezo_env.discrete import Creep
 from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
-from piezo_env.reference import SEGMENT, ReferenceStream
+from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
 from piezo_env.task import (
     DEFAULT_HORIZON,
     BenderTask,
@@ -242,25 +242,42 @@ class PiezoBenderVectorEnv(VectorEnv):
         )
         spec = episode_reference(options, self._reference_spec)
         r = self.noise_bound
-        references, noise = [], []
-        for i in rows:
+        model = self.model
+        named = isinstance(spec, str)
+        draws, noise = [], []
+        for i in rows:  # every draw in the single env's order: reference, then noise
             rng = self._rngs[i]
-            if spec is not None:
-                stream = self.task.reference_stream(spec, rng)
-                values = stream.values if isinstance(spec, str) else stream.ensure(self._ref_len)
-                references.append(values[: self._ref_len])
-                self._streams[i] = stream
+            if named:
+                draws.append(
+                    draw_reference(spec, SEGMENT, dt=model.dt, stroke_um=model.stroke_um, rng=rng)
+                )
             if r > 0:
                 noise.append(rng.uniform(-r, r, _NOISE_BLOCK))
-        # One transposed write each instead of a strided column write per env.
-        if references:
-            filled = len(references[0])
-            self._ref[:filled, rows] = np.stack(references, axis=1)
-            self._ref_filled[rows] = filled
+        if spec is not None:
+            if named:
+                first = render_references(draws, SEGMENT, dt=model.dt).astype(np.float32)
+                streams = [
+                    self.task.reference_stream(spec, self._rngs[i], first=row)
+                    for i, row in zip(rows, first, strict=True)
+                ]
+            else:
+                streams = [self.task.reference_stream(spec, None) for _ in rows]
+            for i, stream in zip(rows, streams, strict=True):
+                self._streams[i] = stream
+            values = np.array([stream.ensure(SEGMENT)[: self._ref_len] for stream in streams])
+            self._write_columns(self._ref, rows, values, values.shape[1])
+            self._ref_filled[rows] = values.shape[1]
             self._ref_filled_min = int(self._ref_filled.min())
         if noise:
-            self._noise[:, rows] = np.stack(noise, axis=1)
+            self._write_columns(self._noise, rows, np.array(noise), _NOISE_BLOCK)
         self._noise_index[rows] = 0
+
+    def _write_columns(self, target: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int):
+        """target[:n, rows] = values.T, as one slice assignment when every env resets."""
+        if len(rows) == self.num_envs:
+            target[:n] = values.T
+        else:
+            target[:n, rows] = values.T
 
     def _extend_references(self) -> None:
         """Draw further reference segments where the coming preview reaches past them."""
@@ -299,8 +316,9 @@ class PiezoBenderVectorEnv(VectorEnv):
         if self._lockstep:
             j = int(self._noise_index[0])
             if j == _NOISE_BLOCK:
-                blocks = [rng.uniform(-r, r, _NOISE_BLOCK) for rng in self._rngs]
-                self._noise[:] = np.stack(blocks, axis=1)
+                self._noise[:] = np.array(
+                    [rng.uniform(-r, r, _NOISE_BLOCK) for rng in self._rngs]
+                ).T
                 self._noise_index[:] = j = 0
             self._noise_index += 1
             return self._noise[j].copy()
