@@ -291,24 +291,6 @@ class PiezoBenderVectorEnv(VectorEnv):
             self._ref_filled[i] = end
         self._ref_filled_min = int(self._ref_filled.min())
 
-    def _extend_references(self) -> None:
-        """Draw further reference segments where the coming preview reaches past them."""
-        if self._lockstep and int(self._t[0]) + self.preview < self._ref_filled_min:
-            return
-        need = self._t + (self.preview + 1)
-        for i in np.flatnonzero(need > self._ref_filled):
-            values = self._streams[i].ensure(int(need[i]))
-            end = min(len(values), self._ref_len)
-            self._ref[self._ref_filled[i] : end, i] = values[self._ref_filled[i] : end]
-            self._ref_filled[i] = end
-        self._ref_filled_min = int(self._ref_filled.min())
-
-    def _stream(self, spec: object, rng: np.random.Generator) -> ReferenceStream:
-        model = self.model
-        return ReferenceStream(
-            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng
-        )
-
     def _take_noise(self) -> np.ndarray:
         if self.noise_bound == 0:
             return np.zeros(self.num_envs)
