@@ -63,11 +63,10 @@ from piezo_env.fem import DEFAULT_ELEMENTS
 from piezo_env.hysteresis import Hysteresis
 from piezo_env.model import BenderSimulator
 from piezo_env.reference import ReferenceStream
-from piezo_env.task import BenderTask, check_reset_options, episode_reference
+from piezo_env.task import NOISE_BLOCK, BenderTask, check_reset_options, episode_reference
 
 __all__ = ["PiezoBenderEnv"]
 
-_NOISE_BLOCK = 1024
 _TRACE = 500
 
 
@@ -151,7 +150,7 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         self._plant = BenderSimulator(self.model)
         self._reference: ReferenceStream | None = None
         self._ref_values = np.zeros(0, dtype=np.float32)
-        self._noise = np.zeros(_NOISE_BLOCK)
+        self._noise = np.zeros(NOISE_BLOCK)
         self._noise_index = 0
         self._t = 0
         self._trace = np.zeros(_TRACE) if render_mode is not None else None
@@ -271,11 +270,11 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
     def _draw_noise(self) -> None:
         r = self.noise_bound
         if r > 0:
-            self._noise = self.np_random.uniform(-r, r, _NOISE_BLOCK)
+            self._noise = self.np_random.uniform(-r, r, NOISE_BLOCK)
         self._noise_index = 0
 
     def _next_noise(self) -> float:
-        if self._noise_index == _NOISE_BLOCK:
+        if self._noise_index == NOISE_BLOCK:
             self._draw_noise()
         value = self._noise.item(self._noise_index)
         self._noise_index += 1

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from piezo_env import signals
+
 __all__ = [
     "REFERENCE_SHAPES",
     "SEGMENT",
@@ -41,7 +43,6 @@ REFERENCE_SHAPES = ("steps", "sine", "triangle", "multisine")
 
 _F_MIN, _F_MAX = 0.5, 20.0
 _TONES = 5
-_BLOCK = 64
 
 
 @dataclass(frozen=True)
@@ -113,45 +114,24 @@ def render_references(draws: list[ReferenceDraw], n: int, *, dt: float) -> np.nd
         group = [draws[i] for i in index]
         amplitude = np.array([d.amplitude for d in group])[:, None]
         if shape == "steps":
-            out[index] = [np.repeat(d.levels, d.hold)[:n] for d in group]
+            out[index] = [np.repeat(d.levels, d.hold)[:n] for d in group]  # random_hold
         elif shape == "triangle":
             frequency = np.array([d.frequency for d in group])[:, None]
             phase = np.array([d.phase for d in group])[:, None]
             # Fraction of the period, shifted so that phase 0 starts at 0 and rising.
             cycles = frequency * t
-            cycles += phase / (2.0 * np.pi) + 0.75
-            cycles %= 1.0
-            cycles -= 0.5
-            np.abs(cycles, out=cycles)
-            cycles *= 4.0 * amplitude
-            cycles -= amplitude
-            out[index] = cycles
+            cycles += phase / (2.0 * np.pi)
+            out[index] = amplitude * signals.triangle_wave(cycles)
         elif shape == "sine":
             w = 2.0 * np.pi * dt * np.array([d.frequency for d in group])[:, None]
             phase = np.array([d.phase for d in group])[:, None]
-            out[index] = amplitude * _sines(w, phase, n)
+            out[index] = amplitude * signals.sums_of_sines(w, phase, n)
         else:  # multisine: _TONES tones spread from _F_MIN to the draw's top frequency
             tones = np.array([np.linspace(_F_MIN, d.frequency, _TONES) for d in group])
             phase = np.array([d.tone_phases for d in group])
-            x = _sines(2.0 * np.pi * dt * tones, phase, n)
+            x = signals.sums_of_sines(2.0 * np.pi * dt * tones, phase, n)
             out[index] = x * (amplitude / np.abs(x).max(axis=1, keepdims=True))
     return out
-
-
-def _sines(w: np.ndarray, phase: np.ndarray, n: int) -> np.ndarray:
-    """sum_j sin(w_j k + phase_j) for k < n, one row per reference, tones along axis 1.
-
-    With k = 64 a + b, sin(w k + phase) = sin(64 w a + phase) cos(w b) + cos(64 w a + phase)
-    sin(w b), so each reference is one (n / 64 x 2 tones) @ (2 tones x 64) product: n / 32
-    sines and cosines per tone instead of n. The products are stacked, one per reference, so
-    a reference's samples do not depend on which others are rendered with it.
-    """
-    blocks = -(-n // _BLOCK)
-    coarse = w[:, :, None] * (np.arange(blocks) * float(_BLOCK)) + phase[:, :, None]
-    fine = w[:, :, None] * np.arange(_BLOCK, dtype=np.float64)
-    left = np.concatenate([np.sin(coarse), np.cos(coarse)], axis=1).transpose(0, 2, 1)
-    right = np.concatenate([np.cos(fine), np.sin(fine)], axis=1)
-    return np.matmul(left, right).reshape(len(w), blocks * _BLOCK)[:, :n]
 
 
 def make_reference(

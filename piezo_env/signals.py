@@ -48,7 +48,9 @@ __all__ = [
     "sine",
     "square",
     "step",
+    "sums_of_sines",
     "triangle",
+    "triangle_wave",
 ]
 
 
@@ -111,21 +113,37 @@ def _time(n: int, dt: float) -> np.ndarray:
 _BLOCK = 64
 
 
-def _sine_sum(n: int, dt: float, frequencies: np.ndarray, phases: np.ndarray) -> np.ndarray:
-    """sum_j sin(2 pi f_j k dt + phi_j) for k = 0..n-1.
+def sums_of_sines(w: np.ndarray, phases: np.ndarray, n: int) -> np.ndarray:
+    """``sum_j sin(w[i, j] k + phases[i, j])`` for k = 0..n-1, one row per i: shape (rows, n).
 
-    With k = 64 a + b, sin(w k + phi) = sin(w 64 a + phi) cos(w b) + cos(w 64 a + phi) sin(w b),
-    so the whole sum is one (n / 64 x 2 tones) @ (2 tones x 64) matrix product: about n / 32
-    sines and cosines per tone instead of n, and exact to rounding.
+    ``w`` (rad per sample) and ``phases`` (rad) have shape (rows, tones). With k = 64 a + b,
+    sin(w k + phi) = sin(64 w a + phi) cos(w b) + cos(64 w a + phi) sin(w b), so each row is
+    one (n / 64 x 2 tones) @ (2 tones x 64) product: n / 32 sines and cosines per tone instead
+    of n, exact to rounding. The products are stacked, one per row, so a row's samples do not
+    depend on the other rows.
     """
-    w = 2.0 * np.pi * np.asarray(frequencies, dtype=np.float64) * dt
+    w = np.asarray(w, dtype=np.float64)
     phases = np.asarray(phases, dtype=np.float64)
     blocks = -(-n // _BLOCK)
-    coarse = np.outer(np.arange(blocks) * float(_BLOCK), w) + phases
-    fine = np.outer(w, np.arange(_BLOCK, dtype=np.float64))
-    left = np.concatenate([np.sin(coarse), np.cos(coarse)], axis=1)
-    right = np.concatenate([np.cos(fine), np.sin(fine)], axis=0)
-    return (left @ right).reshape(-1)[:n]
+    coarse = w[:, :, None] * (np.arange(blocks) * float(_BLOCK)) + phases[:, :, None]
+    fine = w[:, :, None] * np.arange(_BLOCK, dtype=np.float64)
+    left = np.concatenate([np.sin(coarse), np.cos(coarse)], axis=1).transpose(0, 2, 1)
+    right = np.concatenate([np.cos(fine), np.sin(fine)], axis=1)
+    return np.matmul(left, right).reshape(len(w), blocks * _BLOCK)[:, :n]
+
+
+def triangle_wave(cycles: np.ndarray) -> np.ndarray:
+    """Unit triangle wave of a phase in cycles (any shape), in place: 0 and rising at 0.
+
+    ``cycles`` is overwritten with the result.
+    """
+    cycles += 0.75  # so that 0 cycles starts at 0 and rising, like a sine
+    cycles %= 1.0
+    cycles -= 0.5
+    np.abs(cycles, out=cycles)
+    cycles *= 4.0
+    cycles -= 1.0
+    return cycles
 
 
 def _hold(values: np.ndarray, period: int, n: int) -> np.ndarray:
@@ -244,7 +262,8 @@ def sine(
     amplitude = _check_finite("amplitude", amplitude, minimum=0.0)
     frequency = _check_frequency("frequency", frequency, dt)
     phase = _check_finite("phase", phase)
-    return amplitude * _sine_sum(n, dt, np.array([frequency]), np.array([phase]))
+    w = 2.0 * np.pi * frequency * dt
+    return amplitude * sums_of_sines(np.array([[w]]), np.array([[phase]]), n)[0]
 
 
 def triangle(
@@ -275,12 +294,8 @@ def triangle(
     amplitude = _check_finite("amplitude", amplitude, minimum=0.0)
     frequency = _check_frequency("frequency", frequency, dt)
     phase = _check_finite("phase", phase)
-    # Fraction of the period, shifted so that phase 0 starts at 0 and rising (like a sine).
-    cycles = frequency * _time(n, dt) + (phase / (2.0 * np.pi) + 0.75)
-    cycles %= 1.0
-    cycles -= 0.5
-    np.abs(cycles, out=cycles)
-    return amplitude * (4.0 * cycles - 1.0)
+    cycles = frequency * _time(n, dt) + phase / (2.0 * np.pi)
+    return amplitude * triangle_wave(cycles)
 
 
 def square(n: int, *, dt: float, amplitude: float, frequency: float) -> np.ndarray:
@@ -378,7 +393,7 @@ def multisine(
     rng = _check_rng(rng)
     frequencies = np.linspace(f_min, f_max, n_tones)
     phases = rng.uniform(0.0, 2.0 * np.pi, size=n_tones)
-    x = _sine_sum(n, dt, frequencies, phases)
+    x = sums_of_sines(2.0 * np.pi * dt * frequencies[None, :], phases[None, :], n)[0]
     return _scale_to_peak(x, amplitude)
 
 

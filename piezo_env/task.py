@@ -23,6 +23,7 @@ from piezo_env.reference import ReferenceStream
 
 __all__ = [
     "DEFAULT_HORIZON",
+    "NOISE_BLOCK",
     "BenderTask",
     "check_reset_options",
     "episode_reference",
@@ -31,6 +32,10 @@ __all__ = [
 
 DEFAULT_HORIZON = 2000
 """Default episode length (steps): 2 s at dt = 1 ms."""
+
+NOISE_BLOCK = 1024
+"""Sensor-noise samples drawn at a time. The single and the vector env must agree on it: it
+fixes when each draws from its generator."""
 
 
 class BenderTask:

@@ -27,6 +27,7 @@ from piezo_env.hysteresis import Hysteresis
 from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
 from piezo_env.task import (
     DEFAULT_HORIZON,
+    NOISE_BLOCK,
     BenderTask,
     check_reset_options,
     episode_reference,
@@ -34,7 +35,6 @@ from piezo_env.task import (
 
 __all__ = ["PiezoBenderVectorEnv"]
 
-_NOISE_BLOCK = 1024
 _ROW_BLOCK = 1024
 _INFO_KEYS = (
     "deflection_um",
@@ -133,7 +133,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._ref_filled = np.zeros(n, dtype=np.int64)
         self._streams: list[ReferenceStream | None] = [None] * n
         self._ref_filled_min = 0
-        self._noise = np.zeros((_NOISE_BLOCK, n))
+        self._noise = np.zeros((NOISE_BLOCK, n))
         self._noise_index = np.zeros(n, dtype=np.int64)
         self._t = np.zeros(n, dtype=np.int64)
         self._prev_done = np.zeros(n, dtype=bool)
@@ -252,7 +252,7 @@ class PiezoBenderVectorEnv(VectorEnv):
                     draw_reference(spec, SEGMENT, dt=model.dt, stroke_um=model.stroke_um, rng=rng)
                 )
             if r > 0:
-                noise.append(rng.uniform(-r, r, _NOISE_BLOCK))
+                noise.append(rng.uniform(-r, r, NOISE_BLOCK))
         if spec is not None:
             if named:
                 first = render_references(draws, SEGMENT, dt=model.dt).astype(np.float32)
@@ -269,7 +269,7 @@ class PiezoBenderVectorEnv(VectorEnv):
             self._ref_filled[rows] = values.shape[1]
             self._ref_filled_min = int(self._ref_filled.min())
         if noise:
-            self._write_columns(self._noise, rows, np.array(noise), _NOISE_BLOCK)
+            self._write_columns(self._noise, rows, np.array(noise), NOISE_BLOCK)
         self._noise_index[rows] = 0
 
     def _write_columns(self, target: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int):
@@ -297,15 +297,13 @@ class PiezoBenderVectorEnv(VectorEnv):
         r = self.noise_bound
         if self._lockstep:
             j = int(self._noise_index[0])
-            if j == _NOISE_BLOCK:
-                self._noise[:] = np.array(
-                    [rng.uniform(-r, r, _NOISE_BLOCK) for rng in self._rngs]
-                ).T
+            if j == NOISE_BLOCK:
+                self._noise[:] = np.array([rng.uniform(-r, r, NOISE_BLOCK) for rng in self._rngs]).T
                 self._noise_index[:] = j = 0
             self._noise_index += 1
             return self._noise[j].copy()
-        for i in np.flatnonzero(self._noise_index == _NOISE_BLOCK):
-            self._noise[:, i] = self._rngs[i].uniform(-r, r, _NOISE_BLOCK)
+        for i in np.flatnonzero(self._noise_index == NOISE_BLOCK):
+            self._noise[:, i] = self._rngs[i].uniform(-r, r, NOISE_BLOCK)
             self._noise_index[i] = 0
         values = self._noise[self._noise_index, self._rows]
         self._noise_index += 1
