@@ -19,11 +19,13 @@ import json
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import control
 import numpy as np
 import scipy.signal
+
+if TYPE_CHECKING:
+    import control
 
 __all__ = ["ARXModel", "check_io", "regressors"]
 
@@ -306,6 +308,8 @@ class ARXModel:
 
     def to_transfer_function(self) -> control.TransferFunction:
         """Discrete transfer function in z with sampling time ``dt`` (python-control)."""
+        import control
+
         order = max(self.na, self.nb)
         num = np.zeros(order + 1)
         num[1 : self.nb + 1] = self.b
@@ -313,6 +317,42 @@ class ARXModel:
         den[0] = 1.0
         den[1 : self.na + 1] = -self.a
         return control.tf(num, den, self.dt)
+
+    def state_space_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Matrices (A, B, C, D) of the ARX model in its measured-history realization.
+
+        The state is what the ARX equation reads, so it is known from data:
+        ``x_t = [y_t, y_t-1 .. y_t-na+1, u_t-1 .. u_t-nb+1]`` (output unit, input unit), and
+        ``x_t+1 = A x_t + B u_t``, ``y_t = C x_t`` (D = 0: y_t depends on u_t-1 and older).
+        It has ``max(na, 1) + nb - 1`` states; the states beyond the transfer function's order
+        are pure delays (eigenvalues at 0), so the realization is stabilizable and detectable.
+        """
+        na, nb = max(self.na, 1), self.nb
+        n = na + nb - 1
+        a = np.zeros((n, n))
+        b = np.zeros((n, 1))
+        a[0, : self.na] = self.a
+        a[1:na, : na - 1] = np.eye(na - 1)
+        if nb:
+            b[0, 0] = self.b[0]
+            a[0, na:] = self.b[1:]
+        if nb > 1:
+            b[na, 0] = 1.0
+            a[na + 1 :, na : n - 1] = np.eye(nb - 2)
+        c = np.zeros((1, n))
+        c[0, 0] = 1.0
+        return a, b, c, np.zeros((1, 1))
+
+    def to_state_space(self) -> control.StateSpace:
+        """Discrete state space (python-control, sampling time ``dt``) of the ARX model.
+
+        Input: the ARX input (for the Hammerstein model, the hidden signal z in equivalent V);
+        output: y (um). The realization is :meth:`state_space_matrices`'; its transfer function
+        equals :meth:`to_transfer_function`.
+        """
+        import control
+
+        return control.ss(*self.state_space_matrices(), self.dt)
 
     def to_dict(self, *, include_history: bool = True) -> dict[str, Any]:
         """JSON-safe dictionary of the model (non-finite history entries become None)."""

@@ -95,6 +95,27 @@ class PiezoBenderModel:
         u_eff_max = self.hysteresis.max_effective_voltage(self.rated_voltage)
         return self.discrete.impulse_l1_bound() * u_eff_max * 1e6
 
+    def state_space_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Matrices (A, B, C, D) of the exact ZOH beam from u_eff (V) to tip deflection (um).
+
+        ``x_t+1 = A x_t + B u_eff,t``, ``y_t = C x_t`` with the reduced discrete state of
+        :class:`piezo_env.discrete.DiscreteBender` (D = 0: the deflection at the end of a sample
+        depends on the voltages held before it). The same units as an identified ARX model.
+        """
+        d = self.discrete
+        c = d.output_matrix[:1] * 1e6
+        return d.a.copy(), d.b.reshape(-1, 1).copy(), c, np.zeros((1, 1))
+
+    def state_space(self):
+        """Discrete state space (python-control, sampling time ``dt``) of the linear beam.
+
+        Input: the effective voltage u_eff (V) after the hysteresis; output: tip deflection
+        (um). See :meth:`state_space_matrices`.
+        """
+        import control
+
+        return control.ss(*self.state_space_matrices(), self.dt)
+
     def charge(self, voltage: float | np.ndarray, tip_rotation: float | np.ndarray):
         """Drive charge Q = C_p u + Gamma theta_tip (C) for voltage (V) and tip rotation (rad)."""
         return self.params.capacitance * voltage + self.params.piezo_moment * tip_rotation

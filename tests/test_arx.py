@@ -136,3 +136,23 @@ def test_constructor_rejects_bad_values():
         ARXModel([0.5], [1.0], dt=0.0)
     with pytest.raises(ValueError, match="na \\+ nb"):
         ARXModel([], [])
+
+
+@pytest.mark.parametrize(("na", "nb"), [(2, 2), (4, 4), (3, 1), (1, 3), (0, 2), (6, 6)])
+def test_state_space_matches_the_arx_recursion_and_transfer_function(na, nb):
+    rng = np.random.default_rng(na * 10 + nb)
+    a = rng.uniform(-0.3, 0.3, na) / max(na, 1)
+    b = rng.uniform(0.5, 2.0, nb)
+    model = ARXModel(a, b, dt=DT)
+    u = rng.uniform(-1.0, 1.0, 150)
+    ss = model.to_state_space()
+    assert ss.dt == DT and ss.ninputs == 1 and ss.noutputs == 1
+    response = control.forced_response(ss, T=np.arange(u.size) * DT, U=u)
+    np.testing.assert_allclose(response.outputs, model.simulate(u), atol=1e-12)
+    # Same transfer function: equal frequency responses at a few frequencies.
+    omega = np.array([0.1, 1.0, 10.0, 100.0, 1000.0])
+    np.testing.assert_allclose(
+        control.frequency_response(ss, omega).complex,
+        control.frequency_response(model.to_transfer_function(), omega).complex,
+        rtol=1e-10,
+    )
