@@ -1,0 +1,116 @@
+"""The interface every controller implements, and the statistics it keeps.
+
+A controller is state (observer, previous plan, integrator) plus a step. The loop is the same
+for all of them, classical, model-based or a trained policy::
+
+    obs, info = env.reset(seed=0)
+    controller.reset(obs)
+    while True:
+        obs, reward, terminated, truncated, info = env.step(controller.act(obs))
+
+``act`` validates the observation (NaN or a wrong shape raise ValueError naming it), times the
+step, and returns one float32 voltage inside the drive range. A solver that fails never stops
+the loop: the controller falls back to a safe input and counts it in :attr:`Controller.stats`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from controllers.task import ControlTask
+
+__all__ = ["Controller", "ControllerStats"]
+
+
+@dataclass
+class ControllerStats:
+    """What a controller did since its last reset (data for benchmarks, not log lines).
+
+    Attributes
+    ----------
+    compute_s : list of float
+        Wall time of each ``act`` call (s).
+    status : collections.Counter
+        Solver status per step (e.g. ``"solved"``, ``"max-iter"``), counted.
+    iterations : list of int
+        Solver iterations per step (empty for controllers without a solver).
+    fallbacks : int
+        Steps where the controller used its fallback input instead of a solution.
+    saturated : int
+        Steps whose computed voltage was clipped to the drive range.
+    """
+
+    compute_s: list[float] = field(default_factory=list)
+    status: Counter = field(default_factory=Counter)
+    iterations: list[int] = field(default_factory=list)
+    fallbacks: int = 0
+    saturated: int = 0
+
+    def summary(self) -> dict[str, Any]:
+        """Median, p99 and max compute time (s), status counts, iterations and fallbacks."""
+        times = np.asarray(self.compute_s)
+        values = np.quantile(times, [0.5, 0.99, 1.0]) if times.size else np.zeros(3)
+        quantiles = dict(zip(("median_s", "p99_s", "max_s"), values, strict=True))
+        return {
+            **{k: float(v) for k, v in quantiles.items()},
+            "steps": int(times.size),
+            "status": dict(self.status),
+            "mean_iterations": float(np.mean(self.iterations)) if self.iterations else 0.0,
+            "fallbacks": self.fallbacks,
+            "saturated": self.saturated,
+        }
+
+
+class Controller:
+    """Base class: validated observation in, one clipped voltage out, timed.
+
+    Subclasses implement :meth:`_reset` and :meth:`_act`; they read ``self.task`` for the
+    sample time, drive range and preview layout, and record solver facts in ``self.stats``.
+
+    Parameters
+    ----------
+    task : ControlTask
+        What the controller knows of the task.
+    """
+
+    name: ClassVar[str] = "controller"
+
+    def __init__(self, task: ControlTask) -> None:
+        self.task = task
+        self.stats = ControllerStats()
+        self._u_max = task.u_max
+
+    def reset(self, observation: Any) -> None:
+        """Start an episode from its first observation (um); clears :attr:`stats`."""
+        obs = self.task.check_observation(observation)
+        self.stats = ControllerStats()
+        self._reset(obs)
+
+    def act(self, observation: Any) -> np.ndarray:
+        """Voltage (V) for this observation: shape (1,), float32, inside the drive range."""
+        start = time.perf_counter()
+        obs = self.task.check_observation(observation)
+        u = float(self._act(obs))
+        if not -self._u_max <= u <= self._u_max:
+            if u != u:  # NaN: a controller bug, never a voltage
+                raise RuntimeError(f"{self.name} computed a NaN voltage")
+            u = self._u_max if u > 0 else -self._u_max
+            self.stats.saturated += 1
+        action = np.array([u], dtype=np.float32)
+        self.stats.compute_s.append(time.perf_counter() - start)
+        return action
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-safe settings and derived facts (gains, margins, horizon) for reports."""
+        return {"name": self.name}
+
+    def _reset(self, observation: np.ndarray) -> None:
+        raise NotImplementedError
+
+    def _act(self, observation: np.ndarray) -> float:
+        raise NotImplementedError

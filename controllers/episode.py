@@ -1,0 +1,122 @@
+"""One closed-loop episode, the same loop for every controller."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from controllers.metrics import tracking_metrics
+
+__all__ = ["Episode", "run_episode"]
+
+
+@dataclass(frozen=True)
+class Episode:
+    """Record of one episode; sample t is the outcome of action a_t.
+
+    Attributes
+    ----------
+    deflection_um : ndarray
+        True tip deflection after each action (um).
+    measured_um : ndarray
+        Measured deflection the controller saw next (um, with sensor noise).
+    reference_um : ndarray
+        The reference sample each action is scored against, r_t+1 (um).
+    voltage_V : ndarray
+        Applied voltage (V).
+    saturated : ndarray of bool
+        Voltage at the drive limit (computed there or clipped by the amplifier).
+    compute_s : ndarray
+        Controller compute time of each action (s).
+    reward : ndarray
+        The env's reward of each action.
+    metrics : dict
+        :func:`controllers.metrics.tracking_metrics` of the episode.
+    controller : dict
+        The controller's :meth:`~controllers.base.Controller.describe` and stats summary.
+    """
+
+    deflection_um: np.ndarray
+    measured_um: np.ndarray
+    reference_um: np.ndarray
+    voltage_V: np.ndarray
+    saturated: np.ndarray
+    compute_s: np.ndarray
+    reward: np.ndarray
+    metrics: dict[str, Any] = field(default_factory=dict)
+    controller: dict[str, Any] = field(default_factory=dict)
+
+
+def run_episode(
+    env: Any,
+    controller: Any,
+    *,
+    seed: int,
+    reference: np.ndarray | None = None,
+    max_steps: int | None = None,
+) -> Episode:
+    """Run ``controller`` on ``env`` for one episode.
+
+    Parameters
+    ----------
+    env : gymnasium.Env
+        A ``PiezoBender-v0`` env (wrapped or not) with a reference in its observation.
+    controller : Controller
+        Anything with ``reset(observation)``, ``act(observation)`` and ``stats``.
+    seed : int
+        Seed of the env reset (noise and named references).
+    reference : ndarray, optional
+        Reference of this episode (um), passed as ``reset(options={"reference": ...})``.
+    max_steps : int, optional
+        Stop after this many steps (default: when the env truncates or terminates).
+
+    Returns
+    -------
+    Episode
+    """
+    options = None if reference is None else {"reference": np.asarray(reference, float)}
+    obs, _ = env.reset(seed=seed, options=options)
+    controller.reset(obs)
+    u_max = float(env.action_space.high[0])
+    columns: dict[str, list] = {k: [] for k in ("y", "m", "r", "u", "sat", "rew")}
+    steps = 0
+    while max_steps is None or steps < max_steps:
+        action = controller.act(obs)
+        obs, reward, terminated, truncated, info = env.step(action)
+        columns["y"].append(info["deflection_um"])
+        columns["m"].append(float(obs[0]))
+        columns["r"].append(info["reference_um"])
+        columns["u"].append(info["voltage_V"])
+        columns["sat"].append(info["saturated"] or abs(info["voltage_V"]) >= u_max * (1 - 1e-6))
+        columns["rew"].append(reward)
+        steps += 1
+        if terminated or truncated:
+            break
+    stats = controller.stats
+    compute = np.asarray(stats.compute_s[-steps:], dtype=float)
+    arrays = {k: np.asarray(v) for k, v in columns.items()}
+    stroke = float(env.unwrapped.model.stroke_um)
+    metrics = tracking_metrics(
+        deflection_um=arrays["y"],
+        reference_um=arrays["r"],
+        voltage_v=arrays["u"],
+        saturated=arrays["sat"],
+        compute_s=compute,
+        stroke_um=stroke,
+        fallbacks=stats.fallbacks,
+    )
+    describe = getattr(controller, "describe", dict)()
+    summary = stats.summary() if hasattr(stats, "summary") else {}
+    return Episode(
+        deflection_um=arrays["y"].astype(float),
+        measured_um=arrays["m"].astype(float),
+        reference_um=arrays["r"].astype(float),
+        voltage_V=arrays["u"].astype(float),
+        saturated=arrays["sat"].astype(bool),
+        compute_s=compute,
+        reward=arrays["rew"].astype(float),
+        metrics=metrics,
+        controller={**describe, "stats": summary},
+    )

@@ -1,0 +1,239 @@
+"""One prediction-model interface for every model-based controller.
+
+A Hammerstein prediction model is an input nonlinearity (voltage u in V -> hidden signal z in
+equivalent V, with memory) in series with a discrete linear state space (z -> tip deflection in
+um)::
+
+    z_t = N(u_t; s_t),   s_t+1 = S(u_t; s_t),   x_t+1 = A x_t + B z_t,   y_t = C x_t
+
+Two sources give one: the identified :class:`identification.HammersteinModel` (NLS + ARX) and,
+for an oracle comparison, the true plant :class:`piezo_env.PiezoBenderModel` (hysteresis + exact
+ZOH beam). A controller sees only this object, so the same controller code runs on either, and
+the difference of their results is what identification costs.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+__all__ = [
+    "IdentifiedNLS",
+    "InputNonlinearity",
+    "InverseResult",
+    "PlantHysteresis",
+    "PredictionModel",
+]
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """Voltage that realises a target hidden signal from a memory state.
+
+    Attributes
+    ----------
+    u : float
+        Voltage (V), inside the drive range.
+    z : float
+        Hidden signal actually reached at ``u`` (equivalent V).
+    status : str
+        ``"ok"`` or ``"out-of-range"`` (target beyond the reachable range: ``u`` saturates).
+    state : numpy.ndarray
+        Memory state after applying ``u``.
+    """
+
+    u: float
+    z: float
+    status: str
+    state: np.ndarray
+
+
+class InputNonlinearity(Protocol):
+    """Memory nonlinearity u (V) -> z (equivalent V); states are float64 vectors."""
+
+    u_range: tuple[float, float]
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest under 0 V."""
+
+    def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
+        """(z, next state) for the voltage u applied from ``state``."""
+
+    def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
+        """Voltage reaching ``z_target`` from ``state`` (clipped to the reachable range)."""
+
+    def reachable(self, state: np.ndarray) -> tuple[float, float]:
+        """Range of z reachable in one sample from ``state`` over the drive range."""
+
+    def casadi_step(self) -> Any:
+        """casadi.Function ``(u, state) -> (z, next_state)``."""
+
+
+class IdentifiedNLS:
+    """The identified neural nonlinearity (:class:`identification.nls.NLS`) as an input model.
+
+    Parameters
+    ----------
+    nls : identification.nls.NLS
+    u_range : (float, float)
+        Drive range (V).
+    """
+
+    def __init__(self, nls: Any, u_range: tuple[float, float]) -> None:
+        self.nls = nls
+        self.u_range = (float(u_range[0]), float(u_range[1]))
+
+    def initial_state(self) -> np.ndarray:
+        return self.nls.initial_state()
+
+    def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
+        return self.nls.step(u, state)
+
+    def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
+        r = self.nls.solve_inverse(z_target, state, u_range=self.u_range)
+        status = "ok" if r.status != "out-of-range" else "out-of-range"
+        return InverseResult(float(r.u), float(r.z), status, r.state)
+
+    def reachable(self, state: np.ndarray) -> tuple[float, float]:
+        low = self.nls.step(self.u_range[0], state)[0]
+        high = self.nls.step(self.u_range[1], state)[0]
+        return (low, high) if low <= high else (high, low)
+
+    def casadi_step(self) -> Any:
+        return self.nls.to_casadi_step()
+
+
+class PlantHysteresis:
+    """The plant's own hysteresis (:mod:`piezo_env.hysteresis`) as an input model (oracle).
+
+    Parameters
+    ----------
+    hysteresis : piezo_env.hysteresis.Hysteresis
+    u_range : (float, float)
+        Drive range (V).
+    """
+
+    def __init__(self, hysteresis: Any, u_range: tuple[float, float]) -> None:
+        self.hysteresis = hysteresis
+        self.u_range = (float(u_range[0]), float(u_range[1]))
+
+    def initial_state(self) -> np.ndarray:
+        return np.asarray(self.hysteresis.initial_state(0.0), dtype=np.float64)
+
+    def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
+        new, u_eff = self.hysteresis.step(np.asarray(state, dtype=np.float64), float(u))
+        return float(u_eff), new
+
+    def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
+        r = self.hysteresis.inverse(float(z_target), state, self.u_range)
+        return InverseResult(float(r.u), float(r.z), r.status, r.state)
+
+    def reachable(self, state: np.ndarray) -> tuple[float, float]:
+        return self.step(self.u_range[0], state)[0], self.step(self.u_range[1], state)[0]
+
+    def casadi_step(self) -> Any:
+        import casadi
+
+        u = casadi.SX.sym("u")
+        s = casadi.SX.sym("state", self.hysteresis.state_size)
+        z, new = self.hysteresis.casadi_step(u, s)
+        return casadi.Function(
+            "hysteresis_step", [u, s], [z, new], ["u", "state"], ["z", "next_state"]
+        )
+
+
+@dataclass(frozen=True)
+class PredictionModel:
+    """Input nonlinearity in series with a discrete linear state space (z -> um).
+
+    Attributes
+    ----------
+    a, b, c : numpy.ndarray
+        ``x_t+1 = a x_t + b z_t``, ``y_t = c x_t`` (b: (n, 1), c: (1, n); D = 0).
+    dt : float
+        Sample time (s).
+    nonlinearity : InputNonlinearity
+        u (V) -> z (equivalent V) with memory.
+    source : str
+        ``"identified"`` or ``"plant"`` (oracle).
+    z_bounds : (float, float)
+        Range of z over the drive range from any state reached from rest (equivalent V).
+    noise_bound_um : float
+        Equation-error (identified) or zero (plant) bound, um: what the model itself claims.
+    """
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    dt: float
+    nonlinearity: Any
+    source: str
+    z_bounds: tuple[float, float] = field(default=(-math.inf, math.inf))
+    noise_bound_um: float = 0.0
+
+    @property
+    def n_states(self) -> int:
+        """Length of the linear state."""
+        return int(self.a.shape[0])
+
+    def to_control(self) -> Any:
+        """The linear part as a python-control state space with ``dt``."""
+        import control
+
+        return control.ss(self.a, self.b, self.c, np.zeros((1, 1)), self.dt)
+
+    @classmethod
+    def from_hammerstein(cls, model: Any, u_max: float) -> PredictionModel:
+        """From an identified :class:`identification.HammersteinModel` (or a folder holding one)."""
+        if isinstance(model, (str, Path)):
+            from identification.hammerstein import HammersteinModel
+
+            model = HammersteinModel.load(model)
+        a, b, c, _ = model.arx.state_space_matrices()
+        nonlinearity = IdentifiedNLS(model.nls, (-u_max, u_max))
+        return cls(
+            a,
+            b,
+            c,
+            model.dt,
+            nonlinearity,
+            "identified",
+            _z_bounds(nonlinearity),
+            float(model.arx.noise_bound),
+        )
+
+    @classmethod
+    def from_plant(cls, plant: Any) -> PredictionModel:
+        """From the true plant :class:`piezo_env.PiezoBenderModel` (``env.unwrapped.model``)."""
+        a, b, c, _ = plant.state_space_matrices()
+        u_max = plant.rated_voltage
+        nonlinearity = PlantHysteresis(plant.hysteresis, (-u_max, u_max))
+        return cls(a, b, c, plant.dt, nonlinearity, "plant", _z_bounds(nonlinearity), 0.0)
+
+    def simulate(self, u: np.ndarray) -> np.ndarray:
+        """Deflection (um) after each voltage of ``u`` (V), from rest: y[t] follows u[t]."""
+        state = self.nonlinearity.initial_state()
+        x = np.zeros(self.n_states)
+        y = np.empty(len(u))
+        for t, v in enumerate(np.asarray(u, dtype=np.float64)):
+            z, state = self.nonlinearity.step(float(v), state)
+            x = self.a @ x + self.b[:, 0] * z
+            y[t] = float(self.c[0] @ x)
+        return y
+
+
+def _z_bounds(nonlinearity: Any) -> tuple[float, float]:
+    """Extremes of z on full-stroke triangles from rest (the major loop and its first branch)."""
+    low, high = nonlinearity.u_range
+    ramp = np.linspace(0.0, 1.0, 121)[1:]
+    path = np.concatenate([high * ramp, high + (low - high) * ramp, low + (high - low) * ramp])
+    state = nonlinearity.initial_state()
+    zs = []
+    for v in np.concatenate([path, path[120:]]):
+        z, state = nonlinearity.step(float(v), state)
+        zs.append(z)
+    return float(min(zs)), float(max(zs))

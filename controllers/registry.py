@@ -1,0 +1,90 @@
+"""``controllers.make``: one constructor for every controller, by name."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from pathlib import Path
+from typing import Any
+
+from controllers.prediction import PredictionModel
+from controllers.task import ControlTask
+
+__all__ = ["CONTROLLERS", "make", "prediction_model"]
+
+CONTROLLERS: dict[str, tuple[str, str, dict[str, Any]]] = {
+    "pid": ("controllers.pid", "PIDController", {"notch": False, "feedforward": False}),
+    "pid-notch": ("controllers.pid", "PIDController", {"notch": True, "feedforward": False}),
+    "pid-ff": ("controllers.pid", "PIDController", {"notch": True, "feedforward": True}),
+    "mpc": ("controllers.mpc", "LinearMPC", {}),
+    "nmpc": ("controllers.nmpc", "NonlinearMPC", {}),
+    "nmpc-ipopt": ("controllers.nmpc", "NonlinearMPC", {"solver": "ipopt"}),
+}
+"""Name -> (module, class, preset options). Each class has a ``Settings`` dataclass."""
+
+
+def prediction_model(model: Any, env: Any) -> PredictionModel:
+    """The prediction model a controller runs on.
+
+    Parameters
+    ----------
+    model : HammersteinModel, str, pathlib.Path, PredictionModel or "plant"
+        An identified model (or the folder it was saved in), a ready prediction model, or
+        ``"plant"`` for the oracle built from the env's true plant (``env.unwrapped.model``).
+    env : gymnasium.Env
+        The env (its drive range bounds the nonlinearity's search range).
+    """
+    if isinstance(model, PredictionModel):
+        return model
+    if isinstance(model, str) and model == "plant":
+        return PredictionModel.from_plant(env.unwrapped.model)
+    u_max = float(env.action_space.high[0])
+    if isinstance(model, (str, Path)):
+        if not Path(model).is_dir():
+            raise ValueError(
+                f"model {str(model)!r} is not a folder holding a saved model (model.json + "
+                "weights.npz); pass a HammersteinModel, a model folder or 'plant'"
+            )
+        return PredictionModel.from_hammerstein(model, u_max)
+    if hasattr(model, "arx") and hasattr(model, "nls"):
+        return PredictionModel.from_hammerstein(model, u_max)
+    raise ValueError(
+        f"model must be a HammersteinModel, a model folder, a PredictionModel or 'plant'; "
+        f"got {type(model).__name__}"
+    )
+
+
+def make(name: str, model: Any, env: Any, **options: Any) -> Any:
+    """Build the controller ``name`` on ``model`` for the task of ``env``.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`CONTROLLERS`: ``"pid"``, ``"pid-notch"``, ``"pid-ff"``, ``"mpc"``,
+        ``"nmpc"``, ``"nmpc-ipopt"``.
+    model : HammersteinModel, str, pathlib.Path, PredictionModel or "plant"
+        See :func:`prediction_model`.
+    env : gymnasium.Env
+        The env it will run on; read once for dt, drive range, stroke and preview.
+    **options
+        Fields of the controller's ``Settings`` dataclass.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name or option (the message lists the valid ones) or a bad value.
+    """
+    if name not in CONTROLLERS:
+        raise ValueError(f"unknown controller {name!r}; valid: {', '.join(CONTROLLERS)}")
+    module, cls_name, preset = CONTROLLERS[name]
+    cls = getattr(importlib.import_module(module), cls_name)
+    valid = {f.name for f in dataclasses.fields(cls.Settings)} - set(preset)
+    unknown = sorted(set(options) - valid)
+    if unknown:
+        raise ValueError(
+            f"unknown option(s) {unknown} for controller {name!r}; "
+            f"valid: {', '.join(sorted(valid))}"
+        )
+    settings = cls.Settings(**{**preset, **options})
+    task = ControlTask.from_env(env)
+    return cls(prediction_model(model, env), task, settings, name=name)

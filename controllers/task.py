@@ -1,0 +1,102 @@
+"""What a controller knows about the task: read once from the environment, never in the loop.
+
+The observation of ``PiezoBender-v0`` at step t is ``[y_t + nu_t, r_t, r_t+1 .. r_t+P]`` (um),
+and the action a_t is scored against r_t+1. A controller at step t therefore aims at
+r_t+1 .. r_t+N: :meth:`ControlTask.targets` slices them out of the observation (holding the
+last previewed sample when the horizon reaches past the preview).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+__all__ = ["ControlTask"]
+
+
+@dataclass(frozen=True)
+class ControlTask:
+    """Task facts a controller may use.
+
+    Attributes
+    ----------
+    dt : float
+        Sample time (s).
+    u_max : float
+        Drive range is [-u_max, u_max] (V).
+    stroke_um : float
+        One-sided datasheet stroke (um); the full stroke is twice this.
+    preview : int
+        Future reference samples in the observation after r_t (P >= 0).
+    noise_bound_um : float
+        Sensor noise bound r (um): the datasheet of the sensor, not a secret of the plant.
+    """
+
+    dt: float
+    u_max: float
+    stroke_um: float
+    preview: int
+    noise_bound_um: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("dt", "u_max", "stroke_um"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 0:
+            raise ValueError(f"preview must be an integer >= 0, got {self.preview!r}")
+        if not (math.isfinite(self.noise_bound_um) and self.noise_bound_um >= 0):
+            raise ValueError(f"noise_bound_um must be >= 0, got {self.noise_bound_um!r}")
+
+    @classmethod
+    def from_env(cls, env: Any) -> ControlTask:
+        """Read the task of a ``PiezoBender-v0`` env (wrapped or not).
+
+        Raises
+        ------
+        ValueError
+            If the env has no reference in its observation (a tracking controller needs one).
+        """
+        base = env.unwrapped
+        shape = env.observation_space.shape
+        if shape is None or len(shape) != 1 or shape[0] < 2:
+            raise ValueError(
+                "the env's observation holds no reference (made with reference=None?); make it "
+                "with a reference, e.g. gym.make('piezo_env:PiezoBender-v0', preview=20)"
+            )
+        return cls(
+            dt=float(base.model.dt),
+            u_max=float(env.action_space.high[0]),
+            stroke_um=float(base.model.stroke_um),
+            preview=int(shape[0]) - 2,
+            noise_bound_um=float(getattr(base, "noise_bound", 1.0)),
+        )
+
+    @property
+    def observation_size(self) -> int:
+        """Length of the observation vector: deflection, r_t and the preview."""
+        return 2 + self.preview
+
+    def check_observation(self, observation: Any) -> np.ndarray:
+        """The observation as float64, or ValueError naming what is wrong with it."""
+        obs = np.asarray(observation, dtype=np.float64)
+        if obs.shape != (self.observation_size,):
+            raise ValueError(
+                f"observation must have shape ({self.observation_size},) = [y, r_t, r_t+1 .. "
+                f"r_t+{self.preview}] (um), got shape {obs.shape}"
+            )
+        if not np.isfinite(obs).all():
+            bad = int(np.flatnonzero(~np.isfinite(obs))[0])
+            raise ValueError(f"observation[{bad}] = {obs[bad]} is not finite")
+        return obs
+
+    def targets(self, observation: np.ndarray, horizon: int) -> np.ndarray:
+        """r_t+1 .. r_t+horizon (um) from a checked observation; the last preview sample holds."""
+        out = np.empty(horizon)
+        seen = observation[2 : 2 + horizon]
+        out[: seen.size] = seen
+        out[seen.size :] = observation[-1]
+        return out
