@@ -5,18 +5,50 @@
   estimator (``"bayes-uniform"``), the exact MAP (``"chebyshev"``) and least squares.
 - :mod:`identification.nls`: the neural static nonlinearity with memory features.
 - :mod:`identification.hammerstein`: the model object the controllers use, saved as plain files.
-- :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment.
+- :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment, and
+  ``collect``, which drives the environment open loop.
 - :mod:`identification.metrics`: fit %, RMSE, max error.
+
+Importing the package is light: the names of the pipeline (which needs gymnasium and the
+environment) and of the NLS training are imported on first use (PEP 562), so loading and running
+a saved model imports neither gymnasium, ``piezo_env`` nor torch.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from identification.arx import ARXModel, regressors
-from identification.bayes_uniform import BayesUniformEstimator
-from identification.estimation import METHODS, fit_arx, fit_chebyshev, fit_least_squares
-from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.metrics import fit_metrics, fit_percent, max_abs_error, rmse
-from identification.nls import NLS, fit_nls
-from identification.pipeline import IdentificationConfig, IdentificationResult, identify
+
+if TYPE_CHECKING:
+    from identification.bayes_uniform import BayesUniformEstimator
+    from identification.estimation import METHODS, fit_arx, fit_chebyshev, fit_least_squares
+    from identification.features import FEATURE_SETS
+    from identification.nls import NLS, fit_nls
+    from identification.pipeline import (
+        IdentificationConfig,
+        IdentificationResult,
+        collect,
+        identify,
+    )
+
+_LAZY = {
+    "BayesUniformEstimator": "identification.bayes_uniform",
+    "METHODS": "identification.estimation",
+    "fit_arx": "identification.estimation",
+    "fit_chebyshev": "identification.estimation",
+    "fit_least_squares": "identification.estimation",
+    "FEATURE_SETS": "identification.features",
+    "NLS": "identification.nls",
+    "fit_nls": "identification.nls",
+    "IdentificationConfig": "identification.pipeline",
+    "IdentificationResult": "identification.pipeline",
+    "collect": "identification.pipeline",
+    "identify": "identification.pipeline",
+}
 
 __all__ = [
     "FEATURE_SETS",
@@ -27,6 +59,7 @@ __all__ = [
     "HammersteinModel",
     "IdentificationConfig",
     "IdentificationResult",
+    "collect",
     "fit_arx",
     "fit_chebyshev",
     "fit_least_squares",
@@ -38,3 +71,17 @@ __all__ = [
     "regressors",
     "rmse",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Import the pipeline and estimator names on first use (PEP 562)."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'identification' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
