@@ -1,142 +1,149 @@
-"""``piezo``: command line of the testbed. Each subcommand parses its arguments and calls the
-package that owns the work; no logic lives here.
+"""``piezo``: the command line of the testbed, a thin dispatcher over the packages.
 
-    piezo simulate --signal sine --amplitude 30 --frequency 1 --out out/simulate
-    piezo identify --out out/pl140
+Each subcommand is one :class:`piezo_cli.command.Subcommand` registration in
+:data:`SUBCOMMANDS`; its module adds its options and calls the package that owns the work. To
+add a subcommand, write ``add_arguments(parser)`` and ``run(args) -> int`` in a new module under
+``piezo_cli/`` (calling :func:`piezo_cli.output.prepare_output_dir` on its output folder and
+:func:`piezo_cli.arguments.add_env_arguments` for the bender options), wrap them in a
+``Subcommand`` and append it to :data:`SUBCOMMANDS`.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import re
 import sys
-from pathlib import Path
+import textwrap
+from importlib.metadata import PackageNotFoundError, version
+from typing import NoReturn
 
-__all__ = ["main"]
+from piezo_cli.command import CommandLineError, Subcommand
+from piezo_cli.identify import IDENTIFY
+from piezo_cli.simulate import SIMULATE
 
+__all__ = ["SUBCOMMANDS", "build_parser", "main"]
 
-def _float_or_none(text: str) -> float | None:
-    return None if text.lower() in ("none", "off") else float(text)
+SUBCOMMANDS: list[Subcommand] = [SIMULATE, IDENTIFY]
+"""Every ``piezo`` subcommand, in the order ``piezo --help`` lists them."""
 
+_DESCRIPTION = (
+    "Simulate a piezoelectric bender (PI PICMA PL1xx family: finite-element beam with "
+    "hysteresis and sensor noise) and identify its Hammerstein model from data."
+)
 
-def _hysteresis(text: str) -> str | None:
-    return None if text.lower() in ("none", "off") else text
-
-
-def _add_env_arguments(parser: argparse.ArgumentParser) -> None:
-    env = parser.add_argument_group("environment")
-    env.add_argument("--bender", default="PL140", help="catalogue name (default PL140)")
-    env.add_argument(
-        "--hysteresis",
-        type=_hysteresis,
-        default="bouc-wen",
-        help="bouc-wen | prandtl-ishlinskii | none",
-    )
-    env.add_argument("--noise-bound", type=float, default=1.0, help="sensor noise bound (um)")
-    env.add_argument("--dt", type=float, default=1e-3, help="sample time (s)")
-    env.add_argument("--creep", action="store_true", help="add linear creep")
-
-
-def _env_kwargs(args: argparse.Namespace) -> dict:
-    return {
-        "bender": args.bender,
-        "hysteresis": args.hysteresis,
-        "noise_bound": args.noise_bound,
-        "dt": args.dt,
-        "creep": args.creep,
-    }
+_API_PHRASES = (
+    (re.compile(r"\s*\(?\bor pass a BenderDatasheet\)?"), ""),
+    (re.compile(r",?\s*\bor a Hysteresis\b"), ""),
+    (re.compile(r"\bnoise_bound\b"), "--noise-bound"),
+    (re.compile(r"\bdamping_ratio\b"), "damping ratio"),
+    (re.compile(r"\bn_elements\b"), "number of elements"),
+)
 
 
-def _simulate(args: argparse.Namespace) -> int:
-    from piezo_env.simulate import plot_record, run_open_loop, write_csv
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Defaults after each option's help (not for flags and options without one); paragraphs
+    wrapped, blocks of several lines (the examples) kept as typed."""
 
-    params = {}
-    if args.frequency is not None:
-        params["frequency"] = args.frequency
-    record = run_open_loop(
-        args.signal,
-        amplitude=args.amplitude,
-        duration=args.duration,
-        seed=args.seed,
-        signal_params=params,
-        **_env_kwargs(args),
-    )
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    csv_path = write_csv(record, out / "simulate.csv")
-    title = f"{args.bender}: {args.signal} {args.amplitude:g} V, hysteresis {args.hysteresis}"
-    png_path = plot_record(record, out / "simulate.png", title=title)
-    print(f"peak deflection {abs(record.deflection_um).max():.1f} um over {record.time[-1]:.3f} s")
-    print(f"wrote {csv_path} and {png_path}")
-    return 0
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False or "(default:" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        blocks = []
+        for block in text.split("\n\n"):
+            if "\n" in block:
+                blocks.append(textwrap.indent(block, indent))
+            else:
+                blocks.append(
+                    textwrap.fill(block, width, initial_indent=indent, subsequent_indent=indent)
+                )
+        return "\n\n".join(blocks)
 
 
-def _identify(args: argparse.Namespace) -> int:
-    from identification.pipeline import IdentificationConfig, identify, write_outputs
+class _Parser(argparse.ArgumentParser):
+    """An argparse parser whose usage errors are one line: ``piezo simulate: <what is wrong>``."""
 
-    config = IdentificationConfig(
-        seed=args.seed, features=args.features, env_kwargs=_env_kwargs(args)
-    )
-    result = identify(config=config, progress=print)
-    paths = write_outputs(result, args.out)
-    print(json.dumps(result.report["validation"], indent=2))
-    print("wrote " + ", ".join(str(p) for p in paths))
-    return 0
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: {message} (see '{self.prog} --help')\n")
+
+
+def _examples(lines: tuple[str, ...]) -> str | None:
+    return "examples:\n" + "\n".join(f"  {line}" for line in lines) if lines else None
+
+
+def _package_version() -> str:
+    try:
+        return version("piezo-testbed")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every subcommand."""
-    parser = argparse.ArgumentParser(prog="piezo", description=__doc__.split("\n\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    """The ``piezo`` argument parser, with one subparser per entry of :data:`SUBCOMMANDS`.
 
-    sim = sub.add_parser("simulate", help="drive the bender open loop; write CSV and PNG")
-    sim.add_argument(
-        "--signal",
-        default="sine",
-        choices=[
-            "step",
-            "sine",
-            "triangle",
-            "square",
-            "random",
-            "prbs",
-            "multisine",
-            "chirp",
-            "decaying-multisine",
-        ],
+    Returns
+    -------
+    argparse.ArgumentParser
+        Parses ``argv``; ``args.subcommand`` is the chosen :class:`Subcommand`.
+    """
+    parser = _Parser(
+        prog="piezo",
+        description=_DESCRIPTION,
+        epilog=_examples(tuple(line for command in SUBCOMMANDS for line in command.examples[:1]))
+        + "\n\nRun 'piezo COMMAND --help' for the options of a command.",
+        formatter_class=_HelpFormatter,
     )
-    sim.add_argument("--amplitude", type=float, default=30.0, help="signal amplitude (V)")
-    sim.add_argument(
-        "--frequency", type=float, default=None, help="frequency (Hz), periodic signals"
-    )
-    sim.add_argument("--duration", type=float, default=3.0, help="length (s)")
-    sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--out", default="out/simulate", help="output folder")
-    _add_env_arguments(sim)
-    sim.set_defaults(func=_simulate)
-
-    ident = sub.add_parser("identify", help="identify the Hammerstein model (paper 3.4, steps a-f)")
-    ident.add_argument("--out", default="out/identify", help="output folder")
-    ident.add_argument("--seed", type=int, default=0)
-    ident.add_argument(
-        "--features",
-        default="auto",
-        choices=["auto", "play", "past-inputs", "bouc-wen"],
-        help="memory features of the neural nonlinearity (auto: chosen on a selection record)",
-    )
-    _add_env_arguments(ident)
-    ident.set_defaults(func=_identify)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_package_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for command in SUBCOMMANDS:
+        subparser = sub.add_parser(
+            command.name,
+            help=command.help,
+            description=command.description,
+            epilog=_examples(command.examples),
+            formatter_class=_HelpFormatter,
+        )
+        command.add_arguments(subparser)
+        subparser.set_defaults(subcommand=command)
     return parser
 
 
+def _for_terminal(message: str) -> str:
+    """A package's error message in command-line terms, on one line."""
+    for pattern, replacement in _API_PHRASES:
+        message = pattern.sub(replacement, message)
+    return " ".join(message.split())
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``piezo`` console script."""
+    """Entry point of the ``piezo`` console script.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        Arguments after ``piezo``; default ``sys.argv[1:]``.
+
+    Returns
+    -------
+    int
+        Exit status: 0 done, 2 refused call (one line on stderr, nothing done), 1 a file or
+        folder failed during the work, 130 interrupted.
+    """
     args = build_parser().parse_args(argv)
+    prefix = f"piezo {args.command}"
     try:
-        return args.func(args)
-    except ValueError as error:
-        print(f"piezo {args.command}: {error}", file=sys.stderr)
+        return args.subcommand.run(args)
+    except (CommandLineError, ValueError) as error:
+        print(f"{prefix}: {_for_terminal(str(error))}", file=sys.stderr)
         return 2
+    except OSError as error:
+        where = f" {error.filename}" if error.filename else ""
+        print(f"{prefix}: cannot write{where}: {error.strerror or error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prefix}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

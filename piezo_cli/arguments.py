@@ -1,0 +1,139 @@
+"""Argument types and the environment options shared by every ``piezo`` subcommand.
+
+The type functions reject a malformed value while argparse parses it (one line, exit status
+2), so nothing starts with a NaN duration or a negative seed. Checks that need two options at
+once (an amplitude against the bender's rated voltage, a frequency against the sample time)
+live with the subcommand that has both.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from piezo_env import CATALOGUE
+
+__all__ = [
+    "BENDER_CHOICES",
+    "HYSTERESIS_CHOICES",
+    "add_env_arguments",
+    "env_kwargs",
+    "finite_float",
+    "non_negative_float",
+    "positive_float",
+    "seed",
+]
+
+BENDER_CHOICES: tuple[str, ...] = tuple(
+    sorted({*CATALOGUE, *(name.split(".")[0] for name in CATALOGUE)})
+)
+"""Catalogue names accepted by ``--bender``, with and without the ``.10`` suffix."""
+
+_SHORT_NAMES = sorted({name.split(".")[0] for name in CATALOGUE})
+
+HYSTERESIS_CHOICES: dict[str, str | None] = {
+    "bouc-wen": "bouc-wen",
+    "prandtl-ishlinskii": "prandtl-ishlinskii",
+    "none": None,
+}
+"""``--hysteresis`` words and the env's ``hysteresis`` argument each stands for."""
+
+
+def finite_float(text: str) -> float:
+    """A finite real number (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0 (argparse type)."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be greater than 0, got {text!r}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """A finite number >= 0 (argparse type); ``off`` means 0."""
+    if text.strip().lower() == "off":
+        return 0.0
+    value = finite_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
+    return value
+
+
+def seed(text: str) -> int:
+    """A non-negative whole number (argparse type), as numpy and Gymnasium accept for seeds."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
+def _bender(text: str) -> str:
+    name = text.strip().upper()
+    if name not in BENDER_CHOICES:
+        raise argparse.ArgumentTypeError(
+            f"unknown bender {text!r}; choose {_or(_SHORT_NAMES)} (the .10 suffix is optional)"
+        )
+    return name
+
+
+def _or(words: list[str]) -> str:
+    return ", ".join(words[:-1]) + " or " + words[-1] if len(words) > 1 else words[0]
+
+
+def _hysteresis(text: str) -> str:
+    word = text.strip().lower()
+    return "none" if word == "off" else word
+
+
+def add_env_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options that configure the simulated bender (``--bender``, ``--dt``, ...)."""
+    env = parser.add_argument_group("simulated bender")
+    env.add_argument(
+        "--bender",
+        type=_bender,
+        default="PL140",
+        choices=BENDER_CHOICES,
+        metavar="NAME",
+        help=f"PI PICMA bender type: {_or(_SHORT_NAMES)} (the .10 suffix is optional)",
+    )
+    env.add_argument(
+        "--hysteresis",
+        type=_hysteresis,
+        default="bouc-wen",
+        choices=tuple(HYSTERESIS_CHOICES),
+        help="input hysteresis model",
+    )
+    env.add_argument(
+        "--noise-bound",
+        type=non_negative_float,
+        default=1.0,
+        metavar="UM",
+        help="sensor noise bound r in micrometres: uniform noise in [-r, r]; 0 for none",
+    )
+    env.add_argument(
+        "--dt", type=positive_float, default=1e-3, metavar="S", help="sample time in seconds"
+    )
+    env.add_argument("--creep", action="store_true", help="add linear creep")
+
+
+def env_kwargs(args: argparse.Namespace) -> dict[str, object]:
+    """The PiezoBender-v0 keyword arguments the options of :func:`add_env_arguments` give."""
+    return {
+        "bender": args.bender,
+        "hysteresis": HYSTERESIS_CHOICES[args.hysteresis],
+        "noise_bound": args.noise_bound,
+        "dt": args.dt,
+        "creep": args.creep,
+    }

@@ -1,0 +1,63 @@
+"""``piezo identify``: the command line of :mod:`identification.pipeline` (paper 3.4, a-f)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from piezo_cli.arguments import add_env_arguments, env_kwargs, seed
+from piezo_cli.command import Subcommand
+from piezo_cli.output import prepare_output_dir
+
+__all__ = ["FEATURES", "IDENTIFY"]
+
+FEATURES = ("auto", "play", "past-inputs", "bouc-wen")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``piezo identify``."""
+    parser.add_argument("--out", default="out/identify", metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--seed", type=seed, default=0, help="seed of every signal, the noise and the training"
+    )
+    parser.add_argument(
+        "--features",
+        default="auto",
+        choices=FEATURES,
+        help="memory features of the neural nonlinearity (auto: chosen on a selection record)",
+    )
+    add_env_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check the output folder, then identify, write the model and report, and summarise."""
+    out = prepare_output_dir(args.out)
+    from identification.pipeline import IdentificationConfig, identify, write_outputs
+
+    config = IdentificationConfig(
+        seed=args.seed, features=args.features, env_kwargs=env_kwargs(args)
+    )
+    result = identify(config=config, progress=print)
+    paths = write_outputs(result, out)
+    print(json.dumps(result.report["validation"], indent=2))
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+IDENTIFY = Subcommand(
+    name="identify",
+    help="identify the Hammerstein model of the bender (paper 3.4, steps a-f)",
+    description=(
+        "Identify a Hammerstein model of the simulated bender as in section 3.4 of the paper: "
+        "PRBS excitation, ARX part by the uniform-noise Bayesian estimator, rich excitation, "
+        "hidden signal by the inverse ARX model, neural nonlinearity, free-run validation. "
+        "Writes the model (model/), report.json, report.md and figures into --out; takes "
+        "about a minute."
+    ),
+    add_arguments=add_arguments,
+    run=run,
+    examples=(
+        "piezo identify --out out/pl140",
+        "piezo identify --bender PL122 --noise-bound 0.5 --out out/pl122",
+    ),
+)

@@ -1,0 +1,90 @@
+"""The output folder of a subcommand, created and proven writable before any work starts."""
+
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+from tempfile import mkstemp
+
+from piezo_cli.command import CommandLineError
+
+__all__ = ["prepare_output_dir"]
+
+_REASONS = {
+    errno.EACCES: "permission denied",
+    errno.EPERM: "permission denied",
+    errno.EROFS: "read-only file system",
+    errno.ENOSPC: "no space left on the device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.ENAMETOOLONG: "the name is too long",
+    errno.ELOOP: "too many symbolic links",
+}
+
+
+def prepare_output_dir(path: str | os.PathLike[str], *, option: str = "--out") -> Path:
+    """Create the output folder (and its parents) and prove it writable, before any work.
+
+    A probe file is created in the folder and deleted again, so a folder that exists but cannot
+    be written to is refused here rather than after minutes of computation.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The folder the subcommand will write into; it may exist already.
+    option : str
+        The option that named the folder, quoted in the error message.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder, ready to write into.
+
+    Raises
+    ------
+    CommandLineError
+        ``cannot write to <path>: <reason>; choose another --out`` when the folder cannot be
+        created or written (a file in the way, permission denied, read-only file system, ...).
+    """
+    text = os.fspath(path)
+    folder = Path(text)
+    try:
+        if not text.strip():
+            raise _Refused("the path is empty")
+        if folder.exists() and not folder.is_dir():
+            raise _Refused("it is a file, not a folder")
+        folder.mkdir(parents=True, exist_ok=True)
+        descriptor, probe = mkstemp(prefix=".piezo-write-check-", dir=folder)
+        os.close(descriptor)
+        os.unlink(probe)
+    except _Refused as refused:
+        raise CommandLineError(_message(text, str(refused), option)) from None
+    except OSError as error:
+        raise CommandLineError(_message(text, _reason(folder, error), option)) from None
+    return folder
+
+
+class _Refused(Exception):
+    pass
+
+
+def _message(path: str, reason: str, option: str) -> str:
+    return f"cannot write to {path or repr(path)}: {reason}; choose another {option}"
+
+
+def _reason(folder: Path, error: OSError) -> str:
+    if isinstance(error, (NotADirectoryError, FileExistsError)):
+        blocking = _file_in_the_way(folder)
+        if blocking is not None:
+            return f"{blocking} is a file, not a folder"
+    if error.errno in _REASONS:
+        return _REASONS[error.errno]
+    return (error.strerror or str(error)).lower()
+
+
+def _file_in_the_way(folder: Path) -> Path | None:
+    """The first existing ancestor of ``folder`` (or itself) that is not a folder."""
+    for part in reversed((folder, *folder.parents)):
+        if part.exists() and not part.is_dir():
+            return part
+    return None
