@@ -7,10 +7,10 @@ import argparse
 from piezo_cli.arguments import add_env_arguments, env_kwargs, finite_float, positive_float, seed
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
-from piezo_env import CATALOGUE
+from piezo_env import CATALOGUE, get_datasheet
 from piezo_env.signals import SIGNAL_DEFAULTS
 
-__all__ = ["MAX_SAMPLES", "PERIODIC_SIGNALS", "SIGNALS", "SIMULATE"]
+__all__ = ["MAX_SAMPLES", "PERIODIC_SIGNALS", "SIGNALS", "SIMULATE", "check_arguments"]
 
 SIGNALS = (
     "step",
@@ -74,8 +74,6 @@ def check_arguments(args: argparse.Namespace) -> None:
         Amplitude outside 0 .. the rated voltage, a frequency for a signal that has none or
         outside (0, Nyquist), or a run longer than :data:`MAX_SAMPLES` samples.
     """
-    from piezo_env import get_datasheet
-
     sheet = get_datasheet(args.bender)
     if not 0 <= args.amplitude <= sheet.rated_voltage:
         raise CommandLineError(
@@ -89,10 +87,10 @@ def check_arguments(args: argparse.Namespace) -> None:
             f"{args.signal} uses its own frequencies"
         )
     if args.signal in PERIODIC_SIGNALS:
-        frequency = args.frequency
-        given = "" if frequency is not None else " (the default)"
-        if frequency is None:
-            frequency = SIGNAL_DEFAULTS[args.signal]["frequency"]
+        if args.frequency is None:
+            frequency, given = SIGNAL_DEFAULTS[args.signal]["frequency"], " (the default)"
+        else:
+            frequency, given = args.frequency, ""
         nyquist = 0.5 / args.dt
         if not 0 < frequency < nyquist:
             raise CommandLineError(
