@@ -93,8 +93,8 @@ class DisturbanceObserver:
         """Time update with the hidden input z actually applied (equivalent V)."""
         self.estimate = self.a_aug @ self.estimate + self.b_aug * z
 
-    def disturbance_bandwidth_hz(self, dt: float) -> float:
-        """Bandwidth (Hz) of the disturbance estimate: the observer pole nearest 1, for reports.
+    def slowest_pole_hz(self, dt: float) -> float:
+        """Decay rate of the slowest observer pole, -ln|p| / (2 pi dt) (Hz), for reports.
 
         Parameters
         ----------

@@ -1,0 +1,286 @@
+"""Linear MPC in the hidden signal z, solved by OSQP, then the nonlinearity's inverse to volts.
+
+The Hammerstein structure splits the problem. The linear part predicts the deflection from the
+hidden signal z, so tracking is a convex QP in z over the horizon; the memory nonlinearity is
+then inverted for the first move only (z -> volts, exact from the current memory state).
+
+Prediction (x_t, d_t from :class:`controllers.observer.DisturbanceObserver`, offset-free)::
+
+    y_t+k = C A^k x_t + sum_j<k C A^(k-1-j) B z_t+j + d_t = (Phi x_t + Gamma z + d_t 1)_k
+
+QP over z = (z_t .. z_t+N-1), condensed (N variables, no equality constraints)::
+
+    min  sum_k w (y_t+k - r_t+k)^2 + lambda (z_t+k - z_t+k-1)^2
+    s.t. z_lo(s_t) <= z_t <= z_hi(s_t),   z_min <= z_t+k <= z_max  (k >= 1)
+
+The first move's bounds are exact: the z reachable in one sample from the current memory state
+s_t over the drive range; later moves use the range of z over the drive range (the major loop).
+The targets r_t+1 .. r_t+N come from the reference preview (the last previewed sample holds).
+
+Implementation follows OSQP's documented MPC pattern: P and the constraint matrix are built and
+factorised once in ``setup``; each step updates only q, l and u (one stacked matrix-vector
+product gives q from [x; d; r; z_prev]) and warm-starts from the shifted previous plan. A
+solver failure never stops the loop: the shifted previous plan (else the last z) is used and
+counted in ``stats.fallbacks``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import osqp
+import scipy.sparse
+
+from controllers.base import Controller
+from controllers.observer import DisturbanceObserver
+from controllers.prediction import PredictionModel
+from controllers.task import ControlTask
+
+__all__ = ["LinearMPC", "prediction_matrices"]
+
+_USABLE = ("solved", "solved inaccurate")
+"""OSQP statuses whose solution is used; anything else falls back to the shifted plan."""
+
+
+def prediction_matrices(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, horizon: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Phi (N, n) and Gamma (N, N) with ``y_t+1..t+N = Phi x_t + Gamma z_t..t+N-1``."""
+    n = a.shape[0]
+    phi = np.empty((horizon, n))
+    markov = np.empty(horizon)  # C A^k B, k = 0 .. N-1
+    row = c[0].copy()
+    for k in range(horizon):
+        markov[k] = row @ b[:, 0]
+        row = row @ a
+        phi[k] = row
+    gamma = np.zeros((horizon, horizon))
+    for k in range(horizon):
+        gamma[k, : k + 1] = markov[k::-1]
+    return phi, gamma
+
+
+@dataclass(frozen=True)
+class MPCSettings:
+    """Settings of :class:`LinearMPC`.
+
+    Attributes
+    ----------
+    horizon : int
+        Prediction horizon N (samples). Only the first few previewed samples matter for these
+        plants; 20 covers the first resonance's period at 1 kHz many times over.
+    rate_weight : float
+        lambda, penalty of (z_t+k - z_t+k-1)^2 relative to 1 um^2 of tracking error
+        ((um / equivalent V)^2). Smooths the input against noise; larger is gentler.
+    measurement_std : float or None
+        Sensor noise standard deviation (um) the observer assumes; None: noise bound / sqrt 3
+        (uniform noise), at least 0.05 um.
+    disturbance_std : float
+        Random-walk step of the output disturbance (um per sample): the observer's speed (see
+        :mod:`controllers.observer`).
+    process_std : float
+        Input-referred process noise of the observer (equivalent V).
+    eps_abs, eps_rel : float
+        OSQP tolerances.
+    max_iter : int
+        OSQP iteration cap; reaching it is a fallback.
+    shortcut : bool
+        Skip OSQP when the unconstrained optimum -P^-1 q satisfies every bound. That is exact,
+        not an approximation: for a convex QP with box constraints, a point inside the box
+        where the gradient vanishes meets the KKT conditions with no active constraint.
+        Smooth references rarely touch the bounds, so most steps cost one matrix-vector
+        product; OSQP (warm-started) solves the others.
+    """
+
+    horizon: int = 20
+    rate_weight: float = 1e-2
+    measurement_std: float | None = None
+    disturbance_std: float = 0.3
+    process_std: float = 0.03
+    eps_abs: float = 1e-6
+    eps_rel: float = 1e-6
+    max_iter: int = 1000
+    shortcut: bool = True
+
+    def __post_init__(self) -> None:
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1 (samples), got {self.horizon!r}")
+        if (
+            isinstance(self.max_iter, bool)
+            or not isinstance(self.max_iter, int)
+            or self.max_iter < 1
+        ):
+            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
+        for name in ("rate_weight", "process_std"):
+            if not _finite_at_least(getattr(self, name), 0.0):
+                raise ValueError(
+                    f"{name} must be a finite number >= 0, got {getattr(self, name)!r}"
+                )
+        for name in ("disturbance_std", "eps_abs", "eps_rel"):
+            if not _finite_at_least(getattr(self, name), 0.0) or getattr(self, name) == 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {getattr(self, name)!r}")
+        if self.measurement_std is not None and not (
+            _finite_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
+        ):
+            raise ValueError(
+                f"measurement_std must be > 0 um or None, got {self.measurement_std!r}"
+            )
+
+
+def _finite_at_least(value: object, low: float) -> bool:
+    return (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and (math.isfinite(value) and value >= low)
+    )
+
+
+class LinearMPC(Controller):
+    """Offset-free linear MPC in z (OSQP) with the exact nonlinearity inverse to volts.
+
+    Parameters
+    ----------
+    model : PredictionModel
+        Identified Hammerstein model or the plant (oracle).
+    task : ControlTask
+        Sample time, drive range, preview layout.
+    settings : MPCSettings
+    name : str
+        Name in reports.
+    """
+
+    Settings = MPCSettings
+
+    def __init__(
+        self,
+        model: PredictionModel,
+        task: ControlTask,
+        settings: MPCSettings | None = None,
+        *,
+        name: str = "mpc",
+    ) -> None:
+        super().__init__(task)
+        self.name = name
+        self.model = model
+        self.settings = settings = settings or MPCSettings()
+        n_hor = settings.horizon
+        phi, gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
+        diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
+        lam = settings.rate_weight
+        hessian = gamma.T @ gamma + lam * diff.T @ diff
+        # q = G [x; d; r; z_prev]: the only per-step work besides the solver. Scaled so that
+        # the largest Hessian entry is 1: OSQP's absolute tolerances then mean the same thing
+        # for any bender and unit.
+        first = np.zeros((n_hor, 1))
+        first[0, 0] = -lam
+        scale = 1.0 / float(np.max(np.diag(hessian)))
+        hessian = hessian * scale
+        self._q_matrix = scale * np.hstack(
+            [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True), -gamma.T, first]
+        )
+        self._hessian = hessian
+        self._unconstrained = -np.linalg.solve(hessian, self._q_matrix)
+        self._n_states = model.n_states
+        self._vector = np.zeros(self._q_matrix.shape[1])
+        z_min, z_max = model.z_bounds
+        self._lower = np.full(n_hor, z_min)
+        self._upper = np.full(n_hor, z_max)
+        self._solver = osqp.OSQP()
+        self._solver.setup(
+            P=scipy.sparse.csc_matrix(np.triu(hessian)),
+            q=np.zeros(n_hor),
+            A=scipy.sparse.identity(n_hor, format="csc"),
+            l=self._lower,
+            u=self._upper,
+            verbose=False,
+            eps_abs=settings.eps_abs,
+            eps_rel=settings.eps_rel,
+            max_iter=settings.max_iter,
+            check_termination=5,
+            polishing=False,
+            warm_starting=True,
+        )
+        measurement = settings.measurement_std
+        if measurement is None:
+            measurement = max(task.noise_bound_um / math.sqrt(3.0), 0.05)
+        self.observer = DisturbanceObserver(
+            model.a,
+            model.b,
+            model.c,
+            measurement_std=measurement,
+            disturbance_std=settings.disturbance_std,
+            process_std=settings.process_std,
+        )
+        self._plan = np.zeros(n_hor)
+        self._duals: np.ndarray | None = None
+        self._z_prev = 0.0
+        self._memory = model.nonlinearity.initial_state()
+
+    def _reset(self, observation: np.ndarray) -> None:
+        self.observer.reset()
+        self._plan = np.zeros(self.settings.horizon)
+        self._duals = None
+        self._z_prev = 0.0
+        self._memory = self.model.nonlinearity.initial_state()
+
+    def _act(self, observation: np.ndarray) -> float:
+        estimate = self.observer.correct(float(observation[0]))
+        z_target = self._solve(estimate, self.task.targets(observation, self.settings.horizon))
+        inverse = self.model.nonlinearity.inverse(z_target, self._memory)
+        # The plant gets float32 volts: step the memory and the observer with exactly those.
+        u = float(np.float32(inverse.u))
+        if u == inverse.u:
+            z, self._memory = inverse.z, inverse.state
+        else:
+            z, self._memory = self.model.nonlinearity.step(u, self._memory)
+        if inverse.status != "ok":
+            self.stats.status["z-clipped"] += 1
+        self.observer.predict(z)
+        self._z_prev = z
+        return u
+
+    def _solve(self, estimate: np.ndarray, targets: np.ndarray) -> float:
+        """First move z_t (equivalent V) of the QP for the estimate [x; d] and targets (um)."""
+        n = self._n_states
+        v = self._vector
+        v[: n + 1] = estimate
+        v[n + 1 : -1] = targets
+        v[-1] = self._z_prev
+        low, high = self.model.nonlinearity.reachable(self._memory)
+        self._lower[0], self._upper[0] = low, high
+        if self.settings.shortcut:
+            plan = self._unconstrained @ v
+            if np.all(plan >= self._lower) and np.all(plan <= self._upper):
+                self.stats.status["unconstrained"] += 1
+                self.stats.iterations.append(0)
+                self._plan = plan
+                self._duals = None  # no bound is active: the optimal multipliers are zero
+                return float(plan[0])
+        self._solver.update(q=self._q_matrix @ v, l=self._lower, u=self._upper)
+        shifted = np.r_[self._plan[1:], self._plan[-1]]
+        duals = np.zeros(self.settings.horizon) if self._duals is None else self._duals
+        self._solver.warm_start(x=np.clip(shifted, self._lower, self._upper), y=duals)
+        result = self._solver.solve()
+        self.stats.iterations.append(int(result.info.iter))
+        status = result.info.status
+        self.stats.status[status] += 1
+        if status in _USABLE and np.all(np.isfinite(result.x)):
+            self._plan = np.clip(result.x, self._lower, self._upper)
+            self._duals = result.y
+        else:
+            self.stats.fallbacks += 1
+            self._plan = np.clip(shifted, self._lower, self._upper)
+        return float(self._plan[0])
+
+    def describe(self) -> dict:
+        """Settings, model source and observer speed (JSON-safe)."""
+        return {
+            "name": self.name,
+            "model": self.model.source,
+            "settings": asdict(self.settings),
+            "z_bounds": list(self.model.z_bounds),
+            "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
+            "qp_solver": f"osqp {osqp.__version__}",
+        }
