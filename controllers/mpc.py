@@ -262,7 +262,7 @@ class LinearMPC(Controller):
         shifted = np.r_[self._plan[1:], self._plan[-1]]
         duals = np.zeros(self.settings.horizon) if self._duals is None else self._duals
         self._solver.warm_start(x=np.clip(shifted, self._lower, self._upper), y=duals)
-        result = self._solver.solve()
+        result = self._solver.solve(raise_error=False)
         self.stats.iterations.append(int(result.info.iter))
         status = result.info.status
         self.stats.status[status] += 1

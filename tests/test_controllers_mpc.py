@@ -1,0 +1,197 @@
+"""Linear MPC held to independent computations: least squares, offset-free tracking, bounds."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import scipy.signal
+
+import controllers
+from controllers import ControlTask, PredictionModel
+from controllers.mpc import LinearMPC, MPCSettings
+from controllers.prediction import InverseResult
+from identification.arx import ARXModel
+
+MODEL_DIR = "docs/identify/model"
+
+
+class AffineNonlinearity:
+    """z = 2 u + 1 with a memory-free state: its exact inverse is u = (z - 1) / 2."""
+
+    u_range = (-30.0, 30.0)
+
+    def initial_state(self) -> np.ndarray:
+        return np.zeros(1)
+
+    def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
+        return 2.0 * u + 1.0, np.array([u])
+
+    def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
+        u = min(max((z_target - 1.0) / 2.0, -30.0), 30.0)
+        status = "ok" if u == (z_target - 1.0) / 2.0 else "out-of-range"
+        return InverseResult(u, 2.0 * u + 1.0, status, np.array([u]))
+
+    def reachable(self, state: np.ndarray) -> tuple[float, float]:
+        return -59.0, 61.0
+
+
+def synthetic_model() -> PredictionModel:
+    arx = ARXModel([1.2, -0.5], [2.0, 1.0], dt=1e-3)  # poles 0.6 +- 0.37j, zero at -0.5
+    a, b, c, _ = arx.state_space_matrices()
+    return PredictionModel(a, b, c, 1e-3, AffineNonlinearity(), "identified", (-59.0, 61.0))
+
+
+TASK = ControlTask(dt=1e-3, u_max=30.0, stroke_um=100.0, preview=10, noise_bound_um=0.0)
+
+
+def observation(y: float, targets: np.ndarray) -> np.ndarray:
+    """[y_t, r_t, r_t+1 .. r_t+P] with r_t = r_t+1."""
+    return np.r_[y, targets[0], targets[: TASK.preview]]
+
+
+def independent_first_move(model, x0, d, targets, z_prev, lam, horizon):
+    """argmin ||y(z) - r||^2 + lam ||D z - z_prev e1||^2 by lstsq, y(z) simulated by dlsim."""
+    system = (model.a, model.b, model.c, np.zeros((1, 1)), model.dt)
+
+    def outputs(z):
+        _, y, _ = scipy.signal.dlsim(system, np.r_[z, 0.0], x0=x0)
+        return y[1:, 0] + d  # y_t+1 .. y_t+N
+
+    base = outputs(np.zeros(horizon))
+    columns = np.column_stack([outputs(np.eye(horizon)[j]) - base for j in range(horizon)])
+    diff = np.eye(horizon) - np.eye(horizon, k=-1)
+    e1 = np.eye(horizon)[0]
+    matrix = np.vstack([columns, np.sqrt(lam) * diff])
+    rhs = np.r_[targets - base, np.sqrt(lam) * z_prev * e1]
+    return np.linalg.lstsq(matrix, rhs, rcond=None)[0][0]
+
+
+@pytest.mark.parametrize("shortcut", [True, False])
+def test_unconstrained_first_move_equals_independent_least_squares(shortcut):
+    model = synthetic_model()
+    horizon, lam = 8, 0.05
+    mpc = LinearMPC(
+        model,
+        TASK,
+        MPCSettings(
+            horizon=horizon,
+            rate_weight=lam,
+            shortcut=shortcut,
+            eps_abs=1e-9,
+            eps_rel=1e-9,
+            max_iter=20000,
+        ),
+    )
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        x0 = rng.normal(0.0, 5.0, model.n_states)
+        d = rng.normal(0.0, 3.0)
+        targets = rng.uniform(-20.0, 20.0, horizon)
+        z_prev = rng.uniform(-5.0, 5.0)
+        mpc._z_prev = z_prev
+        got = mpc._solve(np.r_[x0, d], targets)
+        expected = independent_first_move(model, x0, d, targets, z_prev, lam, horizon)
+        assert got == pytest.approx(expected, abs=1e-6 * (1 + abs(expected)))
+
+
+def run_loop(mpc, plant_step, reference, steps):
+    """Closed loop on a plant given as a function (x, z) -> (x_next, y_next)."""
+    model = mpc.model
+    x = np.zeros(model.n_states)
+    y = 0.0
+    ys, us = [], []
+    obs = observation(y, np.full(TASK.preview + 1, reference))
+    mpc.reset(obs)
+    memory = model.nonlinearity.initial_state()
+    for _ in range(steps):
+        u = float(mpc.act(obs)[0])
+        z, memory = model.nonlinearity.step(u, memory)
+        x, y = plant_step(x, z)
+        ys.append(y)
+        us.append(u)
+        obs = observation(y, np.full(TASK.preview + 1, reference))
+    return np.array(ys), np.array(us)
+
+
+def test_constant_output_disturbance_leaves_no_steady_state_error():
+    model = synthetic_model()
+    mpc = LinearMPC(model, TASK, MPCSettings(horizon=10))
+
+    def plant(x, z):  # the model with a 7 % gain error and a 40 um offset at the output
+        x = model.a @ x + model.b[:, 0] * (1.07 * z)
+        return x, float(model.c[0] @ x) + 40.0
+
+    ys, _ = run_loop(mpc, plant, 25.0, 600)
+    assert abs(ys[-1] - 25.0) < 1e-6
+    assert np.max(np.abs(ys[-50:] - 25.0)) < 1e-6
+
+
+def test_bounds_hold_and_volts_are_the_exact_inverse_of_z():
+    model = synthetic_model()
+    mpc = LinearMPC(model, TASK, MPCSettings(horizon=10))
+
+    def plant(x, z):
+        x = model.a @ x + model.b[:, 0] * z
+        return x, float(model.c[0] @ x)
+
+    _, us = run_loop(mpc, plant, 1e4, 50)  # far beyond reach: the upper bound binds
+    assert np.all(np.abs(us) <= 30.0)
+    assert us[-1] == pytest.approx(30.0)
+    z_plan = mpc._plan
+    assert np.all(z_plan <= 61.0 + 1e-6) and np.all(z_plan >= -59.0 - 1e-6)
+    # Inside the range, the voltage is exactly the inverse of the planned first move.
+    mpc2 = LinearMPC(model, TASK, MPCSettings(horizon=10))
+    obs = observation(0.0, np.full(TASK.preview + 1, 3.0))
+    mpc2.reset(obs)
+    u = float(mpc2.act(obs)[0])
+    assert u == pytest.approx(np.float32((mpc2._plan[0] - 1.0) / 2.0), abs=0)
+
+
+def test_forced_solver_failure_falls_back_and_the_loop_goes_on():
+    model = synthetic_model()
+    mpc = LinearMPC(model, TASK, MPCSettings(horizon=10, max_iter=1, shortcut=False))
+
+    def plant(x, z):
+        x = model.a @ x + model.b[:, 0] * z
+        return x, float(model.c[0] @ x)
+
+    ys, us = run_loop(mpc, plant, 20.0, 100)
+    assert mpc.stats.fallbacks > 0
+    assert "maximum iterations reached" in mpc.stats.status
+    assert np.all(np.isfinite(ys)) and np.all(np.abs(us) <= 30.0)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return gym.make("piezo_env:PiezoBender-v0", preview=20)
+
+
+def test_mpc_on_the_bender_is_accurate_finite_and_deterministic(env):
+    controller = controllers.make("mpc", MODEL_DIR, env)
+    t = np.arange(1, 402) * 1e-3
+    reference = 500.0 * np.sin(2 * np.pi * 10.0 * t)
+    first = controllers.run_episode(env, controller, seed=4, reference=reference, max_steps=400)
+    second = controllers.run_episode(env, controller, seed=4, reference=reference, max_steps=400)
+    np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
+    assert np.all(np.abs(first.voltage_V) <= 30.0) and np.all(np.isfinite(first.deflection_um))
+    assert first.metrics["rmse_percent"] < 0.1
+    assert first.controller["stats"]["fallbacks"] == 0
+
+
+def test_bad_observations_and_options_are_refused(env):
+    controller = controllers.make("mpc", MODEL_DIR, env)
+    obs, _ = env.reset(seed=0)
+    controller.reset(obs)
+    bad = obs.copy()
+    bad[3] = np.nan
+    with pytest.raises(ValueError, match=r"observation\[3\]"):
+        controller.act(bad)
+    with pytest.raises(ValueError, match="shape"):
+        controller.act(obs[:5])
+    with pytest.raises(ValueError, match=r"valid: .*horizon"):
+        controllers.make("mpc", MODEL_DIR, env, horizn=10)
+    with pytest.raises(ValueError, match="valid: pid, pid-notch"):
+        controllers.make("mcp", MODEL_DIR, env)
+    with pytest.raises(ValueError, match="horizon"):
+        controllers.make("mpc", MODEL_DIR, env, horizon=0)
