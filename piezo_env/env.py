@@ -1,52 +1,10 @@
 """PiezoBender-v0: a PI PICMA piezoelectric bender as a Gymnasium environment.
 
-## Description
 A clamped-free piezoelectric bimorph bender (PL140 by default, or any bender of the PICMA
 family) modelled with Euler-Bernoulli finite elements built from its datasheet, with
 rate-independent input hysteresis (Bouc-Wen by default), optional creep and a bounded-noise
-displacement sensor. The dynamics are discretised exactly (zero-order hold) at ``dt``. The task
-is to make the tip deflection track a reference.
-
-## Action Space
-``Box(-U_r, U_r, (1,), float32)``: the drive voltage in volts (one-sided; the physical drive is
-0..60 V around a 30 V bias, so U_r = 30 V for the whole family). A voltage beyond the range is
-clipped, as the amplifier saturates, and ``info["saturated"]`` is True. NaN, inf or a wrong
-shape raise ValueError.
-
-## Observation Space
-float32 vector, all entries in micrometres:
-
-| index | observation |
-|---|---|
-| 0 | measured tip deflection y_t + nu_t, nu_t ~ U(-noise_bound, noise_bound) |
-| 1 | reference r_t (only with a reference) |
-| 2 .. 1 + preview | the next reference samples r_{t+1} .. r_{t+preview} |
-
-The bounds are proven, not guessed: the peak-to-peak gain of the beam (L1 norm of its impulse
-response) times the largest effective voltage the hysteresis can produce, plus the noise bound.
-
-## Rewards
-``-((y_{t+1} - r_{t+1}) / stroke)^2`` after the action a_t: the squared tracking error of the
-true (noise-free) deflection, normalised by the datasheet stroke. Without a reference it
-regulates to zero deflection.
-
-## Episode End
-Truncated after ``max_episode_steps`` (default 2000 steps = 2 s at dt = 1 ms) by TimeLimit.
-Terminated only if ``deflection_limit`` (um) is set and exceeded, as a bender driven into its
-mechanical stop would be.
-
-## Info
-``deflection_um`` (true tip deflection), ``voltage_V`` (applied, after clipping),
-``effective_voltage_V`` (after hysteresis), ``charge_uC`` (drive charge), ``saturated``, and
-``reference_um`` when the env has a reference.
-
-## Reset options
-``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this
-voltage (V) instead of 0 V.
-
-## Arguments
-See :class:`PiezoBenderEnv`. The physics object is ``env.unwrapped.model``
-(:class:`piezo_env.model.PiezoBenderModel`).
+displacement sensor; the task is to make the tip deflection track a reference.
+:class:`PiezoBenderEnv` documents the spaces, the reward and the timing (``help(env.unwrapped)``).
 """
 
 from __future__ import annotations
@@ -57,13 +15,15 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from piezo_env.datasheet import BenderDatasheet
-from piezo_env.discrete import Creep
-from piezo_env.fem import DEFAULT_ELEMENTS
-from piezo_env.hysteresis import Hysteresis
 from piezo_env.model import BenderSimulator
 from piezo_env.reference import ReferenceStream
-from piezo_env.task import NOISE_BLOCK, BenderTask, check_reset_options, episode_reference
+from piezo_env.task import (
+    NOISE_BLOCK,
+    BenderTask,
+    TaskConfig,
+    check_reset_options,
+    episode_reference,
+)
 
 __all__ = ["PiezoBenderEnv"]
 
@@ -71,33 +31,82 @@ _TRACE = 500
 
 
 class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
-    """Piezoelectric bender tracking task (see the module docstring for spaces and reward).
+    """Piezoelectric bender tracking task: drive voltage in, tip deflection out.
+
+    ## Description
+    A clamped-free PICMA bimorph (PL140 by default) modelled with Euler-Bernoulli finite
+    elements from its datasheet, with rate-independent input hysteresis (Bouc-Wen by default),
+    optional creep and a bounded-noise displacement sensor. The dynamics are discretised
+    exactly (zero-order hold) at ``dt``: the action a_t is held for one sample, and the plant is
+    strictly proper, so a_t first shows in the deflection y_{t+1}. The physics object is
+    ``env.unwrapped.model`` (:class:`piezo_env.model.PiezoBenderModel`).
+
+    ## Timing
+    At step t the agent sees the observation o_t and sends a_t; ``step(a_t)`` returns
+    o_{t+1}, the reward of a_t and the info of t+1. Sample t runs from time t*dt; y_t is the true
+    tip deflection and r_t the reference at that time.
+
+    ## Action Space
+    ``Box(-U_r, U_r, (1,), float32)``: the drive voltage a_t in volts (one-sided; the physical
+    drive is 0..60 V around a 30 V bias, so U_r = 30 V for the whole family). A numeric array of
+    shape (1,) (or a numpy/Python number); a voltage beyond the range is clipped, as the
+    amplifier saturates, and ``info["saturated"]`` is True. NaN, inf, None, strings and other
+    shapes raise ValueError.
+
+    ## Observation Space
+    float32 vector, all entries in micrometres. With a reference (the default) and
+    ``preview = p`` (default 1), o_t has ``2 + p`` entries:
+
+    | index | sample | meaning |
+    |---|---|---|
+    | 0 | y_t + nu_t | measured tip deflection, nu_t ~ U(-noise_bound, noise_bound) |
+    | 1 | r_t | reference now (what index 0 should equal) |
+    | 2 | r_{t+1} | the sample the reward of a_t is scored against (p >= 1) |
+    | 1 + k | r_{t+k} | reference k samples ahead, k = 1 .. p |
+
+    With ``preview=0`` the observation is [y_t + nu_t, r_t] and does not contain r_{t+1}: the
+    reward is then scored against a sample the agent cannot see (only sensible for slow
+    references). With ``reference=None`` (regulation to zero) the observation is [y_t + nu_t]
+    alone and ``preview`` must be 0.
+
+    The bounds are proven, not guessed: the peak-to-peak gain of the beam (L1 norm of its
+    impulse response) times the largest effective voltage the hysteresis can produce, plus the
+    noise bound.
+
+    ## Rewards
+    The reward of a_t is ``-((y_{t+1} - r_{t+1}) / stroke)^2``: the squared tracking error of
+    the true (noise-free) deflection after a_t, normalised by the datasheet stroke
+    (``model.stroke_um``). With ``reference=None``, r = 0. It is a Python float in
+    [-(2 bound / stroke)^2, 0].
+
+    ## Episode End
+    Truncated after ``max_episode_steps`` (``gym.make`` default 2000 steps = 2 s at
+    dt = 1 ms; -1 or None for no limit) by TimeLimit. Terminated only if ``deflection_limit``
+    (um) is set and |y_{t+1}| exceeds it, as a bender driven into its mechanical stop would be.
+
+    ## Info
+    After ``step(a_t)``: ``deflection_um`` = y_{t+1} (true), ``reference_um`` = r_{t+1} (the
+    scored sample; only with a reference), ``voltage_V`` (a_t after clipping),
+    ``effective_voltage_V`` (after hysteresis), ``charge_uC`` (drive charge at t+1),
+    ``saturated`` (a_t was clipped). After ``reset``: the same keys at t = 0 (y_0, r_0, the
+    initial voltage).
+
+    ## Reset options
+    ``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this
+    voltage (V) instead of 0 V.
 
     Parameters
     ----------
-    bender : str or BenderDatasheet
-        ``"PL140"`` (default), ``"PL112"``, ``"PL122"``, ``"PL127"``, ``"PL128"`` or a datasheet.
-    n_elements : int
-        Finite elements (default 10).
-    dt : float
-        Sample time (s), default 1e-3.
-    hysteresis : {"bouc-wen", "prandtl-ishlinskii", None} or Hysteresis
-        Input hysteresis, default Bouc-Wen.
-    creep : bool or Creep
-        Linear creep, default off.
-    noise_bound : float
-        Sensor noise bound r (um): nu ~ U(-r, r); default 1.0, 0 allowed.
-    reference : None, str or array_like
-        None (regulate to zero, no reference in the observation), a named reference
-        (``"random"`` default, ``"steps"``, ``"sine"``, ``"triangle"``, ``"multisine"``) drawn
-        from ``np_random`` at each reset, or an array in um.
-    preview : int
-        Number of future reference samples appended to the observation (default 0).
-    deflection_limit : float or None
-        Terminate when |deflection| exceeds this (um); default None (never).
-    damping_ratio : float
-        First-mode damping ratio (default 0.02).
+    config : TaskConfig, optional
+        Task settings; keyword settings below override its fields.
     render_mode : {None, "rgb_array", "human"}
+        ``"rgb_array"`` draws the bent beam and the recent deflection trace.
+    **settings
+        The fields of :class:`piezo_env.task.TaskConfig`, where each is documented with its
+        default: ``bender`` ("PL140"), ``n_elements`` (10), ``dt`` (1e-3 s), ``hysteresis``
+        ("bouc-wen"), ``creep`` (False), ``noise_bound`` (1.0 um), ``reference`` ("random"),
+        ``preview`` (1 with a reference), ``deflection_limit`` (None, um), ``damping_ratio``
+        (0.02). An unknown keyword raises TypeError naming the valid ones.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}
@@ -105,47 +114,29 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
     def __init__(
         self,
         *,
-        bender: str | BenderDatasheet = "PL140",
-        n_elements: int = DEFAULT_ELEMENTS,
-        dt: float = 1e-3,
-        hysteresis: str | Hysteresis | None = "bouc-wen",
-        creep: bool | Creep = False,
-        noise_bound: float = 1.0,
-        reference: str | np.ndarray | None = "random",
-        preview: int = 0,
-        deflection_limit: float | None = None,
-        damping_ratio: float = 0.02,
+        config: TaskConfig | None = None,
         render_mode: str | None = None,
+        **settings: Any,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode must be one of {self.metadata['render_modes']} or None, "
                 f"got {render_mode!r}"
             )
-        self.task = BenderTask(
-            bender=bender,
-            n_elements=n_elements,
-            dt=dt,
-            hysteresis=hysteresis,
-            creep=creep,
-            noise_bound=noise_bound,
-            reference=reference,
-            preview=preview,
-            deflection_limit=deflection_limit,
-            damping_ratio=damping_ratio,
-        )
+        self.config = TaskConfig.from_kwargs(config, **settings)
+        self.task = BenderTask(self.config)
         self.model = self.task.model
         self.noise_bound = self.task.noise_bound
         self.preview = self.task.preview
         self.deflection_limit = self.task.deflection_limit
         self.bound = self.task.bound
         self.render_mode = render_mode
-        self._reference_spec = reference
+        self._reference_spec = self.config.reference
         self._stroke = self.model.stroke_um
         self._u_max = self.model.rated_voltage
         self.observation_space = self.task.observation_space()
         self.action_space = self.task.action_space()
-        self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / dt)}
+        self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / self.config.dt)}
 
         self._plant = BenderSimulator(self.model)
         self._reference: ReferenceStream | None = None
@@ -237,12 +228,14 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _drive_voltage(self, action: np.ndarray) -> tuple[float, bool]:
         """Validated, clipped voltage (V) and whether it was clipped."""
-        a = np.asarray(action, dtype=np.float64)
+        a = np.asarray(action)
+        if a.dtype.kind not in "fiu":
+            raise ValueError(_not_a_voltage(action))
         if a.shape != (1,) and a.shape != ():
             raise ValueError(
                 f"action must have shape (1,) (one voltage in V), got shape {a.shape}: {action!r}"
             )
-        u = a.item()
+        u = float(a.item())
         u_max = self._u_max
         if -u_max <= u <= u_max:  # False for NaN
             return u, False
@@ -293,3 +286,13 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._reference is not None:
             info["reference_um"] = self._reference_at(self._t)
         return info
+
+
+def _not_a_voltage(action: object) -> str:
+    """Why ``action`` (not a real-valued array) is not a voltage."""
+    if action is None:
+        return "action is None, which is not a voltage: pass a numeric array of shape (1,) in V"
+    return (
+        "action must be a numeric array of shape (1,) (one voltage in V), "
+        f"got {type(action).__name__} {action!r}"
+    )

@@ -37,6 +37,7 @@ __all__ = [
     "DEFAULT_ELEMENTS",
     "BeamFE",
     "assemble_beam",
+    "check_damping_ratio",
     "element_mass",
     "element_stiffness",
 ]
@@ -129,6 +130,23 @@ class BeamFE:
         return w / w[-1]
 
 
+def check_damping_ratio(damping_ratio: object) -> None:
+    """Raise ValueError unless ``damping_ratio`` is a first-mode damping ratio in [1e-4, 1).
+
+    Below 1e-4 the bender is (nearly) undamped: its peak-to-peak gain, and so the proven
+    deflection bound, grows without limit. At 1 and above the first mode is not underdamped.
+    """
+    if not (
+        isinstance(damping_ratio, (int, float, np.integer, np.floating))
+        and not isinstance(damping_ratio, bool)
+        and 1e-4 <= damping_ratio < 1.0
+    ):
+        raise ValueError(
+            "damping_ratio must be a first-mode damping ratio in [1e-4, 1) (an underdamped "
+            f"bender), got {damping_ratio!r}"
+        )
+
+
 def assemble_beam(
     params: BenderParameters,
     n_elements: int,
@@ -160,11 +178,7 @@ def assemble_beam(
         or n_elements < 1
     ):
         raise ValueError(f"n_elements must be a positive integer, got {n_elements!r}")
-    if not (1e-4 <= damping_ratio < 1.0):
-        raise ValueError(
-            f"damping_ratio must be in [1e-4, 1), got {damping_ratio!r}: an undamped bender has "
-            "no finite peak-to-peak gain, so its deflection could not be bounded"
-        )
+    check_damping_ratio(damping_ratio)
     if damping not in ("rayleigh", "modal"):
         raise ValueError(f"damping must be 'rayleigh' or 'modal', got {damping!r}")
 

@@ -14,9 +14,10 @@ import numpy as np
 
 from piezo_env.datasheet import BenderDatasheet
 from piezo_env.discrete import Creep, DiscreteBender, discretize
-from piezo_env.fem import DEFAULT_ELEMENTS, BeamFE, assemble_beam
+from piezo_env.fem import BeamFE, assemble_beam
 from piezo_env.hysteresis import BoucWen, Hysteresis, make_hysteresis
 from piezo_env.parameters import BenderParameters, bender_parameters
+from piezo_env.task import TaskConfig  # the one home of the defaults
 
 __all__ = ["BenderSimulator", "PiezoBenderModel", "SimulationResult"]
 
@@ -46,13 +47,13 @@ class PiezoBenderModel:
 
     def __init__(
         self,
-        bender: str | BenderDatasheet = "PL140",
+        bender: str | BenderDatasheet = TaskConfig.bender,
         *,
-        n_elements: int = DEFAULT_ELEMENTS,
-        dt: float = 1e-3,
-        hysteresis: str | Hysteresis | None = "bouc-wen",
-        creep: bool | Creep = False,
-        damping_ratio: float = 0.02,
+        n_elements: int = TaskConfig.n_elements,
+        dt: float = TaskConfig.dt,
+        hysteresis: str | Hysteresis | None = TaskConfig.hysteresis,
+        creep: bool | Creep = TaskConfig.creep,
+        damping_ratio: float = TaskConfig.damping_ratio,
         damping: str = "rayleigh",
         density: float | str = "calibrated",
     ) -> None:

@@ -29,10 +29,12 @@ import numpy as np
 from piezo_env import signals
 
 __all__ = [
+    "REFERENCE_NAMES",
     "REFERENCE_SHAPES",
     "SEGMENT",
     "ReferenceDraw",
     "ReferenceStream",
+    "check_reference_array",
     "draw_reference",
     "make_reference",
     "render_references",
@@ -40,6 +42,9 @@ __all__ = [
 
 REFERENCE_SHAPES = ("steps", "sine", "triangle", "multisine")
 """Shapes a named reference can take; ``"random"`` draws one of them."""
+
+REFERENCE_NAMES = ("random", *REFERENCE_SHAPES)
+"""Every valid reference name."""
 
 _F_MIN, _F_MAX = 0.5, 20.0
 _TONES = 5
@@ -84,7 +89,7 @@ def draw_reference(
         kind = REFERENCE_SHAPES[int(rng.integers(len(REFERENCE_SHAPES)))]
     if kind not in REFERENCE_SHAPES:
         raise ValueError(
-            f"unknown reference {kind!r}; use 'random', one of {REFERENCE_SHAPES}, or an array (um)"
+            f"unknown reference {kind!r}; use one of {REFERENCE_NAMES} or an array (um)"
         )
     amplitude = stroke_um * rng.uniform(0.2, 0.8)
     f_max = min(_F_MAX, 0.25 / dt)
@@ -156,6 +161,33 @@ def make_reference(
     return render_references([draw], n, dt=dt)[0]
 
 
+def check_reference_array(spec: object) -> np.ndarray:
+    """A reference array as a read-only float64 copy (um), or ValueError saying what is wrong.
+
+    The array must be one-dimensional, non-empty, numeric and finite; a non-finite sample is
+    reported by its index and value.
+    """
+    try:
+        values = np.array(spec, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"a reference array must hold numbers (um), got {type(spec).__name__}: {exc}"
+        ) from None
+    if values.ndim != 1 or values.size == 0:
+        raise ValueError(
+            "a reference array must be one-dimensional and non-empty (um), "
+            f"got shape {values.shape}"
+        )
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        raise ValueError(
+            f"a reference array must be finite (um), got {values[bad[0]]} at index {bad[0]}"
+            + (f" ({bad.size} non-finite samples)" if bad.size > 1 else "")
+        )
+    values.flags.writeable = False
+    return values
+
+
 SEGMENT = 2048
 """Samples per drawn segment of a named reference."""
 
@@ -203,12 +235,7 @@ class ReferenceStream:
                 first = make_reference(self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng)
             self._values = np.asarray(first, dtype=np.float32)
         else:
-            values = np.asarray(spec, dtype=np.float64)
-            if values.ndim != 1 or values.size == 0 or not np.all(np.isfinite(values)):
-                raise ValueError(
-                    "a reference array must be one-dimensional, non-empty and finite (um), "
-                    f"got shape {values.shape}"
-                )
+            values = check_reference_array(spec)
             if np.abs(values).max() > bound:
                 raise ValueError(
                     f"reference reaches {np.abs(values).max():.1f} um, beyond what the bender "

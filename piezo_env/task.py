@@ -1,30 +1,37 @@
-"""What the single and the vector env share: the validated task settings and their spaces.
+"""What the single and the vector env share: the task settings, validated once, and their spaces.
 
-:class:`BenderTask` builds the model from the environment's keyword arguments, checks every
-setting once, derives the proven observation bound and makes the spaces and reference streams,
-so that ``PiezoBender-v0`` and its vector env cannot drift apart.
+:class:`TaskConfig` holds every setting of a PiezoBender-v0 task and its default, once; it is
+frozen and validated at construction. :class:`BenderTask` builds the model from it, derives the
+proven observation bound and makes the spaces and reference streams, so that ``PiezoBender-v0``
+and its vector env cannot drift apart.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gymnasium import spaces
 
-from piezo_env.datasheet import BenderDatasheet
+from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.discrete import Creep
-from piezo_env.fem import DEFAULT_ELEMENTS
-from piezo_env.hysteresis import Hysteresis
-from piezo_env.model import PiezoBenderModel
-from piezo_env.reference import ReferenceStream
+from piezo_env.fem import DEFAULT_ELEMENTS, check_damping_ratio
+from piezo_env.hysteresis import Hysteresis, make_hysteresis
+from piezo_env.reference import REFERENCE_NAMES, ReferenceStream, check_reference_array
+
+if TYPE_CHECKING:
+    from piezo_env.model import PiezoBenderModel
 
 __all__ = [
     "DEFAULT_HORIZON",
     "NOISE_BLOCK",
     "BenderTask",
+    "TaskConfig",
+    "check_max_episode_steps",
     "check_reset_options",
     "episode_reference",
     "observation_bound",
@@ -38,43 +45,158 @@ NOISE_BLOCK = 1024
 fixes when each draws from its generator."""
 
 
-class BenderTask:
-    """Validated settings of a PiezoBender-v0 task (keyword arguments as the env's)."""
+@dataclass(frozen=True, kw_only=True, eq=False)
+class TaskConfig:
+    """Settings of a PiezoBender-v0 task, each default held here once; validated on construction.
 
-    def __init__(
-        self,
-        *,
-        bender: str | BenderDatasheet = "PL140",
-        n_elements: int = DEFAULT_ELEMENTS,
-        dt: float = 1e-3,
-        hysteresis: str | Hysteresis | None = "bouc-wen",
-        creep: bool | Creep = False,
-        noise_bound: float = 1.0,
-        reference: str | np.ndarray | None = "random",
-        preview: int = 0,
-        deflection_limit: float | None = None,
-        damping_ratio: float = 0.02,
-    ) -> None:
-        if deflection_limit is not None and not deflection_limit > 0:
-            raise ValueError(f"deflection_limit must be > 0 um or None, got {deflection_limit!r}")
+    The keyword arguments of :class:`piezo_env.env.PiezoBenderEnv` and of the vector env are
+    these fields. Construction raises ValueError naming the field and its valid values.
+    Use :meth:`from_kwargs` to build one from keyword arguments with a clear error for unknown
+    names, and :func:`dataclasses.replace` to derive a variant.
+    """
+
+    bender: str | BenderDatasheet = "PL140"
+    """Catalogue name (``"PL140"``, ``"PL112"``, ``"PL122"``, ``"PL127"``, ``"PL128"``; the
+    ``".10"`` suffix is optional) or a :class:`~piezo_env.datasheet.BenderDatasheet`."""
+
+    n_elements: int = DEFAULT_ELEMENTS
+    """Hermite beam finite elements (positive integer)."""
+
+    dt: float = 1e-3
+    """Sample time (s), > 0: one env step."""
+
+    hysteresis: str | Hysteresis | None = "bouc-wen"
+    """Input hysteresis: ``"bouc-wen"``, ``"prandtl-ishlinskii"``, None (linear) or a
+    :class:`~piezo_env.hysteresis.Hysteresis`."""
+
+    creep: bool | Creep = False
+    """Linear creep: False (off), True (1.5 % per decade) or a
+    :class:`~piezo_env.discrete.Creep`."""
+
+    noise_bound: float = 1.0
+    """Sensor noise bound r (um), >= 0: the measured deflection carries nu ~ U(-r, r)."""
+
+    reference: str | np.ndarray | None = "random"
+    """What the tip tracks: a name (``"random"``, ``"steps"``, ``"sine"``, ``"triangle"``,
+    ``"multisine"``), drawn from the env's generator at each reset; a 1-D finite array (um),
+    whose last value holds past its end; or None: regulation to zero deflection, and the
+    observation is the measured deflection alone (then ``preview`` must be 0)."""
+
+    preview: int | None = None
+    """Future reference samples in the observation, integer >= 0 (None: the default, 1 with a
+    reference and 0 without). With ``preview >= 1`` the observation holds r_{t+1}, the sample the
+    reward of a_t is scored against; with 0 it does not."""
+
+    deflection_limit: float | None = None
+    """Terminate the episode when |true tip deflection| exceeds this (um), > 0; None: never."""
+
+    damping_ratio: float = 0.02
+    """First-mode damping ratio zeta_1 (-), in [1e-4, 1): the bender must be underdamped."""
+
+    def __post_init__(self) -> None:
+        get_datasheet(self.bender)
+        if (
+            isinstance(self.n_elements, bool)
+            or not isinstance(self.n_elements, (int, np.integer))
+            or self.n_elements < 1
+        ):
+            raise ValueError(f"n_elements must be a positive integer, got {self.n_elements!r}")
+        if not (isinstance(self.dt, numbers.Real) and math.isfinite(self.dt) and self.dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
+        if not (self.hysteresis is None or isinstance(self.hysteresis, (str, Hysteresis))):
+            raise ValueError(
+                "hysteresis must be 'bouc-wen', 'prandtl-ishlinskii', None or a Hysteresis, "
+                f"got {self.hysteresis!r}"
+            )
+        if isinstance(self.hysteresis, str):
+            make_hysteresis(self.hysteresis, get_datasheet(self.bender).rated_voltage)
+        if not isinstance(self.creep, (bool, Creep)):
+            raise ValueError(f"creep must be a bool or a Creep, got {self.creep!r}")
+        _check_noise_bound(self.noise_bound)
+        reference = _check_reference(self.reference)
+        object.__setattr__(self, "reference", reference)
+        preview = _check_preview(self.preview, reference)
+        object.__setattr__(self, "preview", preview)
+        limit = self.deflection_limit
+        if limit is not None and not (
+            isinstance(limit, numbers.Real) and not isinstance(limit, bool) and limit > 0
+        ):
+            raise ValueError(f"deflection_limit must be > 0 um or None, got {limit!r}")
+        check_damping_ratio(self.damping_ratio)
+
+    @classmethod
+    def from_kwargs(cls, config: TaskConfig | None = None, /, **settings: Any) -> TaskConfig:
+        """A config from keyword ``settings`` (on top of ``config`` if given).
+
+        Raises TypeError naming the valid keywords when a keyword is not a field.
+        """
+        if config is not None and not isinstance(config, TaskConfig):
+            raise TypeError(f"config must be a TaskConfig or None, got {type(config).__name__}")
+        unknown = sorted(set(settings) - set(_FIELDS))
+        if unknown:
+            raise TypeError(
+                f"unknown keyword argument(s) {', '.join(map(repr, unknown))}; "
+                f"the task settings are {', '.join(_FIELDS)} (see piezo_env.TaskConfig)"
+            )
+        if config is None:
+            return cls(**settings)
+        return dataclasses.replace(config, **settings) if settings else config
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, TaskConfig):
+            return NotImplemented
+        return all(_same(getattr(self, f), getattr(other, f)) for f in _FIELDS)
+
+    __hash__ = None  # equality compares reference arrays by value, so no hash
+
+
+_FIELDS = tuple(f.name for f in dataclasses.fields(TaskConfig))
+
+
+def _same(a: object, b: object) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and np.array_equal(a, b)
+    return a == b
+
+
+def _check_reference(reference: object) -> str | np.ndarray | None:
+    if reference is None:
+        return None
+    if isinstance(reference, str):
+        if reference not in REFERENCE_NAMES:
+            raise ValueError(
+                f"unknown reference {reference!r}; use one of {REFERENCE_NAMES}, "
+                "an array (um) or None (regulate to zero)"
+            )
+        return reference
+    return check_reference_array(reference)
+
+
+class BenderTask:
+    """The model, bound, spaces and reference streams of a validated :class:`TaskConfig`."""
+
+    def __init__(self, config: TaskConfig) -> None:
+        from piezo_env.model import PiezoBenderModel  # the model takes its defaults from here
+
+        self.config = config
         self.model = PiezoBenderModel(
-            bender,
-            n_elements=n_elements,
-            dt=dt,
-            hysteresis=hysteresis,
-            creep=creep,
-            damping_ratio=damping_ratio,
+            config.bender,
+            n_elements=config.n_elements,
+            dt=config.dt,
+            hysteresis=config.hysteresis,
+            creep=config.creep,
+            damping_ratio=config.damping_ratio,
         )
-        self.noise_bound = _check_noise_bound(noise_bound)
-        self.preview = _check_preview(preview)
-        self.deflection_limit = deflection_limit
-        self.reference = reference
+        self.noise_bound = float(config.noise_bound)
+        self.preview = config.preview
+        self.deflection_limit = config.deflection_limit
+        self.reference = config.reference
         self.bound = observation_bound(self.model, self.noise_bound)
-        if reference is not None:  # fail at construction, not at the first reset
-            self.reference_stream(reference, np.random.default_rng(0))
+        if isinstance(self.reference, np.ndarray):  # fail at construction, not at the first reset
+            self.reference_stream(self.reference, None)
 
     def observation_space(self) -> spaces.Box:
-        """[measured deflection, r_t, r_t+1 .. r_t+preview] (um), or the deflection alone."""
+        """[measured y_t, r_t, r_{t+1} .. r_{t+preview}] (um), or the deflection alone."""
         size = 1 if self.reference is None else 2 + self.preview
         return spaces.Box(-self.bound, self.bound, (size,), np.float32)
 
@@ -84,13 +206,36 @@ class BenderTask:
         return spaces.Box(-u_max, u_max, (1,), np.float32)
 
     def reference_stream(
-        self, spec: object, rng: np.random.Generator, first: np.ndarray | None = None
+        self, spec: object, rng: np.random.Generator | None, first: np.ndarray | None = None
     ) -> ReferenceStream:
         """The reference of one episode, drawn from ``rng`` (``first``: its rendered start)."""
         model = self.model
         return ReferenceStream(
             spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng, first=first
         )
+
+
+def check_max_episode_steps(max_episode_steps: object) -> int | None:
+    """Episode limit as ``gym.make`` reads it: a positive int, or None / -1 for no limit.
+
+    Returns the limit (steps) or None; raises ValueError for anything else.
+    """
+    if max_episode_steps is None or (
+        isinstance(max_episode_steps, (int, np.integer))
+        and not isinstance(max_episode_steps, bool)
+        and max_episode_steps == -1
+    ):
+        return None
+    if (
+        isinstance(max_episode_steps, bool)
+        or not isinstance(max_episode_steps, (int, np.integer))
+        or max_episode_steps < 1
+    ):
+        raise ValueError(
+            "max_episode_steps must be a positive integer (steps), or None or -1 for no time "
+            f"limit (as in gymnasium.make), got {max_episode_steps!r}"
+        )
+    return int(max_episode_steps)
 
 
 def observation_bound(model: PiezoBenderModel, noise_bound: float) -> float:
@@ -130,15 +275,25 @@ def check_reset_options(options: dict[str, Any], u_max: float) -> float:
     return voltage
 
 
-def _check_noise_bound(noise_bound: float) -> float:
+def _check_noise_bound(noise_bound: object) -> None:
     if not (
-        isinstance(noise_bound, numbers.Real) and math.isfinite(noise_bound) and noise_bound >= 0
+        isinstance(noise_bound, numbers.Real)
+        and not isinstance(noise_bound, bool)
+        and math.isfinite(noise_bound)
+        and noise_bound >= 0
     ):
         raise ValueError(f"noise_bound must be a finite number >= 0 (um), got {noise_bound!r}")
-    return float(noise_bound)
 
 
-def _check_preview(preview: int) -> int:
+def _check_preview(preview: object, reference: object) -> int:
+    if preview is None:
+        return 0 if reference is None else 1
     if isinstance(preview, bool) or not isinstance(preview, (int, np.integer)) or preview < 0:
         raise ValueError(f"preview must be an integer >= 0 (samples), got {preview!r}")
+    if reference is None and preview > 0:
+        raise ValueError(
+            f"preview={preview} needs a reference: reference=None means regulation to zero "
+            "deflection and the observation is the deflection alone; pass preview=0 (or omit "
+            "it), or pass a reference to preview"
+        )
     return int(preview)

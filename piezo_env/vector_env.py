@@ -3,8 +3,9 @@
 Each sub-environment i has its own random generator, seeded ``seed + i`` on ``reset(seed=seed)``
 (as SyncVectorEnv seeds its copies), and draws its reference and noise exactly as a single
 ``PiezoBenderEnv`` does, so sub-environment i reproduces the single env reset with seed + i
-sample for sample. Autoreset follows Gymnasium's next-step mode: the step after an episode ends
-resets that sub-environment (its action is ignored, reward 0).
+sample for sample. Autoreset follows Gymnasium's next-step mode, as ``SyncVectorEnv`` does: the
+step after an episode ends resets that sub-environment, ignores its action, and returns reward 0,
+both flags False, and the reset's observation and info (initial voltage 0 V, not saturated).
 
 Performance: the batched state update is split into blocks of at most 1024 rows so that each
 matrix product stays below OpenBLAS's multi-threading threshold (tiny threaded products stall
@@ -20,15 +21,13 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from piezo_env.datasheet import BenderDatasheet
-from piezo_env.discrete import Creep
-from piezo_env.fem import DEFAULT_ELEMENTS
-from piezo_env.hysteresis import Hysteresis
 from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
 from piezo_env.task import (
     DEFAULT_HORIZON,
     NOISE_BLOCK,
     BenderTask,
+    TaskConfig,
+    check_max_episode_steps,
     check_reset_options,
     episode_reference,
 )
@@ -49,8 +48,22 @@ _INFO_KEYS = (
 class PiezoBenderVectorEnv(VectorEnv):
     """``num_envs`` PiezoBender-v0 environments in one batched model.
 
-    Takes the keyword arguments of :class:`piezo_env.env.PiezoBenderEnv` (except rendering)
-    plus ``num_envs`` and ``max_episode_steps``.
+    Spaces, reward, timing and info keys are those of :class:`piezo_env.env.PiezoBenderEnv`,
+    batched along the first axis; every info key comes with its ``_key`` mask (all True), as
+    ``SyncVectorEnv`` gives it.
+
+    Parameters
+    ----------
+    num_envs : int
+        Number of sub-environments (>= 1).
+    max_episode_steps : int or None
+        Episode length (steps); None or -1: no time limit (as ``gymnasium.make`` reads it).
+    config : TaskConfig, optional
+        Task settings; keyword settings override its fields.
+    render_mode : None
+        The vector env does not render.
+    **settings
+        The fields of :class:`piezo_env.task.TaskConfig`.
     """
 
     metadata: ClassVar[dict[str, Any]] = {
@@ -62,18 +75,10 @@ class PiezoBenderVectorEnv(VectorEnv):
         self,
         num_envs: int = 1,
         *,
-        max_episode_steps: int = DEFAULT_HORIZON,
-        bender: str | BenderDatasheet = "PL140",
-        n_elements: int = DEFAULT_ELEMENTS,
-        dt: float = 1e-3,
-        hysteresis: str | Hysteresis | None = "bouc-wen",
-        creep: bool | Creep = False,
-        noise_bound: float = 1.0,
-        reference: str | np.ndarray | None = "random",
-        preview: int = 0,
-        deflection_limit: float | None = None,
-        damping_ratio: float = 0.02,
+        max_episode_steps: int | None = DEFAULT_HORIZON,
+        config: TaskConfig | None = None,
         render_mode: str | None = None,
+        **settings: Any,
     ) -> None:
         if (
             isinstance(num_envs, bool)
@@ -84,31 +89,23 @@ class PiezoBenderVectorEnv(VectorEnv):
         if render_mode is not None:
             raise ValueError("the vector env does not render; make single envs to render")
         self.num_envs = int(num_envs)
-        self.max_episode_steps = int(max_episode_steps)
-        self.task = BenderTask(
-            bender=bender,
-            n_elements=n_elements,
-            dt=dt,
-            hysteresis=hysteresis,
-            creep=creep,
-            noise_bound=noise_bound,
-            reference=reference,
-            preview=preview,
-            deflection_limit=deflection_limit,
-            damping_ratio=damping_ratio,
-        )
+        self.max_episode_steps = check_max_episode_steps(max_episode_steps)
+        self.config = TaskConfig.from_kwargs(config, **settings)
+        self.task = BenderTask(self.config)
         self.model = self.task.model
         self.noise_bound = self.task.noise_bound
         self.preview = self.task.preview
         self.deflection_limit = self.task.deflection_limit
         self.bound = self.task.bound
         self.render_mode = None
-        self._reference_spec = reference
+        self._reference_spec = self.config.reference
         self._u_max = self.model.rated_voltage
         self.single_observation_space = self.task.observation_space()
         self.single_action_space = self.task.action_space()
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
+        # Rows per matrix product; a test may set it small to cross the split.
+        self._row_block = _ROW_BLOCK
 
         n, k = self.num_envs, self.model.discrete.n_states
         # The output columns come out scaled: deflection in um, Gamma theta_tip in uC.
@@ -126,9 +123,9 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._q_rot = np.zeros(n)  # rotation part of the charge, Gamma theta_tip (uC)
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
         # References and noise are stored sample-major, (time, env): in lockstep one step reads
-        # one contiguous row.
-        needed = self.max_episode_steps + self.preview + 1
-        self._ref_len = -(-needed // SEGMENT) * SEGMENT
+        # one contiguous row. Without a time limit the reference buffer grows when needed.
+        horizon = DEFAULT_HORIZON if self.max_episode_steps is None else self.max_episode_steps
+        self._ref_len = _segments(horizon + self.preview + 1)
         self._ref = np.zeros((self._ref_len, n), dtype=np.float32)
         self._ref_filled = np.zeros(n, dtype=np.int64)
         self._streams: list[ReferenceStream | None] = [None] * n
@@ -137,6 +134,8 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._noise_index = np.zeros(n, dtype=np.int64)
         self._t = np.zeros(n, dtype=np.int64)
         self._prev_done = np.zeros(n, dtype=bool)
+        self._reset_u_eff = 0.0  # effective voltage (V) of the latest reset, at rest
+        self._rest: dict[float, tuple[np.ndarray, np.ndarray, float]] = {}
         # True while every sub-env is at the same step (reset together): then the reference and
         # noise are read as one column instead of a gather.
         self._lockstep = True
@@ -177,13 +176,13 @@ class PiezoBenderVectorEnv(VectorEnv):
     def step(
         self, actions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        a = np.asarray(actions, dtype=np.float64)
-        if a.shape not in ((self.num_envs, 1), (self.num_envs,)):
+        a = np.asarray(actions)
+        if a.dtype.kind not in "fiu" or a.shape not in ((self.num_envs, 1), (self.num_envs,)):
             raise ValueError(
-                f"actions must have shape ({self.num_envs}, 1) (one voltage in V per env), "
-                f"got {a.shape}"
+                f"actions must be a numeric array of shape ({self.num_envs}, 1) (one voltage in "
+                f"V per env), got {type(actions).__name__} of dtype {a.dtype} and shape {a.shape}"
             )
-        a = a.reshape(self.num_envs)
+        a = a.astype(np.float64, copy=False).reshape(self.num_envs)
         finite = np.isfinite(a)
         if not finite.all():
             raise ValueError(f"actions must be finite voltages in V, got {a[~finite][0]!r}")
@@ -193,8 +192,9 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._hyst, u_eff = self.model.hysteresis.step(self._hyst, voltage)
         k, x, out = self._k, self._x, self._out
         x[:, k] = u_eff
-        for start in range(0, self.num_envs, _ROW_BLOCK):
-            rows = slice(start, start + _ROW_BLOCK)
+        block = self._row_block
+        for start in range(0, self.num_envs, block):
+            rows = slice(start, start + block)
             np.matmul(x[rows], self._step_t, out=out[rows])
         self._y = out[:, k].copy()  # a new array each step: the info returned keeps its own
         self._q_rot = out[:, k + 1].copy()
@@ -216,11 +216,18 @@ class PiezoBenderVectorEnv(VectorEnv):
             terminated = np.abs(deflection) > self.deflection_limit
         else:
             terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = self._t >= self.max_episode_steps
-        if any_done:
+        if self.max_episode_steps is None:
+            truncated = np.zeros(self.num_envs, dtype=bool)
+        else:
+            truncated = self._t >= self.max_episode_steps
+        if any_done:  # the reset's outcome, as SyncVectorEnv returns it
             reward[done] = 0.0
             terminated[done] = False
             truncated[done] = False
+            voltage[done] = 0.0
+            u_eff = np.array(u_eff, dtype=float)
+            u_eff[done] = self._reset_u_eff
+            saturated[done] = False
         self._prev_done = terminated | truncated
         measured = deflection + self._take_noise()
         info = self._info(deflection, reference, voltage, u_eff, saturated)
@@ -230,7 +237,7 @@ class PiezoBenderVectorEnv(VectorEnv):
 
     def _reset_rows(self, rows: np.ndarray, options: dict[str, Any]) -> None:
         voltage = check_reset_options(options, self._u_max)
-        state, hyst = self.model.static_state(voltage)
+        state, hyst, self._reset_u_eff = self._rest_state(voltage)
         self._x[rows, : self._k] = state
         self._x[rows, self._k :] = 0.0
         self._hyst[rows] = hyst
@@ -272,6 +279,14 @@ class PiezoBenderVectorEnv(VectorEnv):
             self._write_columns(self._noise, rows, np.array(noise), NOISE_BLOCK)
         self._noise_index[rows] = 0
 
+    def _rest_state(self, voltage: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """(LTI state, hysteresis state, u_eff V) at rest under ``voltage``, solved once each."""
+        if voltage not in self._rest:
+            state, hyst = self.model.static_state(voltage)
+            u_eff = float(self.model.hysteresis.step(hyst, voltage)[1])
+            self._rest[voltage] = (state, hyst, u_eff)
+        return self._rest[voltage]
+
     def _write_columns(self, target: np.ndarray, rows: np.ndarray, values: np.ndarray, n: int):
         """target[:n, rows] = values.T, as one slice assignment when every env resets."""
         if len(rows) == self.num_envs:
@@ -284,12 +299,21 @@ class PiezoBenderVectorEnv(VectorEnv):
         if self._lockstep and int(self._t[0]) + self.preview < self._ref_filled_min:
             return
         need = self._t + (self.preview + 1)
+        longest = int(need.max())
+        if longest > self._ref_len:  # only without a time limit
+            self._grow_references(longest)
         for i in np.flatnonzero(need > self._ref_filled):
             values = self._streams[i].ensure(int(need[i]))
             end = min(len(values), self._ref_len)
             self._ref[self._ref_filled[i] : end, i] = values[self._ref_filled[i] : end]
             self._ref_filled[i] = end
         self._ref_filled_min = int(self._ref_filled.min())
+
+    def _grow_references(self, n: int) -> None:
+        """Make the reference buffer hold at least ``n`` samples per env (doubling)."""
+        grown = np.zeros((_segments(max(n, 2 * self._ref_len)), self.num_envs), np.float32)
+        grown[: self._ref_len] = self._ref
+        self._ref, self._ref_len = grown, len(grown)
 
     def _take_noise(self) -> np.ndarray:
         if self.noise_bound == 0:
@@ -349,5 +373,10 @@ class PiezoBenderVectorEnv(VectorEnv):
             if key == "reference_um" and self._reference_spec is None:
                 continue
             info[key] = value
-            info["_" + key] = self._all_true
+            info["_" + key] = self._all_true.copy()
         return info
+
+
+def _segments(n: int) -> int:
+    """``n`` samples rounded up to whole reference segments."""
+    return -(-n // SEGMENT) * SEGMENT

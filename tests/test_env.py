@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pickle
 import subprocess
 import sys
@@ -13,6 +14,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import piezo_env  # noqa: F401  (registers the ids)
+from piezo_env import TaskConfig
 from piezo_env.env import PiezoBenderEnv
 
 ENV_ID = "piezo_env:PiezoBender-v0"
@@ -34,6 +36,18 @@ def test_make_works_in_a_fresh_interpreter():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["2000", "float32"]
+
+
+def test_make_vec_with_the_module_prefix_works_in_a_fresh_interpreter():
+    code = (
+        "import gymnasium as gym; "
+        "vec = gym.make_vec('piezo_env:PiezoBender-v0', num_envs=4, "
+        "vectorization_mode='vector_entry_point'); "
+        "obs, _ = vec.reset(seed=0); vec.step(vec.action_space.sample()); "
+        "print(type(vec.unwrapped).__name__, *obs.shape, vec.unwrapped.max_episode_steps)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["PiezoBenderVectorEnv", "4", "3", "2000"]
 
 
 def _checker_warnings(check, env) -> list[str]:
@@ -68,14 +82,17 @@ def test_stable_baselines3_checker_passes_without_warnings():
     env = gym.make(ENV_ID, preview=3)
     remarks = _checker_warnings(lambda e: sb3_checker.check_env(e, warn=True), env)
     assert all(_RESCALE_HINT in r for r in remarks), remarks
-    rescaled = gym.wrappers.RescaleAction(gym.make(ENV_ID, preview=3), -1.0, 1.0)
+    unit = np.ones(1, dtype=np.float32)  # float32 bounds, as the action space's own
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the wrapper itself must not warn either
+        rescaled = gym.wrappers.RescaleAction(gym.make(ENV_ID, preview=3), -unit, unit)
     assert _checker_warnings(lambda e: sb3_checker.check_env(e, warn=True), rescaled) == []
 
 
 def test_step_types_and_spaces():
     env = gym.make(ENV_ID)
     obs, info = env.reset(seed=3)
-    assert obs.dtype == np.float32 and obs.shape == (2,)
+    assert obs.dtype == np.float32 and obs.shape == (3,)  # y_t, r_t, r_{t+1}
     assert env.action_space.low[0] == -30.0 and env.action_space.high[0] == 30.0
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
     assert type(reward) is float and type(terminated) is bool and type(truncated) is bool
@@ -110,51 +127,6 @@ def test_pickle_round_trip_continues_identically():
         assert np.array_equal(env.step(a)[0], clone.step(a)[0])
 
 
-@pytest.mark.parametrize(
-    "kwargs",
-    [
-        {"preview": 2},
-        {"max_episode_steps": 7, "reference": "sine", "hysteresis": "prandtl-ishlinskii"},
-        {"max_episode_steps": 40, "deflection_limit": 600.0, "preview": 3},
-    ],
-)
-def test_vector_env_equals_single_envs_across_autoresets(kwargs):
-    """Sub-env i of the vector env is the single env seeded seed + i, autoresets included."""
-    n, seed, steps = 3, 11, 300
-    horizon = kwargs.pop("max_episode_steps", 2000)
-    vec = gym.make_vec(
-        "PiezoBender-v0",
-        num_envs=n,
-        vectorization_mode="vector_entry_point",
-        max_episode_steps=horizon,
-        **kwargs,
-    )
-    singles = [gym.make(ENV_ID, max_episode_steps=horizon, **kwargs) for _ in range(n)]
-    actions = np.random.default_rng(1).uniform(-35, 35, (steps, n, 1)).astype(np.float32)
-    obs_v, _ = vec.reset(seed=seed)
-    obs_s = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
-    np.testing.assert_array_equal(obs_v, np.stack(obs_s))
-    done = [False] * n
-    resets = 0
-    for a in actions:
-        obs_v, rew_v, term_v, trunc_v, info_v = vec.step(a)
-        for i, env in enumerate(singles):
-            if done[i]:  # next-step autoreset
-                obs, _ = env.reset()
-                rew, term, trunc = 0.0, False, False
-                resets += 1
-            else:
-                obs, rew, term, trunc, info = env.step(a[i])
-                assert info_v["deflection_um"][i] == pytest.approx(info["deflection_um"], abs=1e-9)
-                assert info_v["saturated"][i] == info["saturated"]
-            np.testing.assert_array_equal(obs_v[i], obs)
-            assert rew_v[i] == pytest.approx(rew, rel=1e-12, abs=1e-15)
-            assert (term_v[i], trunc_v[i]) == (term, trunc)
-            done[i] = term or trunc
-    if horizon < steps:
-        assert resets >= n
-
-
 def test_named_reference_continues_past_its_first_segment():
     env = gym.make(ENV_ID, max_episode_steps=5000, reference="sine", noise_bound=0.0)
     env.reset(seed=2)
@@ -162,26 +134,12 @@ def test_named_reference_continues_past_its_first_segment():
     assert np.std(refs[:2000]) > 1.0 and np.std(refs[2100:]) > 1.0
 
 
-def test_vector_env_autoresets_next_step():
-    vec = gym.make_vec(
-        "PiezoBender-v0", num_envs=2, vectorization_mode="vector_entry_point", max_episode_steps=5
-    )
-    vec.reset(seed=0)
-    for _ in range(4):
-        _, _, _, truncated, _ = vec.step(np.full((2, 1), 10.0, np.float32))
-        assert not truncated.any()
-    _, _, _, truncated, _ = vec.step(np.full((2, 1), 10.0, np.float32))
-    assert truncated.all()
-    _, reward, _, truncated, info = vec.step(np.full((2, 1), 10.0, np.float32))
-    assert not truncated.any() and np.all(reward == 0.0)
-    assert np.all(info["deflection_um"] == 0.0)
-
-
 def test_observations_stay_inside_bounds_under_bang_bang_at_resonance():
     env = gym.make(ENV_ID, max_episode_steps=6000)
     env.reset(seed=0)
     f1 = env.unwrapped.model.beam.frequencies[0]
-    env.observation_space.high[0]
+    proven = env.unwrapped.model.deflection_bound_um()
+    assert proven + env.unwrapped.noise_bound <= env.observation_space.high[0]
     peak = 0.0
     for k in range(6000):
         v = 30.0 if np.sin(2 * np.pi * f1 * k * 1e-3) >= 0 else -30.0
@@ -189,6 +147,7 @@ def test_observations_stay_inside_bounds_under_bang_bang_at_resonance():
         assert env.observation_space.contains(obs)
         peak = max(peak, abs(info["deflection_um"]))
     assert peak > 10 * env.unwrapped.model.stroke_um  # resonance really was excited
+    assert peak <= proven
 
 
 def test_long_random_run_stays_finite_and_bounded():
@@ -228,7 +187,7 @@ def test_wrong_action_shape_raises():
 
 
 def test_bad_construction_raises():
-    with pytest.raises(TypeError, match="voltage_gain"):
+    with pytest.raises(TypeError, match=r"voltage_gain.*damping_ratio"):  # names the valid ones
         gym.make(ENV_ID, voltage_gain=2.0)
     with pytest.raises(ValueError, match="unknown bender"):
         gym.make(ENV_ID, bender="PL999")
@@ -237,7 +196,92 @@ def test_bad_construction_raises():
     with pytest.raises(ValueError, match="reference"):
         gym.make(ENV_ID, reference="sawtooth")
     with pytest.raises(ValueError, match="render_mode"):
-        gym.make(ENV_ID, render_mode="ascii")
+        PiezoBenderEnv(render_mode="ascii")  # gym.make would warn before the env raises
+
+
+@pytest.mark.parametrize("ratio", [2, 1.0, 0.0, -0.1, 1e-5, float("nan"), "0.02"])
+def test_damping_ratio_outside_its_range_says_the_range(ratio):
+    with pytest.raises(ValueError, match=r"damping_ratio must be .* in \[1e-4, 1\)") as caught:
+        PiezoBenderEnv(damping_ratio=ratio)
+    assert "undamped" not in str(caught.value)
+
+
+def test_reference_array_with_a_nan_reports_index_and_value():
+    ref = np.linspace(0.0, 100.0, 10)
+    ref[7] = np.nan
+    with pytest.raises(ValueError, match=r"finite.*nan at index 7"):
+        PiezoBenderEnv(reference=ref)
+    env = PiezoBenderEnv()
+    ref[7], ref[3] = 1.0, np.inf
+    with pytest.raises(ValueError, match="inf at index 3"):
+        env.reset(seed=0, options={"reference": ref})
+
+
+def test_reference_none_is_regulation_and_rejects_a_preview():
+    env = PiezoBenderEnv(reference=None, noise_bound=0.0)
+    assert env.preview == 0 and env.observation_space.shape == (1,)
+    env.reset(seed=0)
+    obs, reward, *_, info = env.step(np.array([10.0], dtype=np.float32))
+    assert obs.shape == (1,) and "reference_um" not in info
+    assert reward == pytest.approx(-((info["deflection_um"] / env.model.stroke_um) ** 2))
+    with pytest.raises(ValueError, match="preview=2 needs a reference"):
+        PiezoBenderEnv(reference=None, preview=2)
+    assert PiezoBenderEnv(reference=None, preview=0).observation_space.shape == (1,)
+
+
+def test_task_config_holds_the_defaults_and_builds_the_env():
+    config = TaskConfig()
+    assert (config.bender, config.preview, config.noise_bound) == ("PL140", 1, 1.0)
+    assert TaskConfig(reference=None).preview == 0
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        config.preview = 3
+    assert PiezoBenderEnv().config == config
+    env = gym.make(ENV_ID, config=TaskConfig(bender="PL112", preview=4), noise_bound=0.5)
+    assert env.unwrapped.config == TaskConfig(bender="PL112", preview=4, noise_bound=0.5)
+    assert env.observation_space.shape == (6,)
+    ref = np.arange(5.0)
+    assert TaskConfig(reference=ref) == TaskConfig(reference=ref.copy())
+    assert TaskConfig(reference=ref) != TaskConfig(reference=ref + 1)
+    with pytest.raises(TypeError, match=r"unknown keyword argument.*'steps'"):
+        TaskConfig.from_kwargs(steps=3)
+    with pytest.raises(ValueError, match="deflection_limit"):
+        TaskConfig(deflection_limit=0.0)
+
+
+@pytest.mark.parametrize(
+    ("action", "message"),
+    [
+        (None, "None, which is not a voltage"),
+        ("5", "numeric array of shape \\(1,\\)"),
+        (np.array(["5"]), "numeric array of shape \\(1,\\)"),
+        (np.array([True]), "numeric array"),
+        (np.array([[1.0]]), "shape \\(1,\\)"),
+    ],
+)
+def test_action_that_is_not_a_voltage_is_rejected(action, message):
+    env = PiezoBenderEnv()
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=message):
+        env.step(action)
+
+
+@pytest.mark.parametrize(
+    "action",
+    [
+        np.array([5.0], dtype=np.float32),
+        np.array([5.0]),
+        np.float32(5.0),
+        np.float64(5.0),
+        np.array([5], dtype=np.int16),
+        5,
+        5.0,
+    ],
+)
+def test_numeric_actions_are_accepted(action):
+    env = PiezoBenderEnv()
+    env.reset(seed=0)
+    *_, info = env.step(action)
+    assert info["voltage_V"] == 5.0 and not info["saturated"]
 
 
 def test_reference_array_and_initial_voltage_options():
@@ -255,6 +299,35 @@ def test_reference_array_and_initial_voltage_options():
         env.reset(options={"reference_um": ref})
     with pytest.raises(ValueError, match="beyond"):
         env.reset(options={"reference": np.full(5, 1e9)})
+
+
+@pytest.mark.parametrize(("preview", "hysteresis"), [(None, None), (3, "bouc-wen")])
+def test_timing_reward_observation_and_info_against_an_independent_computation(preview, hysteresis):
+    """The reward of a_t is scored against r_{t+1}, which the default observation shows.
+
+    The reference changes every sample (r_t = 5 t um), so scoring against r_t, or showing the
+    wrong window, fails. The deflection comes from the model's own open-loop simulation.
+    """
+    steps = 150
+    ref = 5.0 * np.arange(steps + 10)
+    env = gym.make(ENV_ID, reference=ref, noise_bound=0.0, preview=preview, hysteresis=hysteresis)
+    p = env.unwrapped.preview
+    assert p == (1 if preview is None else preview)
+    voltage = np.random.default_rng(4).uniform(-30, 30, steps).astype(np.float32)
+    model = env.unwrapped.model
+    y = model.simulate(voltage.astype(np.float64)).deflection_um  # y[t] = y_{t+1}: after u[t]
+    obs, info = env.reset(seed=0)
+    np.testing.assert_array_equal(obs[1:], ref[: p + 1].astype(np.float32))
+    assert info["reference_um"] == ref[0] and info["deflection_um"] == 0.0
+    for t in range(steps):
+        obs, reward, _, _, info = env.step(voltage[t : t + 1])
+        assert info["deflection_um"] == pytest.approx(y[t], rel=1e-9, abs=1e-9)
+        assert info["reference_um"] == ref[t + 1]
+        assert reward == pytest.approx(-(((y[t] - ref[t + 1]) / model.stroke_um) ** 2), rel=1e-9)
+        assert obs[0] == pytest.approx(y[t], rel=1e-6, abs=1e-3)
+        np.testing.assert_array_equal(obs[1:], ref[t + 1 : t + p + 2].astype(np.float32))
+        if p >= 1:  # index 2 holds the sample the next reward is scored against
+            assert obs[2] == ref[t + 2]
 
 
 def test_reward_is_normalised_squared_tracking_error():
