@@ -31,6 +31,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from piezo_env.operators import (
+    bouc_wen_casadi,
+    bouc_wen_jump_batch,
+    normalized_bouc_wen,
+    play,
+    play_casadi,
+    play_sequence,
+)
+
 __all__ = [
     "FEATURE_SETS",
     "BoucWenFeatures",
@@ -151,14 +160,7 @@ def play_operators(
             raise ValueError(
                 f"play state must be {r.size} finite values (one per radius); got {state!r}"
             )
-    upper = u_arr[:, None] + r
-    lower = u_arr[:, None] - r
-    out = np.empty((u_arr.size, r.size))
-    for t in range(u_arr.size):
-        np.minimum(upper[t], p, out=p)
-        np.maximum(lower[t], p, out=p)
-        out[t] = p
-    return out, p.copy()
+    return play_sequence(u_arr, r, p)
 
 
 def _check_state(state: ArrayLike | None, feature_map: Any, message: str) -> np.ndarray:
@@ -230,19 +232,16 @@ class PlayFeatures:
 
     def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
-        plays, final = play_operators(u, self._r, state)
+        plays, final = play_sequence(u, self._r, state)
         return np.column_stack([u, plays]), final
 
     def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Features of each candidate input ``u`` (N,) applied one step from the same state."""
-        r = self._r
-        plays = np.maximum(u[:, None] - r, np.minimum(u[:, None] + r, state))
-        return np.column_stack([u, plays])
+        return np.column_stack([u, play(state, u[:, None], self._r)])
 
     def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
-        r = self._r
-        new = np.maximum(u - r, np.minimum(u + r, state))
+        new = play(state, u, self._r)
         f = np.empty(self.n_features)
         f[0] = u
         f[1:] = new
@@ -252,9 +251,7 @@ class PlayFeatures:
         """Casadi expressions of the features and next state (max/min form)."""
         import casadi
 
-        new = casadi.vertcat(
-            *[casadi.fmax(u - r, casadi.fmin(u + r, state[i])) for i, r in enumerate(self.radii)]
-        )
+        new = play_casadi(state, u, self.radii)
         return casadi.vertcat(u, new), new
 
     def to_dict(self) -> dict[str, Any]:
@@ -347,13 +344,10 @@ def bouc_wen_update(h: np.ndarray, du: np.ndarray, levels: np.ndarray) -> np.nda
     signs, ``h`` follows the input linearly (``dh = du``); once they share a sign it relaxes
     exponentially towards ``sign(du) level``. Integrated in ``u`` rather than in time, so it is
     exact for any step size and rate-independent. Broadcasts over ``h``, ``du`` and ``levels``.
+    The operator is :func:`piezo_env.operators.bouc_wen_jump_batch` with
+    :func:`piezo_env.operators.normalized_bouc_wen` parameters.
     """
-    sign = np.sign(du)
-    size = np.abs(du)
-    linear = np.minimum(size, np.maximum(-sign * h, 0.0))
-    rest = size - linear
-    target = sign * levels
-    return target + (h + sign * linear - target) * np.exp(-rest / levels)
+    return bouc_wen_jump_batch(h, du, *normalized_bouc_wen(levels))
 
 
 @dataclass(frozen=True)
@@ -384,6 +378,7 @@ class BoucWenFeatures:
         object.__setattr__(self, "levels", tuple(float(x) for x in lv))
         object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
         object.__setattr__(self, "_lv", lv)
+        object.__setattr__(self, "_operator", normalized_bouc_wen(lv))
 
     @property
     def n_features(self) -> int:
@@ -415,9 +410,9 @@ class BoucWenFeatures:
         out[:, 0] = u
         du = np.diff(u, prepend=state[0])
         h = state[1:]
-        lv = self._lv
+        operator = self._operator
         for t in range(u.size):
-            h = bouc_wen_update(h, du[t], lv)
+            h = bouc_wen_jump_batch(h, du[t], *operator)
             out[t, 1:] = h
         final = np.empty(self.n_state)
         final[0] = u[-1] if u.size else state[0]
@@ -426,14 +421,14 @@ class BoucWenFeatures:
 
     def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Features of each candidate input ``u`` (N,) applied one step from the same state."""
-        h = bouc_wen_update(state[1:], (u - state[0])[:, None], self._lv)
+        h = bouc_wen_jump_batch(state[1:], (u - state[0])[:, None], *self._operator)
         return np.column_stack([u, h])
 
     def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
         f = np.empty(self.n_features)
         f[0] = u
-        f[1:] = bouc_wen_update(state[1:], u - state[0], self._lv)
+        f[1:] = bouc_wen_jump_batch(state[1:], u - state[0], *self._operator)
         return f, f.copy()
 
     def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
@@ -441,13 +436,8 @@ class BoucWenFeatures:
         import casadi
 
         du = u - state[0]
-        sign, size = casadi.sign(du), casadi.fabs(du)
-        new = []
-        for i, level in enumerate(self.levels):
-            h = state[1 + i]
-            linear = casadi.fmin(size, casadi.fmax(-sign * h, 0.0))
-            target = sign * level
-            new.append(target + (h + sign * linear - target) * casadi.exp(-(size - linear) / level))
+        ak, b, _ = self._operator
+        new = [bouc_wen_casadi(state[1 + i], du, ak, bi, bi) for i, bi in enumerate(b)]
         features = casadi.vertcat(u, *new)
         return features, features
 

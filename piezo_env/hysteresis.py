@@ -2,17 +2,12 @@
 
 The hysteresis sits at the input of the linear beam. Being rate-independent, its output only
 changes when the input changes, so under a zero-order-hold drive it is updated once per step,
-exactly, from the voltage jump u_prev -> u.
+exactly, from the voltage jump u_prev -> u. The operators themselves (closed-form Bouc-Wen jump,
+play) live in :mod:`piezo_env.operators`, shared with the identified model's features.
 
 Bouc-Wen (default), exponent n = 1::
 
     u_eff = k u - h,   dh = alpha k du - beta |du| h - gamma du |h|
-
-Along a monotone jump of size d = |du| with s = sign(du) and g = s h, this is the linear ODE
-dg/dd = alpha k - (beta + gamma) g while g >= 0 and dg/dd = alpha k - (beta - gamma) g while
-g < 0, so the jump is integrated in closed form (piecewise exponential, switching once at
-g = 0): exact and cheaper than Runge-Kutta sub-steps. h stays inside
-[-h_max, h_max], h_max = alpha k / (beta + gamma).
 
 Prandtl-Ishlinskii: u_eff = w_0 u + sum_i w_i P_{r_i}[u], play operators
 P_r: p <- max(u - r, min(u + r, p)).
@@ -20,16 +15,55 @@ P_r: p <- max(u - r, min(u + r, p)).
 Both default calibrations give a loop ~12 % of the peak-to-peak output wide at full stroke
 (+-U_r) while the effective voltage still reaches +-U_r at the ends of the major loop, so the
 full-stroke deflection matches the datasheet.
+
+Prediction-model interface (what a controller needs, the same for every model here and for the
+identified NLS): ``step(state, u) -> (state, u_eff)``, ``inverse(u_eff_target, state, u_range)
+-> InverseResult(u, z, status, state)`` and ``casadi_step(u, state) -> (u_eff, next_state)``.
+Every accepted parameter set makes u -> u_eff strictly increasing from every state reachable
+from rest, so the inverse is unique (see each class for the proof).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-__all__ = ["BoucWen", "Hysteresis", "NoHysteresis", "PrandtlIshlinskii", "make_hysteresis"]
+from piezo_env.inverse import InverseResult, solve_increasing
+from piezo_env.operators import (
+    bouc_wen_bound,
+    bouc_wen_casadi,
+    bouc_wen_jump,
+    bouc_wen_jump_batch,
+    check_bouc_wen,
+    play,
+    play_casadi,
+)
+
+__all__ = [
+    "BoucWen",
+    "Hysteresis",
+    "InverseResult",
+    "NoHysteresis",
+    "PrandtlIshlinskii",
+    "make_hysteresis",
+]
+
+_INVERSE_GRID = 9
+"""Grid points of the bracketing pass of :meth:`Hysteresis.inverse` (the map is monotone)."""
+
+
+def _check_range(u_range: Sequence[float]) -> tuple[float, float]:
+    try:
+        low, high = (float(v) for v in u_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"u_range must be a pair (low, high) in V; got {u_range!r}") from None
+    if not (math.isfinite(low) and math.isfinite(high) and low < high):
+        raise ValueError(f"u_range must be finite with low < high (V); got {u_range!r}")
+    return low, high
 
 
 class Hysteresis:
@@ -57,6 +91,43 @@ class Hysteresis:
         """A proven bound on |u_eff| (V) for |u| <= u_max from any state reached from rest."""
         raise NotImplementedError
 
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """casadi expressions ``(u_eff, next_state)`` of one step (u in V, state as in step)."""
+        raise NotImplementedError
+
+    def inverse(
+        self, u_eff_target: float, state: np.ndarray, u_range: Sequence[float]
+    ) -> InverseResult:
+        """Voltage whose step from ``state`` gives ``u_eff_target`` (V), inside ``u_range`` (V).
+
+        Exact (Newton to 1e-9 V on the closed-form step): u -> u_eff is strictly increasing.
+        A target outside the reachable range [u_eff(low), u_eff(high)] gives the nearer range
+        end and status ``"out-of-range"``.
+
+        Returns
+        -------
+        InverseResult
+            ``(u, u_eff achieved, status, state after u)``; unpacks as a 4-tuple.
+        """
+        low, high = _check_range(u_range)
+        s = np.asarray(state, dtype=np.float64)
+        if s.shape != (self.state_size,) or not np.isfinite(s).all():
+            raise ValueError(f"state must be {self.state_size} finite values; got {state!r}")
+        target = float(u_eff_target)
+        if not math.isfinite(target):
+            raise ValueError(f"u_eff_target must be a finite voltage; got {u_eff_target!r}")
+
+        def evaluate(rows: np.ndarray) -> np.ndarray:
+            return self.step(np.broadcast_to(s, (rows.size, s.size)), rows)[1]
+
+        grid = np.linspace(low, high, _INVERSE_GRID)
+        u_prev = float(s[0])
+        sol = solve_increasing(evaluate, target, grid, u_prev, u_ref=u_prev)
+        new_state, u_eff = self.step(s, sol.u)
+        return InverseResult(sol.u, float(u_eff), sol.status, new_state)
+
+    solve_inverse = inverse
+
 
 @dataclass(frozen=True)
 class NoHysteresis(Hysteresis):
@@ -72,10 +143,37 @@ class NoHysteresis(Hysteresis):
     def max_effective_voltage(self, u_max: float) -> float:
         return u_max
 
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        import casadi
+
+        return u, casadi.vertcat(u)
+
+    def inverse(self, u_eff_target, state, u_range):
+        low, high = _check_range(u_range)
+        target = float(u_eff_target)
+        if not math.isfinite(target):
+            raise ValueError(f"u_eff_target must be a finite voltage; got {u_eff_target!r}")
+        u = min(max(target, low), high)
+        status = "ok" if u == target else "out-of-range"
+        return InverseResult(u, u, status, np.array([u]))
+
+    solve_inverse = inverse
+
 
 @dataclass(frozen=True)
 class BoucWen(Hysteresis):
     """Bouc-Wen hysteresis (exponent 1), integrated exactly over each voltage jump.
+
+    Accepted parameters (each violation raises a ValueError that names it):
+
+    - k > 0, alpha > 0;
+    - beta + gamma > 0 and beta >= gamma: the loop is bounded for every bounded input and every
+      initial state (Ikhouane & Rodellar's condition, see :mod:`piezo_env.operators`), with
+      |h| <= h_max = alpha k / (beta + gamma) from rest, so
+      |u_eff| <= k u_max + h_max (:meth:`max_effective_voltage`) is a proven bound;
+    - 2 alpha beta / (beta + gamma) < 1: u -> u_eff is strictly increasing. Its slope is
+      k - dh/du with dh/du = alpha k - beta sign(du) h - gamma |h|, largest just after a
+      reversal at |h| = h_max, where it is 2 alpha k beta / (beta + gamma).
 
     Parameters
     ----------
@@ -84,7 +182,7 @@ class BoucWen(Hysteresis):
     alpha : float
         Hysteretic share (-); h_max = alpha k / (beta + gamma).
     beta, gamma : float
-        Loop shape parameters (1/V); beta + gamma > 0 keeps h bounded.
+        Loop shape parameters (1/V).
     """
 
     k: float = 1.245
@@ -95,11 +193,19 @@ class BoucWen(Hysteresis):
     state_size: int = field(default=2, init=False)
 
     def __post_init__(self) -> None:
-        if not (self.k > 0 and self.alpha > 0 and self.beta + self.gamma > 0):
+        if not (self.k > 0 and self.alpha > 0):
             raise ValueError(
-                f"Bouc-Wen needs k > 0, alpha > 0 and beta + gamma > 0 (bounded loop), got "
-                f"k={self.k}, alpha={self.alpha}, beta={self.beta}, gamma={self.gamma}"
+                f"Bouc-Wen needs k > 0 and alpha > 0, got k={self.k}, alpha={self.alpha}"
             )
+        check_bouc_wen(self.alpha * self.k, self.beta, self.gamma)
+        peak_slope = 2.0 * self.alpha * self.beta / (self.beta + self.gamma)
+        if not peak_slope < 1.0:
+            raise ValueError(
+                f"Bouc-Wen with 2 alpha beta / (beta + gamma) = {peak_slope:.4g} >= 1 makes "
+                "u_eff fall while u rises after a reversal; lower alpha or bring beta closer "
+                "to gamma"
+            )
+        object.__setattr__(self, "_ak", self.alpha * self.k)
 
     @classmethod
     def for_voltage(cls, rated_voltage: float) -> BoucWen:
@@ -110,111 +216,58 @@ class BoucWen(Hysteresis):
     @property
     def h_max(self) -> float:
         """Upper bound of |h| (V)."""
-        return self.alpha * self.k / (self.beta + self.gamma)
+        return bouc_wen_bound(self.alpha * self.k, self.beta, self.gamma)
 
     def max_effective_voltage(self, u_max: float) -> float:
         return self.k * u_max + self.h_max
 
     def step(self, state, u):
         if state.ndim == 1:
-            h = _bouc_wen_jump(
-                float(state[1]),
-                float(u) - float(state[0]),
-                self.alpha * self.k,
-                self.beta,
-                self.gamma,
+            h = bouc_wen_jump(
+                float(state[1]), float(u) - float(state[0]), self._ak, self.beta, self.gamma
             )
             return np.array([u, h]), self.k * u - h
-        return self._step_batch(state, np.asarray(u, dtype=float))
+        u = np.asarray(u, dtype=float)
+        h = bouc_wen_jump_batch(state[:, 1], u - state[:, 0], self._ak, self.beta, self.gamma)
+        new_state = np.empty_like(state)
+        new_state[:, 0] = u
+        new_state[:, 1] = h
+        u_eff = self.k * u
+        u_eff -= h
+        return new_state, u_eff
 
     def step_scalar(self, u_prev: float, h: float, u: float) -> tuple[float, float]:
         """Scalar fast path: returns (h_new, u_eff) for the jump u_prev -> u (V)."""
-        h = _bouc_wen_jump(h, u - u_prev, self.alpha * self.k, self.beta, self.gamma)
+        h = bouc_wen_jump(h, u - u_prev, self._ak, self.beta, self.gamma)
         return h, self.k * u - h
 
-    def _step_batch(self, state: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Batched closed-form jump; the same algebra as :func:`_bouc_wen_jump`.
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        import casadi
 
-        In g = sign(du) h: a negative g first climbs linearly (beta = gamma) or exponentially
-        towards 0 over the distance d0, then the rest of the jump relaxes g towards g_inf.
-        """
-        ak, rate, lam = self.alpha * self.k, self.beta + self.gamma, self.beta - self.gamma
-        g_inf = ak / rate
-        du = u - state[:, 0]
-        s = np.copysign(1.0, du)
-        d = np.abs(du, out=du)
-        g = state[:, 1] * s
-        if abs(lam) < 1e-12:
-            # climb = min(d, d0) with d0 = max(-g, 0) / ak; g1 = g + ak climb is <= 0.
-            climb = np.maximum(g, 0.0)
-            climb -= g
-            climb *= 1.0 / ak
-            np.minimum(climb, d, out=climb)
-            d -= climb  # the rest of the jump, >= 0
-            climb *= ak
-            g += climb
-        else:
-            negative = g < 0.0
-            arg = 1.0 - lam * g / ak
-            with np.errstate(divide="ignore", invalid="ignore"):
-                d0 = np.where(negative, np.where(arg > 0.0, np.log(arg) / lam, np.inf), 0.0)
-            climb = np.minimum(d, d0)
-            g = np.where(negative, ak / lam + (g - ak / lam) * np.exp(-lam * climb), g)
-            g[negative & (d > d0)] = 0.0
-            d -= climb
-        # Relax towards g_inf over the rest of the jump: g_inf + (g1 - g_inf) exp(-rate rest).
-        d *= -rate
-        np.exp(d, out=d)
-        g -= g_inf
-        g *= d
-        g += g_inf
-        g *= s  # h_new
-        new_state = np.empty_like(state)
-        new_state[:, 0] = u
-        new_state[:, 1] = g
-        u_eff = self.k * u
-        u_eff -= g
-        return new_state, u_eff
-
-
-def _bouc_wen_jump(h: float, du: float, ak: float, beta: float, gamma: float) -> float:
-    """Closed-form Bouc-Wen (n = 1) state after an input jump du (V) from state h (V)."""
-    if du == 0.0:
-        return h
-    s = 1.0 if du > 0.0 else -1.0
-    d = abs(du)
-    g = s * h
-    rate = beta + gamma
-    if g >= 0.0:
-        g_inf = ak / rate
-        return s * (g_inf + (g - g_inf) * math.exp(-rate * d))
-    lam = beta - gamma
-    if abs(lam) < 1e-12:
-        d0 = -g / ak
-        if d <= d0:
-            return s * (g + ak * d)
-    else:
-        arg = 1.0 - lam * g / ak
-        if arg <= 0.0:  # g never reaches 0 on this branch
-            return s * (ak / lam + (g - ak / lam) * math.exp(-lam * d))
-        d0 = math.log(arg) / lam
-        if d <= d0:
-            return s * (ak / lam + (g - ak / lam) * math.exp(-lam * d))
-    return s * (ak / rate) * -math.expm1(-rate * (d - d0))
+        h = bouc_wen_casadi(state[1], u - state[0], self._ak, self.beta, self.gamma)
+        return self.k * u - h, casadi.vertcat(u, h)
 
 
 @dataclass(frozen=True)
 class PrandtlIshlinskii(Hysteresis):
     """Prandtl-Ishlinskii hysteresis: a linear term plus weighted play operators.
 
+    Accepted parameters: linear weight w_0 > 0, play weights w_i >= 0, radii r_i >= 0, all
+    finite. Then u -> u_eff is strictly increasing (each play output is a non-decreasing
+    function of u, so the slope is at least w_0), and from rest with |u| <= u_max each play
+    output stays in [-(u_max - r_i)+, (u_max - r_i)+] (a play clips its output to
+    [u - r, u + r], which keeps it there), so :meth:`max_effective_voltage`
+    w_0 u_max + sum w_i (u_max - r_i)+ is a proven (and attained) bound. A negative weight can
+    make u_eff fall while u rises, and w_0 <= 0 leaves flat stretches with no unique inverse.
+
     Parameters
     ----------
     linear_weight : float
-        w_0 (-).
+        w_0 (-), positive.
     radii : tuple of float
         Play radii r_i (V), non-negative.
     weights : tuple of float
-        Play weights w_i (-).
+        Play weights w_i (-), non-negative.
     """
 
     linear_weight: float = 0.72
@@ -225,10 +278,24 @@ class PrandtlIshlinskii(Hysteresis):
     def __post_init__(self) -> None:
         if len(self.radii) != len(self.weights) or not self.radii:
             raise ValueError("radii and weights must be non-empty and of equal length")
+        r = np.asarray(self.radii, dtype=float)
+        w = np.asarray(self.weights, dtype=float)
+        if not (np.isfinite(r).all() and np.isfinite(w).all()):
+            raise ValueError(f"radii and weights must be finite, got {self.radii}, {self.weights}")
         if min(self.radii) < 0:
             raise ValueError(f"play radii must be >= 0 V, got {self.radii}")
-        object.__setattr__(self, "_r", np.asarray(self.radii, dtype=float))
-        object.__setattr__(self, "_w", np.asarray(self.weights, dtype=float))
+        if min(self.weights) < 0:
+            raise ValueError(
+                f"play weights must be >= 0 (a negative weight makes u_eff fall while u rises "
+                f"and breaks the bound), got {self.weights}"
+            )
+        if not (math.isfinite(self.linear_weight) and self.linear_weight > 0):
+            raise ValueError(
+                f"linear_weight must be > 0 (u -> u_eff strictly increasing), got "
+                f"{self.linear_weight}"
+            )
+        object.__setattr__(self, "_r", r)
+        object.__setattr__(self, "_w", w)
 
     @property
     def state_size(self) -> int:  # type: ignore[override]
@@ -245,15 +312,20 @@ class PrandtlIshlinskii(Hysteresis):
         return cls(linear_weight=linear, radii=radii, weights=(w,) * len(radii))
 
     def max_effective_voltage(self, u_max: float) -> float:
-        return abs(self.linear_weight) * u_max + float(np.abs(self._w).sum()) * u_max
+        reach = np.maximum(u_max - self._r, 0.0)
+        return self.linear_weight * u_max + float(self._w @ reach)
 
     def step(self, state, u):
-        plays = np.maximum(
-            np.asarray(u)[..., None] - self._r,
-            np.minimum(np.asarray(u)[..., None] + self._r, state[..., 1:]),
-        )
+        plays = play(state[..., 1:], np.asarray(u)[..., None], self._r)
         new = np.concatenate([np.asarray(u, dtype=float)[..., None], plays], axis=-1)
         return new, self.linear_weight * u + plays @ self._w
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        import casadi
+
+        plays = play_casadi(state[1:], u, self.radii)
+        u_eff = self.linear_weight * u + casadi.dot(casadi.DM(self._w), plays)
+        return u_eff, casadi.vertcat(u, plays)
 
 
 def make_hysteresis(kind: str | Hysteresis | None, rated_voltage: float) -> Hysteresis:

@@ -1,0 +1,248 @@
+"""Rate-independent hysteresis operators, one implementation each, with their backends.
+
+Both the plant (:mod:`piezo_env.hysteresis`) and the identified model's memory features
+(``identification.features``) use these functions; each operator has a scalar fast path (plain
+floats), a numpy batch (broadcasting) and a casadi expression, written side by side so that
+they cannot drift apart.
+
+Play (backlash) operator of radius r (V)::
+
+    p <- max(u - r, min(u + r, p))
+
+Bouc-Wen operator, exponent 1 (A = alpha k, V/V; beta, gamma in 1/V)::
+
+    dh = A du - beta |du| h - gamma du |h|
+
+Along a monotone jump of size d = |du> with s = sign(du) and g = s h it is the linear ODE
+dg/dd = A - (beta + gamma) g while g >= 0 and dg/dd = A - (beta - gamma) g while g < 0, so the
+jump is integrated in closed form (piecewise exponential, switching once at g = 0): exact for
+any jump and independent of the rate. The normalized operator of the identification features,
+``dh = du - b |du| h - b du |h|`` with ``b = 1 / (2 level)``, is the special case A = 1,
+beta = gamma = b (:func:`normalized_bouc_wen`).
+
+Bounded loops (Ikhouane & Rodellar, "On the hysteretic Bouc-Wen model", Nonlinear Dynamics 42,
+2005, and Ikhouane, Manosa & Rodellar, "Dynamic properties of the hysteretic Bouc-Wen model",
+Systems & Control Letters 56, 2007): with A > 0 and exponent 1, h stays bounded for every
+bounded input and every initial state iff beta + gamma > 0 and beta - gamma >= 0 (their
+sigma = beta / (beta + gamma) >= 1/2). The proof in this parametrization: on the g >= 0 branch
+g relaxes monotonically towards h_max = A / (beta + gamma); on the g < 0 branch dg/dd =
+A - (beta - gamma) g >= A > 0, so g climbs towards 0 and never falls below its start. Hence
+[-h_max, h_max] is invariant and a start from rest (h = 0) never leaves it. With
+beta - gamma < 0 the g < 0 branch has the repelling point g = -A / (gamma - beta); a reversal from
+near +h_max crosses it whenever beta < 0 and h then diverges (issue: beta = -0.01, gamma = 0.05).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "bouc_wen_bound",
+    "bouc_wen_casadi",
+    "bouc_wen_jump",
+    "bouc_wen_jump_batch",
+    "bouc_wen_slope",
+    "check_bouc_wen",
+    "normalized_bouc_wen",
+    "play",
+    "play_casadi",
+    "play_sequence",
+    "play_slope",
+]
+
+_LINEAR_LAMBDA = 1e-12
+"""|beta - gamma| (1/V) below which the g < 0 branch is taken as linear (beta = gamma)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# play operator
+
+
+def play(p: Any, u: Any, r: Any) -> np.ndarray:
+    """Play outputs after input ``u`` (V) from outputs ``p`` (V), radii ``r`` (V); broadcasts."""
+    return np.maximum(u - r, np.minimum(u + r, p))
+
+
+def play_slope(p: Any, u: Any, r: Any) -> np.ndarray:
+    """d(play output)/du (0 or 1) of :func:`play` at ``u`` (V) from ``p`` (V); broadcasts.
+
+    At a kink (``u = p +- r``) the slope of the side that moves away from ``p`` is 0.
+    """
+    return ((u - r > p) | (u + r < p)).astype(np.float64)
+
+
+def play_sequence(u: np.ndarray, r: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Play outputs (T, n) of an input sequence ``u`` (T,) from outputs ``p`` (n,), all in V.
+
+    Returns the outputs and the final outputs (a new array; ``p`` is not written).
+    """
+    p = p.copy()
+    upper = u[:, None] + r
+    lower = u[:, None] - r
+    out = np.empty((u.size, r.size))
+    for t in range(u.size):
+        np.minimum(upper[t], p, out=p)
+        np.maximum(lower[t], p, out=p)
+        out[t] = p
+    return out, p
+
+
+def play_casadi(p: Any, u: Any, radii: Any) -> Any:
+    """casadi column of play outputs after input ``u`` from outputs ``p`` (one per radius)."""
+    import casadi
+
+    return casadi.vertcat(
+        *[casadi.fmax(u - r, casadi.fmin(u + r, p[i])) for i, r in enumerate(radii)]
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Bouc-Wen operator (exponent 1)
+
+
+def check_bouc_wen(amplitude: float, beta: float, gamma: float) -> None:
+    """Raise a ValueError unless (A, beta, gamma) give a bounded Bouc-Wen loop (see module).
+
+    Parameters
+    ----------
+    amplitude : float
+        A = alpha k (V/V), must be > 0.
+    beta, gamma : float
+        Shape parameters (1/V): beta + gamma > 0 and beta - gamma >= 0 are required.
+    """
+    values = {"A = alpha k": amplitude, "beta": beta, "gamma": gamma}
+    for name, value in values.items():
+        if not math.isfinite(value):
+            raise ValueError(f"Bouc-Wen {name} must be finite, got {value}")
+    if amplitude <= 0.0:
+        raise ValueError(f"Bouc-Wen needs alpha k > 0 (got {amplitude}): make k and alpha positive")
+    if beta + gamma <= 0.0:
+        raise ValueError(
+            f"Bouc-Wen needs beta + gamma > 0 for a bounded loop (got beta={beta}, gamma={gamma}, "
+            f"sum {beta + gamma}): h grows without bound otherwise; raise beta"
+        )
+    if beta - gamma < 0.0:
+        raise ValueError(
+            f"Bouc-Wen needs beta >= gamma for a bounded loop from every state (Ikhouane & "
+            f"Rodellar: sigma = beta/(beta+gamma) >= 1/2); got beta={beta}, gamma={gamma}. "
+            "Raise beta to at least gamma"
+        )
+
+
+def bouc_wen_bound(amplitude: Any, beta: Any, gamma: Any) -> Any:
+    """h_max = A / (beta + gamma) (V): |h| never exceeds it from a start inside (see module)."""
+    return amplitude / (beta + gamma)
+
+
+def normalized_bouc_wen(levels: Any) -> tuple[float, Any, Any]:
+    """(A, beta, gamma) of the normalized operators with saturation ``levels`` (V): 1, b, b.
+
+    ``b = 1 / (2 level)`` (1/V), so that h_max = level.
+    """
+    b = 0.5 / np.asarray(levels, dtype=np.float64)
+    return 1.0, b, b
+
+
+def bouc_wen_jump(h: float, du: float, ak: float, beta: float, gamma: float) -> float:
+    """Scalar closed-form state (V) after an input jump ``du`` (V) from state ``h`` (V).
+
+    ``ak`` is A = alpha k; plain floats only (the plant's single-env fast path).
+    """
+    if du == 0.0:
+        return h
+    s = 1.0 if du > 0.0 else -1.0
+    d = abs(du)
+    g = s * h
+    rate = beta + gamma
+    if g >= 0.0:
+        g_inf = ak / rate
+        return s * (g_inf + (g - g_inf) * math.exp(-rate * d))
+    lam = beta - gamma
+    if abs(lam) < _LINEAR_LAMBDA:
+        d0 = -g / ak
+        if d <= d0:
+            return s * (g + ak * d)
+    else:
+        d0 = math.log(1.0 - lam * g / ak) / lam
+        if d <= d0:
+            return s * (ak / lam + (g - ak / lam) * math.exp(-lam * d))
+    return s * (ak / rate) * -math.expm1(-rate * (d - d0))
+
+
+def bouc_wen_jump_batch(h: Any, du: Any, ak: Any, beta: Any, gamma: Any) -> np.ndarray:
+    """Numpy closed-form state (V) after jumps ``du`` (V) from states ``h`` (V); broadcasts.
+
+    The same algebra as :func:`bouc_wen_jump` in array form: in g = sign(du) h, a negative g
+    first climbs (linearly when beta = gamma, else exponentially) towards 0 over the distance
+    d0, then the rest of the jump relaxes g towards g_inf = A / (beta + gamma). ``ak``, ``beta``
+    and ``gamma`` may be arrays (one operator per entry). A jump of 0 keeps ``h`` (to rounding).
+    """
+    du = np.asarray(du, dtype=np.float64)
+    g = np.asarray(h, dtype=np.float64)
+    shape = np.broadcast_shapes(du.shape, g.shape, np.shape(ak), np.shape(beta))
+    s = np.broadcast_to(np.copysign(1.0, du), shape)
+    d = np.abs(np.broadcast_to(du, shape))
+    g = g * s
+    rate, lam = beta + gamma, beta - gamma
+    if np.all(np.abs(lam) < _LINEAR_LAMBDA):
+        # climb = min(d, d0) with d0 = max(-g, 0) / ak; g1 = g + ak climb is <= 0.
+        climb = np.maximum(g, 0.0)
+        climb -= g
+        climb *= 1.0 / ak
+        np.minimum(climb, d, out=climb)
+        d -= climb  # the rest of the jump, >= 0
+        climb *= ak
+        g += climb
+    else:
+        negative = g < 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d0 = np.where(negative, np.log(1.0 - lam * g / ak) / lam, 0.0)
+            linear = np.where(negative, -g / ak, 0.0)
+        d0 = np.where(np.abs(lam) < _LINEAR_LAMBDA, linear, d0)
+        climb = np.minimum(d, d0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            curved = ak / lam + (g - ak / lam) * np.exp(-lam * climb)
+        g = np.where(negative, np.where(np.abs(lam) < _LINEAR_LAMBDA, g + ak * climb, curved), g)
+        g[negative & (d > d0)] = 0.0
+        d = d - climb
+    # Relax towards g_inf over the rest of the jump: g_inf + (g1 - g_inf) exp(-rate rest).
+    g_inf = ak / rate
+    d *= -rate
+    np.exp(d, out=d)
+    g -= g_inf
+    g *= d
+    g += g_inf
+    g *= s
+    return g
+
+
+def bouc_wen_slope(h_new: Any, du: Any, ak: Any, beta: Any, gamma: Any) -> Any:
+    """dh/du (V/V) at the end of a jump ``du`` (V) that ended in state ``h_new`` (V).
+
+    The ODE's right-hand side A - beta sign(du) h - gamma |h|; for ``du = 0`` the slope of an
+    increasing input. Broadcasts.
+    """
+    s = np.copysign(1.0, du)
+    return ak - beta * s * h_new - gamma * np.abs(h_new)
+
+
+def bouc_wen_casadi(h: Any, du: Any, ak: float, beta: float, gamma: float) -> Any:
+    """casadi expression of :func:`bouc_wen_jump` for one operator (float parameters)."""
+    import casadi
+
+    s = casadi.if_else(du >= 0, 1.0, -1.0)
+    d = casadi.fabs(du)
+    g = s * h
+    rate, lam = beta + gamma, beta - gamma
+    if abs(lam) < _LINEAR_LAMBDA:
+        climb = casadi.fmin(d, casadi.fmax(-g, 0.0) / ak)
+        g1 = g + ak * climb
+    else:
+        d0 = casadi.if_else(g < 0, casadi.log(casadi.fmax(1.0 - lam * g / ak, 1.0)) / lam, 0.0)
+        climb = casadi.fmin(d, d0)
+        g1 = casadi.if_else(g < 0, ak / lam + (g - ak / lam) * casadi.exp(-lam * climb), g)
+    g_inf = ak / rate
+    return s * (g_inf + (g1 - g_inf) * casadi.exp(-rate * (d - climb)))
