@@ -74,43 +74,99 @@ def _hysteresis(data: dict, path: Path) -> Path:
     return path
 
 
+ZOOM_S = 0.2
+"""Length of the zoom window of the validation figure, s."""
+
+
+RMS_WINDOW_S = 0.05
+"""Window of the moving RMS drawn over the error traces, s."""
+
+
+def _moving_rms(x: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving RMS of ``x`` over ``n`` samples (shorter at the ends)."""
+    power = np.convolve(x**2, np.ones(n), mode="same")
+    count = np.convolve(np.ones_like(x), np.ones(n), mode="same")
+    return np.sqrt(power / count)
+
+
 def _validation(data: dict, report: dict, path: Path) -> Path:
+    """Error over time of both models (um, with the sensor-noise band) and a 200 ms zoom."""
     plt = _pyplot()
-    t = np.arange(len(data["y_val"])) * data["dt"]
+    dt, y = data["dt"], np.asarray(data["y_val"])
+    t = np.arange(len(y)) * dt
     val = report["validation"]
-    fig, ax = plt.subplots(figsize=(10, 4.8), dpi=110)
-    # The linear ARX underneath, the measurement and the identified model on top.
-    ax.plot(
-        t,
-        data["y_lin"],
-        color="tab:blue",
-        lw=0.7,
-        alpha=0.6,
-        label=f"linear ARX ({val['linear_arx']['fit_percent']:.1f} %)",
+    noise = report["environment"]["noise_bound_um"]
+    models = (
+        ("linear ARX", "linear_arx", np.asarray(data["y_lin"]), "tab:blue", "-"),
+        ("Hammerstein", "hammerstein", np.asarray(data["y_sim"]), "tab:red", "--"),
     )
-    ax.plot(t, data["y_val"], color="0.35", lw=1.2, label="measured")
-    ax.plot(
-        t,
-        data["y_sim"],
-        color="tab:red",
-        lw=0.8,
-        ls="--",
-        label=f"Hammerstein, free run ({val['hammerstein']['fit_percent']:.1f} %)",
+    errors = {key: y - y_hat for _, key, y_hat, _, _ in models}
+    half = max(1, round(ZOOM_S / dt / 2))
+    centre = int(np.argmax(np.abs(errors["hammerstein"])))
+    lo = min(max(0, centre - half), max(0, len(y) - 2 * half))
+    hi = min(len(y), lo + 2 * half)
+    fig, axes = plt.subplots(
+        4, 1, figsize=(10, 11), dpi=110, gridspec_kw={"height_ratios": [1, 1, 1.3, 0.8]}
     )
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("tip deflection (um)")
-    ax.set_title(f"Validation on fresh {val['signal']}")
-    ax.legend(loc="lower left", fontsize=8)
-    # Zoomed inset on a short window around the largest excursion.
-    centre = int(np.argmax(np.abs(data["y_val"])))
-    half = max(25, len(t) // 200)
-    lo, hi = max(0, centre - half), min(len(t), centre + half)
-    inset = ax.inset_axes([0.68, 0.62, 0.3, 0.34])
-    inset.plot(t[lo:hi], data["y_lin"][lo:hi], color="tab:blue", lw=0.8, alpha=0.6)
-    inset.plot(t[lo:hi], data["y_val"][lo:hi], color="0.35", lw=1.5)
-    inset.plot(t[lo:hi], data["y_sim"][lo:hi], color="tab:red", lw=1, ls="--")
-    inset.tick_params(labelsize=7)
-    ax.indicate_inset_zoom(inset, edgecolor="0.3")
+    n_rms = max(1, round(RMS_WINDOW_S / dt))
+    for ax, (name, key, _, colour, _) in zip(axes[:2], models, strict=True):
+        m, err = val[key], errors[key]
+        ax.plot(t, err, color=colour, lw=0.5, alpha=0.45, label="error")
+        ax.plot(
+            t,
+            _moving_rms(err, n_rms),
+            color="k",
+            lw=1.2,
+            label=f"moving RMS ({RMS_WINDOW_S * 1e3:.0f} ms)",
+        )
+        ax.axvspan(t[lo], t[hi - 1], color="gold", alpha=0.3, lw=0, label="zoom window")
+        ax.set_ylabel("error (um)")
+        ax.set_title(
+            f"{name} free run, error = measured - simulated: fit {m['fit_percent']:.2f} %, "
+            f"RMSE {m['rmse']:.2f} um, max {m['max_abs_error']:.1f} um",
+            fontsize=10,
+        )
+        ax.set_xlim(t[0], t[-1])
+        ax.grid(alpha=0.3)
+    for sign in (-1, 1):  # what a perfect model would leave: the sensor noise
+        axes[1].axhline(
+            sign * noise,
+            color="k",
+            ls=":",
+            lw=1.2,
+            label=f"sensor noise bound +-{noise:g} um" if sign > 0 else None,
+        )
+    for ax in axes[:2]:
+        ax.legend(loc="upper right", fontsize=8, ncol=4)
+    axes[1].set_xlabel("time (s)")
+    zoom, zoom_err = axes[2], axes[3]
+    tz = (t[lo:hi] - t[lo]) * 1e3
+    zoom.plot(tz, y[lo:hi], color="k", lw=2.4, label="measured")
+    for name, key, y_hat, colour, style in models:
+        zoom.plot(
+            tz,
+            y_hat[lo:hi],
+            color=colour,
+            lw=1.2,
+            ls=style,
+            label=f"{name} ({val[key]['fit_percent']:.1f} %)",
+        )
+    zoom_err.plot(tz, errors["hammerstein"][lo:hi], color="tab:red", lw=1.2, label="Hammerstein")
+    zoom_err.axhspan(-noise, noise, color="0.6", alpha=0.5, lw=0, label=f"+-{noise:g} um noise")
+    zoom.set_ylabel("tip deflection (um)")
+    zoom.set_title(
+        f"{ZOOM_S * 1e3:.0f} ms zoom around the largest Hammerstein error "
+        f"({abs(errors['hammerstein'][centre]):.1f} um at t = {t[centre]:.3f} s)",
+        fontsize=10,
+    )
+    zoom_err.set_ylabel("Hammerstein\nerror (um)")
+    zoom_err.set_xlabel(f"time from t = {t[lo]:.3f} s (ms)")
+    for ax in (zoom, zoom_err):
+        ax.set_xlim(tz[0], tz[-1])
+        ax.grid(alpha=0.3)
+    zoom.legend(loc="upper center", bbox_to_anchor=(0.5, -0.04), fontsize=8, ncol=3)
+    zoom_err.legend(loc="upper right", fontsize=8, ncol=2)
+    fig.suptitle(f"Validation on fresh {val['signal']}, {val['samples']} samples, free run")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -105,6 +105,14 @@ class HammersteinModel:
     ) -> np.ndarray:
         """Free-run (simulation) output: ``z = NLS(u)``, ``y = ARX(z)``.
 
+        Alignment: ``y[t]`` is the deflection *before* ``u[t]`` is applied; it depends on
+        ``u[t-1], u[t-2], ...`` only (``y[0]`` is the rest or ``y0`` value). This is the
+        convention of :func:`identification.pipeline.collect`, which drives the env and returns
+        the observation of ``reset`` as ``y[0]`` and the observation returned by the step that
+        applied ``u[t-1]`` as ``y[t]``. If you step the env with ``u`` yourself and keep the
+        observations returned by ``step``, those are ``y[1:]``: compare them with
+        ``simulate(u)[1:]`` (a one-sample shift costs nearly all of the fit on white input).
+
         Parameters
         ----------
         u : array_like, shape (T,)

@@ -11,6 +11,21 @@ def _row(cells: list[Any]) -> str:
     return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
+def _inversion_error(inversion: dict[str, Any], r: float) -> str:
+    """One paragraph on the error of z_hat (the equation error filtered by 1/B)."""
+    bound, rms = inversion.get("z_error_bound_V"), inversion.get("z_error_rms_V")
+    if bound is None or rms is None:
+        return (
+            "The hidden signal comes from the regularised deconvolution (B is not "
+            "minimum-phase): no worst-case error bound is given for it."
+        )
+    return (
+        f"Error of z_hat: the equation error (|nu| <= r_hat = {r:.4g} um) filtered by 1/B, at "
+        f"most r_hat ||1/B||_1 = {bound:.3g} V, RMS r_hat/sqrt(3) ||1/B||_2 = {rms:.3g} V for "
+        "independent uniform noise (equivalent V)."
+    )
+
+
 def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
     """Render the report as Markdown, with the figure files linked."""
     env, arx, nls, val = report["environment"], report["arx"], report["nls"], report["validation"]
@@ -87,6 +102,8 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         f"{arx['noise_bound_note']}. Minimum-phase B: {arx['minimum_phase']}; hidden signal by "
         f"{report['inversion']['method']}.",
         "",
+        _inversion_error(report["inversion"], arx["noise_bound_um"]),
+        "",
         "## NLS",
         "",
         f"Features: {nls['features']} (selection fits: "
@@ -96,7 +113,7 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         "",
         "The default simulated plant's hysteresis is Bouc-Wen, the family of the bouc-wen "
         "features, so those features can represent it closely; on other plants the selection "
-        "record decides (see benchmarks/results/identification.md).",
+        "record decides (see benchmarks/results/identification_accuracy.md).",
         "",
         "## Timings (s)",
         "",

@@ -7,6 +7,7 @@ import pytest
 import scipy.signal
 
 from identification.arx import ARXModel
+from identification.inversion import inverse_error_bounds, inverse_impulse_response
 from identification.metrics import fit_percent
 from identification.pipeline import IdentificationConfig, identify, inverse_arx
 
@@ -26,7 +27,7 @@ def short_default_run():
 
 def test_short_default_run_fits_held_out_rand_and_beats_linear_arx(short_default_run):
     val = short_default_run.report["validation"]
-    # The full default run reaches ~99 % (benchmarks/results/identification.md).
+    # The full default run reaches ~99.5 % (benchmarks/results/identification_accuracy.md).
     assert val["hammerstein"]["fit_percent"] > 95.0
     assert val["hammerstein"]["rmse"] < val["linear_arx"]["rmse"] / 3
     assert short_default_run.report["arx"]["minimum_phase"]
@@ -93,6 +94,111 @@ def test_inverse_arx_falls_back_to_deconvolution_for_a_non_minimum_phase_model()
     assert method == "regularized-deconvolution"
     assert np.all(np.isfinite(z_hat))
     assert fit_percent(z[:-50], z_hat[:-50]) > 95.0
+    # The last sample, which no output observes, repeats the one before (as documented).
+    assert z_hat[-1] == z_hat[-2]
+    assert abs(z_hat[-2]) > 1e-3
+
+
+def test_both_inversions_repeat_the_unobserved_last_sample():
+    z = np.random.default_rng(4).uniform(-1, 1, 300)
+    for arx in (ARXModel([0.5], [1.0, 0.3]), ARXModel([0.5], [0.3, 1.0])):
+        z_hat, _ = inverse_arx(arx, arx.simulate(z))
+        assert z_hat.shape == z.shape and z_hat[-1] == z_hat[-2]
+
+
+# B with a zero at -0.99: 1/B = 1/(1 + 0.99 q^-1) has ||1/B||_1 = 100, ||1/B||_2^2 = 1/(1-0.99^2).
+NEAR_UNIT_ZERO = ARXModel([0.5], [1.0, 0.99], noise_bound=0.05, dt=1e-3)
+
+
+def test_inverse_error_bounds_match_the_closed_form_norms_of_1_over_b():
+    err = inverse_error_bounds(NEAR_UNIT_ZERO)
+    r = NEAR_UNIT_ZERO.noise_bound
+    assert err["inverse_gain_l1"] == pytest.approx(100.0, rel=1e-9)
+    assert err["inverse_gain_l2"] == pytest.approx(1 / np.sqrt(1 - 0.99**2), rel=1e-9)
+    assert err["z_error_bound_V"] == pytest.approx(100.0 * r, rel=1e-9)
+    assert err["z_error_rms_V"] == pytest.approx(r / np.sqrt(3) / np.sqrt(1 - 0.99**2), rel=1e-9)
+    # The old figure +-r/b_1 understated it a hundredfold.
+    assert err["z_error_bound_V"] > 99 * r / NEAR_UNIT_ZERO.b[0]
+    assert (
+        inverse_error_bounds(ARXModel([0.5], [0.3, 1.0], noise_bound=0.05))["z_error_bound_V"]
+        is None
+    )  # non-minimum-phase: eq. 25 is not used
+
+
+def test_worst_case_sign_sequence_reaches_the_bound():
+    """An equation error of +-r with the signs of the reversed impulse response of 1/B."""
+    arx, r = NEAR_UNIT_ZERO, NEAR_UNIT_ZERO.noise_bound
+    h = inverse_impulse_response(arx.b)  # to 1e-12 of its L1 norm
+    n = h.size + 1
+    z = np.random.default_rng(5).uniform(-1, 1, n)
+    nu = np.zeros(n)
+    nu[1:] = r * np.sign(h[::-1])  # nu_t enters e_t, which z_hat_{t-1} filters by 1/B
+    y = scipy.signal.lfilter([0.0, *arx.b], [1.0, *(-arx.a)], z) + scipy.signal.lfilter(
+        [1.0], [1.0, *(-arx.a)], nu
+    )
+    z_hat, method = inverse_arx(arx, y)
+    assert method == "eq25"
+    worst = abs(z_hat[-2] - z[-2])
+    assert worst == pytest.approx(r * np.abs(h).sum(), rel=1e-9)
+    assert worst == pytest.approx(inverse_error_bounds(arx)["z_error_bound_V"], rel=1e-6)
+    assert np.max(np.abs(z_hat[:-1] - z[:-1])) <= inverse_error_bounds(arx)["z_error_bound_V"]
+
+
+def test_monte_carlo_rms_error_matches_the_reported_rms():
+    arx = NEAR_UNIT_ZERO
+    rng = np.random.default_rng(6)
+    z = rng.uniform(-1, 1, 40_000)
+    y = arx.simulate(z, rng=rng)  # equation error uniform on [-r, r]
+    z_hat, _ = inverse_arx(arx, y)
+    error = (z_hat - z)[2000:-1]  # past the transient from rest
+    rms = float(np.sqrt(np.mean(error**2)))
+    assert rms == pytest.approx(inverse_error_bounds(arx)["z_error_rms_V"], rel=0.1)
+    assert rms > 3 * arx.noise_bound / arx.b[0]  # above even the old worst case +-r/b_1
+
+
+def test_report_and_metadata_carry_the_z_error_bound(short_default_run):
+    inversion = short_default_run.report["inversion"]
+    arx = short_default_run.model.arx
+    expected = inverse_error_bounds(arx)
+    assert inversion["z_error_bound_V"] == pytest.approx(expected["z_error_bound_V"])
+    assert inversion["z_error_rms_V"] == pytest.approx(expected["z_error_rms_V"])
+    assert inversion["z_error_bound_V"] > arx.noise_bound / abs(arx.b[0])
+    metadata = short_default_run.model.metadata
+    assert metadata["z_error_bound_V"] == inversion["z_error_bound_V"]
+    assert metadata["z_error_rms_V"] == inversion["z_error_rms_V"]
+    assert "z_noise_support_V" not in metadata
+
+
+def test_markdown_report_names_only_existing_repository_files(short_default_run):
+    import re
+    from pathlib import Path
+
+    from identification.report import markdown_report
+
+    root = Path(__file__).resolve().parents[1]
+    text = markdown_report(short_default_run.report, ["validation.png"])
+    paths = re.findall(r"(?:benchmarks|docs|identification)/[\w./-]+\.(?:md|py|png)", text)
+    assert paths
+    for path in paths:
+        assert (root / path).is_file(), path
+    assert "z_error_bound" not in text and "r_hat ||1/B||_1" in text
+
+
+def test_collect_aligns_y_before_u_as_simulate_does():
+    """y[t] from collect is the deflection before u[t]: the model predicts it from u[:t]."""
+    import gymnasium as gym
+
+    from identification.pipeline import collect
+
+    env = gym.make("piezo_env:PiezoBender-v0", reference=None, noise_bound=0.0)
+    u = np.zeros(40)
+    u[10:] = 5.0
+    u_applied, y = collect(env, u, seed=0)
+    np.testing.assert_array_equal(u_applied, u)
+    assert np.all(y[:11] == y[0])  # u[10] acts on y[11] first
+    assert y[11] != y[10]
+    with pytest.raises(ValueError, match="finite"):
+        collect(env, [0.0, np.nan], seed=0)
 
 
 def test_bad_configuration_is_rejected():
