@@ -1,7 +1,9 @@
 """ARX estimation under uniformly bounded noise: Bayesian recursion, Chebyshev LP, least squares.
 
 Accuracy is held against the true system that generated the data and against the exact
-(Chebyshev) estimate; parameter errors are relative in the Euclidean norm.
+(Chebyshev) estimate; parameter errors are relative in the Euclidean norm. Tolerances are about
+5x the errors measured on these fixed seeds (in the comments), so a loose update (e.g. interval
+arithmetic instead of the tight slab bounds, which biases r_hat low by percents) fails them.
 """
 
 import numpy as np
@@ -50,26 +52,31 @@ def case(request):
     return model, fits
 
 
-def test_chebyshev_recovers_theta_within_1_percent_and_r_within_3(case):
+def test_chebyshev_recovers_theta_and_r(case):
     truth, fits = case
     fit = fits["chebyshev"]
-    assert relative_error(fit.theta, truth.theta) < 0.01
-    assert fit.noise_bound == pytest.approx(truth.noise_bound, rel=0.03)
+    # measured: theta 7.7e-6 / 2.3e-5, r -0.07 % / -0.10 % (arx22 / arx32)
+    assert relative_error(fit.theta, truth.theta) < 1.2e-4
+    assert fit.noise_bound == pytest.approx(truth.noise_bound, rel=5e-3)
+    assert fit.noise_bound <= truth.noise_bound  # the max residual of the truth is <= r
 
 
-def test_bayes_uniform_within_3_percent_theta_and_15_percent_r(case):
+def test_bayes_uniform_within_0_06_percent_theta_and_0_6_percent_r(case):
     truth, fits = case
     fit = fits["bayes-uniform"]
-    assert relative_error(fit.theta, truth.theta) < 0.03
-    assert relative_error(fit.theta, fits["chebyshev"].theta) < 0.03
-    assert fit.noise_bound == pytest.approx(truth.noise_bound, rel=0.15)
-    assert fit.noise_bound == pytest.approx(fits["chebyshev"].noise_bound, rel=0.15)
+    # measured: theta 2.0e-5 / 1.2e-4 of the truth, 2.7e-5 / 1.0e-4 of the Chebyshev estimate;
+    # r -0.05 % / -0.12 % of the truth, +0.02 % / -0.02 % of the Chebyshev r (arx22 / arx32)
+    assert relative_error(fit.theta, truth.theta) < 6e-4
+    assert relative_error(fit.theta, fits["chebyshev"].theta) < 5e-4
+    assert fit.noise_bound == pytest.approx(truth.noise_bound, rel=6e-3)
+    assert fit.noise_bound == pytest.approx(fits["chebyshev"].noise_bound, rel=1e-3)
     assert fit.method == "bayes-uniform" and fit.dt == DT
 
 
-def test_least_squares_within_3_percent(case):
+def test_least_squares_within_0_15_percent(case):
     truth, fits = case
-    assert relative_error(fits["least-squares"].theta, truth.theta) < 0.03
+    # measured: 3.6e-4 / 2.9e-4; uniform noise makes the L-infinity estimate the sharper one
+    assert relative_error(fits["least-squares"].theta, truth.theta) < 1.5e-3
 
 
 def test_bayes_history_is_the_time_course_of_the_estimates(case):
@@ -104,8 +111,9 @@ def test_batch_and_online_updates_agree():
     for k in range(u.size):
         online.update(u[k], y[k])
     assert batch.contains(truth.theta, truth.noise_bound)
-    assert relative_error(online.theta, batch.theta) < 0.01
-    assert online.noise_bound == pytest.approx(batch.noise_bound, rel=0.02)
+    # measured: theta 4.2e-5, r 0.05 %
+    assert relative_error(online.theta, batch.theta) < 2e-4
+    assert online.noise_bound == pytest.approx(batch.noise_bound, rel=2.5e-3)
 
 
 def test_mean_point_estimate_averages_the_steady_part():
@@ -115,7 +123,9 @@ def test_mean_point_estimate_averages_the_steady_part():
     history = fit.history
     start = int(history["t"].size * 0.5)
     np.testing.assert_allclose(fit.theta, history["theta"][start:].mean(axis=0))
-    assert fit.noise_bound == pytest.approx(truth.noise_bound, rel=0.15)
+    # measured: r -0.14 %, theta 3.3e-5
+    assert fit.noise_bound == pytest.approx(truth.noise_bound, rel=7e-3)
+    assert relative_error(fit.theta, truth.theta) < 2e-4
 
 
 def test_slab_bound_is_the_linear_program_optimum():
@@ -161,9 +171,11 @@ def test_random_stable_systems_are_recovered_and_bounded(system):
     estimator = BayesUniformEstimator(truth.na, truth.nb)
     estimator.update_many(u, y)
     assert estimator.contains(truth.theta, truth.noise_bound)
-    assert estimator.noise_bound == pytest.approx(cheb.noise_bound, rel=0.15)
-    assert estimator.noise_bound <= truth.noise_bound * 1.05
-    assert relative_error(estimator.theta, truth.theta) < 0.05
+    # measured over 150 drawn systems: r within 0.56 % of the Chebyshev r and in
+    # [0.991, 0.9999] r_true; theta within 0.47 % of the truth
+    assert estimator.noise_bound == pytest.approx(cheb.noise_bound, rel=0.02)
+    assert 0.96 * truth.noise_bound <= estimator.noise_bound <= truth.noise_bound * 1.005
+    assert relative_error(estimator.theta, truth.theta) < 0.02
 
 
 @pytest.mark.parametrize("method", ["bayes-uniform", "chebyshev", "least-squares"])
