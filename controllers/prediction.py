@@ -21,6 +21,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from piezo_env.inverse import InverseResult
+
 __all__ = [
     "IdentifiedNLS",
     "InputNonlinearity",
@@ -28,28 +30,6 @@ __all__ = [
     "PlantHysteresis",
     "PredictionModel",
 ]
-
-
-@dataclass(frozen=True)
-class InverseResult:
-    """Voltage that realises a target hidden signal from a memory state.
-
-    Attributes
-    ----------
-    u : float
-        Voltage (V), inside the drive range.
-    z : float
-        Hidden signal actually reached at ``u`` (equivalent V).
-    status : str
-        ``"ok"`` or ``"out-of-range"`` (target beyond the reachable range: ``u`` saturates).
-    state : numpy.ndarray
-        Memory state after applying ``u``.
-    """
-
-    u: float
-    z: float
-    status: str
-    state: np.ndarray
 
 
 class InputNonlinearity(Protocol):

@@ -1,0 +1,286 @@
+"""The closed-loop benchmark: every controller on the same env, seeds and references.
+
+:func:`run_benchmark` runs each selected controller on each reference of the nominal PL140 and
+on the robustness plants (the same identified model and settings on plants it was not
+identified on), and returns every episode's metrics. ``piezo benchmark`` calls it and writes
+the tables and figures (:mod:`controllers.benchmark_report`).
+
+Fairness. Every controller sees the same observation: the measured deflection and a preview
+of the reference (``preview`` samples, 20 by default), on the same noise sequence (the same
+env seed) and the same reference arrays. A controller name with the suffix ``-oracle`` runs on
+the true plant's model (its hysteresis and exact beam) instead of the identified one: the
+distance between the two rows is what identification costs.
+
+Reproducibility. Episodes are grouped by (plant, controller); each group builds its env and its
+controller afresh and runs its references in a fixed order, in a worker process (``jobs``).
+Nothing depends on which worker runs a group or when, so the tracking results are bitwise the
+same for any ``jobs``; only the measured compute times differ from run to run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from controllers.references import REFERENCES, make_reference
+from controllers.registry import CONTROLLERS
+
+__all__ = [
+    "DEFAULT_CONTROLLERS",
+    "PLANTS",
+    "BenchmarkConfig",
+    "BenchmarkResult",
+    "run_benchmark",
+]
+
+DEFAULT_CONTROLLERS = ("pid", "pid-notch", "pid-ff", "mpc", "nmpc", "mpc-oracle", "nmpc-oracle")
+"""Controllers of ``piezo benchmark`` (nmpc-ipopt, 20-60 ms per step, is opt-in)."""
+
+ROBUSTNESS_CONTROLLERS = ("pid-notch", "pid-ff", "mpc", "nmpc", "mpc-oracle")
+"""The controllers also run on the robustness plants (when selected)."""
+
+ROBUSTNESS_REFERENCES = ("sine-10Hz", "sine-50Hz", "sine-100Hz", "multisine", "steps")
+"""The references run on the robustness plants (when selected)."""
+
+TRACE_REFERENCES = ("sine-50Hz", "multisine", "steps")
+"""References whose nominal time series are kept for the tracking figure."""
+
+
+def _tolerance_sheet(scale: float) -> Any:
+    """PL140 whose stiffness and resonance are off by ``scale`` (blocking force as rated)."""
+    from piezo_env import get_datasheet
+
+    sheet = get_datasheet("PL140")
+    return dataclasses.replace(
+        sheet,
+        name=f"{sheet.name} (stiffness and resonance x{scale:g})",
+        free_deflection=sheet.free_deflection / scale,
+        resonance=sheet.resonance * scale,
+    )
+
+
+PLANTS: dict[str, Callable[[], dict[str, Any]]] = {
+    "nominal": dict,
+    "damping-0.01": lambda: {"damping_ratio": 0.01},
+    "damping-0.04": lambda: {"damping_ratio": 0.04},
+    "prandtl-ishlinskii": lambda: {"hysteresis": "prandtl-ishlinskii"},
+    "creep": lambda: {"creep": True},
+    "noise-3um": lambda: {"noise_bound": 3.0},
+    "stiffness+20%": lambda: {"bender": _tolerance_sheet(1.2)},
+    "stiffness-20%": lambda: {"bender": _tolerance_sheet(0.8)},
+}
+"""Plant name -> env keyword arguments (changes from the nominal PL140 the model came from)."""
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """What to run.
+
+    Attributes
+    ----------
+    controllers : tuple of str
+        Registry names (:data:`controllers.CONTROLLERS`), optionally suffixed ``-oracle``.
+    references : tuple of str
+        Names in :data:`controllers.references.REFERENCES`.
+    plants : tuple of str
+        Names in :data:`PLANTS`; ``"nominal"`` runs every reference, the others
+        :data:`ROBUSTNESS_REFERENCES` with :data:`ROBUSTNESS_CONTROLLERS`.
+    seed : int
+        Env seed (sensor noise) and seed of the random references.
+    steps : int
+        Steps per episode (2000 = 2 s at 1 ms).
+    preview : int
+        Reference samples after r_t in every controller's observation.
+    jobs : int
+        Worker processes (1: run in this process).
+    controller_options : dict
+        Per controller name, options passed to :func:`controllers.make`.
+    """
+
+    controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
+    references: tuple[str, ...] = tuple(REFERENCES)
+    plants: tuple[str, ...] = tuple(PLANTS)
+    seed: int = 0
+    steps: int = 2000
+    preview: int = 20
+    jobs: int = 1
+    controller_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in self.controllers:
+            if name.removesuffix("-oracle") not in CONTROLLERS:
+                valid = ", ".join(CONTROLLERS)
+                raise ValueError(
+                    f"unknown controller {name!r}; valid: {valid} (each also as NAME-oracle)"
+                )
+        for name in self.references:
+            if name not in REFERENCES:
+                raise ValueError(f"unknown reference {name!r}; valid: {', '.join(REFERENCES)}")
+        for name in self.plants:
+            if name not in PLANTS:
+                raise ValueError(f"unknown plant {name!r}; valid: {', '.join(PLANTS)}")
+        for name in ("steps", "jobs"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 0:
+            raise ValueError(f"preview must be an integer >= 0, got {self.preview!r}")
+
+    def groups(self) -> list[tuple[str, str, tuple[str, ...]]]:
+        """(plant, controller, references) of every group, in report order."""
+        out = []
+        for plant in self.plants:
+            nominal = plant == "nominal"
+            refs = (
+                self.references
+                if nominal
+                else tuple(r for r in self.references if r in ROBUSTNESS_REFERENCES)
+            )
+            for controller in self.controllers:
+                if nominal or controller in ROBUSTNESS_CONTROLLERS:
+                    if refs:
+                        out.append((plant, controller, refs))
+        return out
+
+
+@dataclass
+class BenchmarkResult:
+    """Every episode's metrics, the controllers' descriptions, traces and run facts."""
+
+    config: BenchmarkConfig
+    episodes: list[dict[str, Any]]
+    controllers: dict[str, dict[str, Any]]
+    traces: dict[str, dict[str, dict[str, list[float]]]]
+    timing: dict[str, float]
+
+
+def _run_group(
+    plant: str,
+    controller: str,
+    references: tuple[str, ...],
+    model_dir: str,
+    config: BenchmarkConfig,
+) -> tuple[list[dict[str, Any]], dict[str, Any], dict[str, dict[str, list[float]]]]:
+    """Run one controller on one plant over its references (in a worker process)."""
+    import gymnasium as gym
+    from threadpoolctl import threadpool_limits
+
+    import controllers as ctl
+
+    env = gym.make(
+        "piezo_env:PiezoBender-v0",
+        preview=config.preview,
+        max_episode_steps=config.steps,
+        **PLANTS[plant](),
+    )
+    name = controller.removesuffix("-oracle")
+    model = "plant" if controller.endswith("-oracle") else model_dir
+    options = config.controller_options.get(controller, {})
+    episodes, traces = [], {}
+    with threadpool_limits(1):
+        built = ctl.make(name, model, env, **options)
+        dt = env.unwrapped.model.dt
+        for ref_name in references:
+            reference = make_reference(
+                ref_name, config.steps + config.preview + 1, dt=dt, seed=config.seed
+            )
+            episode = ctl.run_episode(env, built, seed=config.seed, reference=reference)
+            episodes.append(
+                {"plant": plant, "controller": controller, "reference": ref_name, **episode.metrics}
+            )
+            if plant == "nominal" and ref_name in TRACE_REFERENCES:
+                traces[ref_name] = {
+                    "deflection_um": episode.deflection_um.tolist(),
+                    "reference_um": episode.reference_um.tolist(),
+                    "voltage_V": episode.voltage_V.tolist(),
+                }
+    env.close()
+    return episodes, built.describe(), traces
+
+
+def run_benchmark(
+    config: BenchmarkConfig,
+    model_dir: str | Path,
+    *,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> BenchmarkResult:
+    """Run the benchmark on the identified model saved in ``model_dir``.
+
+    Parameters
+    ----------
+    config : BenchmarkConfig
+    model_dir : str or pathlib.Path
+        Folder of a saved :class:`identification.HammersteinModel` (workers load it).
+    progress : callable, optional
+        ``progress(done, total, label)`` after each group.
+
+    Returns
+    -------
+    BenchmarkResult
+        Episodes ordered by plant, controller and reference, whatever ``jobs`` is.
+
+    Notes
+    -----
+    With ``jobs > 1`` the groups run in spawned worker processes (no forked BLAS or torch
+    thread state), so a script calling this must do so under ``if __name__ == "__main__":``.
+    """
+    groups = config.groups()
+    start = time.perf_counter()
+    args = [(p, c, refs, str(model_dir), config) for p, c, refs in groups]
+    outputs: list[Any] = [None] * len(groups)
+    if config.jobs == 1:
+        for i, a in enumerate(args):
+            outputs[i] = _run_group(*a)
+            if progress:
+                progress(i + 1, len(groups), f"{a[1]} on {a[0]}")
+    else:
+        # spawn: no forked BLAS/torch thread state; each worker imports the packages once.
+        with ProcessPoolExecutor(config.jobs, mp_context=get_context("spawn")) as pool:
+            futures = {pool.submit(_run_group, *a): i for i, a in enumerate(args)}
+            for done, future in enumerate(as_completed(futures), start=1):
+                i = futures[future]
+                outputs[i] = future.result()
+                if progress:
+                    progress(done, len(groups), f"{args[i][1]} on {args[i][0]}")
+    episodes, described, traces = [], {}, {}
+    for (plant, controller, _), (eps, description, trace) in zip(groups, outputs, strict=True):
+        episodes.extend(eps)
+        if plant == "nominal" or controller not in described:
+            described[controller] = description
+        for ref, data in trace.items():
+            traces.setdefault(ref, {})[controller] = data
+    timing = {"episodes_s": round(time.perf_counter() - start, 1)}
+    return BenchmarkResult(config, episodes, described, traces, timing)
+
+
+def default_jobs() -> int:
+    """All cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover (not Linux)
+        return os.cpu_count() or 1
+
+
+def terminal_progress(quiet: bool) -> Callable[[int, int, str], None] | None:
+    """A one-line progress bar on a terminal; None under CI, with ``quiet`` or when piped."""
+    if quiet or os.environ.get("CI") or not sys.stderr.isatty():
+        return None
+
+    def show(done: int, total: int, label: str) -> None:
+        width = 30
+        filled = round(width * done / total)
+        bar = "#" * filled + "." * (width - filled)
+        sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}")
+        if done == total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    return show

@@ -1,0 +1,256 @@
+"""Tables, JSON and figures of a :class:`controllers.benchmark.BenchmarkResult`."""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import platform
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers.benchmark import BenchmarkResult
+from controllers.references import REFERENCES
+
+__all__ = ["check_targets", "machine", "tracking_tables", "write_benchmark"]
+
+_PACKAGES = ("numpy", "scipy", "gymnasium", "control", "osqp", "casadi", "torch")
+_TIMING_KEYS = ("compute_median_us", "compute_p99_us", "compute_max_us")
+
+
+def machine() -> dict[str, Any]:
+    """Where and with what the benchmark ran."""
+    versions = {}
+    for name in _PACKAGES:
+        try:
+            versions[name] = version(name)
+        except PackageNotFoundError:
+            versions[name] = None
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover
+        cores = os.cpu_count()
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cores": cores,
+        "python": platform.python_version(),
+        "packages": versions,
+        "blas_threads_in_loop": 1,
+    }
+
+
+def _lookup(result: BenchmarkResult) -> dict[tuple[str, str, str], dict[str, Any]]:
+    return {(e["plant"], e["controller"], e["reference"]): e for e in result.episodes}
+
+
+def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
+    lines = [f"| {header} | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for row in rows:
+        lines.append(f"| {row} | " + " | ".join(cell(row, c) for c in columns) + " |")
+    return "\n".join(lines)
+
+
+def tracking_tables(result: BenchmarkResult) -> str:
+    """RMSE and max-error tables per plant (deterministic: bitwise equal for any ``jobs``)."""
+    index = _lookup(result)
+    cfg = result.config
+    parts = []
+    for plant in cfg.plants:
+        controllers = [c for c in cfg.controllers if any(k[:2] == (plant, c) for k in index)]
+        refs = [r for r in cfg.references if any(k[0] == plant and k[2] == r for k in index)]
+        if not controllers:
+            continue
+
+        def rmse(c, r, plant=plant):
+            e = index.get((plant, c, r))
+            return "" if e is None else f"{e['rmse_percent']:.3f}"
+
+        def max_error(c, r, plant=plant):
+            e = index.get((plant, c, r))
+            return "" if e is None else f"{e['max_error_um']:.1f}"
+
+        title = "Nominal PL140" if plant == "nominal" else f"Plant: {plant}"
+        parts.append(f"### {title}: RMSE (% of the full stroke)\n")
+        parts.append(_table(controllers, refs, rmse, "controller") + "\n")
+        if plant == "nominal":
+            parts.append(f"### {title}: max |error| (um)\n")
+            parts.append(_table(controllers, refs, max_error, "controller") + "\n")
+    return "\n".join(parts)
+
+
+def _effort_table(result: BenchmarkResult) -> str:
+    rows = [c for c in result.config.controllers]
+    nominal = [e for e in result.episodes if e["plant"] == "nominal"]
+    columns = [
+        "RMS voltage (V)",
+        "voltage TV (V)",
+        "saturated (%)",
+        "step median (us)",
+        "step p99 (us)",
+        "step max (us)",
+        "fallbacks",
+    ]
+
+    def cell(c, col):
+        eps = [e for e in nominal if e["controller"] == c]
+        if not eps:
+            return ""
+        values = {
+            "RMS voltage (V)": np.mean([e["rms_voltage_v"] for e in eps]),
+            "voltage TV (V)": np.mean([e["voltage_tv_v"] for e in eps]),
+            "saturated (%)": 100 * np.mean([e["saturated_fraction"] for e in eps]),
+            "step median (us)": np.median([e["compute_median_us"] for e in eps]),
+            "step p99 (us)": np.max([e["compute_p99_us"] for e in eps]),
+            "step max (us)": np.max([e["compute_max_us"] for e in eps]),
+            "fallbacks": sum(e["fallbacks"] for e in eps),
+        }
+        v = values[col]
+        return f"{v:d}" if isinstance(v, int) else f"{v:.1f}"
+
+    return _table(rows, columns, cell, "controller (nominal, mean over references)")
+
+
+def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
+    """The product's stated targets, each with its measured value and whether it holds."""
+    index = _lookup(result)
+    checks: list[dict[str, Any]] = []
+
+    def get(plant, c, r):
+        e = index.get((plant, c, r))
+        return None if e is None else e["rmse_percent"]
+
+    def add(text, value, limit):
+        if value is not None:
+            checks.append({"target": text, "value": value, "limit": limit, "holds": value <= limit})
+
+    for r in result.config.references:
+        smooth = REFERENCES[r].smooth
+        if r in ("random-steps", "chirp"):
+            continue
+        add(f"mpc RMSE on {r} (%)", get("nominal", "mpc", r), 0.05 if smooth else 0.9)
+    for r in ("sine-10Hz", "sine-50Hz", "sine-100Hz"):
+        m, p = get("nominal", "mpc", r), get("nominal", "pid-notch", r)
+        if m is not None and p is not None:
+            add(f"mpc / pid-notch on {r}", m / p, 0.1)
+    for r in ("sine-50Hz", "steps"):
+        m, p = get("nominal", "mpc", r), get("nominal", "pid-ff", r)
+        if m is not None and p is not None:
+            add(f"mpc / pid-ff on {r} (>= 3x better)", m / p, 1 / 3)
+    for r in result.config.references:
+        m, o = get("nominal", "mpc", r), get("nominal", "mpc-oracle", r)
+        if m is not None and o is not None and REFERENCES[r].smooth:
+            add(f"mpc / mpc-oracle on {r}", m / o, 2.0)
+        n = get("nominal", "nmpc", r)
+        if m is not None and n is not None:
+            add(f"nmpc / mpc on {r}", n / m, 1.1)
+    limits = {
+        "damping-0.01": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
+        "damping-0.04": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
+        "prandtl-ishlinskii": {
+            "sine-10Hz": 0.15,
+            "sine-50Hz": 0.5,
+            "sine-100Hz": 0.9,
+            "multisine": 0.3,
+        },
+    }
+    for plant, refs in limits.items():
+        for r, limit in refs.items():
+            add(f"mpc RMSE on {r}, plant {plant} (%)", get(plant, "mpc", r), limit)
+    return checks
+
+
+def _markdown(result: BenchmarkResult, meta: dict[str, Any], checks: list[dict]) -> str:
+    cfg = result.config
+    m = meta["machine"]
+    lines = [
+        "# Closed-loop benchmark: MPC against PID on PiezoBender-v0",
+        "",
+        f"{m['date']}; {m['platform']}, {m['processor']}, {m['cores']} cores, Python "
+        f"{m['python']}; one BLAS thread in the control loop; "
+        + ", ".join(f"{k} {v}" for k, v in m["packages"].items() if v),
+        "",
+        f"Seed {cfg.seed}; {cfg.steps} steps of {meta['dt'] * 1e3:g} ms per episode; every "
+        f"controller observes the measured deflection (sensor noise +-{meta['noise_bound_um']:g} "
+        f"um) and a preview of {cfg.preview} reference samples; the same noise and references "
+        "for all. RMSE and max error: true deflection against the reference sample each action "
+        "is scored against, in % of the full 2000 um stroke. `-oracle`: the same controller on "
+        "the true plant's model instead of the identified one.",
+        "",
+        "Who gets what: `pid` and `pid-notch` use only the error r_t+1 - y_t (no preview, no "
+        "model inverse); `pid-ff` adds the model-inverse feedforward computed from the preview; "
+        "`mpc` and `nmpc` predict over the preview with the model.",
+        "",
+        f"Model: {meta['model']}. Time: "
+        + ", ".join(f"{k} {v} s" for k, v in meta["timing"].items()),
+        "",
+        "## Tracking",
+        "",
+        tracking_tables(result),
+        "## Effort and compute time",
+        "",
+        _effort_table(result),
+        "",
+        "## Targets",
+        "",
+        "| target | measured | limit | holds |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {c['target']} | {c['value']:.4g} | {c['limit']:.4g} | {'yes' if c['holds'] else 'NO'} |"
+        for c in checks
+    ]
+    lines += ["", "## Controllers", ""]
+    for name, description in result.controllers.items():
+        lines.append(f"- `{name}`: `{json.dumps(_short(description))}`")
+    return "\n".join(lines) + "\n"
+
+
+def _short(description: dict[str, Any]) -> dict[str, Any]:
+    """The description without long arrays, for the Markdown list."""
+    return {k: v for k, v in description.items() if not (isinstance(v, list) and len(v) > 8)}
+
+
+def deterministic_json(result: BenchmarkResult) -> dict[str, Any]:
+    """Episode results without measured times: bitwise equal for any ``jobs``."""
+    return {
+        "config": dataclasses.asdict(result.config) | {"jobs": None},
+        "episodes": [
+            {k: v for k, v in e.items() if k not in _TIMING_KEYS} for e in result.episodes
+        ],
+    }
+
+
+def write_benchmark(
+    result: BenchmarkResult, out: str | Path, meta: dict[str, Any], *, figures: bool = True
+) -> list[Path]:
+    """Write ``benchmark.md``, ``benchmark.json`` and (optionally) the figures into ``out``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    meta = {**meta, "timing": {**meta.get("timing", {}), **result.timing}}
+    checks = check_targets(result)
+    md = out / "benchmark.md"
+    md.write_text(_markdown(result, meta, checks), encoding="utf-8")
+    data = {
+        "meta": meta,
+        "results": deterministic_json(result),
+        "timing": [
+            {k: e[k] for k in ("plant", "controller", "reference", *_TIMING_KEYS)}
+            for e in result.episodes
+        ],
+        "controllers": result.controllers,
+        "targets": checks,
+    }
+    path = out / "benchmark.json"
+    path.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    paths = [md, path]
+    if figures:
+        from controllers.benchmark_figures import draw_figures
+
+        paths += draw_figures(result, out)
+    return paths
