@@ -17,18 +17,20 @@ import textwrap
 from importlib.metadata import PackageNotFoundError, version
 from typing import NoReturn
 
+from piezo_cli.benchmark import BENCHMARK
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.identify import IDENTIFY
 from piezo_cli.simulate import SIMULATE
 
 __all__ = ["SUBCOMMANDS", "build_parser", "main"]
 
-SUBCOMMANDS: list[Subcommand] = [SIMULATE, IDENTIFY]
+SUBCOMMANDS: list[Subcommand] = [SIMULATE, IDENTIFY, BENCHMARK]
 """Every ``piezo`` subcommand, in the order ``piezo --help`` lists them."""
 
 _DESCRIPTION = (
     "Simulate a piezoelectric bender (PI PICMA PL1xx family: finite-element beam with "
-    "hysteresis and sensor noise) and identify its Hammerstein model from data."
+    "hysteresis and sensor noise), identify its Hammerstein model from data, and benchmark "
+    "MPC against PID on it in closed loop."
 )
 
 _API_PHRASES = (

@@ -1,0 +1,156 @@
+"""``piezo benchmark``: the command line of :mod:`controllers.benchmark` (MPC against PID)."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from piezo_cli.arguments import seed
+from piezo_cli.command import CommandLineError, Subcommand
+from piezo_cli.output import prepare_output_dir
+
+__all__ = ["BENCHMARK"]
+
+
+def _names(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``piezo benchmark``."""
+    from controllers.benchmark import DEFAULT_CONTROLLERS, PLANTS, default_jobs
+    from controllers.references import REFERENCES
+
+    parser.add_argument("--out", default="out/benchmark", metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--model",
+        default=None,
+        metavar="DIR",
+        help="folder of an identified model (model.json + weights.npz); default: identify the "
+        "default PL140 first (about 40 s) and save it in OUT/model",
+    )
+    parser.add_argument(
+        "--controllers",
+        type=_names,
+        default=DEFAULT_CONTROLLERS,
+        metavar="A,B",
+        help="comma-separated controllers (NAME-oracle runs NAME on the true plant's model); "
+        "also available: nmpc-ipopt (20-60 ms per step)",
+    )
+    parser.add_argument(
+        "--references",
+        type=_names,
+        default=tuple(REFERENCES),
+        metavar="A,B",
+        help="comma-separated references",
+    )
+    parser.add_argument(
+        "--plants", type=_names, default=tuple(PLANTS), metavar="A,B", help="comma-separated plants"
+    )
+    parser.add_argument("--seed", type=seed, default=0, help="seed of the noise and references")
+    parser.add_argument("--steps", type=_positive_int, default=2000, help="steps per episode")
+    parser.add_argument(
+        "--preview", type=int, default=20, help="reference samples every controller sees ahead"
+    )
+    parser.add_argument(
+        "--jobs", type=_positive_int, default=default_jobs(), help="worker processes"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _config(args: argparse.Namespace):
+    from controllers.benchmark import BenchmarkConfig
+
+    try:
+        return BenchmarkConfig(
+            controllers=args.controllers,
+            references=args.references,
+            plants=args.plants,
+            seed=args.seed,
+            steps=args.steps,
+            preview=args.preview,
+            jobs=args.jobs,
+        )
+    except ValueError as error:
+        raise CommandLineError(str(error)) from None
+
+
+def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
+    """The model folder to benchmark (loaded once to check it), identifying one if needed."""
+    from identification.hammerstein import HammersteinModel
+
+    if args.model is not None:
+        try:
+            HammersteinModel.load(args.model)
+        except (OSError, ValueError) as error:
+            raise CommandLineError(
+                f"--model {args.model}: cannot load the model: {error}"
+            ) from None
+        return str(args.model), {}
+    from identification.pipeline import IdentificationConfig, identify
+
+    start = time.perf_counter()
+    result = identify(config=IdentificationConfig(seed=args.seed), progress=print)
+    model_dir = out / "model"
+    result.model.save(model_dir)
+    fit = result.report["validation"]["hammerstein"]["fit_percent"]
+    print(f"identified model saved in {model_dir} (validation fit {fit:.2f} %)")
+    return str(model_dir), {"identification_s": round(time.perf_counter() - start, 1)}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check everything, identify (or load) the model, run the benchmark, write the report."""
+    out = prepare_output_dir(args.out)
+    config = _config(args)
+    from controllers.benchmark import run_benchmark, terminal_progress
+    from controllers.benchmark_report import check_targets, machine, write_benchmark
+
+    model_dir, timing = _model(args, out)
+    start = time.perf_counter()
+    result = run_benchmark(config, model_dir, progress=terminal_progress(args.quiet))
+    meta = {
+        "model": model_dir,
+        "dt": 1e-3,
+        "noise_bound_um": 1.0,
+        "machine": machine(),
+        "timing": timing,
+    }
+    paths = write_benchmark(result, out, meta)
+    timing["benchmark_s"] = round(time.perf_counter() - start, 1)
+    text = (out / "benchmark.md").read_text(encoding="utf-8")
+    print(text.split("## Effort")[0].split("## Tracking")[1].split("### Nominal PL140: max")[0])
+    failed = [c for c in check_targets(result) if not c["holds"]]
+    print(f"targets: {len(check_targets(result)) - len(failed)} hold, {len(failed)} do not")
+    for c in failed:
+        print(f"  not met: {c['target']}: {c['value']:.4g} (limit {c['limit']:.4g})")
+    print("time: " + ", ".join(f"{k} {v} s" for k, v in timing.items()))
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+BENCHMARK = Subcommand(
+    name="benchmark",
+    help="benchmark MPC against PID (and more) in closed loop on the bender",
+    description=(
+        "Identify the default PL140 model (or load one with --model), then run every "
+        "controller on the same PiezoBender-v0 environment, seeds and references, on the "
+        "nominal bender and on plants the model was not identified on. Writes benchmark.md, "
+        "benchmark.json and figures into --out."
+    ),
+    add_arguments=add_arguments,
+    run=run,
+    examples=(
+        "piezo benchmark --out out/benchmark",
+        "piezo benchmark --model out/pl140/model --controllers mpc,pid-ff --plants nominal",
+    ),
+)
