@@ -1,0 +1,116 @@
+"""The closed-loop benchmark: reproducible for any jobs, metrics by hand, CLI refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from controllers.benchmark import BenchmarkConfig, run_benchmark
+from controllers.benchmark_report import (
+    deterministic_json,
+    machine,
+    tracking_tables,
+    write_benchmark,
+)
+from controllers.metrics import tracking_metrics
+from controllers.references import REFERENCES, make_reference
+from piezo_cli.main import main
+
+MODEL_DIR = "docs/identify/model"
+
+
+def test_metrics_match_hand_computed_values():
+    metrics = tracking_metrics(
+        deflection_um=np.array([1.0, 2.0, 6.0, -1.0]),
+        reference_um=np.array([0.0, 2.0, 3.0, 0.0]),
+        voltage_v=np.array([0.0, 30.0, -30.0, 10.0]),
+        saturated=np.array([False, True, True, False]),
+        compute_s=np.array([1e-6, 2e-6, 3e-6, 4e-6]),
+        stroke_um=1000.0,
+        fallbacks=2,
+    )
+    # errors 1, 0, 3, -1: RMSE sqrt(11 / 4); the full stroke is 2000 um.
+    assert metrics["rmse_um"] == pytest.approx(np.sqrt(11 / 4))
+    assert metrics["rmse_percent"] == pytest.approx(100 * np.sqrt(11 / 4) / 2000)
+    assert metrics["max_error_um"] == 3.0
+    assert metrics["rms_voltage_v"] == pytest.approx(np.sqrt((900 + 900 + 100) / 4))
+    assert metrics["voltage_tv_v"] == pytest.approx(30 + 60 + 40)
+    assert metrics["saturated_fraction"] == 0.5
+    assert metrics["compute_median_us"] == pytest.approx(2.5)
+    assert metrics["fallbacks"] == 2 and metrics["steps"] == 4
+
+
+def test_references_are_seeded_named_and_start_at_rest():
+    for name, reference in REFERENCES.items():
+        a = make_reference(name, 500, dt=1e-3, seed=3)
+        b = make_reference(name, 500, dt=1e-3, seed=3)
+        np.testing.assert_array_equal(a, b)
+        assert a.shape == (500,) and np.all(np.isfinite(a))
+        if reference.smooth:
+            assert abs(a[0]) < 1e-9, name
+    with pytest.raises(ValueError, match="valid: sine-1Hz"):
+        make_reference("sine-3Hz", 10, dt=1e-3, seed=0)
+
+
+def test_small_benchmark_is_bitwise_equal_for_one_and_two_jobs(tmp_path):
+    common = dict(
+        controllers=("pid-ff", "mpc"),
+        references=("sine-10Hz", "steps"),
+        plants=("nominal", "damping-0.04"),
+        steps=150,
+    )
+    one = run_benchmark(BenchmarkConfig(**common, jobs=1), MODEL_DIR)
+    two = run_benchmark(BenchmarkConfig(**common, jobs=2), MODEL_DIR)
+    assert tracking_tables(one) == tracking_tables(two)
+    assert json.dumps(deterministic_json(one)) == json.dumps(deterministic_json(two))
+    assert len(one.episodes) == 2 * 2 + 2 * 2
+    meta = {"model": MODEL_DIR, "dt": 1e-3, "noise_bound_um": 1.0, "machine": machine()}
+    paths = write_benchmark(one, tmp_path, meta, figures=False)
+    text = (tmp_path / "benchmark.md").read_text()
+    assert "| mpc |" in text and "damping-0.04" in text and "## Targets" in text
+    data = json.loads((tmp_path / "benchmark.json").read_text())
+    assert data["meta"]["machine"]["cores"] >= 1
+    assert {e["reference"] for e in data["results"]["episodes"]} == {"sine-10Hz", "steps"}
+    assert len(paths) == 2
+
+
+def test_config_refuses_unknown_names():
+    with pytest.raises(ValueError, match="unknown controller 'lqr'"):
+        BenchmarkConfig(controllers=("lqr",))
+    with pytest.raises(ValueError, match="unknown reference"):
+        BenchmarkConfig(references=("sine-3Hz",))
+    with pytest.raises(ValueError, match="unknown plant"):
+        BenchmarkConfig(plants=("mars",))
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fail the test if the benchmark or the identification starts."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("work started before the arguments were checked")
+
+    monkeypatch.setattr("controllers.benchmark.run_benchmark", refuse)
+    monkeypatch.setattr("identification.pipeline.identify", refuse)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--controllers", "mpc,lqr"], "unknown controller 'lqr'"),
+        (["--references", "sine-3Hz"], "unknown reference 'sine-3Hz'"),
+        (["--out", "/dev/null/x"], "cannot write to /dev/null/x"),
+        (["--model", "/nonexistent/model"], "--model /nonexistent/model: cannot load the model"),
+    ],
+)
+def test_cli_refuses_bad_calls_in_one_line_before_any_work(
+    argv, message, no_work, tmp_path, capsys
+):
+    if "--out" not in argv:
+        argv = [*argv, "--out", str(tmp_path / "out")]
+    assert main(["benchmark", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err
+    assert len(err.splitlines()) == 1
