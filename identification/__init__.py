@@ -9,9 +9,9 @@
   ``collect``, which drives the environment open loop.
 - :mod:`identification.metrics`: fit %, RMSE, max error.
 
-Importing the package is light: the names of the pipeline (which needs gymnasium and the
-environment) and of the NLS training are imported on first use (PEP 562), so loading and running
-a saved model imports neither gymnasium, ``piezo_env`` nor torch.
+Importing the package is light: only the ARX model and the metrics load with it; every other name
+is imported on first use (PEP 562). The pipeline (gymnasium and the environment) loads only when
+``identify`` or ``collect`` is used, torch only when an NLS is trained.
 """
 
 from __future__ import annotations
@@ -20,13 +20,13 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from identification.arx import ARXModel, regressors
-from identification.hammerstein import HammersteinModel
 from identification.metrics import fit_metrics, fit_percent, max_abs_error, rmse
 
 if TYPE_CHECKING:
     from identification.bayes_uniform import BayesUniformEstimator
     from identification.estimation import METHODS, fit_arx, fit_chebyshev, fit_least_squares
     from identification.features import FEATURE_SETS
+    from identification.hammerstein import HammersteinModel
     from identification.nls import NLS, fit_nls
     from identification.pipeline import (
         IdentificationConfig,
@@ -42,6 +42,7 @@ _LAZY = {
     "fit_chebyshev": "identification.estimation",
     "fit_least_squares": "identification.estimation",
     "FEATURE_SETS": "identification.features",
+    "HammersteinModel": "identification.hammerstein",
     "NLS": "identification.nls",
     "fit_nls": "identification.nls",
     "IdentificationConfig": "identification.pipeline",
