@@ -1,0 +1,288 @@
+"""The NMPC's horizon model: hidden signal z along a voltage plan and its Jacobian dz/du.
+
+Along a plan ``u = (u_t .. u_t+N-1)`` (V) from the memory state ``s_t`` the nonlinearity gives
+``z = (z_t .. z_t+N-1)`` (equivalent V); the real-time iteration needs z and the lower
+triangular Jacobian ``J[k, j] = dz_t+k / du_t+j``. Three ways to get them:
+
+``StructuredHorizon`` (identified NLS only)
+    The memory state never depends on the network output, so the features ``F_k`` and their
+    sensitivities ``dF_k/du_j`` come from the feature recursion alone (a small casadi graph,
+    unrolled over the horizon and differentiated by casadi), and the network runs over the
+    whole horizon as a batch of matrix products with its input gradient by hand-written
+    back-propagation: ``dz_k/du_j = grad_F NLS(F_k) . dF_k/du_j``. The feature part is
+    generated as C, compiled with the machine's compiler and called through ctypes; without a
+    working compiler the same casadi Function runs in casadi's virtual machine.
+``GenericHorizon`` (any nonlinearity with ``casadi_step``)
+    casadi's Jacobian of the unrolled horizon ``(u, s_t) -> z``: simple and general, but for
+    the 3 x 32 network it differentiates the network N times over (about 1.1 M instructions
+    at N = 20).
+
+Measured in one process on the shipped model (N = 20, one BLAS thread, median per call):
+
+=====================================================  ==========
+casadi Jacobian of the unrolled horizon (SX VM)          3 600 us
+structured, everything in casadi SX (VM)                   520 us
+structured, everything in generated C via casadi.external  270 us
+features in the casadi VM + numpy network                  ~95 us
+features in generated C via casadi.external + numpy net   ~180 us
+  (casadi.external itself: 33 us; converting its DM outputs to numpy: 120 us)
+features in generated C via ctypes + numpy network          ~35 us
+=====================================================  ==========
+
+Generated C of the whole structured step is slower than numpy here because casadi expands the
+network's dense matrix products into scalar code (15 k instructions per horizon step), while
+numpy runs them as a few batched BLAS calls (all below OpenBLAS's threading threshold, so
+they stay single-threaded without a thread limit). So the fast path is: feature recursion in
+generated C called through ctypes (about 7 us), network in numpy.
+
+The compiled library is cached on disk (``$PIEZO_CACHE`` or ``~/.cache/piezo-testbed``), keyed
+by the hash of the generated source, so compilation (a few seconds) happens once per model and
+horizon.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "CompiledFunction",
+    "GenericHorizon",
+    "StructuredHorizon",
+    "compile_function",
+    "horizon_function",
+]
+
+_COMPILE_FLAGS = ("-O1", "-shared", "-fPIC")
+
+
+def horizon_function(nonlinearity: Any, horizon: int) -> Any:
+    """casadi.Function ``(u (N), s_t) -> z (N)``: the nonlinearity unrolled over the horizon."""
+    import casadi
+
+    step = nonlinearity.casadi_step()
+    u = casadi.SX.sym("u", horizon)
+    state0 = casadi.SX.sym("s", step.size1_in(1))
+    state, zs = state0, []
+    for k in range(horizon):
+        z, state = step(u[k], state)
+        zs.append(z)
+    return casadi.Function("nmpc_horizon", [u, state0], [casadi.vertcat(*zs)], ["u", "s"], ["z"])
+
+
+class CompiledFunction:
+    """A casadi Function generated as C, compiled, and called through ctypes on numpy buffers.
+
+    Inputs are copied into float64 buffers, outputs are written by the C code into dense
+    float64 buffers (casadi's column-major order) that are returned without copies; the next
+    call overwrites them.
+
+    Parameters
+    ----------
+    library : pathlib.Path
+        Shared library holding the generated function.
+    function : casadi.Function
+        The function it was generated from (for names and dense output shapes).
+    """
+
+    def __init__(self, library: Path, function: Any) -> None:
+        self.library = library
+        lib = ctypes.CDLL(str(library))
+        name = function.name()
+        sizes = [ctypes.c_longlong() for _ in range(4)]
+        getattr(lib, f"{name}_work")(*[ctypes.byref(s) for s in sizes])
+        n_arg, n_res, n_iw, n_w = (max(s.value, 1) for s in sizes)
+        self._iw = np.zeros(n_iw, dtype=np.int64)
+        self._w = np.zeros(n_w)
+        self.inputs = [np.zeros(function.numel_in(i)) for i in range(function.n_in())]
+        # Column-major (rows, cols) is row-major (cols, rows).
+        self.outputs = [
+            np.zeros((function.size2_out(i), function.size1_out(i)))
+            for i in range(function.n_out())
+        ]
+        pointer = ctypes.c_void_p
+        self._arg = (pointer * n_arg)(*[b.ctypes.data for b in self.inputs])
+        self._res = (pointer * n_res)(*[b.ctypes.data for b in self.outputs])
+        self._fn = getattr(lib, name)
+        self._fn.restype = ctypes.c_int
+        self._fn.argtypes = [pointer] * 4 + [ctypes.c_int]
+        self._lib = lib
+        self._call_args = (
+            ctypes.addressof(self._arg),
+            ctypes.addressof(self._res),
+            self._iw.ctypes.data,
+            self._w.ctypes.data,
+            0,
+        )
+
+    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
+        """Evaluate; outputs as (cols, rows) arrays (the transpose of casadi's shapes)."""
+        for buffer, value in zip(self.inputs, args, strict=True):
+            buffer[:] = value
+        if self._fn(*self._call_args) != 0:
+            raise RuntimeError(f"generated function in {self.library} returned an error")
+        return self.outputs
+
+
+def _cache_dir() -> Path:
+    root = os.environ.get("PIEZO_CACHE") or Path.home() / ".cache" / "piezo-testbed"
+    return Path(root) / "nmpc"
+
+
+def compile_function(function: Any) -> tuple[CompiledFunction | None, str]:
+    """Generate C for a casadi Function, compile it (cached on disk) and load it.
+
+    Returns
+    -------
+    compiled : CompiledFunction or None
+        None when no compiler works (the caller then uses casadi's virtual machine).
+    note : str
+        What happened (the library, or why compilation failed), for reports.
+    """
+    import casadi
+
+    compiler = shutil.which(os.environ.get("CC", "cc"))
+    if compiler is None:
+        return None, "no C compiler found (set CC); using casadi's virtual machine"
+    name = function.name()
+    try:
+        cache = _cache_dir()
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:
+            generator = casadi.CodeGenerator(f"{name}.c", {"with_header": False})
+            generator.add(function)
+            generator.generate(f"{tmp}/")
+            source = Path(tmp) / f"{name}.c"
+            key = hashlib.sha256(source.read_bytes() + " ".join(_COMPILE_FLAGS).encode())
+            library = cache / f"{name}_{key.hexdigest()[:16]}.so"
+            if not library.exists():
+                staged = Path(tmp) / library.name
+                subprocess.run(
+                    [compiler, *_COMPILE_FLAGS, "-o", str(staged), str(source), "-lm"],
+                    check=True,
+                    capture_output=True,
+                    timeout=300,
+                )
+                os.replace(staged, library)  # atomic: concurrent builders never see half a file
+        return CompiledFunction(library, function), f"generated C, {library.name}"
+    except (OSError, subprocess.SubprocessError, RuntimeError, AttributeError) as exc:
+        return None, f"compilation failed ({type(exc).__name__}); using casadi's virtual machine"
+
+
+def _as_numpy(outputs: Any) -> list[np.ndarray]:
+    """casadi VM outputs as (cols, rows) numpy arrays, like :class:`CompiledFunction` gives."""
+    return [np.asarray(o.full()).T for o in outputs]
+
+
+class StructuredHorizon:
+    """z and dz/du of the identified NLS along a plan (see the module docstring).
+
+    Parameters
+    ----------
+    nls : identification.nls.NLS
+        Identified network with its memory feature map.
+    horizon : int
+        N (samples).
+    compiled : bool
+        Try generated C for the feature recursion (else casadi's virtual machine).
+    """
+
+    def __init__(self, nls: Any, horizon: int, *, compiled: bool = True) -> None:
+        import casadi
+
+        fmap = nls.feature_map
+        u = casadi.SX.sym("u", horizon)
+        state0 = casadi.SX.sym("s", nls.n_state)
+        state, columns = state0, []
+        for k in range(horizon):
+            f, state = fmap.casadi_step(u[k], state)
+            columns.append(f)
+        features = casadi.horzcat(*columns)  # (n_f, N)
+        sens = casadi.densify(casadi.jacobian(casadi.vec(features), u)).T  # (N, n_f N)
+        self.function = casadi.Function(
+            "nmpc_features", [u, state0], [casadi.densify(features), sens], ["u", "s"], ["F", "dF"]
+        )
+        self.horizon, self.n_features = horizon, nls.n_features
+        compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
+        if compiled:
+            compiled_fn, self.backend = compile_function(self.function)
+        self._features = compiled_fn or (lambda *a: _as_numpy(self.function(*a)))
+        mlp = nls.to_numpy()
+        self._w_t = [np.ascontiguousarray(w.T) for w in mlp.weights]
+        self._w = list(mlp.weights)
+        self._b = list(mlp.biases)
+        self._out, self._skip, self._bias = mlp.out_weight, mlp.skip_weight, mlp.out_bias
+
+    def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """z (N,) (equivalent V) along ``u`` (N,) (V) from ``state``, and dz/du (N, N)."""
+        features, sens = self._features(u, state)
+        z, grad = self._network(features)
+        n = self.horizon
+        jac = np.matmul(grad[:, None, :], sens.reshape(n, self.n_features, n))
+        return z, jac[:, 0, :]
+
+    def evaluate(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """z (N,) along ``u`` from ``state`` (equivalent V)."""
+        return self.linearize(u, state)[0]
+
+    def _network(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Network output z (N,) and its gradient dz/dF (N, n_f) for a batch of features."""
+        layers = []
+        h = features
+        for w_t, b in zip(self._w_t, self._b, strict=True):
+            h = np.tanh(h @ w_t + b)
+            layers.append(h)
+        z = h @ self._out + features @ self._skip + self._bias
+        g = self._out * (1.0 - h * h)
+        for i in range(len(layers) - 1, 0, -1):
+            g = (g @ self._w[i]) * (1.0 - layers[i - 1] ** 2)
+        return z, g @ self._w[0] + self._skip
+
+
+class GenericHorizon:
+    """z and dz/du by casadi's Jacobian of the unrolled horizon, for any nonlinearity.
+
+    Parameters
+    ----------
+    nonlinearity : InputNonlinearity
+        Anything with ``casadi_step()``.
+    horizon : int
+        N (samples).
+    compiled : bool
+        Try generated C (else casadi's virtual machine).
+    """
+
+    def __init__(self, nonlinearity: Any, horizon: int, *, compiled: bool = True) -> None:
+        import casadi
+
+        unrolled = horizon_function(nonlinearity, horizon)
+        u, state = unrolled.sx_in()
+        z = unrolled(u, state)
+        self.function = casadi.Function(
+            "nmpc_generic",
+            [u, state],
+            [z, casadi.densify(casadi.jacobian(z, u))],
+            ["u", "s"],
+            ["z", "dzdu"],
+        )
+        compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
+        if compiled:
+            compiled_fn, self.backend = compile_function(self.function)
+        self._call = compiled_fn or (lambda *a: _as_numpy(self.function(*a)))
+
+    def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """z (N,) (equivalent V) along ``u`` (N,) (V) from ``state``, and dz/du (N, N)."""
+        z, jac_t = self._call(u, state)  # (cols, rows) order: jac_t is J transposed
+        return z.reshape(-1).copy(), jac_t.T.copy()
+
+    def evaluate(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """z (N,) along ``u`` from ``state`` (equivalent V)."""
+        return self.linearize(u, state)[0]

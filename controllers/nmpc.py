@@ -1,0 +1,420 @@
+"""Nonlinear MPC on the whole Hammerstein model: voltage is the decision variable.
+
+Prediction over the horizon N from the observer's ``[x_t; d_t]`` (offset-free, see
+:mod:`controllers.observer`) and the nonlinearity's memory state ``s_t``::
+
+    z = Z(u; s_t)                               (nonlinearity unrolled, network inside)
+    y_t+1..t+N = Phi x_t + Gamma z + d_t 1      (linear part, prediction matrices)
+
+Cost and constraints over ``u = (u_t .. u_t+N-1)`` (V), targets r_t+1 .. r_t+N (um)::
+
+    min  w sum_k (y_t+k - r_t+k)^2 + lambda sum_k (u_t+k - u_t+k-1)^2,   |u_t+k| <= u_max
+
+Solvers
+-------
+``"rti"`` (real-time iteration, the default)
+    Gauss-Newton SQP warm-started from the shifted previous plan: linearize ``z`` along the
+    plan (``z ~ z_bar + J (u - u_bar)``), solve the box-constrained QP in u, repeat
+    ``sqp_iterations`` times (stop early once a step moves no voltage by more than
+    ``step_tolerance``). Two iterations are the default because one loses accuracy at input
+    reversals, where the hysteresis features kink. The Jacobian comes from
+    :class:`controllers._nmpc_horizon.StructuredHorizon` for the identified NLS (feature
+    recursion in generated C called through ctypes, network batched in numpy: ~40 us at
+    N = 20, against 1.8-3.6 ms for casadi's Jacobian of the unrolled horizon; the module
+    :mod:`controllers._nmpc_horizon` lists every path measured) and from casadi's generic
+    Jacobian for any other nonlinearity (the plant's hysteresis in the oracle). The QP is
+    dense and small (N variables, identity constraint matrix): OSQP is set up once with a
+    dense upper-triangular P pattern; each iteration updates ``Px`` and ``q`` and warm-starts.
+``"ipopt"`` (the reference)
+    The full nonlinear program through ``casadi.nlpsol("ipopt")`` with exact derivatives,
+    warm-started from the shifted plan, capped by ``ipopt_max_iter`` and
+    ``ipopt_max_cpu_time``.
+
+A QP or NLP that fails or reaches its cap never stops the loop: the shifted previous plan is
+applied (at the very first step that is the rest plan, i.e. the last voltage), counted in
+``stats.fallbacks`` and ``stats.status``. The per-step BLAS calls are small matrix products far
+below OpenBLAS's threading threshold, so they run single-threaded without a thread limit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import osqp
+import scipy.sparse
+
+from controllers._nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
+from controllers.base import Controller
+from controllers.mpc import prediction_matrices
+from controllers.observer import DisturbanceObserver
+from controllers.prediction import IdentifiedNLS, PredictionModel
+from controllers.task import ControlTask
+
+__all__ = ["NMPCSettings", "NonlinearMPC"]
+
+_SOLVERS = ("rti", "ipopt")
+_USABLE = ("solved", "solved inaccurate")  # OSQP statuses whose solution is applied
+_JACOBIANS = ("auto", "structured", "structured-vm", "generic", "generic-vm")
+
+
+@dataclass(frozen=True)
+class NMPCSettings:
+    """Settings of :class:`NonlinearMPC` (validated at construction).
+
+    Attributes
+    ----------
+    horizon : int
+        Prediction horizon N (samples).
+    solver : str
+        ``"rti"`` (SQP real-time iteration, OSQP) or ``"ipopt"`` (full solve, the reference).
+    sqp_iterations : int
+        Gauss-Newton QPs per step for ``"rti"`` (2: one loses at input reversals).
+    step_tolerance : float
+        Stop the SQP early when no voltage of the plan moved more than this (V).
+    tracking_weight : float
+        w, weight of the squared tracking error (1/um^2).
+    rate_weight : float
+        lambda, weight of the squared voltage rate (1/V^2): 1e-2 makes a 3 V move cost as much
+        as 0.3 um of error, so the rate penalty only smooths noise.
+    measurement_std : float or None
+        Sensor noise standard deviation the observer assumes (um); None: noise bound /
+        sqrt(3) (uniform noise), at least 0.05 um.
+    disturbance_std : float
+        Random-walk step of the output disturbance (um per sample): the observer's speed.
+    process_std : float
+        Input-referred process noise of the observer (equivalent V).
+    jacobian : str
+        ``"auto"`` (structured for the identified NLS, else generic; generated C where a
+        compiler works), ``"structured"``, ``"structured-vm"`` (casadi's virtual machine, no
+        compiler), ``"generic"``, ``"generic-vm"``.
+    eps_abs, eps_rel : float
+        OSQP tolerances.
+    max_qp_iterations : int
+        OSQP iteration cap per QP; reaching it is a fallback.
+    shortcut : bool
+        Try the unconstrained optimum of each QP first and skip OSQP when it lies inside the
+        drive range (exact: see :meth:`NonlinearMPC._solve_qp`).
+    ipopt_max_iter : int
+        IPOPT iteration cap; reaching it is a fallback.
+    ipopt_max_cpu_time : float
+        IPOPT CPU-time cap per step (s); reaching it is a fallback.
+    """
+
+    horizon: int = 20
+    solver: str = "rti"
+    sqp_iterations: int = 2
+    step_tolerance: float = 1e-3
+    tracking_weight: float = 1.0
+    rate_weight: float = 1e-2
+    measurement_std: float | None = None
+    disturbance_std: float = 0.3
+    process_std: float = 0.0
+    jacobian: str = "auto"
+    eps_abs: float = 1e-6
+    eps_rel: float = 1e-6
+    max_qp_iterations: int = 200
+    shortcut: bool = True
+    ipopt_max_iter: int = 100
+    ipopt_max_cpu_time: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.solver not in _SOLVERS:
+            raise ValueError(f"solver must be one of {_SOLVERS}, got {self.solver!r}")
+        if self.jacobian not in _JACOBIANS:
+            raise ValueError(f"jacobian must be one of {_JACOBIANS}, got {self.jacobian!r}")
+        for name in ("horizon", "sqp_iterations", "max_qp_iterations", "ipopt_max_iter"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ("rate_weight", "process_std", "step_tolerance"):
+            if not _number_at_least(getattr(self, name), 0.0):
+                raise ValueError(
+                    f"{name} must be a finite number >= 0, got {getattr(self, name)!r}"
+                )
+        for name in (
+            "tracking_weight",
+            "disturbance_std",
+            "eps_abs",
+            "eps_rel",
+            "ipopt_max_cpu_time",
+        ):
+            value = getattr(self, name)
+            if not _number_at_least(value, 0.0) or value == 0:
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        if self.measurement_std is not None and not (
+            _number_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
+        ):
+            raise ValueError(
+                f"measurement_std must be > 0 um or None, got {self.measurement_std!r}"
+            )
+
+
+def _number_at_least(value: object, low: float) -> bool:
+    return (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value >= low
+    )
+
+
+def make_horizon(model: PredictionModel, horizon: int, jacobian: str) -> Any:
+    """The horizon linearization (z and dz/du along a plan) chosen by ``jacobian``."""
+    nonlinearity = model.nonlinearity
+    structured_ok = isinstance(nonlinearity, IdentifiedNLS)
+    if jacobian in ("structured", "structured-vm") and not structured_ok:
+        raise ValueError(
+            f"jacobian={jacobian!r} needs the identified NLS; this model's nonlinearity is "
+            f"{type(nonlinearity).__name__}: use 'auto' or 'generic'"
+        )
+    compiled = not jacobian.endswith("-vm")
+    if jacobian.startswith("structured") or (jacobian == "auto" and structured_ok):
+        return StructuredHorizon(nonlinearity.nls, horizon, compiled=compiled)
+    return GenericHorizon(nonlinearity, horizon, compiled=compiled)
+
+
+class NonlinearMPC(Controller):
+    """Offset-free nonlinear MPC in the voltage (see the module docstring).
+
+    Parameters
+    ----------
+    model : PredictionModel
+        Identified Hammerstein model or the plant (oracle).
+    task : ControlTask
+        Sample time, drive range, preview layout.
+    settings : NMPCSettings
+    name : str
+        Name in reports.
+    """
+
+    Settings = NMPCSettings
+
+    def __init__(
+        self,
+        model: PredictionModel,
+        task: ControlTask,
+        settings: NMPCSettings | None = None,
+        *,
+        name: str = "nmpc",
+    ) -> None:
+        super().__init__(task)
+        self.name = name
+        self.model = model
+        self.settings = settings = settings or NMPCSettings()
+        n_hor = settings.horizon
+        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
+        self.horizon = make_horizon(model, n_hor, settings.jacobian)
+        measurement = settings.measurement_std
+        if measurement is None:
+            measurement = max(task.noise_bound_um / math.sqrt(3.0), 0.05)
+        self.observer = DisturbanceObserver(
+            model.a,
+            model.b,
+            model.c,
+            measurement_std=measurement,
+            disturbance_std=settings.disturbance_std,
+            process_std=settings.process_std,
+        )
+        diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
+        self._rate_hessian = settings.rate_weight * diff.T @ diff
+        if settings.solver == "rti":
+            self._setup_qp()
+        else:
+            self._nlp = self._build_nlp()
+        self._plan = np.zeros(n_hor)
+        self._u_prev = 0.0
+        self._memory = model.nonlinearity.initial_state()
+
+    # -- episode ------------------------------------------------------------------------------
+
+    def _reset(self, observation: np.ndarray) -> None:
+        self.observer.reset()
+        self._plan = np.zeros(self.settings.horizon)
+        self._u_prev = 0.0
+        self._memory = self.model.nonlinearity.initial_state()
+
+    def _act(self, observation: np.ndarray) -> float:
+        estimate = self.observer.correct(float(observation[0]))
+        n = self.model.n_states
+        targets = self.task.targets(observation, self.settings.horizon)
+        # Predicted error without the z contribution: y - r = offset + Gamma z.
+        offset = self._phi @ estimate[:n] + (estimate[n] - targets)
+        shifted = np.clip(np.r_[self._plan[1:], self._plan[-1]], -self._u_max, self._u_max)
+        if self.settings.solver == "rti":
+            plan, status, iterations = self._solve_rti(offset, shifted)
+        else:
+            plan, status, iterations = self._solve_nlp(estimate, targets, shifted)
+        self.stats.iterations.append(iterations)
+        self.stats.status[status] += 1
+        if plan is None:
+            self.stats.fallbacks += 1
+            plan = shifted if np.all(np.isfinite(shifted)) else np.full_like(shifted, self._u_prev)
+        self._plan = plan
+        # The plant gets float32 volts: step the memory and the observer with exactly those.
+        u = float(np.float32(plan[0]))
+        z, self._memory = self.model.nonlinearity.step(u, self._memory)
+        self.observer.predict(z)
+        self._u_prev = u
+        return u
+
+    def predict_deflection(
+        self,
+        u: np.ndarray,
+        x: np.ndarray | None = None,
+        disturbance: float = 0.0,
+        state: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """The controller's prediction y_t+1 .. y_t+N (um) for the plan ``u`` (N,) (V).
+
+        Parameters
+        ----------
+        u : ndarray, shape (N,)
+            Voltages u_t .. u_t+N-1 (V).
+        x : ndarray, optional
+            Linear state x_t (default: rest).
+        disturbance : float
+            Output disturbance d_t (um).
+        state : ndarray, optional
+            Memory state s_t of the nonlinearity (default: rest).
+        """
+        x = np.zeros(self.model.n_states) if x is None else np.asarray(x, float)
+        state = self.model.nonlinearity.initial_state() if state is None else state
+        z = self.horizon.evaluate(np.asarray(u, float), state)
+        return self._phi @ x + self._gamma @ z + disturbance
+
+    # -- real-time iteration ------------------------------------------------------------------
+
+    def _setup_qp(self) -> None:
+        """OSQP once: dense upper-triangular P pattern, identity constraints, box bounds."""
+        s, n_hor = self.settings, self.settings.horizon
+        # Column-major order of the upper triangle: the order of OSQP's CSC P values.
+        cols, rows = np.tril_indices(n_hor)
+        self._p_index = (rows, cols)
+        pattern = scipy.sparse.csc_matrix(
+            (np.ones(rows.size) + (rows == cols), (rows, cols)), shape=(n_hor, n_hor)
+        )
+        self._qp = osqp.OSQP()
+        self._qp.setup(
+            P=pattern,
+            q=np.zeros(n_hor),
+            A=scipy.sparse.identity(n_hor, format="csc"),
+            l=np.full(n_hor, -self._u_max),
+            u=np.full(n_hor, self._u_max),
+            verbose=False,
+            eps_abs=s.eps_abs,
+            eps_rel=s.eps_rel,
+            max_iter=s.max_qp_iterations,
+            check_termination=5,
+            polishing=False,
+            warm_starting=True,
+        )
+
+    def _solve_rti(
+        self, offset: np.ndarray, u_bar: np.ndarray
+    ) -> tuple[np.ndarray | None, str, int]:
+        """Gauss-Newton SQP from ``u_bar``: (plan or None on failure, status, QP iterations)."""
+        s = self.settings
+        w, total, status = s.tracking_weight, 0, "solved"
+        for _ in range(s.sqp_iterations):
+            z, jac_z = self.horizon.linearize(u_bar, self._memory)
+            jac_y = self._gamma @ jac_z
+            constant = offset + self._gamma @ z - jac_y @ u_bar
+            hessian = w * (jac_y.T @ jac_y) + self._rate_hessian
+            q = w * (jac_y.T @ constant)
+            q[0] -= s.rate_weight * self._u_prev
+            u_new, status, iterations = self._solve_qp(hessian, q, u_bar)
+            total += iterations
+            if u_new is None:
+                return None, status, total
+            step = float(np.max(np.abs(u_new - u_bar)))
+            u_bar = u_new
+            if step <= s.step_tolerance:
+                break
+        return u_bar, status, total
+
+    def _solve_qp(
+        self, hessian: np.ndarray, q: np.ndarray, u_bar: np.ndarray
+    ) -> tuple[np.ndarray | None, str, int]:
+        """Box-constrained QP: (solution or None, status, OSQP iterations).
+
+        The unconstrained optimum is tried first: inside the box it meets the KKT conditions
+        with no active bound, so it is the exact solution (most steps on smooth references).
+        """
+        if self.settings.shortcut:
+            try:
+                u_new = -np.linalg.solve(hessian, q)
+            except np.linalg.LinAlgError:
+                u_new = None
+            if u_new is not None and np.all(np.abs(u_new) <= self._u_max):
+                return u_new, "unconstrained", 0
+        self._qp.update(Px=hessian[self._p_index], q=q)
+        self._qp.warm_start(x=u_bar)
+        result = self._qp.solve(raise_error=False)
+        status = result.info.status
+        if status not in _USABLE or not np.all(np.isfinite(result.x)):
+            return None, status, int(result.info.iter)
+        return np.clip(result.x, -self._u_max, self._u_max), status, int(result.info.iter)
+
+    # -- IPOPT reference ------------------------------------------------------------------------
+
+    def _build_nlp(self) -> Any:
+        """casadi nlpsol('ipopt') of the full problem; parameters [x; d; s; r; u_prev]."""
+        import casadi
+
+        s, model = self.settings, self.model
+        n_hor, n = s.horizon, model.n_states
+        unrolled = horizon_function(model.nonlinearity, n_hor)
+        n_mem = unrolled.size1_in(1)
+        u = casadi.SX.sym("u", n_hor)
+        p = casadi.SX.sym("p", n + 1 + n_mem + n_hor + 1)
+        x, d = p[:n], p[n]
+        memory, targets, u_prev = p[n + 1 : n + 1 + n_mem], p[n + 1 + n_mem : -1], p[-1]
+        y = casadi.mtimes(casadi.DM(self._phi), x) + casadi.mtimes(
+            casadi.DM(self._gamma), unrolled(u, memory)
+        )
+        error = y + d - targets
+        rates = u - casadi.vertcat(u_prev, u[:-1])
+        cost = s.tracking_weight * casadi.sumsqr(error) + s.rate_weight * casadi.sumsqr(rates)
+        options = {
+            "ipopt.max_iter": s.ipopt_max_iter,
+            "ipopt.max_cpu_time": s.ipopt_max_cpu_time,
+            "ipopt.print_level": 0,
+            "ipopt.sb": "yes",
+            "print_time": False,
+            "error_on_fail": False,
+        }
+        return casadi.nlpsol("nmpc_ipopt", "ipopt", {"x": u, "p": p, "f": cost}, options)
+
+    def _solve_nlp(
+        self, estimate: np.ndarray, targets: np.ndarray, u_bar: np.ndarray
+    ) -> tuple[np.ndarray | None, str, int]:
+        """IPOPT from ``u_bar``: (plan or None on failure, status, iterations)."""
+        params = np.concatenate([estimate, self._memory, targets, [self._u_prev]])
+        try:
+            solution = self._nlp(x0=u_bar, p=params, lbx=-self._u_max, ubx=self._u_max)
+        except RuntimeError as exc:  # casadi raises on evaluation errors inside the solver
+            return None, f"error: {type(exc).__name__}", 0
+        stats = self._nlp.stats()
+        plan = np.asarray(solution["x"].full()).ravel()
+        status = str(stats.get("return_status", "unknown"))
+        iterations = int(stats.get("iter_count", 0))
+        if not stats.get("success", False) or not np.all(np.isfinite(plan)):
+            return None, status, iterations
+        return np.clip(plan, -self._u_max, self._u_max), status, iterations
+
+    # -- reports ------------------------------------------------------------------------------
+
+    def describe(self) -> dict[str, Any]:
+        """Settings, model source, Jacobian path and observer bandwidth (JSON-safe)."""
+        solver = f"osqp {osqp.__version__}" if self.settings.solver == "rti" else "ipopt (casadi)"
+        return {
+            "name": self.name,
+            "model": self.model.source,
+            "settings": asdict(self.settings),
+            "jacobian": f"{type(self.horizon).__name__}: {self.horizon.backend}",
+            "solver": solver,
+            "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
+        }

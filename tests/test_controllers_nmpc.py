@@ -1,0 +1,156 @@
+"""Nonlinear MPC held to independent computations: model simulation, derivatives, IPOPT, MPC."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import controllers
+from controllers import ControlTask, PredictionModel
+from controllers._nmpc_horizon import GenericHorizon, StructuredHorizon
+from controllers.nmpc import NMPCSettings, NonlinearMPC
+
+MODEL_DIR = "docs/identify/model"
+TASK = ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=20, noise_bound_um=1.0)
+HORIZON = 10
+
+
+@pytest.fixture(scope="module")
+def model() -> PredictionModel:
+    return PredictionModel.from_hammerstein(MODEL_DIR, TASK.u_max)
+
+
+@pytest.fixture(scope="module")
+def env():
+    environment = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    yield environment
+    environment.close()
+
+
+def random_plan(seed: int, n: int = HORIZON) -> np.ndarray:
+    """Voltages with no repeated sample (the feature recursion is smooth away from du = 0)."""
+    return np.random.default_rng(seed).uniform(-25.0, 25.0, n)
+
+
+@pytest.mark.parametrize("jacobian", ["structured", "structured-vm", "generic-vm"])
+def test_prediction_equals_the_model_simulation(model, jacobian):
+    controller = NonlinearMPC(model, TASK, NMPCSettings(horizon=HORIZON, jacobian=jacobian))
+    u = random_plan(1)
+    predicted = controller.predict_deflection(u)
+    np.testing.assert_allclose(predicted, model.simulate(u), rtol=1e-10, atol=1e-9)
+
+
+def memory_after(model: PredictionModel, voltages: np.ndarray) -> np.ndarray:
+    state = model.nonlinearity.initial_state()
+    for v in voltages:
+        _, state = model.nonlinearity.step(float(v), state)
+    return state
+
+
+def test_structured_jacobian_equals_finite_differences_and_casadi(model):
+    state = memory_after(model, 20.0 * np.sin(np.linspace(0.0, 7.0, 40)))
+    structured = StructuredHorizon(model.nonlinearity.nls, HORIZON)
+    generic = GenericHorizon(model.nonlinearity, HORIZON, compiled=False)
+    u = random_plan(2)
+    z, jac = structured.linearize(u, state)
+    step = 1e-6
+    columns = [
+        (structured.evaluate(u + step * e, state) - structured.evaluate(u - step * e, state))
+        / (2 * step)
+        for e in np.eye(HORIZON)
+    ]
+    np.testing.assert_allclose(jac, np.array(columns).T, rtol=1e-6, atol=1e-6)
+    z_generic, jac_generic = generic.linearize(u, state)
+    np.testing.assert_allclose(z, z_generic, rtol=1e-12, atol=1e-10)
+    np.testing.assert_allclose(jac, jac_generic, rtol=1e-10, atol=1e-10)
+    assert np.all(np.triu(jac, 1) == 0.0)  # causal: z_t+k never depends on later voltages
+
+
+def test_real_time_iteration_converges_to_the_ipopt_solution(model):
+    targets = 300.0 * np.sin(np.linspace(0.1, 1.5, TASK.preview + 1))
+    obs = np.r_[0.0, 0.0, targets[: TASK.preview]]
+    plans = {}
+    for solver, iterations in (("rti", 20), ("ipopt", 1)):
+        settings = NMPCSettings(
+            horizon=HORIZON, solver=solver, sqp_iterations=iterations, step_tolerance=1e-9
+        )
+        controller = NonlinearMPC(model, TASK, settings)
+        controller.reset(obs)
+        controller.act(obs)
+        plans[solver] = controller._plan
+        assert controller.stats.fallbacks == 0
+    np.testing.assert_allclose(plans["rti"], plans["ipopt"], atol=1e-4)
+
+
+def sine(n: int, amplitude: float, frequency: float) -> np.ndarray:
+    return amplitude * np.sin(2 * np.pi * frequency * np.arange(1, n + 2) * 1e-3)
+
+
+def test_matches_linear_mpc_on_an_easy_reference(env):
+    reference = sine(300, 300.0, 10.0)
+    episodes = {
+        name: controllers.run_episode(
+            env, controllers.make(name, MODEL_DIR, env), seed=0, reference=reference
+        )
+        for name in ("mpc", "nmpc")
+    }
+    mpc, nmpc = episodes["mpc"], episodes["nmpc"]
+    # Converged NMPC and linear MPC in z + exact inverse solve nearly the same problem (the
+    # rate penalty acts on u in one and on z in the other): the same accuracy, similar volts.
+    assert abs(nmpc.metrics["rmse_um"] - mpc.metrics["rmse_um"]) < 0.25
+    assert nmpc.metrics["rmse_um"] < 1.5
+    assert np.max(np.abs(nmpc.voltage_V - mpc.voltage_V)) < 0.5
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"solver": "rti", "max_qp_iterations": 1, "shortcut": False},
+        {"solver": "ipopt", "ipopt_max_iter": 1},
+    ],
+)
+def test_forced_solver_failure_falls_back_and_the_loop_goes_on(model, env, options):
+    task = ControlTask.from_env(env)
+    controller = NonlinearMPC(model, task, NMPCSettings(horizon=5, **options))
+    steps = 15
+    episode = controllers.run_episode(
+        env, controller, seed=0, reference=sine(steps, 300.0, 10.0), max_steps=steps
+    )
+    assert episode.voltage_V.size == steps
+    assert controller.stats.fallbacks == steps
+    assert sum(controller.stats.status.values()) == steps
+    assert np.all(np.abs(episode.voltage_V) <= task.u_max)
+    assert np.all(np.isfinite(episode.deflection_um))
+
+
+def test_episode_is_finite_in_range_and_deterministic(env):
+    reference = sine(400, 500.0, 50.0)
+    runs = [
+        controllers.run_episode(
+            env, controllers.make("nmpc", MODEL_DIR, env), seed=3, reference=reference
+        )
+        for _ in range(2)
+    ]
+    first, second = runs
+    assert np.all(np.isfinite(first.deflection_um)) and np.all(np.isfinite(first.voltage_V))
+    assert np.all(np.abs(first.voltage_V) <= float(env.action_space.high[0]))
+    np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
+    np.testing.assert_array_equal(first.deflection_um, second.deflection_um)
+    assert first.metrics["fallbacks"] == 0
+    assert first.controller["jacobian"].startswith("StructuredHorizon")
+    assert len(first.compute_s) == first.voltage_V.size
+
+
+def test_bad_settings_and_options_are_refused(env):
+    with pytest.raises(ValueError, match="solver"):
+        NMPCSettings(solver="sqpmethod")
+    with pytest.raises(ValueError, match="sqp_iterations"):
+        NMPCSettings(sqp_iterations=0)
+    with pytest.raises(ValueError, match="rate_weight"):
+        NMPCSettings(rate_weight=-1.0)
+    with pytest.raises(ValueError, match="valid"):
+        controllers.make("nmpc", MODEL_DIR, env, horizon_length=5)
+    controller = controllers.make("nmpc", MODEL_DIR, env, horizon=5)
+    with pytest.raises(ValueError, match="observation"):
+        controller.reset(np.zeros(3))
