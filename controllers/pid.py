@@ -443,26 +443,30 @@ class PIDController(Controller):
         else:
             self._e_prev = float(observation[2]) - float(observation[0])
 
-    def _pid(self, error: float) -> float:
-        """PID then notch on one error sample (um); the integrator is updated later."""
-        self._integral_candidate = self._integral + self._k_i * error
+    def _pid(self, error: float, low: float, high: float) -> float:
+        """PID on one error sample (um), limited to [low, high] before the notch, then notch.
+
+        Back-calculation on the limit keeps the integrator bounded; the notch has unit DC gain,
+        so the limit is the drive range (or the z headroom left by the feedforward).
+        """
+        integral = self._integral + self._k_i * error
         self._deriv = self._a_d * self._deriv + self._k_d * (error - self._e_prev)
         self._e_prev = error
-        v = self.gains.kp * error + self._integral_candidate + self._deriv
-        out = self._b0 * v + self._s1
-        self._s1 = self._b1 * v - self._a1 * out + self._s2
-        self._s2 = self._b2 * v - self._a2 * out
+        v = self.gains.kp * error + integral + self._deriv
+        v_sat = min(max(v, low), high)
+        self._integral = integral + self._g_aw * (v_sat - v)
+        out = self._b0 * v_sat + self._s1
+        self._s1 = self._b1 * v_sat - self._a1 * out + self._s2
+        self._s2 = self._b2 * v_sat - self._a2 * out
         return out
 
     def _act(self, observation: np.ndarray) -> float:
         y, r_next = float(observation[0]), float(observation[2])
         if self.settings.feedforward:
             return self._act_feedforward(y, r_next)
-        u = self._pid(r_next - y)
-        u_sat = min(max(u, -self._u_max), self._u_max)
-        self._integral = self._integral_candidate + self._g_aw * (u_sat - u)
+        u = self._pid(r_next - y, -self._u_max, self._u_max)
         self.stats.status["ok"] += 1
-        return u_sat
+        return min(max(u, -self._u_max), self._u_max)  # the notch may overshoot the limit
 
     def _act_feedforward(self, y: float, r_next: float) -> float:
         """Linear inverse on r_t+1, PID on the deviation from the model, NLS inverse to volts."""
@@ -471,10 +475,11 @@ class PIDController(Controller):
         z_ff = (r_next - float(self._ca @ x)) * self._ff_gain
         z_ff = min(max(z_ff, self._z_lo), self._z_hi)
         self._x_ff = self.model.a @ x + self.model.b[:, 0] * z_ff
-        z_cmd = z_ff + self._pid(y_model - y)
+        z_cmd = z_ff + self._pid(y_model - y, self._z_lo - z_ff, self._z_hi - z_ff)
         result = self.model.nonlinearity.inverse(z_cmd, self._nl_state)
         self._nl_state = result.state
-        self._integral = self._integral_candidate + self._g_aw * (result.z - z_cmd)
+        # Whatever the memory state could not reach is taken off the integrator too.
+        self._integral += self._g_aw * (result.z - z_cmd)
         self.stats.status[result.status] += 1
         return result.u
 

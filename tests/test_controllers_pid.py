@@ -1,0 +1,184 @@
+"""PID family: closed loop against python-control, anti-windup, notch, episodes, settings."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import control
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import controllers
+from controllers.pid import PIDController
+
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
+PRESETS = ("pid", "pid-notch", "pid-ff")
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def model(env):
+    return controllers.prediction_model(MODEL_DIR, env)
+
+
+@pytest.fixture(scope="module")
+def built(env, model):
+    return {name: controllers.make(name, model, env) for name in PRESETS}
+
+
+def _observation(y: float, ref: np.ndarray, t: int, preview: int) -> np.ndarray:
+    """[y_t, r_t, r_t+1 .. r_t+P], the last reference sample held."""
+    idx = np.minimum(np.arange(t, t + preview + 1), ref.size - 1)
+    return np.concatenate([[y], ref[idx]])
+
+
+def _run_linear(controller, model, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Step the controller against the model's linear part (volts = z); outputs y_1 .. y_T."""
+    preview = controller.task.preview
+    x = np.zeros(model.n_states)
+    controller.reset(_observation(0.0, ref, 0, preview))
+    ys, us = [], []
+    for t in range(ref.size - 1):
+        y = float(model.c[0] @ x)
+        u = float(controller.act(_observation(y, ref, t, preview))[0])
+        x = model.a @ x + model.b[:, 0] * u
+        ys.append(float(model.c[0] @ x))
+        us.append(u)
+    return np.array(ys), np.array(us)
+
+
+def _pid_tf(gains, dt: float) -> control.TransferFunction:
+    """The parallel PID written out from its gains, term by term."""
+    a = math.exp(-dt / gains.tf)
+    proportional = control.tf([gains.kp], [1.0], dt)
+    integral = control.tf([gains.ki * dt, 0.0], [1.0, -1.0], dt)
+    derivative = control.tf(gains.kd * (1 - a) / dt * np.array([1.0, -1.0]), [1.0, -a], dt)
+    return proportional + integral + derivative
+
+
+@pytest.mark.parametrize("name", ["pid", "pid-notch"])
+def test_closed_loop_equals_python_control_feedback(name, built, model):
+    controller = built[name]
+    dt = model.dt
+    loop = _pid_tf(controller.gains, dt) * control.ss2tf(model.to_control())
+    if controller.notch is not None:
+        loop = loop * control.tf(controller.notch[0], controller.notch[1], dt)
+    closed = control.feedback(loop, 1)
+    t = np.arange(400) * dt
+    ref = np.where(t > 0.01, 2.0 * np.sin(2 * np.pi * 7 * t) + 1.0, 0.0)  # um: no saturation
+    ys, us = _run_linear(controller, model, ref)
+    # The PID's error uses r_t+1, so the loop's input sequence is the reference shifted by one.
+    expected = control.forced_response(closed, T=t[:-1], U=ref[1:]).outputs
+    assert np.abs(us).max() < controller.task.u_max
+    # act() returns float32 volts: agreement to float32 rounding, not to float64.
+    np.testing.assert_allclose(ys[:-1], expected[1:], rtol=0, atol=1e-5 * np.abs(expected).max())
+    assert np.abs(ys).max() > 1.0  # the loop did track something
+
+
+def test_antiwindup_bounds_integrator_and_recovers(env, model):
+    controller = controllers.make("pid-notch", model, env)
+    u_max = controller.task.u_max
+    t = np.arange(1200)
+    ref = np.where((t > 10) & (t < 600), 5000.0, 0.0)  # 2.5 strokes: unreachable
+    controller.reset(_observation(0.0, ref, 0, controller.task.preview))
+    x = np.zeros(model.n_states)
+    integrals, ys = [], []
+    for k in range(ref.size - 1):
+        y = float(model.c[0] @ x)
+        u = float(controller.act(_observation(y, ref, k, controller.task.preview))[0])
+        x = model.a @ x + model.b[:, 0] * u
+        integrals.append(controller._integral)
+        ys.append(float(model.c[0] @ x))
+    integrals = np.array(integrals)
+    # Without anti-windup the integrator would reach ki dt sum(e) ~ 1e4 V. With it, it is held
+    # at u_max - kp e - D: beyond u_max only while the derivative kick of the jump decays.
+    after_kicks = np.r_[50:590, 650:1199]
+    assert np.abs(integrals[after_kicks]).max() < 2 * u_max
+    assert np.abs(integrals).max() < 10 * u_max
+    assert controller.stats.saturated == 0  # the controller clips itself, never the base
+    back = np.array(ys[600:])
+    settled = int(np.argmax(np.abs(back) < 0.02 * controller.task.stroke_um))
+    assert np.abs(back[settled:]).max() < 0.02 * controller.task.stroke_um
+    assert settled < 60  # under 60 ms back to zero after 0.6 s pinned at the rail
+
+
+def test_notch_reduces_loop_peak_at_resonance(built, model):
+    plain, notched = built["pid"], built["pid-notch"]
+    f_res = notched.resonance_hz
+    assert 140.0 < f_res < 180.0  # the PL140's first bending mode
+    plant = control.ss2tf(model.to_control())
+    notch = control.tf(notched.notch[0], notched.notch[1], model.dt)
+    freqs = np.linspace(0.8 * f_res, 1.2 * f_res, 801)
+    z = np.exp(2j * np.pi * freqs * model.dt)
+    bare = np.abs(plant(z))
+    filtered = np.abs((notch * plant)(z))
+    dc = abs(float(np.real(plant(1.0))))
+    assert bare.max() / dc > 10.0  # the resonance stands > 20 dB over the static gain
+    assert filtered.max() < bare.max() / 10.0
+    assert notched.describe()["notch_depth_db"] < -20.0
+    assert notched.report["bandwidth_hz"] > 5 * plain.report["bandwidth_hz"]
+    assert notched.report["ms"] <= notched.settings.ms_max + 1e-3
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_episode_finite_in_range_and_deterministic(name, built, env):
+    controller = built[name]
+    t = np.arange(1, 2002) * 1e-3
+    ref = 500 * np.sin(2 * np.pi * 10 * t)
+    first = controllers.run_episode(env, controller, seed=3, reference=ref, max_steps=300)
+    second = controllers.run_episode(env, controller, seed=3, reference=ref, max_steps=300)
+    u_max = controller.task.u_max
+    assert np.isfinite(first.voltage_V).all() and np.isfinite(first.deflection_um).all()
+    assert np.abs(first.voltage_V).max() <= u_max
+    np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
+    assert first.metrics["rmse_percent"] < 20.0
+    assert sum(controller.stats.status.values()) == 300
+    info = first.controller
+    assert {"gains", "ms", "gain_margin_db", "phase_margin_deg", "bandwidth_hz"} <= set(info)
+
+
+def test_feedforward_tracks_far_better_than_feedback(built, env):
+    t = np.arange(1, 2002) * 1e-3
+    ref = 500 * np.sin(2 * np.pi * 10 * t)
+    rmse = {
+        name: controllers.run_episode(
+            env, built[name], seed=0, reference=ref, max_steps=500
+        ).metrics["rmse_percent"]
+        for name in PRESETS
+    }
+    assert rmse["pid-ff"] < rmse["pid-notch"] < rmse["pid"]
+    assert rmse["pid-ff"] < 0.2
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("ms_max", 1.0),
+        ("ms_max", float("nan")),
+        ("notch_damping", 0.0),
+        ("notch_damping", 2.0),
+        ("derivative_filter_s", -1e-3),
+        ("antiwindup_gain", 0.0),
+        ("antiwindup_gain", 1.5),
+        ("inverse_regularization", -1.0),
+        ("notch", "yes"),
+        ("feedforward", 1),
+        ("derivative", None),
+    ],
+)
+def test_bad_settings_raise_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        PIDController.Settings(**{field: value})
+
+
+def test_unknown_option_raises(env, model):
+    with pytest.raises(ValueError, match="ms_max"):
+        controllers.make("pid", model, env, gain=1.0)
