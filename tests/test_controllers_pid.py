@@ -90,13 +90,14 @@ def test_antiwindup_bounds_integrator_and_recovers(env, model):
     ref = np.where((t > 10) & (t < 600), 5000.0, 0.0)  # 2.5 strokes: unreachable
     controller.reset(_observation(0.0, ref, 0, controller.task.preview))
     x = np.zeros(model.n_states)
-    integrals, ys = [], []
+    integrals, ys, us = [], [], []
     for k in range(ref.size - 1):
         y = float(model.c[0] @ x)
         u = float(controller.act(_observation(y, ref, k, controller.task.preview))[0])
         x = model.a @ x + model.b[:, 0] * u
         integrals.append(controller._integral)
         ys.append(float(model.c[0] @ x))
+        us.append(u)
     integrals = np.array(integrals)
     # Without anti-windup the integrator would reach ki dt sum(e) ~ 1e4 V. With it, it is held
     # at u_max - kp e - D: beyond u_max only while the derivative kick of the jump decays.
@@ -104,10 +105,11 @@ def test_antiwindup_bounds_integrator_and_recovers(env, model):
     assert np.abs(integrals[after_kicks]).max() < 2 * u_max
     assert np.abs(integrals).max() < 10 * u_max
     assert controller.stats.saturated == 0  # the controller clips itself, never the base
-    back = np.array(ys[600:])
-    settled = int(np.argmax(np.abs(back) < 0.02 * controller.task.stroke_um))
-    assert np.abs(back[settled:]).max() < 0.02 * controller.task.stroke_um
-    assert settled < 60  # under 60 ms back to zero after 0.6 s pinned at the rail
+    assert us[590] == u_max  # pinned at the rail while the reference is out of reach
+    # A wound-up integrator would hold the rail long after the reference returns (t = 600):
+    # here the voltage leaves it at once, and what remains is the lightly damped mode ringing.
+    assert max(us[602:610]) < u_max
+    assert np.abs(ys[1000:]).max() < 0.01 * controller.task.stroke_um
 
 
 def test_notch_reduces_loop_peak_at_resonance(built, model):
