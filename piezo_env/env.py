@@ -102,11 +102,11 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
     render_mode : {None, "rgb_array", "human"}
         ``"rgb_array"`` draws the bent beam and the recent deflection trace.
     **settings
-        The fields of :class:`piezo_env.task.TaskConfig`, where each is documented with its
-        default: ``bender`` ("PL140"), ``n_elements`` (10), ``dt`` (1e-3 s), ``hysteresis``
-        ("bouc-wen"), ``creep`` (False), ``noise_bound`` (1.0 um), ``reference`` ("random"),
-        ``preview`` (1 with a reference), ``deflection_limit`` (None, um), ``damping_ratio``
-        (0.02). An unknown keyword raises TypeError naming the valid ones.
+        The fields of :class:`piezo_env.TaskConfig`, each documented there with its unit and
+        default (``help(piezo_env.TaskConfig)``): ``bender``, ``n_elements``, ``dt``,
+        ``hysteresis``, ``creep``, ``noise_bound``, ``reference``, ``preview``,
+        ``deflection_limit``, ``damping_ratio``. An unknown keyword raises TypeError naming the
+        valid ones.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}

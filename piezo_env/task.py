@@ -53,45 +53,48 @@ class TaskConfig:
     these fields. Construction raises ValueError naming the field and its valid values.
     Use :meth:`from_kwargs` to build one from keyword arguments with a clear error for unknown
     names, and :func:`dataclasses.replace` to derive a variant.
+
+    Attributes
+    ----------
+    bender : str or BenderDatasheet
+        Catalogue name (``"PL140"``, ``"PL112"``, ``"PL122"``, ``"PL127"``, ``"PL128"``; the
+        ``".10"`` suffix is optional) or a :class:`~piezo_env.datasheet.BenderDatasheet`.
+    n_elements : int
+        Hermite beam finite elements (positive integer).
+    dt : float
+        Sample time (s), > 0: one env step.
+    hysteresis : {"bouc-wen", "prandtl-ishlinskii", None} or Hysteresis
+        Input hysteresis; None for a linear bender.
+    creep : bool or Creep
+        Linear creep: False (off), True (1.5 % per decade) or a
+        :class:`~piezo_env.discrete.Creep`.
+    noise_bound : float
+        Sensor noise bound r (um), >= 0: the measured deflection carries nu ~ U(-r, r).
+    reference : {"random", "steps", "sine", "triangle", "multisine"}, array_like or None
+        What the tip tracks: a name, drawn from the env's generator at each reset; a 1-D finite
+        array (um), whose last value holds past its end; or None: regulation to zero
+        deflection, and the observation is the measured deflection alone (then ``preview``
+        must be 0). An array is stored as a read-only float64 copy.
+    preview : int or None
+        Future reference samples in the observation, integer >= 0. None (the default) becomes
+        1 with a reference and 0 without. With ``preview >= 1`` the observation holds r_{t+1},
+        the sample the reward of a_t is scored against; with 0 it does not.
+    deflection_limit : float or None
+        Terminate the episode when |true tip deflection| exceeds this (um), > 0; None: never.
+    damping_ratio : float
+        First-mode damping ratio zeta_1 (-), in [1e-4, 1): the bender must be underdamped.
     """
 
     bender: str | BenderDatasheet = "PL140"
-    """Catalogue name (``"PL140"``, ``"PL112"``, ``"PL122"``, ``"PL127"``, ``"PL128"``; the
-    ``".10"`` suffix is optional) or a :class:`~piezo_env.datasheet.BenderDatasheet`."""
-
     n_elements: int = DEFAULT_ELEMENTS
-    """Hermite beam finite elements (positive integer)."""
-
     dt: float = 1e-3
-    """Sample time (s), > 0: one env step."""
-
     hysteresis: str | Hysteresis | None = "bouc-wen"
-    """Input hysteresis: ``"bouc-wen"``, ``"prandtl-ishlinskii"``, None (linear) or a
-    :class:`~piezo_env.hysteresis.Hysteresis`."""
-
     creep: bool | Creep = False
-    """Linear creep: False (off), True (1.5 % per decade) or a
-    :class:`~piezo_env.discrete.Creep`."""
-
     noise_bound: float = 1.0
-    """Sensor noise bound r (um), >= 0: the measured deflection carries nu ~ U(-r, r)."""
-
     reference: str | np.ndarray | None = "random"
-    """What the tip tracks: a name (``"random"``, ``"steps"``, ``"sine"``, ``"triangle"``,
-    ``"multisine"``), drawn from the env's generator at each reset; a 1-D finite array (um),
-    whose last value holds past its end; or None: regulation to zero deflection, and the
-    observation is the measured deflection alone (then ``preview`` must be 0)."""
-
     preview: int | None = None
-    """Future reference samples in the observation, integer >= 0 (None: the default, 1 with a
-    reference and 0 without). With ``preview >= 1`` the observation holds r_{t+1}, the sample the
-    reward of a_t is scored against; with 0 it does not."""
-
     deflection_limit: float | None = None
-    """Terminate the episode when |true tip deflection| exceeds this (um), > 0; None: never."""
-
     damping_ratio: float = 0.02
-    """First-mode damping ratio zeta_1 (-), in [1e-4, 1): the bender must be underdamped."""
 
     def __post_init__(self) -> None:
         get_datasheet(self.bender)
