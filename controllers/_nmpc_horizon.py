@@ -19,15 +19,16 @@ triangular Jacobian ``J[k, j] = dz_t+k / du_t+j``. Three ways to get them:
 
 Measured in one process on the shipped model (N = 20, one BLAS thread, median per call):
 
-=====================================================  ==========
-casadi Jacobian of the unrolled horizon (SX VM)          3 600 us
-structured, everything in casadi SX (VM)                   520 us
-structured, everything in generated C via casadi.external  270 us
-features in the casadi VM + numpy network                  ~95 us
-features in generated C via casadi.external + numpy net   ~180 us
-  (casadi.external itself: 33 us; converting its DM outputs to numpy: 120 us)
-features in generated C via ctypes + numpy network          ~35 us
-=====================================================  ==========
+==============================================================  ===============
+casadi Jacobian of the unrolled horizon (SX virtual machine)      1 800-3 600 us
+structured, all in casadi SX (virtual machine)                           520 us
+structured, all in generated C, called through casadi.external           270 us
+feature recursion in casadi's VM + numpy network                        240 us
+feature recursion in generated C through casadi.external                 33 us
+  + converting its DM outputs to numpy                                   +120 us
+feature recursion in generated C through ctypes                           7 us
+  + numpy network and the product: the whole linearization               38 us
+==============================================================  ===============
 
 Generated C of the whole structured step is slower than numpy here because casadi expands the
 network's dense matrix products into scalar code (15 k instructions per horizon step), while

@@ -24,7 +24,10 @@ Solvers
     :mod:`controllers._nmpc_horizon` lists every path measured) and from casadi's generic
     Jacobian for any other nonlinearity (the plant's hysteresis in the oracle). The QP is
     dense and small (N variables, identity constraint matrix): OSQP is set up once with a
-    dense upper-triangular P pattern; each iteration updates ``Px`` and ``q`` and warm-starts.
+    dense upper-triangular P pattern; each iteration updates ``Px`` and ``q`` and warm-starts,
+    after trying the unconstrained optimum (one 20 x 20 solve, exact when it lies inside the
+    drive range, which it does on smooth references). A step takes ~200 us median at N = 20
+    (two iterations; one: ~135 us, but 0.094 % instead of 0.044 % at 100 Hz).
 ``"ipopt"`` (the reference)
     The full nonlinear program through ``casadi.nlpsol("ipopt")`` with exact derivatives,
     warm-started from the shifted plan, capped by ``ipopt_max_iter`` and
