@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from piezo_env.operators import (
+    BoucWenBatch,
     bouc_wen_casadi,
     bouc_wen_jump_batch,
     normalized_bouc_wen,
@@ -379,6 +380,7 @@ class BoucWenFeatures:
         object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
         object.__setattr__(self, "_lv", lv)
         object.__setattr__(self, "_operator", normalized_bouc_wen(lv))
+        object.__setattr__(self, "_batch", BoucWenBatch(*self._operator))
 
     @property
     def n_features(self) -> int:
@@ -410,9 +412,9 @@ class BoucWenFeatures:
         out[:, 0] = u
         du = np.diff(u, prepend=state[0])
         h = state[1:]
-        operator = self._operator
+        batch = self._batch
         for t in range(u.size):
-            h = bouc_wen_jump_batch(h, du[t], *operator)
+            h = batch(h, du[t])
             out[t, 1:] = h
         final = np.empty(self.n_state)
         final[0] = u[-1] if u.size else state[0]
@@ -421,14 +423,16 @@ class BoucWenFeatures:
 
     def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
         """Features of each candidate input ``u`` (N,) applied one step from the same state."""
-        h = bouc_wen_jump_batch(state[1:], (u - state[0])[:, None], *self._operator)
-        return np.column_stack([u, h])
+        out = np.empty((u.size, self.n_features))
+        out[:, 0] = u
+        out[:, 1:] = self._batch(state[1:], (u - state[0])[:, None])
+        return out
 
     def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
         f = np.empty(self.n_features)
         f[0] = u
-        f[1:] = bouc_wen_jump_batch(state[1:], u - state[0], *self._operator)
+        f[1:] = self._batch(state[1:], u - state[0])
         return f, f.copy()
 
     def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:

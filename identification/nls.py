@@ -35,12 +35,15 @@ MLP step costs ~10 us), exports to a pure-numpy evaluator (:meth:`NLS.to_numpy`)
 
 Inverse
 -------
-:meth:`NLS.inverse` gives the voltage that produces a desired ``z`` given the current memory
-state (for controllers that plan in ``z``). It is a scalar root find: bracketing on a grid over
-the drive range, then Brent's method (scipy.optimize.brentq) in the bracket. When ``z`` is not
-reachable on the range the closest reachable voltage is returned; when the map is not monotone
-on the range (several roots) the root nearest to a reference voltage is returned and a
-:class:`NLSInverseWarning` says so.
+:meth:`NLS.solve_inverse` gives the voltage that produces a desired ``z`` given the current
+memory state (for controllers that plan in ``z``), with the reachable range and a status, as an
+:class:`piezo_env.inverse.InverseResult` ``(u, z, status, state)``: the same type as the plant
+hysteresis' inverse. It is :func:`piezo_env.inverse.solve_increasing`: one batched network pass
+over a coarse grid (reachable range, monotonicity at the nodes, bracket), then safeguarded Newton
+with a finite-difference slope, typically two passes in all; exact to ~1e-7 V. When ``z`` is
+not reachable on the range the range end is returned (``"out-of-range"``); when the map is
+found not monotone (several roots) the root nearest a reference voltage is returned
+(``"non-monotone"``) and :meth:`NLS.inverse` warns with :class:`NLSInverseWarning`.
 """
 
 from __future__ import annotations
@@ -54,7 +57,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.optimize
 from numpy.typing import ArrayLike
 
 from identification.features import (
@@ -70,6 +72,7 @@ from identification.features import (
     default_play_radii,
     feature_map_from_dict,
 )
+from piezo_env.inverse import InverseResult, solve_increasing
 
 __all__ = ["NLS", "NLSInverse", "NLSInverseWarning", "NumpyMLP", "fit_nls"]
 
@@ -112,6 +115,10 @@ class NumpyMLP:
     skip_weight: np.ndarray
     out_bias: float
 
+    def __post_init__(self) -> None:
+        transposed = tuple(np.ascontiguousarray(w.T) for w in self.weights)
+        object.__setattr__(self, "_transposed", transposed)
+
     @property
     def n_features(self) -> int:
         """Number of input features."""
@@ -129,6 +136,13 @@ class NumpyMLP:
             h = np.tanh(h @ w.T + b)
         return h @ self.out_weight + f @ self.skip_weight + self.out_bias
 
+    def evaluate_rows(self, f: np.ndarray) -> np.ndarray:
+        """Evaluate feature rows ``(m, n_f)`` -> z ``(m,)`` (equivalent V), without validation."""
+        h = f
+        for wt, b in zip(self._transposed, self.biases, strict=True):
+            h = np.tanh(h @ wt + b)
+        return h @ self.out_weight + f @ self.skip_weight + self.out_bias
+
     def evaluate_one(self, f: np.ndarray) -> float:
         """Evaluate one feature vector ``(n_f,)`` -> z (equivalent V), without validation."""
         h = f
@@ -141,29 +155,9 @@ class NumpyMLP:
 # the NLS
 
 
-@dataclass(frozen=True)
-class NLSInverse:
-    """Result of one NLS inversion.
-
-    Attributes
-    ----------
-    u : float
-        Voltage, V.
-    z : float
-        NLS output at ``u`` from the given state, equivalent V (equals the target when
-        ``status == "ok"``).
-    status : str
-        ``"ok"`` (unique root), ``"out-of-range"`` (target not reachable on the voltage range:
-        ``u`` is the closest reachable) or ``"non-monotone"`` (several roots: ``u`` is the one
-        nearest the reference voltage).
-    state : numpy.ndarray
-        Feature state after applying ``u``.
-    """
-
-    u: float
-    z: float
-    status: str
-    state: np.ndarray
+NLSInverse = InverseResult
+"""Result of one NLS inversion: :class:`piezo_env.inverse.InverseResult` (u, z, status, state),
+the same type the plant's hysteresis inverse returns."""
 
 
 _ARRAY_NAMES = (
@@ -296,14 +290,16 @@ class NLS:
         *,
         u_range: Sequence[float] | None = None,
         u_ref: float | None = None,
-        n_grid: int = 65,
-        xtol: float = 1e-10,
+        u_guess: float | None = None,
+        n_grid: int = 17,
+        xtol: float = 1e-7,
     ) -> NLSInverse:
         """Voltage giving ``z_target`` from the memory ``state``, with a status.
 
-        The map ``u -> z(u; state)`` is evaluated on ``n_grid`` points of ``u_range``; sign
-        changes of ``z - z_target`` bracket the roots, each refined by Brent's method
-        (:func:`scipy.optimize.brentq`).
+        :func:`piezo_env.inverse.solve_increasing`: one batched pass over an ``n_grid``-point
+        grid of ``u_range`` (reachable range, monotonicity at the nodes, bracket), then
+        safeguarded Newton steps (finite-difference slope, two points per batched pass) from
+        the warm start until the estimated error is below ``xtol``. Typically two network passes.
 
         Parameters
         ----------
@@ -317,46 +313,40 @@ class NLS:
             Reference voltage, V, used to choose among several roots (the nearest wins).
             Default: the previous input for past-input and Bouc-Wen features (their state holds
             it), else the middle of the range.
+        u_guess : float, optional
+            Warm start, V (e.g. the previous solution). Default: ``u_ref``.
         n_grid : int, optional
-            Number of grid points used to bracket the roots; non-monotonicity finer than the
-            grid spacing goes unnoticed.
+            Grid points of the bracketing pass. A decrease between nodes, or an iterate outside
+            its bracket's values, marks the map non-monotone (then all roots on the grid are
+            found by Brent's method); a wiggle narrower than the grid spacing that no iterate
+            touches goes unnoticed.
         xtol : float, optional
-            Absolute voltage tolerance of the root, V.
+            Estimated voltage error (V) below which the iteration stops.
 
         Returns
         -------
         NLSInverse
-            Voltage, achieved ``z``, status (``"ok"``, ``"out-of-range"``, ``"non-monotone"``)
-            and the state after applying the voltage.
+            Voltage, achieved ``z`` (evaluated at that voltage), status (``"ok"``,
+            ``"out-of-range"``, ``"non-monotone"``) and the state after applying the voltage.
         """
         target = _as_scalar("z_target", z_target)
         s = self.feature_map.check_state(state)
         low, high = self.u_range if u_range is None else _as_range("u_range", u_range)
         grid = self._grid(low, high, n_grid)
-        residual = self._mlp(self.feature_map.candidates(grid, s)) - target
         if u_ref is None:
             if isinstance(self.feature_map, PastInputFeatures | BoucWenFeatures):
                 u_ref = float(s[0])
             else:
                 u_ref = 0.5 * (low + high)
-        exact = np.flatnonzero(residual == 0.0)
-        brackets = np.flatnonzero(np.sign(residual[:-1]) * np.sign(residual[1:]) < 0.0)
-        roots: list[float] = [float(grid[i]) for i in exact]
+        candidates, rows = self.feature_map.candidates, self._mlp.evaluate_rows
 
-        def residual_at(u: float) -> float:
-            f, _ = self.feature_map.step(u, s)
-            return self._mlp.evaluate_one(f) - target
+        def evaluate(u: np.ndarray) -> np.ndarray:
+            return rows(candidates(u, s))
 
-        for i in brackets:
-            roots.append(scipy.optimize.brentq(residual_at, grid[i], grid[i + 1], xtol=xtol))
-        if not roots:
-            u = float(grid[int(np.argmin(np.abs(residual)))])
-            status = "out-of-range"
-        else:
-            u = min(roots, key=lambda root: abs(root - u_ref))
-            status = "ok" if len(roots) == 1 else "non-monotone"
-        f, new_state = self.feature_map.step(u, s)
-        return NLSInverse(u=u, z=self._mlp.evaluate_one(f), status=status, state=new_state)
+        guess = u_ref if u_guess is None else _as_scalar("u_guess", u_guess)
+        sol = solve_increasing(evaluate, target, grid, guess, u_ref=u_ref, xtol=xtol)
+        _, new_state = self.feature_map.step(sol.u, s)
+        return InverseResult(sol.u, sol.z, sol.status, new_state)
 
     def inverse(
         self,

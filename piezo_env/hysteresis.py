@@ -34,10 +34,10 @@ import numpy as np
 
 from piezo_env.inverse import InverseResult, solve_increasing
 from piezo_env.operators import (
+    BoucWenBatch,
     bouc_wen_bound,
     bouc_wen_casadi,
     bouc_wen_jump,
-    bouc_wen_jump_batch,
     check_bouc_wen,
     play,
     play_casadi,
@@ -100,7 +100,8 @@ class Hysteresis:
     ) -> InverseResult:
         """Voltage whose step from ``state`` gives ``u_eff_target`` (V), inside ``u_range`` (V).
 
-        Exact (Newton to 1e-9 V on the closed-form step): u -> u_eff is strictly increasing.
+        Exact (safeguarded Newton on the closed-form step, error estimate below 1e-12 V): u ->
+        u_eff is strictly increasing.
         A target outside the reachable range [u_eff(low), u_eff(high)] gives the nearer range
         end and status ``"out-of-range"``.
 
@@ -122,7 +123,7 @@ class Hysteresis:
 
         grid = np.linspace(low, high, _INVERSE_GRID)
         u_prev = float(s[0])
-        sol = solve_increasing(evaluate, target, grid, u_prev, u_ref=u_prev)
+        sol = solve_increasing(evaluate, target, grid, u_prev, u_ref=u_prev, xtol=1e-12)
         new_state, u_eff = self.step(s, sol.u)
         return InverseResult(sol.u, float(u_eff), sol.status, new_state)
 
@@ -206,6 +207,7 @@ class BoucWen(Hysteresis):
                 "to gamma"
             )
         object.__setattr__(self, "_ak", self.alpha * self.k)
+        object.__setattr__(self, "_batch", BoucWenBatch(self._ak, self.beta, self.gamma))
 
     @classmethod
     def for_voltage(cls, rated_voltage: float) -> BoucWen:
@@ -228,7 +230,7 @@ class BoucWen(Hysteresis):
             )
             return np.array([u, h]), self.k * u - h
         u = np.asarray(u, dtype=float)
-        h = bouc_wen_jump_batch(state[:, 1], u - state[:, 0], self._ak, self.beta, self.gamma)
+        h = self._batch(state[:, 1], u - state[:, 0])
         new_state = np.empty_like(state)
         new_state[:, 0] = u
         new_state[:, 1] = h

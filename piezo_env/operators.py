@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "BoucWenBatch",
     "bouc_wen_bound",
     "bouc_wen_casadi",
     "bouc_wen_jump",
@@ -175,48 +176,69 @@ def bouc_wen_jump(h: float, du: float, ak: float, beta: float, gamma: float) -> 
 def bouc_wen_jump_batch(h: Any, du: Any, ak: Any, beta: Any, gamma: Any) -> np.ndarray:
     """Numpy closed-form state (V) after jumps ``du`` (V) from states ``h`` (V); broadcasts.
 
+    ``ak``, ``beta`` and ``gamma`` may be arrays (one operator per entry). For repeated calls
+    build a :class:`BoucWenBatch` once (it precomputes the parameter algebra).
+    """
+    return BoucWenBatch(ak, beta, gamma)(h, du)
+
+
+class BoucWenBatch:
+    """Numpy backend of the Bouc-Wen jump for fixed parameters (A = ``ak``, ``beta``, ``gamma``).
+
     The same algebra as :func:`bouc_wen_jump` in array form: in g = sign(du) h, a negative g
     first climbs (linearly when beta = gamma, else exponentially) towards 0 over the distance
-    d0, then the rest of the jump relaxes g towards g_inf = A / (beta + gamma). ``ak``, ``beta``
-    and ``gamma`` may be arrays (one operator per entry). A jump of 0 keeps ``h`` (to rounding).
+    d0, then the rest of the jump relaxes g towards g_inf = A / (beta + gamma). Calling it with
+    states ``h`` (V) and jumps ``du`` (V) returns the new states; broadcasts. A jump of 0 keeps
+    ``h`` (to rounding).
     """
-    du = np.asarray(du, dtype=np.float64)
-    g = np.asarray(h, dtype=np.float64)
-    shape = np.broadcast_shapes(du.shape, g.shape, np.shape(ak), np.shape(beta))
-    s = np.broadcast_to(np.copysign(1.0, du), shape)
-    d = np.abs(np.broadcast_to(du, shape))
-    g = g * s
-    rate, lam = beta + gamma, beta - gamma
-    if np.all(np.abs(lam) < _LINEAR_LAMBDA):
-        # climb = min(d, d0) with d0 = max(-g, 0) / ak; g1 = g + ak climb is <= 0.
-        climb = np.maximum(g, 0.0)
-        climb -= g
-        climb *= 1.0 / ak
-        np.minimum(climb, d, out=climb)
-        d -= climb  # the rest of the jump, >= 0
-        climb *= ak
-        g += climb
-    else:
+
+    def __init__(self, ak: Any, beta: Any, gamma: Any) -> None:
+        self.ak, self.beta, self.gamma = ak, beta, gamma
+        self.lam = beta - gamma
+        self.linear = bool(np.all(np.abs(self.lam) < _LINEAR_LAMBDA))
+        self.unit = bool(np.all(np.asarray(ak) == 1.0))
+        self.inv_ak = 1.0 / ak
+        self.g_inf = ak / (beta + gamma)
+        self.neg_rate = -(beta + gamma)
+
+    def __call__(self, h: Any, du: Any) -> np.ndarray:
+        s = np.copysign(1.0, du)
+        g = h * s
+        if self.linear:
+            # climb = min(d, d0) with d0 = max(-g, 0) / ak; g1 = g + ak climb is <= 0.
+            climb = np.maximum(g, 0.0)
+            climb -= g
+            if not self.unit:
+                climb *= self.inv_ak
+            np.minimum(climb, np.abs(du), out=climb)
+            rest = np.abs(du) - climb  # the rest of the jump, >= 0
+            if not self.unit:
+                climb *= self.ak
+            g += climb
+        else:
+            g, rest = self._curved_climb(g, np.abs(du))
+        # Relax towards g_inf over the rest of the jump: g_inf + (g1 - g_inf) exp(-rate rest).
+        rest *= self.neg_rate
+        np.exp(rest, out=rest)
+        g -= self.g_inf
+        g *= rest
+        g += self.g_inf
+        g *= s
+        return g
+
+    def _curved_climb(self, g: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(g after the climb towards 0, rest of the jump) when beta != gamma somewhere."""
+        ak, lam = self.ak, self.lam
+        flat = np.abs(lam) < _LINEAR_LAMBDA
         negative = g < 0.0
         with np.errstate(divide="ignore", invalid="ignore"):
             d0 = np.where(negative, np.log(1.0 - lam * g / ak) / lam, 0.0)
-            linear = np.where(negative, -g / ak, 0.0)
-        d0 = np.where(np.abs(lam) < _LINEAR_LAMBDA, linear, d0)
-        climb = np.minimum(d, d0)
-        with np.errstate(divide="ignore", invalid="ignore"):
+            d0 = np.where(flat, np.where(negative, -g / ak, 0.0), d0)
+            climb = np.minimum(d, d0)
             curved = ak / lam + (g - ak / lam) * np.exp(-lam * climb)
-        g = np.where(negative, np.where(np.abs(lam) < _LINEAR_LAMBDA, g + ak * climb, curved), g)
+        g = np.where(negative, np.where(flat, g + ak * climb, curved), g)
         g[negative & (d > d0)] = 0.0
-        d = d - climb
-    # Relax towards g_inf over the rest of the jump: g_inf + (g1 - g_inf) exp(-rate rest).
-    g_inf = ak / rate
-    d *= -rate
-    np.exp(d, out=d)
-    g -= g_inf
-    g *= d
-    g += g_inf
-    g *= s
-    return g
+        return g, d - climb
 
 
 def bouc_wen_slope(h_new: Any, du: Any, ak: Any, beta: Any, gamma: Any) -> Any:

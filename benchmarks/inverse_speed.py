@@ -1,0 +1,171 @@
+"""NLS inverse speed: the identified nonlinearity's inverse per call, old method against new.
+
+A closed-loop-like sequence: hidden-signal targets z_t from sines of 10, 20 and 50 Hz (24 V
+amplitude, 1 kHz sampling) through the shipped model's NLS (``docs/identify/model``), inverted
+sample by sample with the memory state carried, as a controller does. Old: the grid (65 points)
+plus Brent's method that ``NLS.solve_inverse`` used before; new: ``NLS.solve_inverse`` (one
+batched grid pass, then safeguarded Newton). Each call is timed with ``time.perf_counter``; a
+CartPole-v1 step through ``gymnasium.make`` is measured in the same run, in alternating rounds,
+as the reference. BLAS is limited to one thread (threadpoolctl) for the whole run. Writes
+``benchmarks/results/inverse_speed.md``.
+
+Run: ``python benchmarks/inverse_speed.py`` (about half a minute).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import scipy.optimize
+import threadpoolctl
+from _common import header, markdown_table, write_result
+
+from identification.hammerstein import HammersteinModel
+
+MODEL = Path(__file__).resolve().parents[1] / "docs" / "identify" / "model"
+FREQUENCIES = (10.0, 20.0, 50.0)
+SAMPLES = 1000  # per frequency, 1 kHz
+ROUNDS = 5
+CARTPOLE_STEPS = 4000  # per round
+
+
+def old_solve_inverse(nls, target: float, state: np.ndarray, n_grid: int = 65):
+    """The previous method: grid over the range, Brent's method in each sign change.
+
+    Returns (u, state after u).
+    """
+    fm, mlp = nls.feature_map, nls.to_numpy()
+    low, high = nls.u_range
+    grid = np.linspace(low, high, n_grid)
+    residual = mlp(fm.candidates(grid, state)) - target
+    u_ref = float(state[0])
+
+    def residual_at(u: float) -> float:
+        return mlp.evaluate_one(fm.step(u, state)[0]) - target
+
+    brackets = np.flatnonzero(np.sign(residual[:-1]) * np.sign(residual[1:]) < 0.0)
+    roots = [float(grid[i]) for i in np.flatnonzero(residual == 0.0)]
+    roots += [
+        scipy.optimize.brentq(residual_at, grid[i], grid[i + 1], xtol=1e-10) for i in brackets
+    ]
+    if roots:
+        u = min(roots, key=lambda root: abs(root - u_ref))
+    else:
+        u = float(grid[int(np.argmin(np.abs(residual)))])
+    return u, fm.step(u, state)[1]
+
+
+def new_solve_inverse(nls, target: float, state: np.ndarray):
+    """``NLS.solve_inverse``; returns (u, state after u)."""
+    result = nls.solve_inverse(target, state)
+    return result.u, result.state
+
+
+def inverse_times(nls, solver, u_true: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, float]:
+    """Per-call wall times (s) over the sequence and the largest voltage error (V)."""
+    state = nls.initial_state()
+    times = np.empty(z.size)
+    error = 0.0
+    clock = time.perf_counter
+    for t, target in enumerate(z):
+        start = clock()
+        u, state = solver(nls, float(target), state)
+        times[t] = clock() - start
+        error = max(error, abs(u - u_true[t]))
+    return times, error
+
+
+def cartpole_step_times(steps: int, seed: int) -> np.ndarray:
+    """Per-step wall times (s) of CartPole-v1 through gym.make, random actions, with resets."""
+    env = gym.make("CartPole-v1")
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    actions = [env.action_space.sample() for _ in range(steps)]
+    times = np.empty(steps)
+    clock = time.perf_counter
+    for i, action in enumerate(actions):
+        start = clock()
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+        times[i] = clock() - start
+    env.close()
+    return times
+
+
+def targets(nls) -> tuple[np.ndarray, np.ndarray]:
+    """(u, z): the sine sequences back to back and their NLS output from rest."""
+    t = np.arange(SAMPLES) * 1e-3
+    u = np.concatenate([24.0 * np.sin(2 * np.pi * f * t) for f in FREQUENCIES])
+    return u, nls.evaluate(u)
+
+
+def main() -> None:
+    nls = HammersteinModel.load(MODEL).nls
+    u_true, z = targets(nls)
+    results: dict[str, list[np.ndarray]] = {"old": [], "new": [], "cart": []}
+    errors = {"old": 0.0, "new": 0.0}
+    with threadpoolctl.threadpool_limits(limits=1, user_api="blas"):
+        for r in range(ROUNDS):
+            for name, solver in (("old", old_solve_inverse), ("new", new_solve_inverse)):
+                times, error = inverse_times(nls, solver, u_true, z)
+                results[name].append(times)
+                errors[name] = max(errors[name], error)
+            results["cart"].append(cartpole_step_times(CARTPOLE_STEPS, seed=r))
+        head = header("NLS inverse speed", "inverse_speed.py")
+    cart = float(np.median([np.median(t) for t in results["cart"]]))
+    rows = []
+    for name, label in (("old", "grid (65) + brentq (before)"), ("new", "NLS.solve_inverse (now)")):
+        all_times = np.concatenate(results[name])
+        median = float(np.median([np.median(t) for t in results[name]]))
+        p99 = float(np.median([np.percentile(t, 99) for t in results[name]]))
+        rows.append(
+            [
+                label,
+                f"{median * 1e6:.1f}",
+                f"{p99 * 1e6:.1f}",
+                f"{median / cart:.2f}",
+                f"{errors[name]:.1e}",
+                f"{all_times.size}",
+            ]
+        )
+    speedup = float(
+        np.median(
+            [
+                np.median(o) / np.median(n)
+                for o, n in zip(results["old"], results["new"], strict=True)
+            ]
+        )
+    )
+    lines = [
+        *head,
+        f"Model: `docs/identify/model` ({nls!r}). Targets: z of 24 V sines at "
+        f"{', '.join(f'{f:g}' for f in FREQUENCIES)} Hz (1 kHz sampling, {SAMPLES} samples "
+        "each), inverted sample by sample with the memory state carried. BLAS limited to one "
+        "thread (threadpoolctl) for the whole run. Medians and p99 are medians over "
+        f"{ROUNDS} rounds; each round times both methods and {CARTPOLE_STEPS} CartPole-v1 "
+        "steps (gym.make, random actions) back to back.",
+        "",
+        markdown_table(
+            [
+                "method",
+                "median us/call",
+                "p99 us/call",
+                "median / CartPole step",
+                "max |u - u_true| (V)",
+                "calls",
+            ],
+            rows,
+        ),
+        "",
+        f"CartPole-v1 step (same run): median {cart * 1e6:.2f} us. New / old speed-up (median "
+        f"of per-round ratios): {speedup:.1f}x. Target: <= 20 us median, exact to 1e-6 V.",
+    ]
+    write_result("inverse_speed", lines)
+
+
+if __name__ == "__main__":
+    main()
