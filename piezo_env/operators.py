@@ -210,8 +210,13 @@ class BoucWenBatch:
             climb -= g
             if not self.unit:
                 climb *= self.inv_ak
-            np.minimum(climb, np.abs(du), out=climb)
-            rest = np.abs(du) - climb  # the rest of the jump, >= 0
+            d = np.abs(du)
+            np.minimum(climb, d, out=climb)
+            if d.shape == climb.shape:
+                d -= climb
+                rest = d  # the rest of the jump, >= 0
+            else:
+                rest = d - climb
             if not self.unit:
                 climb *= self.ak
             g += climb
