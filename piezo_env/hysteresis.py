@@ -100,8 +100,8 @@ class Hysteresis:
     ) -> InverseResult:
         """Voltage whose step from ``state`` gives ``u_eff_target`` (V), inside ``u_range`` (V).
 
-        Exact (safeguarded Newton on the closed-form step, error estimate below 1e-12 V): u ->
-        u_eff is strictly increasing.
+        Exact (safeguarded Newton on the closed-form step until the correction is below
+        1e-12 V; ``z`` evaluated at ``u``): u -> u_eff is strictly increasing.
         A target outside the reachable range [u_eff(low), u_eff(high)] gives the nearer range
         end and status ``"out-of-range"``.
 
@@ -123,7 +123,9 @@ class Hysteresis:
 
         grid = np.linspace(low, high, _INVERSE_GRID)
         u_prev = float(s[0])
-        sol = solve_increasing(evaluate, target, grid, u_prev, u_ref=u_prev, xtol=1e-12)
+        sol = solve_increasing(
+            evaluate, target, grid, u_prev, u_ref=u_prev, xtol=1e-12, extrapolate=False
+        )
         new_state, u_eff = self.step(s, sol.u)
         return InverseResult(sol.u, float(u_eff), sol.status, new_state)
 

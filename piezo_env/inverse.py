@@ -87,6 +87,7 @@ def solve_increasing(
     u_ref: float,
     xtol: float = 1e-7,
     max_iter: int = 40,
+    extrapolate: bool = True,
 ) -> _Solution:
     """Invert an (expectedly) increasing scalar map on ``[grid[0], grid[-1]]``.
 
@@ -106,6 +107,11 @@ def solve_increasing(
         Estimated error (V) of ``u`` below which the iteration stops.
     max_iter : int
         Newton steps before falling back to Brent's method in the bracket.
+    extrapolate : bool
+        Take the last Newton step without evaluating it (see the module docstring). False
+        stops only at an evaluated point whose Newton correction is below ``xtol``: one pass
+        more, and ``z`` exactly the output at ``u`` (for maps with many kinks, such as play
+        operators, where the curvature estimate cannot see a kink inside the last step).
 
     Returns
     -------
@@ -144,7 +150,9 @@ def solve_increasing(
         if zu == target:
             return _Solution(u, zu, "ok")
         step = (target - zu) / slope if slope > 0.0 else math.inf
-        if abs(step) < 0.5 * (b - a) and (u - g) * (u + step - g) > 0.0:
+        if not extrapolate and abs(step) <= xtol:
+            return _Solution(u, zu, "ok")
+        if extrapolate and abs(step) < 0.5 * (b - a) and (u - g) * (u + step - g) > 0.0:
             # Error of the final Newton step u + step: |z''| step^2 / (2 z'), with z''/2 from the
             # secants to both bracket ends (a kink there only overestimates it). Never
             # across the warm start: memory maps kink where the input reverses.

@@ -14,7 +14,7 @@ from piezo_env.hysteresis import BoucWen, NoHysteresis, PrandtlIshlinskii
 U_MAX = 30.0
 DT = 1e-3
 RESONANCE_HZ = 160.0  # PL140 first mode (datasheet)
-FAST = settings(deadline=None, max_examples=60)
+FAST = settings(deadline=None, max_examples=100)
 
 
 @st.composite
