@@ -41,6 +41,17 @@ class DisturbanceObserver:
         Random-walk step of the output disturbance (um per sample), > 0.
     process_std : float
         Input-referred process noise (equivalent V), >= 0.
+    slope_std : float
+        0 (default): d is a random walk, constant over the prediction. > 0: d drifts with a
+        slope s that is itself a random walk with this step (um per sample^2), the estimate is
+        ``[x; d; s]`` and predictions extrapolate ``d_t+k = d_t + k s_t``: a disturbance that
+        changes at the reference's frequency (hysteresis the model gets wrong) is then
+        followed to second order instead of lagging a sample behind.
+
+    Attributes
+    ----------
+    n_disturbance : int
+        1 (``[x; d]``) or 2 (``[x; d; s]``).
     """
 
     def __init__(
@@ -52,36 +63,45 @@ class DisturbanceObserver:
         measurement_std: float,
         disturbance_std: float,
         process_std: float = 0.0,
+        slope_std: float = 0.0,
     ) -> None:
-        if not (measurement_std > 0 and disturbance_std > 0 and process_std >= 0):
+        if not (
+            measurement_std > 0 and disturbance_std > 0 and process_std >= 0 and slope_std >= 0
+        ):
             raise ValueError(
-                "observer needs measurement_std > 0, disturbance_std > 0, process_std >= 0; got "
-                f"{measurement_std}, {disturbance_std}, {process_std}"
+                "observer needs measurement_std > 0, disturbance_std > 0, process_std >= 0 and "
+                f"slope_std >= 0; got {measurement_std}, {disturbance_std}, {process_std}, "
+                f"{slope_std}"
             )
         n = a.shape[0]
         self.n = n
-        aa = np.zeros((n + 1, n + 1))
+        self.n_disturbance = nd = 2 if slope_std > 0 else 1
+        m = n + nd
+        aa = np.zeros((m, m))
         aa[:n, :n] = a
-        aa[n, n] = 1.0
-        ba = np.zeros(n + 1)
+        aa[n:, n:] = np.eye(nd) + np.eye(nd, k=1)  # d += s, s constant
+        ba = np.zeros(m)
         ba[:n] = b[:, 0]
-        ca = np.zeros((1, n + 1))
+        ca = np.zeros((1, m))
         ca[0, :n] = c[0]
         ca[0, n] = 1.0
-        q = np.zeros((n + 1, n + 1))
+        q = np.zeros((m, m))
         q[:n, :n] = process_std**2 * np.outer(b[:, 0], b[:, 0])
         q[n, n] = disturbance_std**2
-        q += 1e-12 * np.eye(n + 1)  # keeps the Riccati equation well posed for delay states
+        if nd == 2:
+            q[n + 1, n + 1] = slope_std**2
+        q += 1e-12 * np.eye(m)  # keeps the Riccati equation well posed for delay states
         r = np.array([[measurement_std**2]])
         p = scipy.linalg.solve_discrete_are(aa.T, ca.T, q, r)
         # Filter (current-estimate) gain: L = P C^T (C P C^T + R)^-1 on the predicted P.
         self.gain = (p @ ca.T / (ca @ p @ ca.T + r)).ravel()
         self.a_aug, self.b_aug, self.c_aug = aa, ba, ca[0]
-        self.estimate = np.zeros(n + 1)
+        self.estimate = np.zeros(m)
 
     def reset(self, estimate: np.ndarray | None = None) -> None:
-        """Set the prior ``[x; d]`` (default: rest, no disturbance)."""
-        self.estimate = np.zeros(self.n + 1) if estimate is None else np.array(estimate, float)
+        """Set the prior ``[x; d (; s)]`` (default: rest, no disturbance)."""
+        size = self.n + self.n_disturbance
+        self.estimate = np.zeros(size) if estimate is None else np.array(estimate, float)
 
     def correct(self, y_measured: float) -> np.ndarray:
         """Measurement update with y (um); returns the filtered ``[x; d]`` (a view, not a copy)."""
