@@ -24,12 +24,11 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
+from controllers.backends import BACKENDS, run_tasks
 from controllers.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
 
@@ -101,6 +100,9 @@ class BenchmarkConfig:
         Reference samples after r_t in every controller's observation.
     jobs : int
         Worker processes (1: run in this process).
+    backend : str
+        Where the workers run (:data:`controllers.backends.BACKENDS`); results do not depend
+        on it.
     controller_options : dict
         Per controller name, options passed to :func:`controllers.make`.
     """
@@ -112,6 +114,7 @@ class BenchmarkConfig:
     steps: int = 2000
     preview: int = 20
     jobs: int = 1
+    backend: str = "local"
     controller_options: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -131,6 +134,8 @@ class BenchmarkConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"unknown backend {self.backend!r}; valid: {', '.join(BACKENDS)}")
         if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 0:
             raise ValueError(f"preview must be an integer >= 0, got {self.preview!r}")
 
@@ -231,25 +236,18 @@ def run_benchmark(
     -----
     With ``jobs > 1`` the groups run in spawned worker processes (no forked BLAS or torch
     thread state), so a script calling this must do so under ``if __name__ == "__main__":``.
+    See :mod:`controllers.backends`.
     """
     groups = config.groups()
     start = time.perf_counter()
-    args = [(p, c, refs, str(model_dir), config) for p, c, refs in groups]
-    outputs: list[Any] = [None] * len(groups)
-    if config.jobs == 1:
-        for i, a in enumerate(args):
-            outputs[i] = _run_group(*a)
-            if progress:
-                progress(i + 1, len(groups), f"{a[1]} on {a[0]}")
-    else:
-        # spawn: no forked BLAS/torch thread state; each worker imports the packages once.
-        with ProcessPoolExecutor(config.jobs, mp_context=get_context("spawn")) as pool:
-            futures = {pool.submit(_run_group, *a): i for i, a in enumerate(args)}
-            for done, future in enumerate(as_completed(futures), start=1):
-                i = futures[future]
-                outputs[i] = future.result()
-                if progress:
-                    progress(done, len(groups), f"{args[i][1]} on {args[i][0]}")
+    outputs = run_tasks(
+        _run_group,
+        [(p, c, refs, str(model_dir), config) for p, c, refs in groups],
+        jobs=config.jobs,
+        backend=config.backend,
+        labels=[f"{c} on {p}" for p, c, _ in groups],
+        progress=progress,
+    )
     episodes, described, traces = [], {}, {}
     for (plant, controller, _), (eps, description, trace) in zip(groups, outputs, strict=True):
         episodes.extend(eps)

@@ -219,7 +219,7 @@ def _short(description: dict[str, Any]) -> dict[str, Any]:
 def deterministic_json(result: BenchmarkResult) -> dict[str, Any]:
     """Episode results without measured times: bitwise equal for any ``jobs``."""
     return {
-        "config": dataclasses.asdict(result.config) | {"jobs": None},
+        "config": dataclasses.asdict(result.config) | {"jobs": None, "backend": None},
         "episodes": [
             {k: v for k, v in e.items() if k not in _TIMING_KEYS} for e in result.episodes
         ],
