@@ -28,6 +28,7 @@ touches goes unnoticed (then the result is still an exact root, just maybe not t
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -118,21 +119,24 @@ def solve_increasing(
     _Solution
         ``u`` (V), ``z`` evaluated at ``u``, status.
     """
-    low, high = float(grid[0]), float(grid[-1])
+    nodes = grid.tolist()
+    low, high = nodes[0], nodes[-1]
     delta = 1e-7 * (high - low)
     g = min(max(guess, low), high)
     values = evaluate(np.concatenate((grid, (g, g + delta))))
     zg = values[:-2]
     if (zg[1:] <= zg[:-1]).any():
         return _all_roots(evaluate, target, grid, zg, u_ref)
-    if not zg[0] < target < zg[-1]:
-        end = -1 if target >= zg[-1] else 0
+    zl = values.tolist()
+    z_guess = zl[-2]
+    del zl[-2:]
+    if not zl[0] < target < zl[-1]:
+        end = -1 if target >= zl[-1] else 0
         # Within rounding of the end's output (batched and single evaluations differ in ulps).
-        status = "ok" if abs(target - zg[end]) <= 1e-12 * (1.0 + abs(target)) else "out-of-range"
-        return _Solution(float(grid[end]), float(zg[end]), status)
-    j = int(np.searchsorted(zg, target))  # zg[j - 1] < target <= zg[j]
-    a, za, b, zb = float(grid[j - 1]), float(zg[j - 1]), float(grid[j]), float(zg[j])
-    z_guess = float(values[-2])
+        status = "ok" if abs(target - zl[end]) <= 1e-12 * (1.0 + abs(target)) else "out-of-range"
+        return _Solution(nodes[end], zl[end], status)
+    j = bisect.bisect_left(zl, target)  # zl[j - 1] < target <= zl[j]
+    a, za, b, zb = nodes[j - 1], zl[j - 1], nodes[j], zl[j]
     if a < g < b:
         if not za < z_guess < zb:
             return _all_roots(evaluate, target, grid, zg, u_ref)
@@ -140,13 +144,12 @@ def solve_increasing(
             a, za = g, z_guess
         else:
             b, zb = g, z_guess
-    u = _initial_point(grid, zg, j, a, za, b, zb, target)
+    u = _initial_point(nodes, zl, j, a, za, b, zb, target)
     for _ in range(max_iter):
-        zu, zd = evaluate(np.array((u, u + delta)))
-        zu = float(zu)
+        zu, zd = evaluate(np.array((u, u + delta))).tolist()
         if not za <= zu <= zb:
             return _all_roots(evaluate, target, grid, zg, u_ref)
-        slope = (float(zd) - zu) / delta
+        slope = (zd - zu) / delta
         if zu == target:
             return _Solution(u, zu, "ok")
         step = (target - zu) / slope if slope > 0.0 else math.inf
@@ -179,16 +182,16 @@ def solve_increasing(
 
 
 def _initial_point(
-    grid: np.ndarray, zg: np.ndarray, j: int, a: float, za: float, b: float, zb: float, t: float
+    grid: list[float], zg: list[float], j: int, a: float, za: float, b: float, zb: float, t: float
 ) -> float:
     """First iterate in (a, b): inverse quadratic interpolation through (a, b) and the grid node
     beyond the end that is a grid node (the other end may be the warm start, where the map
     kinks), else the secant point."""
     secant = a + (t - za) * (b - a) / (zb - za)
-    if b == grid[j] and j + 1 < grid.size:
-        c, zc = float(grid[j + 1]), float(zg[j + 1])
+    if b == grid[j] and j + 1 < len(grid):
+        c, zc = grid[j + 1], zg[j + 1]
     elif a == grid[j - 1] and j >= 2:
-        c, zc = float(grid[j - 2]), float(zg[j - 2])
+        c, zc = grid[j - 2], zg[j - 2]
     else:
         return secant
     u = (
