@@ -66,12 +66,17 @@ class IdentifiedNLS:
     def __init__(self, nls: Any, u_range: tuple[float, float]) -> None:
         self.nls = nls
         self.u_range = (float(u_range[0]), float(u_range[1]))
+        # Unchecked fast paths for the control loop: states come from this object itself.
+        self._features = nls.feature_map
+        self._network = nls.to_numpy()
+        self._ends = np.array(self.u_range)
 
     def initial_state(self) -> np.ndarray:
         return self.nls.initial_state()
 
     def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
-        return self.nls.step(u, state)
+        features, new_state = self._features.step(float(u), state)
+        return self._network.evaluate_one(features), new_state
 
     def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
         r = self.nls.solve_inverse(z_target, state, u_range=self.u_range)
@@ -79,9 +84,8 @@ class IdentifiedNLS:
         return InverseResult(float(r.u), float(r.z), status, r.state)
 
     def reachable(self, state: np.ndarray) -> tuple[float, float]:
-        low = self.nls.step(self.u_range[0], state)[0]
-        high = self.nls.step(self.u_range[1], state)[0]
-        return (low, high) if low <= high else (high, low)
+        low, high = self._network(self._features.candidates(self._ends, state))
+        return (float(low), float(high)) if low <= high else (float(high), float(low))
 
     def casadi_step(self) -> Any:
         return self.nls.to_casadi_step()
