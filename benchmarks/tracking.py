@@ -1,0 +1,34 @@
+"""Closed-loop tracking benchmark: ``piezo benchmark`` run as committed with the code.
+
+Identifies the default PL140 (seed 0), runs every default controller on every reference and
+robustness plant, writes the full report and figures to ``docs/benchmark/`` and the tables, with
+the machine and the date, to ``benchmarks/results/tracking.md``.
+
+Run: ``python benchmarks/tracking.py`` (a few minutes on 2 cores).
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+from _common import RESULTS
+
+from piezo_cli.main import main as piezo
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main() -> int:
+    out = ROOT / "docs" / "benchmark"
+    status = piezo(["benchmark", "--out", str(out), "--quiet", *sys.argv[1:]])
+    if status == 0:
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(out / "benchmark.md", RESULTS / "tracking.md")
+        print(f"copied the report to {RESULTS / 'tracking.md'}")
+    return status
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
