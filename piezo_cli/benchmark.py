@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 from piezo_cli.arguments import seed
@@ -65,6 +66,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--jobs", type=_positive_int, default=default_jobs(), help="worker processes"
     )
+    parser.add_argument(
+        "--backend",
+        default="local",
+        metavar="NAME",
+        help="where the episodes run: local (a process pool of --jobs workers) or ray (Ray "
+        'tasks; needs pip install "piezo-testbed[ray]"); results are the same on both',
+    )
+    parser.add_argument(
+        "--address",
+        default=None,
+        metavar="ADDR",
+        help="with --backend ray: an existing Ray cluster (auto, HOST:PORT or ray://HOST:PORT; "
+        "every node needs this project and the --model folder); default: a local Ray instance "
+        "of --jobs CPUs started for the run",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -80,9 +96,31 @@ def _config(args: argparse.Namespace):
             steps=args.steps,
             preview=args.preview,
             jobs=args.jobs,
+            backend=args.backend,
         )
     except ValueError as error:
         raise CommandLineError(str(error)) from None
+
+
+def _check_backend(args: argparse.Namespace) -> None:
+    """Refuse a backend that cannot run here, and hand ``--address`` to the ray backend.
+
+    :mod:`controllers.backends` reads the cluster address from ``RAY_ADDRESS`` (Ray's own
+    variable), so ``--address`` sets it for this process.
+    """
+    from controllers.backends import check_backend
+
+    try:
+        check_backend(args.backend)
+    except (ValueError, RuntimeError) as error:
+        raise CommandLineError(str(error)) from None
+    if args.address is None:
+        return
+    if args.backend != "ray":
+        raise CommandLineError(f"--address is for --backend ray, not --backend {args.backend}")
+    if not args.address.strip():
+        raise CommandLineError("--address needs a Ray address: auto, HOST:PORT or ray://HOST:PORT")
+    os.environ["RAY_ADDRESS"] = args.address.strip()
 
 
 def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
@@ -112,12 +150,15 @@ def run(args: argparse.Namespace) -> int:
     """Check everything, identify (or load) the model, run the benchmark, write the report."""
     out = prepare_output_dir(args.out)
     config = _config(args)
+    _check_backend(args)
     from controllers.benchmark import run_benchmark, terminal_progress
     from controllers.benchmark_report import check_targets, machine, write_benchmark
 
     model_dir, timing = _model(args, out)
     start = time.perf_counter()
-    result = run_benchmark(config, model_dir, progress=terminal_progress(args.quiet))
+    # Ray workers on other nodes do not share this working directory.
+    run_dir = os.path.abspath(model_dir) if args.backend == "ray" else model_dir
+    result = run_benchmark(config, run_dir, progress=terminal_progress(args.quiet))
     meta = {
         "model": model_dir,
         "dt": 1e-3,
@@ -152,5 +193,6 @@ BENCHMARK = Subcommand(
     examples=(
         "piezo benchmark --out out/benchmark",
         "piezo benchmark --model out/pl140/model --controllers mpc,pid-ff --plants nominal",
+        "piezo benchmark --model out/pl140/model --backend ray --address auto",
     ),
 )

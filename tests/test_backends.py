@@ -1,0 +1,142 @@
+"""Backends of the benchmark: task order, refusals, and Ray bitwise equal to the local pool.
+
+The Ray tests share one private local Ray instance (module fixture, about 5 s to start), shut
+down at the end so that no Ray process outlives the test run. Ray is in the ``test`` extra, so
+these tests run in CI rather than skip.
+"""
+
+from __future__ import annotations
+
+import json
+import operator
+from collections.abc import Iterator
+
+import pytest
+
+from controllers.backends import BACKENDS, RAY_INSTALL_HINT, check_backend, run_tasks
+from controllers.benchmark import BenchmarkConfig, run_benchmark
+from controllers.benchmark_report import deterministic_json, tracking_tables
+from piezo_cli.main import main
+
+MODEL_DIR = "docs/identify/model"
+
+SMALL = dict(
+    controllers=("pid-ff", "mpc"),
+    references=("sine-10Hz", "steps"),
+    plants=("nominal",),
+    steps=100,
+    jobs=2,
+)
+
+
+def _refuse(*args, **kwargs):
+    raise AssertionError("work started before the arguments were checked")
+
+
+@pytest.fixture(scope="module")
+def ray_instance() -> Iterator[object]:
+    """One private local Ray instance with two CPUs for the module, shut down after."""
+    import ray
+
+    ray.init(
+        address="local",
+        num_cpus=2,
+        include_dashboard=False,
+        log_to_driver=False,
+        configure_logging=False,
+    )
+    yield ray
+    ray.shutdown()
+
+
+def test_backends_list_ray_and_refuse_unknown_names():
+    assert BACKENDS == ("local", "ray")
+    with pytest.raises(ValueError, match="unknown backend 'dask'; valid: local, ray"):
+        run_tasks(operator.neg, [(1,)], backend="dask")
+    with pytest.raises(ValueError, match="unknown backend"):
+        BenchmarkConfig(backend="dask")
+    check_backend("ray")  # installed through the test extra
+
+
+def test_missing_ray_is_one_clear_error(monkeypatch):
+    monkeypatch.setattr("controllers.backends._ray_installed", lambda: False)
+    with pytest.raises(RuntimeError, match=r'pip install "piezo-testbed\[ray\]"'):
+        run_tasks(operator.neg, [(1,)], backend="ray")
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--backend", "dask"], "unknown backend 'dask'; valid: local, ray"),
+        (["--backend", "ray", "--address", ""], "--address needs a Ray address"),
+        (["--address", "auto"], "--address is for --backend ray"),
+    ],
+)
+def test_cli_refuses_bad_backends_in_one_line_before_any_work(
+    argv, message, monkeypatch, tmp_path, capsys
+):
+    monkeypatch.setattr("controllers.benchmark.run_benchmark", _refuse)
+    monkeypatch.setattr("identification.pipeline.identify", _refuse)
+    assert main(["benchmark", *argv, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err
+    assert len(err.splitlines()) == 1
+
+
+def test_cli_without_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr("controllers.backends._ray_installed", lambda: False)
+    monkeypatch.setattr("controllers.benchmark.run_benchmark", _refuse)
+    monkeypatch.setattr("identification.pipeline.identify", _refuse)
+    assert main(["benchmark", "--backend", "ray", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert RAY_INSTALL_HINT in err and len(err.splitlines()) == 1
+
+
+def test_local_backend_keeps_task_order_with_a_pool():
+    seen = []
+    results = run_tasks(
+        operator.mul,
+        [(i, 3) for i in range(7)],
+        jobs=2,
+        labels=[f"t{i}" for i in range(7)],
+        progress=lambda done, total, label: seen.append((done, total, label)),
+    )
+    assert results == [3 * i for i in range(7)]
+    assert [d for d, _, _ in seen] == list(range(1, 8)) and {t for _, t, _ in seen} == {7}
+    assert sorted(label for _, _, label in seen) == sorted(f"t{i}" for i in range(7))
+
+
+def test_small_benchmark_on_ray_is_bitwise_equal_to_local():
+    """The default path: ``run_tasks`` starts a private Ray instance and shuts it down after."""
+    import ray
+
+    already_open = ray.is_initialized()
+    local = run_benchmark(BenchmarkConfig(**SMALL, backend="local"), MODEL_DIR)
+    on_ray = run_benchmark(BenchmarkConfig(**SMALL, backend="ray"), MODEL_DIR)
+    assert tracking_tables(on_ray) == tracking_tables(local)
+    assert json.dumps(deterministic_json(on_ray)) == json.dumps(deterministic_json(local))
+    assert json.dumps(on_ray.traces) == json.dumps(local.traces)
+    assert len(on_ray.episodes) == 2 * 2
+    assert ray.is_initialized() == already_open
+
+
+def test_ray_backend_keeps_task_order_and_reports_progress(ray_instance):
+    seen = []
+    results = run_tasks(
+        operator.mul,
+        [(i, 3) for i in range(9)],
+        jobs=2,
+        backend="ray",
+        labels=[f"t{i}" for i in range(9)],
+        progress=lambda done, total, label: seen.append((done, total, label)),
+    )
+    assert results == [3 * i for i in range(9)]
+    assert [d for d, _, _ in seen] == list(range(1, 10)) and {t for _, t, _ in seen} == {9}
+    assert sorted(label for _, _, label in seen) == sorted(f"t{i}" for i in range(9))
+    assert ray_instance.is_initialized()  # a connection the caller opened stays open
+
+
+def test_ray_backend_raises_the_task_error(ray_instance):
+    # Workers import the function by its module, which a test file is not: use a builtin.
+    with pytest.raises(ZeroDivisionError):
+        run_tasks(operator.truediv, [(1, 1), (1, 0), (2, 1)], jobs=2, backend="ray")
