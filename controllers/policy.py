@@ -1,0 +1,404 @@
+"""A trained RL policy as a controller, evaluated in numpy from plain files (no torch at run time).
+
+A policy folder holds two files:
+
+- ``policy.json``: format and version, the network architecture (layer sizes, activation),
+  the observation the policy was trained on (:class:`piezo_env.wrappers.ObservationConfig`),
+  the action scaling (action in [-1, 1] times U_r volts), the training configuration and the
+  library versions, and the SHA-256 of the weights file;
+- ``weights.npz``: the actor network's arrays only, ``layer{i}.weight`` (out x in) and
+  ``layer{i}.bias``, float32 or float64. Read with ``allow_pickle=False``: nothing is unpickled.
+
+The controller's action is the deterministic one, the mean of the policy's Gaussian, clipped
+to [-1, 1], as ``stable_baselines3`` ``predict(obs, deterministic=True)`` gives it. It
+normalises the raw observation with the same functions as the training wrappers
+(:mod:`piezo_env.wrappers`), keeping the past voltages and errors itself.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers.base import Controller
+from controllers.task import ControlTask
+from piezo_env.wrappers import ObservationConfig, ObservationHistory, action_to_voltage
+
+__all__ = [
+    "FORMAT",
+    "LoadedPolicy",
+    "PolicyController",
+    "PolicyNetwork",
+    "load_policy",
+    "make_policy_controller",
+    "save_policy",
+]
+
+FORMAT = "piezo-testbed/policy"
+FORMAT_VERSION = 1
+POLICY_FILE = "policy.json"
+WEIGHTS_FILE = "weights.npz"
+_ROW = slice(0, 1)  # the controller's one row of the shared history
+_ACTIVATIONS = {"tanh": np.tanh, "relu": lambda x: np.maximum(x, 0.0)}
+
+
+@dataclass(frozen=True)
+class PolicyNetwork:
+    """The actor MLP: hidden layers with one activation, then a linear output (the mean action).
+
+    Attributes
+    ----------
+    weights : tuple of ndarray
+        Layer weights, each (out, in), float64.
+    biases : tuple of ndarray
+        Layer biases, each (out,), float64.
+    activation : str
+        ``"tanh"`` or ``"relu"``, applied after every layer but the last.
+    """
+
+    weights: tuple[np.ndarray, ...]
+    biases: tuple[np.ndarray, ...]
+    activation: str
+
+    def mean(self, x: np.ndarray) -> np.ndarray:
+        """Mean action(s) in policy units for observations ``x``, shape (n, in) or (in,)."""
+        h = np.asarray(x, dtype=np.float64)
+        act = _ACTIVATIONS[self.activation]
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases, strict=True)):
+            h = h @ w.T + b
+            if i < last:
+                h = act(h)
+        return h
+
+    @property
+    def layer_sizes(self) -> list[int]:
+        """[in, hidden..., out]."""
+        return [int(self.weights[0].shape[1])] + [int(w.shape[0]) for w in self.weights]
+
+
+@dataclass(frozen=True)
+class LoadedPolicy:
+    """A policy folder read and checked.
+
+    Attributes
+    ----------
+    network : PolicyNetwork
+    observation : ObservationConfig
+    metadata : dict
+        The whole ``policy.json``.
+    folder : pathlib.Path
+    """
+
+    network: PolicyNetwork
+    observation: ObservationConfig
+    metadata: dict[str, Any]
+    folder: Path
+
+
+def save_policy(
+    folder: str | Path,
+    *,
+    layers: list[tuple[np.ndarray, np.ndarray]],
+    activation: str,
+    observation: ObservationConfig,
+    extra: dict[str, Any] | None = None,
+) -> Path:
+    """Write ``policy.json`` and ``weights.npz`` into ``folder`` (created if needed).
+
+    Parameters
+    ----------
+    folder : str or Path
+    layers : list of (weight (out, in), bias (out,))
+        The actor network, input layer first; the last layer's output is the mean action.
+    activation : str
+        Hidden activation, ``"tanh"`` or ``"relu"``.
+    observation : ObservationConfig
+        The observation the policy takes.
+    extra : dict, optional
+        JSON-safe sections added as they are (``training``, ``versions``, ``task`` ...).
+
+    Returns
+    -------
+    pathlib.Path
+        The folder.
+    """
+    if activation not in _ACTIVATIONS:
+        raise ValueError(f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {}
+    for i, (w, b) in enumerate(layers):
+        arrays[f"layer{i}.weight"] = np.asarray(w, dtype=np.float32)
+        arrays[f"layer{i}.bias"] = np.asarray(b, dtype=np.float32)
+    weights_path = folder / WEIGHTS_FILE
+    np.savez(weights_path, **arrays)
+    sizes = [int(layers[0][0].shape[1])] + [int(w.shape[0]) for w, _ in layers]
+    document = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "architecture": {
+            "type": "mlp",
+            "layer_sizes": sizes,
+            "activation": activation,
+            "output": "mean of a diagonal Gaussian; the deterministic action, clipped to [-1, 1]",
+        },
+        "observation": {
+            "wrapper": "piezo_env.wrappers.TrackingObservation",
+            **observation.to_dict(),
+        },
+        "action": {"low": -1.0, "high": 1.0, "volts_per_unit": observation.u_max},
+        "weights": {
+            "file": WEIGHTS_FILE,
+            "sha256": _sha256(weights_path),
+            "arrays": sorted(arrays),
+        },
+        **(extra or {}),
+    }
+    (folder / POLICY_FILE).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+    return folder
+
+
+def load_policy(folder: str | Path) -> LoadedPolicy:
+    """Read and check a policy folder.
+
+    Raises
+    ------
+    ValueError
+        Naming the file and the field when a file is missing, unreadable, tampered with
+        (weights hash) or inconsistent with the architecture.
+    """
+    folder = Path(folder)
+    json_path = folder / POLICY_FILE
+    if not json_path.is_file():
+        raise ValueError(
+            f"{json_path}: missing; a policy folder holds {POLICY_FILE} and "
+            f"{WEIGHTS_FILE} (written by controllers.rl.train_ppo)"
+        )
+    try:
+        document = json.loads(json_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise ValueError(f"{json_path}: not readable JSON ({error})") from None
+    if not isinstance(document, dict) or document.get("format") != FORMAT:
+        raise ValueError(f"{json_path}: field 'format' must be {FORMAT!r}")
+    if document.get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{json_path}: field 'format_version' must be {FORMAT_VERSION}, got "
+            f"{document.get('format_version')!r}"
+        )
+    observation = _observation_config(document, json_path)
+    network = _network(document, json_path, folder)
+    if network.layer_sizes[0] != observation.size or network.layer_sizes[-1] != 1:
+        raise ValueError(
+            f"{json_path}: field 'architecture.layer_sizes' {network.layer_sizes} does not take "
+            f"the observation's {observation.size} entries to one action"
+        )
+    return LoadedPolicy(network, observation, document, folder)
+
+
+def _field(document: dict[str, Any], path: str, json_path: Path) -> Any:
+    value: Any = document
+    for key in path.split("."):
+        if not isinstance(value, dict) or key not in value:
+            raise ValueError(f"{json_path}: field {path!r} is missing")
+        value = value[key]
+    return value
+
+
+def _observation_config(document: dict[str, Any], json_path: Path) -> ObservationConfig:
+    names = ("stroke_um", "u_max", "bound_um", "preview", "n_inputs", "n_errors")
+    values = {name: _field(document, f"observation.{name}", json_path) for name in names}
+    try:
+        config = ObservationConfig(**values)
+    except ValueError as error:
+        raise ValueError(f"{json_path}: field 'observation': {error}") from None
+    return config
+
+
+def _network(document: dict[str, Any], json_path: Path, folder: Path) -> PolicyNetwork:
+    activation = _field(document, "architecture.activation", json_path)
+    if activation not in _ACTIVATIONS:
+        raise ValueError(
+            f"{json_path}: field 'architecture.activation' must be one of "
+            f"{sorted(_ACTIVATIONS)}, got {activation!r}"
+        )
+    sizes = _field(document, "architecture.layer_sizes", json_path)
+    if not (
+        isinstance(sizes, list)
+        and len(sizes) >= 2
+        and all(isinstance(s, int) and s > 0 for s in sizes)
+    ):
+        raise ValueError(
+            f"{json_path}: field 'architecture.layer_sizes' must be a list of "
+            f"positive integers, got {sizes!r}"
+        )
+    name = _field(document, "weights.file", json_path)
+    expected = _field(document, "weights.sha256", json_path)
+    weights_path = folder / str(name)
+    if Path(str(name)).name != name or not weights_path.is_file():
+        raise ValueError(f"{weights_path}: missing (field 'weights.file' of {json_path})")
+    if _sha256(weights_path) != expected:
+        raise ValueError(
+            f"{weights_path}: SHA-256 differs from field 'weights.sha256' of "
+            f"{json_path}: the file is corrupted or was replaced"
+        )
+    arrays = _read_arrays(weights_path)
+    weights, biases = [], []
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(sizes)):
+        w = arrays.get(f"layer{i}.weight")
+        b = arrays.get(f"layer{i}.bias")
+        if w is None or b is None or w.shape != (n_out, n_in) or b.shape != (n_out,):
+            raise ValueError(
+                f"{weights_path}: arrays 'layer{i}.weight' ({n_out}, {n_in}) and "
+                f"'layer{i}.bias' ({n_out},) expected by field "
+                f"'architecture.layer_sizes' of {json_path}"
+            )
+        weights.append(w.astype(np.float64))
+        biases.append(b.astype(np.float64))
+    if len(arrays) != 2 * (len(sizes) - 1):
+        raise ValueError(
+            f"{weights_path}: holds arrays {sorted(arrays)} beyond the layers of "
+            f"field 'architecture.layer_sizes' of {json_path}"
+        )
+    return PolicyNetwork(tuple(weights), tuple(biases), activation)
+
+
+def _read_arrays(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files}
+    except (OSError, ValueError, EOFError) as error:
+        raise ValueError(f"{path}: not a readable npz archive of arrays ({error})") from None
+    for key, value in arrays.items():
+        if value.dtype not in (np.float32, np.float64) or not np.isfinite(value).all():
+            raise ValueError(
+                f"{path}: array {key!r} must be finite float32/float64, got {value.dtype}"
+            )
+    return arrays
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+class PolicyController(Controller):
+    """A trained policy (a folder of :func:`save_policy`) as a controller.
+
+    Parameters
+    ----------
+    model : str or Path
+        The policy folder (``policy.json`` + ``weights.npz``).
+    task : ControlTask
+        The task it runs on; its drive range, stroke and preview must be the policy's.
+    settings : PolicyController.Settings, optional
+    name : str
+        Name in reports.
+
+    Raises
+    ------
+    ValueError
+        For a missing, corrupted or mismatched policy (naming the file and the field).
+    """
+
+    @dataclass(frozen=True)
+    class Settings:
+        """Settings of the policy controller.
+
+        Attributes
+        ----------
+        initial_voltage : float
+            Voltage (V) the bender rests under at reset, the start of the voltage history
+            (the env's ``initial_voltage`` reset option; 0 V by default).
+        """
+
+        initial_voltage: float = 0.0
+
+    name = "policy"
+
+    def __init__(
+        self,
+        model: str | Path,
+        task: ControlTask,
+        settings: PolicyController.Settings | None = None,
+        *,
+        name: str = "policy",
+    ) -> None:
+        super().__init__(task)
+        self.settings = settings or self.Settings()
+        if abs(self.settings.initial_voltage) > task.u_max:
+            raise ValueError(
+                f"initial_voltage must be within +-{task.u_max} V, got "
+                f"{self.settings.initial_voltage}"
+            )
+        self.policy = load_policy(model)
+        self.name = name
+        self._check_task(task)
+        self._history = ObservationHistory(1, self.policy.observation)
+        self._last_voltage: float | None = None
+
+    def _check_task(self, task: ControlTask) -> None:
+        config, where = self.policy.observation, self.policy.folder / POLICY_FILE
+        for field, mine, theirs in (
+            ("preview", config.preview, task.preview),
+            ("stroke_um", config.stroke_um, task.stroke_um),
+            ("u_max", config.u_max, task.u_max),
+        ):
+            if not np.isclose(mine, theirs, rtol=1e-9, atol=0.0):
+                raise ValueError(
+                    f"{where}: field 'observation.{field}' = {mine} but the env "
+                    f"has {theirs}; make the env to match (e.g. preview={mine})"
+                )
+
+    def _reset(self, observation: np.ndarray) -> None:
+        self._history.start(_ROW, observation, self.settings.initial_voltage)
+        self._last_voltage = None
+
+    def _act(self, observation: np.ndarray) -> float:
+        if self._last_voltage is not None:
+            self._history.push(_ROW, observation, self._last_voltage)
+        normalized = self._history.observe(observation[None])
+        mean = self.policy.network.mean(normalized)
+        # float32 first, as SB3 hands the action to the env wrapper in training
+        voltage = float(action_to_voltage(mean[0].astype(np.float32), self.task.u_max)[0])
+        self._last_voltage = voltage
+        return voltage
+
+    def describe(self) -> dict[str, Any]:
+        """Policy folder, observation, architecture and training summary."""
+        meta = self.policy.metadata
+        return {
+            "name": self.name,
+            "policy": str(self.policy.folder),
+            "observation": self.policy.observation.to_dict(),
+            "architecture": meta.get("architecture", {}),
+            "training": meta.get("training", {}),
+        }
+
+
+def make_policy_controller(path: str | Path, env: Any, **options: Any) -> PolicyController:
+    """A :class:`PolicyController` for the policy folder ``path`` on ``env``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The policy folder.
+    env : gymnasium.Env
+        A ``PiezoBender-v0`` env (its preview must be the policy's).
+    **options
+        Fields of :class:`PolicyController.Settings`; unknown ones raise ValueError.
+    """
+    valid = set(PolicyController.Settings.__dataclass_fields__)
+    unknown = sorted(set(options) - valid)
+    if unknown:
+        raise ValueError(
+            f"unknown option(s) {unknown} for the policy controller; "
+            f"valid: {', '.join(sorted(valid))}"
+        )
+    task = ControlTask.from_env(env)
+    return PolicyController(path, task, PolicyController.Settings(**options))
