@@ -39,6 +39,9 @@ class ControllerStats:
         Solver status per step (e.g. ``"solved"``, ``"max-iter"``), counted.
     iterations : list of int
         Solver iterations per step (empty for controllers without a solver).
+    inverse : collections.Counter
+        Status of the nonlinearity inverse per step (``"ok"``, ``"out-of-range"``,
+        ``"non-monotone"``), for controllers that convert z to volts.
     fallbacks : int
         Steps where the controller used its fallback input instead of a solution.
     saturated : int
@@ -48,6 +51,7 @@ class ControllerStats:
     compute_s: list[float] = field(default_factory=list)
     status: Counter = field(default_factory=Counter)
     iterations: list[int] = field(default_factory=list)
+    inverse: Counter = field(default_factory=Counter)
     fallbacks: int = 0
     saturated: int = 0
 
@@ -60,6 +64,7 @@ class ControllerStats:
             **{k: float(v) for k, v in quantiles.items()},
             "steps": int(times.size),
             "status": dict(self.status),
+            "inverse": dict(self.inverse),
             "mean_iterations": float(np.mean(self.iterations)) if self.iterations else 0.0,
             "fallbacks": self.fallbacks,
             "saturated": self.saturated,

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from controllers.backends import BACKENDS, run_tasks
 from controllers.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
@@ -51,6 +53,12 @@ ROBUSTNESS_REFERENCES = ("sine-10Hz", "sine-50Hz", "sine-100Hz", "multisine", "s
 
 TRACE_REFERENCES = ("sine-50Hz", "multisine", "steps")
 """References whose nominal time series are kept for the tracking figure."""
+
+NOMINAL_STROKE_UM = 1000.0
+"""One-sided stroke of the nominal PL140 (um): every plant's percentages are of 2 x this."""
+
+DT = 1e-3
+"""Sample time of the benchmark's env (s), the default of PiezoBender-v0."""
 
 
 def _tolerance_sheet(scale: float) -> Any:
@@ -97,7 +105,8 @@ class BenchmarkConfig:
     steps : int
         Steps per episode (2000 = 2 s at 1 ms).
     preview : int
-        Reference samples after r_t in every controller's observation.
+        Reference samples after r_t in every controller's observation (>= 1: the action a_t
+        is scored against r_t+1).
     jobs : int
         Worker processes (1: run in this process).
     backend : str
@@ -136,8 +145,31 @@ class BenchmarkConfig:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; valid: {', '.join(BACKENDS)}")
-        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 0:
-            raise ValueError(f"preview must be an integer >= 0, got {self.preview!r}")
+        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 1:
+            raise ValueError(
+                f"preview must be an integer >= 1 (the action a_t is scored against r_t+1), "
+                f"got {self.preview!r}"
+            )
+        self._check_options()
+
+    def _check_options(self) -> None:
+        """Every controller option names a field of that controller's settings."""
+        import importlib
+
+        for controller, options in self.controller_options.items():
+            if controller not in self.controllers:
+                raise ValueError(
+                    f"controller_options given for {controller!r}, which is not benchmarked"
+                )
+            module, cls_name, preset = CONTROLLERS[controller.removesuffix("-oracle")]
+            settings = getattr(importlib.import_module(module), cls_name).Settings
+            valid = {f.name for f in dataclasses.fields(settings)} - set(preset)
+            unknown = sorted(set(options) - valid)
+            if unknown:
+                raise ValueError(
+                    f"unknown option(s) {unknown} for {controller!r}; "
+                    f"valid: {', '.join(sorted(valid))}"
+                )
 
     def groups(self) -> list[tuple[str, str, tuple[str, ...]]]:
         """(plant, controller, references) of every group, in report order."""
@@ -167,37 +199,56 @@ class BenchmarkResult:
     timing: dict[str, float]
 
 
-def _run_group(
-    plant: str,
-    controller: str,
-    references: tuple[str, ...],
-    model_dir: str,
-    config: BenchmarkConfig,
-) -> tuple[list[dict[str, Any]], dict[str, Any], dict[str, dict[str, list[float]]]]:
-    """Run one controller on one plant over its references (in a worker process)."""
+def _make_env(config: BenchmarkConfig, plant: str) -> Any:
     import gymnasium as gym
-    from threadpoolctl import threadpool_limits
 
-    import controllers as ctl
-
-    env = gym.make(
+    return gym.make(
         "piezo_env:PiezoBender-v0",
         preview=config.preview,
         max_episode_steps=config.steps,
         **PLANTS[plant](),
     )
+
+
+def _build(controller: str, model_dir: str, plant_env: Any, config: BenchmarkConfig) -> Any:
+    """The controller as the nominal task defines it; an oracle predicts with the plant's model.
+
+    Built against the nominal env, so a controller never learns a robustness plant's sensor
+    noise or stroke: the same settings everywhere, only the oracle's model is the plant's own.
+    """
+    import controllers as ctl
+
     name = controller.removesuffix("-oracle")
-    model = "plant" if controller.endswith("-oracle") else model_dir
-    options = config.controller_options.get(controller, {})
+    nominal = _make_env(config, "nominal")
+    if controller.endswith("-oracle"):
+        model = ctl.PredictionModel.from_plant(plant_env.unwrapped.model)
+    else:
+        model = model_dir
+    built = ctl.make(name, model, nominal, **config.controller_options.get(controller, {}))
+    nominal.close()
+    return built
+
+
+def _run_group(
+    plant: str,
+    controller: str,
+    references: dict[str, np.ndarray],
+    model_dir: str,
+    config: BenchmarkConfig,
+) -> tuple[list[dict[str, Any]], dict[str, Any], dict[str, dict[str, list[float]]]]:
+    """Run one controller on one plant over its references (in a worker process)."""
+    from threadpoolctl import threadpool_limits
+
+    import controllers as ctl
+
+    env = _make_env(config, plant)
     episodes, traces = [], {}
     with threadpool_limits(1):
-        built = ctl.make(name, model, env, **options)
-        dt = env.unwrapped.model.dt
-        for ref_name in references:
-            reference = make_reference(
-                ref_name, config.steps + config.preview + 1, dt=dt, seed=config.seed
+        built = _build(controller, model_dir, env, config)
+        for ref_name, reference in references.items():
+            episode = ctl.run_episode(
+                env, built, seed=config.seed, reference=reference, stroke_um=NOMINAL_STROKE_UM
             )
-            episode = ctl.run_episode(env, built, seed=config.seed, reference=reference)
             episodes.append(
                 {"plant": plant, "controller": controller, "reference": ref_name, **episode.metrics}
             )
@@ -240,9 +291,14 @@ def run_benchmark(
     """
     groups = config.groups()
     start = time.perf_counter()
+    # Built here, not in the workers, so references registered in this process run anywhere.
+    arrays = {
+        name: make_reference(name, config.steps + config.preview + 1, dt=DT, seed=config.seed)
+        for name in config.references
+    }
     outputs = run_tasks(
         _run_group,
-        [(p, c, refs, str(model_dir), config) for p, c, refs in groups],
+        [(p, c, {r: arrays[r] for r in refs}, str(model_dir), config) for p, c, refs in groups],
         jobs=config.jobs,
         backend=config.backend,
         labels=[f"{c} on {p}" for p, c, _ in groups],

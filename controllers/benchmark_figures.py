@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.benchmark import BenchmarkResult
+from controllers.benchmark import DT, BenchmarkResult
+from controllers.references import REFERENCES
 
 __all__ = ["draw_figures"]
 
@@ -33,7 +34,7 @@ def _tracking(result: BenchmarkResult, path: Path) -> Path:
     fig, axes = plt.subplots(
         2, max(len(refs), 1), figsize=(5.2 * max(len(refs), 1), 6.5), squeeze=False, sharex="col"
     )
-    dt = 1e-3
+    dt = DT
     for j, ref in enumerate(refs):
         traces = result.traces[ref]
         lo, hi = _WINDOWS[ref]
@@ -103,7 +104,11 @@ def _robustness(result: BenchmarkResult, path: Path) -> Path:
     controllers = [
         c for c in cfg.controllers if sum(1 for k in index if k[1] == c and k[0] != "nominal")
     ]
-    refs = sorted({k[2] for k in index if k[0] != "nominal"}, key=list(cfg.references).index)
+    # Smooth references only: a step's ~0.9 % (the drive limit) would swamp them in the mean.
+    refs = sorted(
+        {k[2] for k in index if k[0] != "nominal" and REFERENCES[k[2]].smooth},
+        key=list(cfg.references).index,
+    )
     grid = np.full((len(controllers), len(plants)), np.nan)
     for i, c in enumerate(controllers):
         for j, p in enumerate(plants):

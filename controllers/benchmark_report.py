@@ -134,6 +134,9 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
         if r in ("random-steps", "chirp"):
             continue
         add(f"mpc RMSE on {r} (%)", get("nominal", "mpc", r), 0.05 if smooth else 0.9)
+        episode = index.get(("nominal", "mpc", r))
+        if smooth and episode is not None:
+            add(f"mpc max error on {r} (um)", episode["max_error_um"], 4.0)
     for r in ("sine-10Hz", "sine-50Hz", "sine-100Hz"):
         m, p = get("nominal", "mpc", r), get("nominal", "pid-notch", r)
         if m is not None and p is not None:
@@ -183,8 +186,16 @@ def _markdown(result: BenchmarkResult, meta: dict[str, Any], checks: list[dict])
         "the true plant's model instead of the identified one.",
         "",
         "Who gets what: `pid` and `pid-notch` use only the error r_t+1 - y_t (no preview, no "
-        "model inverse); `pid-ff` adds the model-inverse feedforward computed from the preview; "
-        "`mpc` and `nmpc` predict over the preview with the model.",
+        "model inverse); `pid-ff` adds the model-inverse feedforward of r_t+1 (one sample of "
+        "preview); `mpc` and `nmpc` predict over the whole preview with the model. Every "
+        "controller is built for the nominal task (sensor noise 1 um, stroke 1000 um) and runs "
+        "unchanged on the robustness plants; an oracle differs only in its prediction model "
+        "(the plant's hysteresis and exact beam; its z is the plant's effective voltage).",
+        "",
+        "Tuning disclosure: the controllers' defaults were chosen on this benchmark's "
+        "references (the MPC observer speed on the nominal 50 Hz sine against the "
+        "Prandtl-Ishlinskii plant's 10 Hz sine; the narrow feedforward notch of `pid-ff` on the "
+        "50 Hz sine); the PID gains come from a tuning rule on the identified model alone.",
         "",
         f"Model: {meta['model']}. Time: "
         + ", ".join(f"{k} {v} s" for k, v in meta["timing"].items()),

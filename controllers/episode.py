@@ -56,6 +56,7 @@ def run_episode(
     seed: int,
     reference: np.ndarray | None = None,
     max_steps: int | None = None,
+    stroke_um: float | None = None,
 ) -> Episode:
     """Run ``controller`` on ``env`` for one episode.
 
@@ -71,6 +72,9 @@ def run_episode(
         Reference of this episode (um), passed as ``reset(options={"reference": ...})``.
     max_steps : int, optional
         Stop after this many steps (default: when the env truncates or terminates).
+    stroke_um : float, optional
+        One-sided stroke (um) the percentages refer to (default: the env's datasheet stroke;
+        a benchmark over several plants passes the nominal one so that all share a scale).
 
     Returns
     -------
@@ -97,7 +101,7 @@ def run_episode(
     stats = controller.stats
     compute = np.asarray(stats.compute_s[-steps:], dtype=float)
     arrays = {k: np.asarray(v) for k, v in columns.items()}
-    stroke = float(env.unwrapped.model.stroke_um)
+    stroke = float(env.unwrapped.model.stroke_um) if stroke_um is None else float(stroke_um)
     metrics = tracking_metrics(
         deflection_um=arrays["y"],
         reference_um=arrays["r"],

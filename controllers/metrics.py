@@ -46,8 +46,26 @@ def tracking_metrics(
         ``saturated_fraction``, ``compute_median_us``, ``compute_p99_us``, ``compute_max_us``,
         ``fallbacks``, ``steps``.
     """
-    error = np.asarray(deflection_um, float) - np.asarray(reference_um, float)
-    voltage = np.asarray(voltage_v, float)
+    arrays = {
+        "deflection_um": np.asarray(deflection_um, float),
+        "reference_um": np.asarray(reference_um, float),
+        "voltage_v": np.asarray(voltage_v, float),
+        "saturated": np.asarray(saturated, bool),
+    }
+    steps = arrays["deflection_um"].shape
+    for name, values in arrays.items():
+        if values.ndim != 1 or values.shape != steps or values.size == 0:
+            raise ValueError(
+                f"{name} must be a non-empty 1-D array as long as deflection_um {steps}, "
+                f"got shape {values.shape}"
+            )
+        if not np.isfinite(values).all():
+            raise ValueError(f"{name} holds non-finite values")
+    if not (np.isfinite(stroke_um) and stroke_um > 0):
+        raise ValueError(f"stroke_um must be a positive number (um), got {stroke_um!r}")
+    error = arrays["deflection_um"] - arrays["reference_um"]
+    voltage = arrays["voltage_v"]
+    saturated = arrays["saturated"]
     times = np.asarray(compute_s, float) * 1e6
     full_stroke = 2.0 * stroke_um
     rmse = float(np.sqrt(np.mean(error**2)))
@@ -61,7 +79,7 @@ def tracking_metrics(
         "max_error_percent": 100.0 * max_error / full_stroke,
         "rms_voltage_v": float(np.sqrt(np.mean(voltage**2))),
         "voltage_tv_v": float(np.sum(np.abs(np.diff(voltage)))),
-        "saturated_fraction": float(np.mean(np.asarray(saturated, bool))),
+        "saturated_fraction": float(np.mean(saturated)),
         "compute_median_us": float(median),
         "compute_p99_us": float(p99),
         "compute_max_us": float(worst),

@@ -26,7 +26,6 @@ counted in ``stats.fallbacks``.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -36,12 +35,29 @@ import scipy.sparse
 from controllers.base import Controller
 from controllers.observer import DisturbanceObserver
 from controllers.prediction import PredictionModel
+from controllers.settings import USABLE_OSQP_STATUS, measurement_std, number_at_least
 from controllers.task import ControlTask
 
 __all__ = ["LinearMPC", "prediction_matrices"]
 
-_USABLE = ("solved", "solved inaccurate")
-"""OSQP statuses whose solution is used; anything else falls back to the shifted plan."""
+
+def qp_matrices(model: PredictionModel, settings: MPCSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Hessian P (N, N) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
+
+    Scaled so that the largest Hessian entry is 1: OSQP's absolute tolerances then mean the
+    same thing for any bender and unit (the minimiser does not change).
+    """
+    n_hor, lam = settings.horizon, settings.rate_weight
+    phi, gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
+    diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
+    hessian = gamma.T @ gamma + lam * diff.T @ diff
+    first = np.zeros((n_hor, 1))
+    first[0, 0] = -lam
+    columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
+    if settings.slope_std > 0:  # d_t+k = d_t + k s_t
+        columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
+    scale = 1.0 / float(np.max(np.diag(hessian)))
+    return hessian * scale, scale * np.hstack([*columns, -gamma.T, first])
 
 
 def prediction_matrices(
@@ -128,27 +144,19 @@ class MPCSettings:
         ):
             raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
         for name in ("rate_weight", "process_std", "slope_std"):
-            if not _finite_at_least(getattr(self, name), 0.0):
+            if not number_at_least(getattr(self, name), 0.0):
                 raise ValueError(
                     f"{name} must be a finite number >= 0, got {getattr(self, name)!r}"
                 )
         for name in ("disturbance_std", "eps_abs", "eps_rel"):
-            if not _finite_at_least(getattr(self, name), 0.0) or getattr(self, name) == 0:
+            if not number_at_least(getattr(self, name), 0.0) or getattr(self, name) == 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {getattr(self, name)!r}")
         if self.measurement_std is not None and not (
-            _finite_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
+            number_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
         ):
             raise ValueError(
                 f"measurement_std must be > 0 um or None, got {self.measurement_std!r}"
             )
-
-
-def _finite_at_least(value: object, low: float) -> bool:
-    return (
-        isinstance(value, (int, float))
-        and not isinstance(value, bool)
-        and (math.isfinite(value) and value >= low)
-    )
 
 
 class LinearMPC(Controller):
@@ -179,65 +187,48 @@ class LinearMPC(Controller):
         self.name = name
         self.model = model
         self.settings = settings = settings or MPCSettings()
-        n_hor = settings.horizon
-        phi, gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
-        diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
-        lam = settings.rate_weight
-        hessian = gamma.T @ gamma + lam * diff.T @ diff
-        # q = G [x; d; r; z_prev]: the only per-step work besides the solver. Scaled so that
-        # the largest Hessian entry is 1: OSQP's absolute tolerances then mean the same thing
-        # for any bender and unit.
-        first = np.zeros((n_hor, 1))
-        first[0, 0] = -lam
-        scale = 1.0 / float(np.max(np.diag(hessian)))
-        hessian = hessian * scale
-        columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
-        if settings.slope_std > 0:  # d_t+k = d_t + k s_t
-            columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
-        self._q_matrix = scale * np.hstack([*columns, -gamma.T, first])
-        self._hessian = hessian
-        self._unconstrained = -np.linalg.solve(hessian, self._q_matrix)
-        self._n_states = model.n_states
+        self._hessian, self._q_matrix = qp_matrices(model, settings)
+        self._unconstrained = -np.linalg.solve(self._hessian, self._q_matrix)
         self._vector = np.zeros(self._q_matrix.shape[1])
         z_min, z_max = model.z_bounds
-        self._lower = np.full(n_hor, z_min)
-        self._upper = np.full(n_hor, z_max)
-        self._solver = osqp.OSQP()
-        self._solver.setup(
-            P=scipy.sparse.csc_matrix(np.triu(hessian)),
+        self._lower = np.full(settings.horizon, z_min)
+        self._upper = np.full(settings.horizon, z_max)
+        self.observer = DisturbanceObserver(
+            model.a,
+            model.b,
+            model.c,
+            measurement_std=measurement_std(settings.measurement_std, task),
+            disturbance_std=settings.disturbance_std,
+            process_std=settings.process_std,
+            slope_std=settings.slope_std,
+        )
+        self._reset(None)
+
+    def _setup_solver(self) -> osqp.OSQP:
+        """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
+        n_hor, s = self.settings.horizon, self.settings
+        solver = osqp.OSQP()
+        solver.setup(
+            P=scipy.sparse.csc_matrix(np.triu(self._hessian)),
             q=np.zeros(n_hor),
             A=scipy.sparse.identity(n_hor, format="csc"),
             l=self._lower,
             u=self._upper,
             verbose=False,
-            eps_abs=settings.eps_abs,
-            eps_rel=settings.eps_rel,
-            max_iter=settings.max_iter,
+            eps_abs=s.eps_abs,
+            eps_rel=s.eps_rel,
+            max_iter=s.max_iter,
             check_termination=5,
             polishing=False,
             warm_starting=True,
         )
-        measurement = settings.measurement_std
-        if measurement is None:
-            measurement = max(task.noise_bound_um / math.sqrt(3.0), 0.05)
-        self.observer = DisturbanceObserver(
-            model.a,
-            model.b,
-            model.c,
-            measurement_std=measurement,
-            disturbance_std=settings.disturbance_std,
-            process_std=settings.process_std,
-            slope_std=settings.slope_std,
-        )
-        self._plan = np.zeros(n_hor)
-        self._duals: np.ndarray | None = None
-        self._z_prev = 0.0
-        self._memory = model.nonlinearity.initial_state()
+        return solver
 
-    def _reset(self, observation: np.ndarray) -> None:
+    def _reset(self, observation: np.ndarray | None) -> None:
         self.observer.reset()
+        self._solver = self._setup_solver()
         self._plan = np.zeros(self.settings.horizon)
-        self._duals = None
+        self._duals: np.ndarray | None = None
         self._z_prev = 0.0
         self._memory = self.model.nonlinearity.initial_state()
 
@@ -245,12 +236,11 @@ class LinearMPC(Controller):
         estimate = self.observer.correct(float(observation[0]))
         z_target = self._solve(estimate, self.task.targets(observation, self.settings.horizon))
         inverse = self.model.nonlinearity.inverse(z_target, self._memory)
+        self.stats.inverse[inverse.status] += 1
         # The plant gets float32 volts; rounding moves u by at most 1e-6 V (at 30 V), within
         # the inverse's own tolerance, so the memory state and z of the inverse stand.
         u = float(np.float32(inverse.u))
         z, self._memory = inverse.z, inverse.state
-        if inverse.status != "ok":
-            self.stats.status["z-clipped"] += 1
         self.observer.predict(z)
         self._z_prev = z
         return u
@@ -280,7 +270,7 @@ class LinearMPC(Controller):
         self.stats.iterations.append(int(result.info.iter))
         status = result.info.status
         self.stats.status[status] += 1
-        if status in _USABLE and np.all(np.isfinite(result.x)):
+        if status in USABLE_OSQP_STATUS and np.all(np.isfinite(result.x)):
             self._plan = np.clip(result.x, self._lower, self._upper)
             self._duals = result.y
         else:

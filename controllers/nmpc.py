@@ -41,7 +41,6 @@ below OpenBLAS's threading threshold, so they run single-threaded without a thre
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -54,12 +53,12 @@ from controllers.base import Controller
 from controllers.mpc import MPCSettings, prediction_matrices
 from controllers.observer import DisturbanceObserver
 from controllers.prediction import IdentifiedNLS, PredictionModel
+from controllers.settings import USABLE_OSQP_STATUS, measurement_std, number_at_least
 from controllers.task import ControlTask
 
 __all__ = ["NMPCSettings", "NonlinearMPC"]
 
 _SOLVERS = ("rti", "ipopt")
-_USABLE = ("solved", "solved inaccurate")  # OSQP statuses whose solution is applied
 _OBSERVER = MPCSettings()  # one home for the observer tuning shared with the linear MPC
 _JACOBIANS = ("auto", "structured", "structured-vm", "generic", "generic-vm")
 
@@ -136,7 +135,7 @@ class NMPCSettings:
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
         for name in ("rate_weight", "process_std", "step_tolerance"):
-            if not _number_at_least(getattr(self, name), 0.0):
+            if not number_at_least(getattr(self, name), 0.0):
                 raise ValueError(
                     f"{name} must be a finite number >= 0, got {getattr(self, name)!r}"
                 )
@@ -148,23 +147,14 @@ class NMPCSettings:
             "ipopt_max_cpu_time",
         ):
             value = getattr(self, name)
-            if not _number_at_least(value, 0.0) or value == 0:
+            if not number_at_least(value, 0.0) or value == 0:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         if self.measurement_std is not None and not (
-            _number_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
+            number_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
         ):
             raise ValueError(
                 f"measurement_std must be > 0 um or None, got {self.measurement_std!r}"
             )
-
-
-def _number_at_least(value: object, low: float) -> bool:
-    return (
-        isinstance(value, (int, float))
-        and not isinstance(value, bool)
-        and math.isfinite(value)
-        and value >= low
-    )
 
 
 def make_horizon(model: PredictionModel, horizon: int, jacobian: str) -> Any:
@@ -213,9 +203,7 @@ class NonlinearMPC(Controller):
         n_hor = settings.horizon
         self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
         self.horizon = make_horizon(model, n_hor, settings.jacobian)
-        measurement = settings.measurement_std
-        if measurement is None:
-            measurement = max(task.noise_bound_um / math.sqrt(3.0), 0.05)
+        measurement = measurement_std(settings.measurement_std, task)
         self.observer = DisturbanceObserver(
             model.a,
             model.b,
@@ -237,6 +225,8 @@ class NonlinearMPC(Controller):
     # -- episode ------------------------------------------------------------------------------
 
     def _reset(self, observation: np.ndarray) -> None:
+        if self.settings.solver == "rti":
+            self._setup_qp()  # afresh: no adapted step size or duals carry over episodes
         self.observer.reset()
         self._plan = np.zeros(self.settings.horizon)
         self._u_prev = 0.0
@@ -257,7 +247,7 @@ class NonlinearMPC(Controller):
         self.stats.status[status] += 1
         if plan is None:
             self.stats.fallbacks += 1
-            plan = shifted if np.all(np.isfinite(shifted)) else np.full_like(shifted, self._u_prev)
+            plan = shifted
         self._plan = plan
         # The plant gets float32 volts: step the memory and the observer with exactly those.
         u = float(np.float32(plan[0]))
@@ -357,10 +347,10 @@ class NonlinearMPC(Controller):
             if u_new is not None and np.all(np.abs(u_new) <= self._u_max):
                 return u_new, "unconstrained", 0
         self._qp.update(Px=hessian[self._p_index], q=q)
-        self._qp.warm_start(x=u_bar)
+        self._qp.warm_start(x=u_bar, y=np.zeros_like(u_bar))
         result = self._qp.solve(raise_error=False)
         status = result.info.status
-        if status not in _USABLE or not np.all(np.isfinite(result.x)):
+        if status not in USABLE_OSQP_STATUS or not np.all(np.isfinite(result.x)):
             return None, status, int(result.info.iter)
         return np.clip(result.x, -self._u_max, self._u_max), status, int(result.info.iter)
 

@@ -79,9 +79,7 @@ class IdentifiedNLS:
         return self._network.evaluate_one(features), new_state
 
     def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
-        r = self.nls.solve_inverse(z_target, state, u_range=self.u_range)
-        status = "ok" if r.status != "out-of-range" else "out-of-range"
-        return InverseResult(float(r.u), float(r.z), status, r.state)
+        return self.nls.solve_inverse(z_target, state, u_range=self.u_range)
 
     def reachable(self, state: np.ndarray) -> tuple[float, float]:
         low, high = self._network(self._features.candidates(self._ends, state))
@@ -113,11 +111,11 @@ class PlantHysteresis:
         return float(u_eff), new
 
     def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
-        r = self.hysteresis.inverse(float(z_target), state, self.u_range)
-        return InverseResult(float(r.u), float(r.z), r.status, r.state)
+        return self.hysteresis.inverse(float(z_target), state, self.u_range)
 
     def reachable(self, state: np.ndarray) -> tuple[float, float]:
-        return self.step(self.u_range[0], state)[0], self.step(self.u_range[1], state)[0]
+        low, high = self.step(self.u_range[0], state)[0], self.step(self.u_range[1], state)[0]
+        return (low, high) if low <= high else (high, low)
 
     def casadi_step(self) -> Any:
         import casadi

@@ -30,7 +30,8 @@ class ControlTask:
     stroke_um : float
         One-sided datasheet stroke (um); the full stroke is twice this.
     preview : int
-        Future reference samples in the observation after r_t (P >= 0).
+        Future reference samples in the observation after r_t (P >= 1: a controller must see
+        r_t+1, the sample its action is scored against).
     noise_bound_um : float
         Sensor noise bound r (um): the datasheet of the sensor, not a secret of the plant.
     """
@@ -46,10 +47,22 @@ class ControlTask:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
-        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 0:
-            raise ValueError(f"preview must be an integer >= 0, got {self.preview!r}")
-        if not (math.isfinite(self.noise_bound_um) and self.noise_bound_um >= 0):
-            raise ValueError(f"noise_bound_um must be >= 0, got {self.noise_bound_um!r}")
+        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 1:
+            raise ValueError(
+                f"preview must be an integer >= 1, got {self.preview!r}: the action a_t is scored "
+                "against r_t+1, which the observation shows from preview=1 on; make the env with "
+                "preview >= 1, e.g. gym.make('piezo_env:PiezoBender-v0', preview=20)"
+            )
+        noise = self.noise_bound_um
+        if (
+            not (
+                isinstance(noise, (int, float))
+                and not isinstance(noise, bool)
+                and math.isfinite(noise)
+            )
+            or noise < 0
+        ):
+            raise ValueError(f"noise_bound_um must be a finite number >= 0, got {noise!r}")
 
     @classmethod
     def from_env(cls, env: Any) -> ControlTask:
@@ -82,7 +95,12 @@ class ControlTask:
 
     def check_observation(self, observation: Any) -> np.ndarray:
         """The observation as float64, or ValueError naming what is wrong with it."""
-        obs = np.asarray(observation, dtype=np.float64)
+        obs = np.asarray(observation)
+        if obs.dtype.kind not in "fiu":
+            raise ValueError(
+                f"observation must be a numeric array (um), got dtype {obs.dtype}: {observation!r}"
+            )
+        obs = obs.astype(np.float64, copy=False)
         if obs.shape != (self.observation_size,):
             raise ValueError(
                 f"observation must have shape ({self.observation_size},) = [y, r_t, r_t+1 .. "

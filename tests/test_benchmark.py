@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ from controllers.metrics import tracking_metrics
 from controllers.references import REFERENCES, make_reference
 from piezo_cli.main import main
 
-MODEL_DIR = "docs/identify/model"
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
 
 
 def test_metrics_match_hand_computed_values():
@@ -40,6 +41,25 @@ def test_metrics_match_hand_computed_values():
     assert metrics["saturated_fraction"] == 0.5
     assert metrics["compute_median_us"] == pytest.approx(2.5)
     assert metrics["fallbacks"] == 2 and metrics["steps"] == 4
+
+
+def test_metrics_refuse_mismatched_or_empty_input():
+    good = dict(
+        deflection_um=np.zeros(4),
+        reference_um=np.zeros(4),
+        voltage_v=np.zeros(4),
+        saturated=np.zeros(4, bool),
+        compute_s=np.zeros(4),
+        stroke_um=1000.0,
+    )
+    with pytest.raises(ValueError, match="reference_um must be"):
+        tracking_metrics(**{**good, "reference_um": np.zeros(1)})
+    with pytest.raises(ValueError, match="deflection_um must be"):
+        tracking_metrics(**{**good, "deflection_um": np.zeros(0)})
+    with pytest.raises(ValueError, match="stroke_um"):
+        tracking_metrics(**{**good, "stroke_um": -1.0})
+    with pytest.raises(ValueError, match="non-finite"):
+        tracking_metrics(**{**good, "voltage_v": np.array([0.0, np.nan, 0.0, 0.0])})
 
 
 def test_references_are_seeded_named_and_start_at_rest():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from controllers.mpc import LinearMPC, MPCSettings
 from controllers.prediction import InverseResult
 from identification.arx import ARXModel
 
-MODEL_DIR = "docs/identify/model"
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
 
 
 class AffineNonlinearity:
@@ -195,3 +197,22 @@ def test_bad_observations_and_options_are_refused(env):
         controllers.make("mcp", MODEL_DIR, env)
     with pytest.raises(ValueError, match="horizon"):
         controllers.make("mpc", MODEL_DIR, env, horizon=0)
+
+
+@pytest.mark.parametrize(
+    ("name", "model"), [("mpc", MODEL_DIR), ("nmpc", MODEL_DIR), ("mpc", "plant")]
+)
+def test_a_reused_controller_equals_a_fresh_one(env, name, model):
+    """Nothing carries over episodes: solver state included (steps make OSQP work)."""
+    from controllers.references import make_reference
+
+    steps = make_reference("steps", 321, dt=1e-3, seed=0)
+    random_steps = make_reference("random-steps", 321, dt=1e-3, seed=0)
+    reused = controllers.make(name, model, env)
+    controllers.run_episode(env, reused, seed=1, reference=steps, max_steps=300)
+    again = controllers.run_episode(env, reused, seed=2, reference=random_steps, max_steps=300)
+    fresh = controllers.run_episode(
+        env, controllers.make(name, model, env), seed=2, reference=random_steps, max_steps=300
+    )
+    assert sum(reused.stats.status.values()) == 300
+    np.testing.assert_array_equal(again.voltage_V, fresh.voltage_V)

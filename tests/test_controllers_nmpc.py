@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ from controllers import ControlTask, PredictionModel
 from controllers._nmpc_horizon import GenericHorizon, StructuredHorizon
 from controllers.nmpc import NMPCSettings, NonlinearMPC
 
-MODEL_DIR = "docs/identify/model"
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
 TASK = ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=20, noise_bound_um=1.0)
 HORIZON = 10
 
