@@ -91,6 +91,17 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
     ``saturated`` (a_t was clipped). After ``reset``: the same keys at t = 0 (y_0, r_0, the
     initial voltage).
 
+    ## Domain randomisation
+    With ``randomize=True`` (or a :class:`piezo_env.randomization.DomainRandomization`) each
+    reset first draws a plant from the datasheet tolerances with ``np_random`` (five uniforms,
+    before the reference and the noise; order and spread in :mod:`piezo_env.randomization`)
+    and rebuilds the model (about 1-5 ms per reset). ``env.unwrapped.model`` is then the plant
+    of the current episode; the nominal one is ``env.unwrapped.task.model``. References and
+    the reward keep the nominal stroke, and the observation bound covers every plant the
+    spread can draw (proven, see that module). ``info["plant"]`` at reset reports the draw:
+    ``free_deflection_um``, ``blocking_force_N``, ``stiffness_N_per_m``, ``resonance_Hz``,
+    ``damping_ratio``, ``hysteresis_scale``.
+
     ## Reset options
     ``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this
     voltage (V) instead of 0 V.
@@ -105,8 +116,8 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         The fields of :class:`piezo_env.TaskConfig`, each documented there with its unit and
         default (``help(piezo_env.TaskConfig)``): ``bender``, ``n_elements``, ``dt``,
         ``hysteresis``, ``creep``, ``noise_bound``, ``reference``, ``preview``,
-        ``deflection_limit``, ``damping_ratio``. An unknown keyword raises TypeError naming the
-        valid ones.
+        ``deflection_limit``, ``damping_ratio``, ``randomize``. An unknown keyword raises
+        TypeError naming the valid ones.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}
@@ -155,6 +166,7 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         super().reset(seed=seed)
         options = dict(options or {})
         voltage = check_reset_options(options, self._u_max)
+        plant_info = self._draw_plant() if self.task.randomization is not None else None
         self._plant.reset(voltage)
         spec = episode_reference(options, self._reference_spec)
         self._reference = None if spec is None else self.task.reference_stream(spec, self.np_random)
@@ -169,6 +181,8 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
             self.model.hysteresis.step(self._plant.get_state()[1], voltage)[1]
         )
         info["charge_uC"] = self.model.charge(voltage, self._plant.tip_rotation) * 1e6
+        if plant_info is not None:
+            info["plant"] = plant_info
         return self._observe(deflection_um + self._next_noise()), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -202,7 +216,8 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         from piezo_env.render import BenderRenderer
 
         if self._renderer is None:
-            self._renderer = BenderRenderer(self.model, human=self.render_mode == "human")
+            # The nominal plant: a drawn one has the same geometry, and the axes stay put.
+            self._renderer = BenderRenderer(self.task.model, human=self.render_mode == "human")
         trace = np.roll(self._trace, -(self._t % _TRACE) - 1)
         reference = None if self._reference is None else self._reference_at(self._t)
         frame = self._renderer.draw(
@@ -225,6 +240,12 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
         return state
 
     # -- helpers -------------------------------------------------------------------------------
+
+    def _draw_plant(self) -> dict[str, float]:
+        """Draw this episode's plant from ``np_random`` and step it from now on; its info."""
+        self.model, draw = self.task.draw_plant(self.np_random)
+        self._plant = BenderSimulator(self.model)
+        return draw.info()
 
     def _drive_voltage(self, action: np.ndarray) -> tuple[float, bool]:
         """Validated, clipped voltage (V) and whether it was clipped."""

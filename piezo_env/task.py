@@ -25,6 +25,7 @@ from piezo_env.reference import REFERENCE_NAMES, ReferenceStream, check_referenc
 
 if TYPE_CHECKING:
     from piezo_env.model import PiezoBenderModel
+    from piezo_env.randomization import DomainRandomization, PlantDraw
 
 __all__ = [
     "DEFAULT_HORIZON",
@@ -83,6 +84,14 @@ class TaskConfig:
         Terminate the episode when |true tip deflection| exceeds this (um), > 0; None: never.
     damping_ratio : float
         First-mode damping ratio zeta_1 (-), in [1e-4, 1): the bender must be underdamped.
+        With ``randomize`` it is the nominal plant's only; each episode draws its own.
+    randomize : bool, DomainRandomization or None
+        Domain randomisation: None or False (the default) keeps the nominal plant; True draws
+        the plant at every reset with the default :class:`~piezo_env.randomization.
+        DomainRandomization` (free deflection, blocking force and resonance +-20 %, damping
+        ratio 0.01-0.04, hysteresis strength +-30 %); a DomainRandomization sets the spread.
+        Stored as a DomainRandomization or None. The draw order and the proof of the
+        observation bound over the whole range are in :mod:`piezo_env.randomization`.
     """
 
     bender: str | BenderDatasheet = "PL140"
@@ -95,6 +104,7 @@ class TaskConfig:
     preview: int | None = None
     deflection_limit: float | None = None
     damping_ratio: float = 0.02
+    randomize: bool | DomainRandomization | None = None
 
     def __post_init__(self) -> None:
         get_datasheet(self.bender)
@@ -126,6 +136,7 @@ class TaskConfig:
         ):
             raise ValueError(f"deflection_limit must be > 0 um or None, got {limit!r}")
         check_damping_ratio(self.damping_ratio)
+        object.__setattr__(self, "randomize", _check_randomize(self.randomize))
 
     @classmethod
     def from_kwargs(cls, config: TaskConfig | None = None, /, **settings: Any) -> TaskConfig:
@@ -162,6 +173,20 @@ def _same(a: object, b: object) -> bool:
     return a == b
 
 
+def _check_randomize(randomize: object) -> DomainRandomization | None:
+    from piezo_env.randomization import DomainRandomization
+
+    if randomize is None or randomize is False:
+        return None
+    if randomize is True:
+        return DomainRandomization()
+    if isinstance(randomize, DomainRandomization):
+        return randomize
+    raise ValueError(
+        f"randomize must be True, False, None or a DomainRandomization, got {randomize!r}"
+    )
+
+
 def _check_reference(reference: object) -> str | np.ndarray | None:
     if reference is None:
         return None
@@ -176,7 +201,13 @@ def _check_reference(reference: object) -> str | np.ndarray | None:
 
 
 class BenderTask:
-    """The model, bound, spaces and reference streams of a validated :class:`TaskConfig`."""
+    """The model, bound, spaces and reference streams of a validated :class:`TaskConfig`.
+
+    ``model`` is the nominal plant. With ``config.randomize`` each episode's plant comes from
+    :meth:`draw_plant`, and the observation bound covers every plant the spread can draw;
+    references and rewards keep the nominal stroke (``stroke_um``), so that episodes on
+    different plants score alike.
+    """
 
     def __init__(self, config: TaskConfig) -> None:
         from piezo_env.model import PiezoBenderModel  # the model takes its defaults from here
@@ -194,9 +225,33 @@ class BenderTask:
         self.preview = config.preview
         self.deflection_limit = config.deflection_limit
         self.reference = config.reference
+        self.randomization = config.randomize
         self.bound = observation_bound(self.model, self.noise_bound)
+        if self.randomization is not None:
+            from piezo_env.randomization import randomized_deflection_bound_um
+
+            deflection = randomized_deflection_bound_um(self.model, self.randomization)
+            self.bound = max(self.bound, _rounded_bound(deflection, self.noise_bound))
         if isinstance(self.reference, np.ndarray):  # fail at construction, not at the first reset
             self.reference_stream(self.reference, None)
+
+    @property
+    def stroke_um(self) -> float:
+        """Nominal datasheet stroke (um): the scale of the references and the reward."""
+        return self.model.stroke_um
+
+    def draw_plant(self, rng: np.random.Generator) -> tuple[PiezoBenderModel, PlantDraw]:
+        """The plant of a new episode and its drawn parameters (randomisation on only).
+
+        Takes five uniforms from ``rng`` (:data:`piezo_env.randomization.DRAW_ORDER`) and
+        rebuilds the model (FE, modes, matrix exponentials: about 1-5 ms).
+        """
+        from piezo_env.randomization import drawn_plant
+
+        if self.randomization is None:
+            raise ValueError("this task was made without randomize: its plant is fixed")
+        draw = self.randomization.draw(rng, self.model.params.datasheet)
+        return drawn_plant(self.model, draw), draw
 
     def observation_space(self) -> spaces.Box:
         """[measured y_t, r_t, r_{t+1} .. r_{t+preview}] (um), or the deflection alone."""
@@ -243,7 +298,12 @@ def check_max_episode_steps(max_episode_steps: object) -> int | None:
 
 def observation_bound(model: PiezoBenderModel, noise_bound: float) -> float:
     """Finite bound (um) of every observation entry: deflection bound plus noise, rounded up."""
-    return float(np.float32(math.ceil((model.deflection_bound_um() + noise_bound) * 1.001 + 1.0)))
+    return _rounded_bound(model.deflection_bound_um(), noise_bound)
+
+
+def _rounded_bound(deflection_um: float, noise_bound: float) -> float:
+    """Deflection bound plus noise (um), with a 0.1 % + 1 um margin, rounded up (float32)."""
+    return float(np.float32(math.ceil((deflection_um + noise_bound) * 1.001 + 1.0)))
 
 
 def episode_reference(options: dict[str, Any], made_with: object) -> object:

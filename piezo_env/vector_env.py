@@ -10,6 +10,15 @@ both flags False, and the reset's observation and info (initial voltage 0 V, not
 Performance: the batched state update is split into blocks of at most 1024 rows so that each
 matrix product stays below OpenBLAS's multi-threading threshold (tiny threaded products stall
 on small machines).
+
+Domain randomisation (``randomize``): each sub-environment draws its own plant at each of its
+resets, from its own generator and in the single env's order (plant, reference, noise), so
+sub-environment i still reproduces the single env seeded seed + i. Plants of different damping
+and resonance keep different modes (the reduction is exact per plant), so every plant's step
+matrix is placed in one common layout that has a slot for every FE mode (zeros where a plant
+drops a mode; :func:`piezo_env.randomization.padded_layout`), and the step is one stacked
+(N, 1, k) x (N, k, k) product. The default path (no randomisation) is unchanged: one shared
+matrix, reduced to the nominal plant's modes.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from piezo_env.randomization import RowHysteresis, padded_layout, single_blas_thread
 from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
 from piezo_env.task import (
     DEFAULT_HORIZON,
@@ -35,6 +45,15 @@ from piezo_env.task import (
 __all__ = ["PiezoBenderVectorEnv"]
 
 _ROW_BLOCK = 1024
+_PLANT_KEYS = (
+    "free_deflection_um",
+    "blocking_force_N",
+    "stiffness_N_per_m",
+    "resonance_Hz",
+    "damping_ratio",
+    "hysteresis_scale",
+)
+"""Keys of ``info["plant"]`` (:meth:`piezo_env.randomization.PlantDraw.info`), in its order."""
 _INFO_KEYS = (
     "deflection_um",
     "voltage_V",
@@ -50,7 +69,10 @@ class PiezoBenderVectorEnv(VectorEnv):
 
     Spaces, reward, timing and info keys are those of :class:`piezo_env.env.PiezoBenderEnv`,
     batched along the first axis; every info key comes with its ``_key`` mask (all True), as
-    ``SyncVectorEnv`` gives it.
+    ``SyncVectorEnv`` gives it. With ``randomize``, ``info["plant"]`` (a dict of arrays with
+    their masks) reports the plants drawn at that reset or autoreset, masked to the
+    sub-environments that drew one; ``plant_draws[i]`` is sub-environment i's current draw and
+    ``task.draw_plant``/``piezo_env.randomization.drawn_plant`` rebuild its model.
 
     Parameters
     ----------
@@ -107,13 +129,23 @@ class PiezoBenderVectorEnv(VectorEnv):
         # Rows per matrix product; a test may set it small to cross the split.
         self._row_block = _ROW_BLOCK
 
-        n, k = self.num_envs, self.model.discrete.n_states
+        n = self.num_envs
         # The output columns come out scaled: deflection in um, Gamma theta_tip in uC.
         self._q_per_rad = self.model.params.piezo_moment * 1e6
-        step_t = np.ascontiguousarray(self.model.discrete.square_step_matrix().T)
-        step_t[:, k] *= 1e6
-        step_t[:, k + 1] *= self._q_per_rad
-        self._step_t = step_t
+        self._randomization = self.task.randomization
+        self._row_hyst: RowHysteresis | None = None
+        self._steps_t: np.ndarray | None = None  # per-env step matrices (randomisation only)
+        if self._randomization is None:
+            k = self.model.discrete.n_states
+            self._step_t = _scaled_step_t(self.model, np.arange(k + 2), k)
+        else:
+            k = self.model.discrete.n_creep + 2 * self.model.beam.n_dofs + 2
+            layout = padded_layout(self.model.discrete, self.model.beam.n_dofs)
+            self._step_t = _scaled_step_t(self.model, layout, k)
+            self._steps_t = np.repeat(self._step_t[None], n, axis=0)
+            self._row_hyst = RowHysteresis(self.model.hysteresis, n)
+        self.plant_draws: list[Any] = [None] * n
+        self._plant_values = np.zeros((len(_PLANT_KEYS), n))
         self._k = k
         self._x = np.zeros((n, k + 2))
         self._out = np.zeros((n, k + 2))
@@ -134,7 +166,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._noise_index = np.zeros(n, dtype=np.int64)
         self._t = np.zeros(n, dtype=np.int64)
         self._prev_done = np.zeros(n, dtype=bool)
-        self._reset_u_eff = 0.0  # effective voltage (V) of the latest reset, at rest
+        self._reset_u_eff = np.zeros(n)  # effective voltage (V) of each env's latest reset
         self._rest: dict[float, tuple[np.ndarray, np.ndarray, float]] = {}
         # True while every sub-env is at the same step (reset together): then the reference and
         # noise are read as one column instead of a gather.
@@ -169,8 +201,10 @@ class PiezoBenderVectorEnv(VectorEnv):
         reference = self._reference_now()
         measured = deflection + self._take_noise()
         voltage = np.full(self.num_envs, float(options.get("initial_voltage", 0.0)))
-        _, u_eff = self.model.hysteresis.step(self._hyst, voltage)
+        _, u_eff = (self._row_hyst or self.model.hysteresis).step(self._hyst, voltage)
         info = self._info(deflection, reference, voltage, u_eff, zeros.astype(bool))
+        if self._randomization is not None:
+            self._add_plant_info(info, self._all_true)
         return self._observe(measured), info
 
     def step(
@@ -189,13 +223,16 @@ class PiezoBenderVectorEnv(VectorEnv):
         voltage = np.clip(a, -self._u_max, self._u_max)
         saturated = voltage != a
 
-        self._hyst, u_eff = self.model.hysteresis.step(self._hyst, voltage)
+        self._hyst, u_eff = (self._row_hyst or self.model.hysteresis).step(self._hyst, voltage)
         k, x, out = self._k, self._x, self._out
         x[:, k] = u_eff
-        block = self._row_block
-        for start in range(0, self.num_envs, block):
-            rows = slice(start, start + block)
-            np.matmul(x[rows], self._step_t, out=out[rows])
+        if self._steps_t is None:
+            block = self._row_block
+            for start in range(0, self.num_envs, block):
+                rows = slice(start, start + block)
+                np.matmul(x[rows], self._step_t, out=out[rows])
+        else:  # one small matrix-vector product per env, looped in C
+            np.matmul(x[:, None, :], self._steps_t, out=out[:, None, :])
         self._y = out[:, k].copy()  # a new array each step: the info returned keeps its own
         self._q_rot = out[:, k + 1].copy()
         self._x, self._out = out, x
@@ -226,23 +263,29 @@ class PiezoBenderVectorEnv(VectorEnv):
             truncated[done] = False
             voltage[done] = 0.0
             u_eff = np.array(u_eff, dtype=float)
-            u_eff[done] = self._reset_u_eff
+            u_eff[done] = self._reset_u_eff[done]
             saturated[done] = False
         self._prev_done = terminated | truncated
         measured = deflection + self._take_noise()
         info = self._info(deflection, reference, voltage, u_eff, saturated)
+        if any_done and self._randomization is not None:
+            self._add_plant_info(info, done)
         return self._observe(measured), reward, terminated, truncated, info
 
     # -- helpers -------------------------------------------------------------------------------
 
     def _reset_rows(self, rows: np.ndarray, options: dict[str, Any]) -> None:
         voltage = check_reset_options(options, self._u_max)
-        state, hyst, self._reset_u_eff = self._rest_state(voltage)
-        self._x[rows, : self._k] = state
-        self._x[rows, self._k :] = 0.0
-        self._hyst[rows] = hyst
-        self._y[rows] = self.model.discrete.output_matrix[0] @ state * 1e6
-        self._q_rot[rows] = self.model.discrete.output_matrix[1] @ state * self._q_per_rad
+        if self._randomization is None:
+            state, hyst, u_eff = self._rest_state(voltage)
+            self._x[rows, : self._k] = state
+            self._x[rows, self._k :] = 0.0
+            self._hyst[rows] = hyst
+            self._reset_u_eff[rows] = u_eff
+            self._y[rows] = self.model.discrete.output_matrix[0] @ state * 1e6
+            self._q_rot[rows] = self.model.discrete.output_matrix[1] @ state * self._q_per_rad
+        else:
+            self._draw_plants(rows, voltage)
         self._t[rows] = 0
         self._lockstep = len(rows) == self.num_envs or (
             self._lockstep and bool(np.all(self._t == 0))
@@ -278,6 +321,40 @@ class PiezoBenderVectorEnv(VectorEnv):
         if noise:
             self._write_columns(self._noise, rows, np.array(noise), NOISE_BLOCK)
         self._noise_index[rows] = 0
+
+    def _draw_plants(self, rows: np.ndarray, voltage: float) -> None:
+        """Draw the plant of each env in ``rows`` (first draw of its reset) and put it at rest.
+
+        Each plant is rebuilt (FE, modes, matrix exponentials; about 1-5 ms) and its step
+        matrix placed in the common padded layout.
+        """
+        k, n_modes = self._k, self.model.beam.n_dofs
+        with single_blas_thread():
+            for i in rows:
+                model, draw = self.task.draw_plant(self._rngs[i])
+                layout = padded_layout(model.discrete, n_modes)
+                self._steps_t[i] = _scaled_step_t(model, layout, k)
+                state, hyst = model.static_state(voltage)
+                self._x[i] = 0.0
+                self._x[i, layout[: len(state)]] = state
+                self._hyst[i] = hyst
+                self._row_hyst.set_row(i, model.hysteresis)
+                self._reset_u_eff[i] = float(model.hysteresis.step(hyst, voltage)[1])
+                out = model.discrete.output_matrix @ state
+                self._y[i] = out[0] * 1e6
+                self._q_rot[i] = out[1] * model.params.piezo_moment * 1e6
+                self.plant_draws[i] = draw
+                values = draw.info()
+                self._plant_values[:, i] = [values[key] for key in _PLANT_KEYS]
+
+    def _add_plant_info(self, info: dict[str, Any], mask: np.ndarray) -> None:
+        """``info["plant"]``: the plants drawn by the envs in ``mask``, nested as SyncVectorEnv."""
+        plant: dict[str, Any] = {}
+        for key, values in zip(_PLANT_KEYS, self._plant_values, strict=True):
+            plant[key] = np.where(mask, values, 0.0)
+            plant["_" + key] = mask.copy()
+        info["plant"] = plant
+        info["_plant"] = mask.copy()
 
     def _rest_state(self, voltage: float) -> tuple[np.ndarray, np.ndarray, float]:
         """(LTI state, hysteresis state, u_eff V) at rest under ``voltage``, solved once each."""
@@ -375,6 +452,18 @@ class PiezoBenderVectorEnv(VectorEnv):
             info[key] = value
             info["_" + key] = self._all_true.copy()
         return info
+
+
+def _scaled_step_t(model: Any, layout: np.ndarray, k: int) -> np.ndarray:
+    """Transposed square step matrix of ``model`` placed at ``layout`` in a (k + 2)-square.
+
+    The output columns come out scaled: deflection in um, Gamma theta_tip in uC.
+    """
+    step_t = np.zeros((k + 2, k + 2))
+    step_t[np.ix_(layout, layout)] = model.discrete.square_step_matrix().T
+    step_t[:, k] *= 1e6
+    step_t[:, k + 1] *= model.params.piezo_moment * 1e6
+    return step_t
 
 
 def _segments(n: int) -> int:

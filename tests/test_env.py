@@ -50,6 +50,26 @@ def test_make_vec_with_the_module_prefix_works_in_a_fresh_interpreter():
     assert out.stdout.split() == ["PiezoBenderVectorEnv", "4", "3", "2000"]
 
 
+def test_package_exposes_its_public_names_lazily():
+    """``import piezo_env`` registers the id without importing the env; names load on access."""
+    code = (
+        "import sys, piezo_env, gymnasium as gym\n"
+        "from piezo_env.task import DEFAULT_HORIZON\n"
+        "assert gym.spec('PiezoBender-v0').max_episode_steps == DEFAULT_HORIZON\n"
+        "assert 'piezo_env.env' not in sys.modules and 'piezo_env.model' not in sys.modules\n"
+        "assert set(piezo_env.__all__) <= set(dir(piezo_env))\n"
+        "from piezo_env import PiezoBenderEnv, TaskConfig, DomainRandomization, CATALOGUE\n"
+        "assert all(getattr(piezo_env, name) is not None for name in piezo_env.__all__)\n"
+        "assert PiezoBenderEnv.__module__ == 'piezo_env.env'\n"
+        "try:\n"
+        "    piezo_env.no_such_name\n"
+        "except AttributeError as error:\n"
+        "    print(error)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "no_such_name" in out.stdout
+
+
 def _checker_warnings(check, env) -> list[str]:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
