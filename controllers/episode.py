@@ -83,24 +83,9 @@ def run_episode(
     options = None if reference is None else {"reference": np.asarray(reference, float)}
     obs, _ = env.reset(seed=seed, options=options)
     controller.reset(obs)
-    u_max = float(env.action_space.high[0])
-    columns: dict[str, list] = {k: [] for k in ("y", "m", "r", "u", "sat", "rew")}
-    steps = 0
-    while max_steps is None or steps < max_steps:
-        action = controller.act(obs)
-        obs, reward, terminated, truncated, info = env.step(action)
-        columns["y"].append(info["deflection_um"])
-        columns["m"].append(float(obs[0]))
-        columns["r"].append(info["reference_um"])
-        columns["u"].append(info["voltage_V"])
-        columns["sat"].append(info["saturated"] or abs(info["voltage_V"]) >= u_max * (1 - 1e-6))
-        columns["rew"].append(reward)
-        steps += 1
-        if terminated or truncated:
-            break
+    arrays = _loop(env, controller, obs, max_steps)
     stats = controller.stats
-    compute = np.asarray(stats.compute_s[-steps:], dtype=float)
-    arrays = {k: np.asarray(v) for k, v in columns.items()}
+    compute = np.asarray(stats.compute_s[-len(arrays["y"]) :], dtype=float)
     stroke = float(env.unwrapped.model.stroke_um) if stroke_um is None else float(stroke_um)
     metrics = tracking_metrics(
         deflection_um=arrays["y"],
@@ -114,13 +99,34 @@ def run_episode(
     describe = getattr(controller, "describe", dict)()
     summary = stats.summary() if hasattr(stats, "summary") else {}
     return Episode(
-        deflection_um=arrays["y"].astype(float),
-        measured_um=arrays["m"].astype(float),
-        reference_um=arrays["r"].astype(float),
-        voltage_V=arrays["u"].astype(float),
-        saturated=arrays["sat"].astype(bool),
+        deflection_um=arrays["y"],
+        measured_um=arrays["m"],
+        reference_um=arrays["r"],
+        voltage_V=arrays["u"],
+        saturated=arrays["sat"],
         compute_s=compute,
-        reward=arrays["rew"].astype(float),
+        reward=arrays["rew"],
         metrics=metrics,
         controller={**describe, "stats": summary},
     )
+
+
+def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> dict:
+    """Step until the episode ends; the columns of the record as arrays."""
+    u_max = float(env.action_space.high[0])
+    columns: dict[str, list] = {k: [] for k in ("y", "m", "r", "u", "sat", "rew")}
+    steps = 0
+    while max_steps is None or steps < max_steps:
+        obs, reward, terminated, truncated, info = env.step(controller.act(obs))
+        columns["y"].append(info["deflection_um"])
+        columns["m"].append(float(obs[0]))
+        columns["r"].append(info["reference_um"])
+        columns["u"].append(info["voltage_V"])
+        columns["sat"].append(info["saturated"] or abs(info["voltage_V"]) >= u_max * (1 - 1e-6))
+        columns["rew"].append(reward)
+        steps += 1
+        if terminated or truncated:
+            break
+    arrays = {k: np.asarray(v, dtype=float) for k, v in columns.items()}
+    arrays["sat"] = arrays["sat"].astype(bool)
+    return arrays

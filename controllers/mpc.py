@@ -10,7 +10,7 @@ Prediction (x_t, d_t from :class:`controllers.observer.DisturbanceObserver`, off
 
 QP over z = (z_t .. z_t+N-1), condensed (N variables, no equality constraints)::
 
-    min  sum_k w (y_t+k - r_t+k)^2 + lambda (z_t+k - z_t+k-1)^2
+    min  sum_k (y_t+k - r_t+k)^2 + lambda (z_t+k - z_t+k-1)^2
     s.t. z_lo(s_t) <= z_t <= z_hi(s_t),   z_min <= z_t+k <= z_max  (k >= 1)
 
 The first move's bounds are exact: the z reachable in one sample from the current memory state

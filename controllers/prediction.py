@@ -144,8 +144,6 @@ class PredictionModel:
         ``"identified"`` or ``"plant"`` (oracle).
     z_bounds : (float, float)
         Range of z over the drive range from any state reached from rest (equivalent V).
-    noise_bound_um : float
-        Equation-error (identified) or zero (plant) bound, um: what the model itself claims.
     """
 
     a: np.ndarray
@@ -155,7 +153,6 @@ class PredictionModel:
     nonlinearity: Any
     source: str
     z_bounds: tuple[float, float] = field(default=(-math.inf, math.inf))
-    noise_bound_um: float = 0.0
 
     @property
     def n_states(self) -> int:
@@ -177,16 +174,7 @@ class PredictionModel:
             model = HammersteinModel.load(model)
         a, b, c, _ = model.arx.state_space_matrices()
         nonlinearity = IdentifiedNLS(model.nls, (-u_max, u_max))
-        return cls(
-            a,
-            b,
-            c,
-            model.dt,
-            nonlinearity,
-            "identified",
-            _z_bounds(nonlinearity),
-            float(model.arx.noise_bound),
-        )
+        return cls(a, b, c, model.dt, nonlinearity, "identified", _z_bounds(nonlinearity))
 
     @classmethod
     def from_plant(cls, plant: Any) -> PredictionModel:
@@ -194,7 +182,7 @@ class PredictionModel:
         a, b, c, _ = plant.state_space_matrices()
         u_max = plant.rated_voltage
         nonlinearity = PlantHysteresis(plant.hysteresis, (-u_max, u_max))
-        return cls(a, b, c, plant.dt, nonlinearity, "plant", _z_bounds(nonlinearity), 0.0)
+        return cls(a, b, c, plant.dt, nonlinearity, "plant", _z_bounds(nonlinearity))
 
     def simulate(self, u: np.ndarray) -> np.ndarray:
         """Deflection (um) after each voltage of ``u`` (V), from rest: y[t] follows u[t]."""
