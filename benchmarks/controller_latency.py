@@ -1,0 +1,142 @@
+"""Controller latency: compute time per step of every controller, against a CartPole-v1 step.
+
+Each controller runs closed loop on PiezoBender-v0 (PL140, noise on, preview 20) tracking a
+500 um, 50 Hz sine, with one BLAS thread (threadpoolctl); the time of each ``act`` call
+(observer, solver, inverse: everything) is recorded. Beside it, in the same process: the OSQP
+solve alone (the MPC forced to call OSQP at every step), the nonlinearity inverse alone, and a
+CartPole-v1 step through ``gymnasium.make``, the reference the ratios are taken against
+(absolute times on shared machines drift; ratios travel). IPOPT (``nmpc-ipopt``) runs a shorter
+episode. Writes ``benchmarks/results/controller_latency.md``.
+
+Run: ``python benchmarks/controller_latency.py`` (a few minutes).
+"""
+
+from __future__ import annotations
+
+import time
+
+import gymnasium as gym
+import numpy as np
+from _common import header, markdown_table, write_result
+from threadpoolctl import threadpool_limits
+
+import controllers
+import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+
+MODEL_DIR = "docs/identify/model"
+STEPS = 2000
+IPOPT_STEPS = 200
+
+
+def cartpole_step_us(steps: int = 20_000) -> np.ndarray:
+    """Per-step times (us) of CartPole-v1 through gym.make, random actions, with resets."""
+    env = gym.make("CartPole-v1")
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    times = np.empty(steps)
+    for i in range(steps):
+        action = env.action_space.sample()
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(action)
+        times[i] = time.perf_counter() - start
+        if terminated or truncated:
+            env.reset()
+    return times * 1e6
+
+
+def timed(obj: object, name: str, sink: list[float]) -> None:
+    """Wrap ``obj.name`` so that each call's wall time (us) goes into ``sink``."""
+    method = getattr(obj, name)
+
+    def wrapper(*args, **kwargs):
+        start = time.perf_counter()
+        out = method(*args, **kwargs)
+        sink.append((time.perf_counter() - start) * 1e6)
+        return out
+
+    setattr(obj, name, wrapper)
+
+
+def controller_times(env, name: str, steps: int, **options) -> dict[str, np.ndarray]:
+    """Step times (us) of one controller, plus its QP and inverse times where it has them."""
+    c = controllers.make(name, MODEL_DIR, env, **options)
+    parts: dict[str, list[float]] = {"qp": [], "inverse": []}
+    if hasattr(c, "_solver") and hasattr(c._solver, "solve"):
+        timed(c._solver, "solve", parts["qp"])
+    nonlinearity = getattr(getattr(c, "model", None), "nonlinearity", None)
+    if nonlinearity is not None:
+        timed(nonlinearity, "inverse", parts["inverse"])
+    t = np.arange(1, steps + 22) * 1e-3
+    reference = 500.0 * np.sin(2 * np.pi * 50.0 * t)
+    episode = controllers.run_episode(env, c, seed=0, reference=reference, max_steps=steps)
+    return {
+        "step": episode.compute_s * 1e6,
+        "qp": np.asarray(parts["qp"]),
+        "inverse": np.asarray(parts["inverse"]),
+        "rmse": np.array([episode.metrics["rmse_percent"]]),
+    }
+
+
+def stats(x: np.ndarray) -> tuple[str, str, str]:
+    if x.size == 0:
+        return ("-", "-", "-")
+    return tuple(f"{v:.1f}" for v in np.quantile(x, [0.5, 0.99, 1.0]))
+
+
+def main() -> None:
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    runs = [
+        ("pid", "pid", STEPS, {}),
+        ("pid-notch", "pid-notch", STEPS, {}),
+        ("pid-ff", "pid-ff", STEPS, {}),
+        ("mpc", "mpc", STEPS, {}),
+        ("mpc (OSQP every step)", "mpc", STEPS, {"shortcut": False}),
+        ("nmpc", "nmpc", STEPS, {}),
+        ("nmpc-ipopt", "nmpc-ipopt", IPOPT_STEPS, {}),
+    ]
+    rows = []
+    with threadpool_limits(1):
+        cart = cartpole_step_us()
+        cart_median = float(np.median(cart))
+        for label, name, steps, options in runs:
+            try:
+                r = controller_times(env, name, steps, **options)
+            except Exception as error:  # a missing optional solver must not hide the rest
+                rows.append([label, f"failed: {error}", "", "", "", "", "", ""])
+                continue
+            median = float(np.median(r["step"]))
+            rows.append(
+                [
+                    label,
+                    *stats(r["step"]),
+                    f"{median / cart_median:.1f}",
+                    stats(r["qp"])[0],
+                    stats(r["inverse"])[0],
+                    f"{r['rmse'][0]:.3f}",
+                ]
+            )
+    lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
+    lines += [
+        f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
+        f"{np.quantile(cart, 0.99):.1f} us. Episodes: PL140, noise on, preview 20, 500 um "
+        f"50 Hz sine, {STEPS} steps ({IPOPT_STEPS} for IPOPT).",
+        "",
+        markdown_table(
+            [
+                "controller",
+                "step median (us)",
+                "step p99 (us)",
+                "step max (us)",
+                "median / CartPole step",
+                "QP solve median (us)",
+                "inverse median (us)",
+                "RMSE (% stroke)",
+            ],
+            rows,
+        ),
+    ]
+    write_result("controller_latency", lines)
+
+
+if __name__ == "__main__":
+    main()
