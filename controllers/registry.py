@@ -19,6 +19,7 @@ CONTROLLERS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "mpc": ("controllers.mpc", "LinearMPC", {}),
     "nmpc": ("controllers.nmpc", "NonlinearMPC", {}),
     "nmpc-ipopt": ("controllers.nmpc", "NonlinearMPC", {"solver": "ipopt"}),
+    "policy": ("controllers.policy", "PolicyController", {}),
 }
 """Name -> (module, class, preset options). Each class has a ``Settings`` dataclass."""
 
@@ -61,9 +62,10 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     ----------
     name : str
         One of :data:`CONTROLLERS`: ``"pid"``, ``"pid-notch"``, ``"pid-ff"``, ``"mpc"``,
-        ``"nmpc"``, ``"nmpc-ipopt"``.
+        ``"nmpc"``, ``"nmpc-ipopt"``, ``"policy"``.
     model : HammersteinModel, str, pathlib.Path, PredictionModel or "plant"
-        See :func:`prediction_model`.
+        See :func:`prediction_model`; for ``"policy"``, the folder of a trained policy
+        (:func:`controllers.policy.save_policy`).
     env : gymnasium.Env
         The env it will run on; read once for dt, drive range, stroke and preview.
     **options
@@ -77,6 +79,9 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; valid: {', '.join(CONTROLLERS)}")
     module, cls_name, preset = CONTROLLERS[name]
+    if name == "policy":  # model is the policy folder; it has no prediction model
+        cls = getattr(importlib.import_module(module), cls_name)
+        return cls(model, ControlTask.from_env(env), cls.Settings(**options), name=name)
     cls = getattr(importlib.import_module(module), cls_name)
     valid = {f.name for f in dataclasses.fields(cls.Settings)} - set(preset)
     unknown = sorted(set(options) - valid)

@@ -21,10 +21,11 @@ from piezo_cli.benchmark import BENCHMARK
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.identify import IDENTIFY
 from piezo_cli.simulate import SIMULATE
+from piezo_cli.train_rl import TRAIN_RL
 
 __all__ = ["SUBCOMMANDS", "build_parser", "main"]
 
-SUBCOMMANDS: list[Subcommand] = [SIMULATE, IDENTIFY, BENCHMARK]
+SUBCOMMANDS: list[Subcommand] = [SIMULATE, IDENTIFY, BENCHMARK, TRAIN_RL]
 """Every ``piezo`` subcommand, in the order ``piezo --help`` lists them."""
 
 _DESCRIPTION = (
