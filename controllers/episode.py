@@ -73,8 +73,9 @@ def run_episode(
     max_steps : int, optional
         Stop after this many steps (default: when the env truncates or terminates).
     stroke_um : float, optional
-        One-sided stroke (um) the percentages refer to (default: the env's datasheet stroke;
-        a benchmark over several plants passes the nominal one so that all share a scale).
+        One-sided stroke (um) the percentages refer to (default: the env's task stroke, the
+        datasheet's; a benchmark over several plants passes the nominal one so that all share
+        a scale).
 
     Returns
     -------
@@ -86,7 +87,8 @@ def run_episode(
     arrays = _loop(env, controller, obs, max_steps)
     stats = controller.stats
     compute = np.asarray(stats.compute_s[-len(arrays["y"]) :], dtype=float)
-    stroke = float(env.unwrapped.model.stroke_um) if stroke_um is None else float(stroke_um)
+    # The task's (nominal) stroke: with domain randomisation the plant's own changes per reset.
+    stroke = float(env.unwrapped.task.stroke_um) if stroke_um is None else float(stroke_um)
     metrics = tracking_metrics(
         deflection_um=arrays["y"],
         reference_um=arrays["r"],

@@ -80,10 +80,11 @@ class ControlTask:
                 "the env's observation holds no reference (made with reference=None?); make it "
                 "with a reference, e.g. gym.make('piezo_env:PiezoBender-v0', preview=20)"
             )
+        nominal = base.task  # not base.model: with domain randomisation that is this episode's
         return cls(
-            dt=float(base.model.dt),
+            dt=float(nominal.model.dt),
             u_max=float(env.action_space.high[0]),
-            stroke_um=float(base.model.stroke_um),
+            stroke_um=float(nominal.stroke_um),
             preview=int(shape[0]) - 2,
             noise_bound_um=float(getattr(base, "noise_bound", 1.0)),
         )
