@@ -114,6 +114,9 @@ class BenchmarkConfig:
         on it.
     controller_options : dict
         Per controller name, options passed to :func:`controllers.make`.
+    policies : tuple of str
+        Folders of trained policies (:func:`controllers.policy.save_policy`), each run as a
+        controller named after its folder (``ppo-seed0`` ...), on every plant.
     """
 
     controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
@@ -125,8 +128,10 @@ class BenchmarkConfig:
     jobs: int = 1
     backend: str = "local"
     controller_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    policies: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        self._check_policies()
         for name in self.controllers:
             if name.removesuffix("-oracle") not in CONTROLLERS:
                 valid = ", ".join(CONTROLLERS)
@@ -171,6 +176,28 @@ class BenchmarkConfig:
                     f"valid: {', '.join(sorted(valid))}"
                 )
 
+    def _check_policies(self) -> None:
+        from controllers.policy import load_policy
+
+        labels = [Path(folder).name for folder in self.policies]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"policy folders must have distinct names, got {labels}")
+        clash = set(labels) & set(CONTROLLERS)
+        if clash:
+            raise ValueError(f"policy folder names {sorted(clash)} clash with controller names")
+        for folder in self.policies:
+            load_policy(folder)  # a folder that does not load fails here, before any work
+
+    @property
+    def policy_folders(self) -> dict[str, str]:
+        """Policy label -> folder."""
+        return {Path(folder).name: str(folder) for folder in self.policies}
+
+    @property
+    def rows(self) -> tuple[str, ...]:
+        """Every controller row: the named controllers, then the policies."""
+        return (*self.controllers, *self.policy_folders)
+
     def groups(self) -> list[tuple[str, str, tuple[str, ...]]]:
         """(plant, controller, references) of every group, in report order."""
         out = []
@@ -181,10 +208,10 @@ class BenchmarkConfig:
                 if nominal
                 else tuple(r for r in self.references if r in ROBUSTNESS_REFERENCES)
             )
-            for controller in self.controllers:
-                if nominal or controller in ROBUSTNESS_CONTROLLERS:
-                    if refs:
-                        out.append((plant, controller, refs))
+            robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders)
+            for controller in self.rows:
+                if refs and (nominal or controller in robust):
+                    out.append((plant, controller, refs))
         return out
 
 
@@ -220,7 +247,9 @@ def _build(controller: str, model_dir: str, plant_env: Any, config: BenchmarkCon
 
     name = controller.removesuffix("-oracle")
     nominal = _make_env(config, "nominal")
-    if controller.endswith("-oracle"):
+    if controller in config.policy_folders:
+        name, model = "policy", config.policy_folders[controller]
+    elif controller.endswith("-oracle"):
         model = ctl.PredictionModel.from_plant(plant_env.unwrapped.model)
     else:
         model = model_dir

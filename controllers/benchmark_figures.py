@@ -72,7 +72,7 @@ def _summary(result: BenchmarkResult, path: Path) -> Path:
     nominal = {
         (e["controller"], e["reference"]): e for e in result.episodes if e["plant"] == "nominal"
     }
-    controllers = [c for c in cfg.controllers if any(k[0] == c for k in nominal)]
+    controllers = [c for c in cfg.rows if any(k[0] == c for k in nominal)]
     refs = [r for r in cfg.references if any(k[1] == r for k in nominal)]
     fig, ax = plt.subplots(figsize=(11, 4.5))
     width = 0.8 / max(len(controllers), 1)
@@ -102,7 +102,7 @@ def _robustness(result: BenchmarkResult, path: Path) -> Path:
     }
     plants = list(cfg.plants)
     controllers = [
-        c for c in cfg.controllers if sum(1 for k in index if k[1] == c and k[0] != "nominal")
+        c for c in cfg.rows if sum(1 for k in index if k[1] == c and k[0] != "nominal")
     ]
     # Smooth references only: a step's ~0.9 % (the drive limit) would swamp them in the mean.
     refs = sorted(

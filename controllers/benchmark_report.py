@@ -7,6 +7,7 @@ import datetime
 import json
 import os
 import platform
+import re
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -56,24 +57,52 @@ def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
     return "\n".join(lines)
 
 
+def seed_groups(labels: list[str]) -> dict[str, list[str]]:
+    """Rows that are seeds of one recipe (``ppo-seed0``, ``ppo-seed1`` ...): name -> labels."""
+    groups: dict[str, list[str]] = {}
+    for label in labels:
+        match = re.fullmatch(r"(.+)-seed\d+", label)
+        if match:
+            groups.setdefault(match.group(1), []).append(label)
+    return {name: members for name, members in groups.items() if len(members) > 1}
+
+
+def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]):
+    """Table cell of one metric: a row's value, or mean +- std over a recipe's seeds."""
+
+    def cell(row: str, ref: str) -> str:
+        if row.endswith(" (seeds)"):
+            values = [
+                index[(plant, m, ref)][key]
+                for m in groups[row.removesuffix(" (seeds)")]
+                if (plant, m, ref) in index
+            ]
+            if not values:
+                return ""
+            return f"{np.mean(values):.{digits}f} +- {np.std(values):.{digits}f}"
+        e = index.get((plant, row, ref))
+        return "" if e is None else f"{e[key]:.{digits}f}"
+
+    return cell
+
+
 def tracking_tables(result: BenchmarkResult) -> str:
-    """RMSE and max-error tables per plant (deterministic: bitwise equal for any ``jobs``)."""
+    """RMSE and max-error tables per plant (deterministic: bitwise equal for any ``jobs``).
+
+    Several seeds of one trained recipe also get a row ``NAME (seeds)`` with mean +- std.
+    """
     index = _lookup(result)
     cfg = result.config
     parts = []
     for plant in cfg.plants:
-        controllers = [c for c in cfg.controllers if any(k[:2] == (plant, c) for k in index)]
+        controllers = [c for c in cfg.rows if any(k[:2] == (plant, c) for k in index)]
         refs = [r for r in cfg.references if any(k[0] == plant and k[2] == r for k in index)]
         if not controllers:
             continue
-
-        def rmse(c, r, plant=plant):
-            e = index.get((plant, c, r))
-            return "" if e is None else f"{e['rmse_percent']:.3f}"
-
-        def max_error(c, r, plant=plant):
-            e = index.get((plant, c, r))
-            return "" if e is None else f"{e['max_error_um']:.1f}"
+        groups = seed_groups(controllers)
+        controllers += [f"{name} (seeds)" for name in groups]
+        rmse = _cell(index, plant, "rmse_percent", 3, groups)
+        max_error = _cell(index, plant, "max_error_um", 1, groups)
 
         title = "Nominal PL140" if plant == "nominal" else f"Plant: {plant}"
         parts.append(f"### {title}: RMSE (% of the full stroke)\n")
@@ -85,7 +114,7 @@ def tracking_tables(result: BenchmarkResult) -> str:
 
 
 def _effort_table(result: BenchmarkResult) -> str:
-    rows = [c for c in result.config.controllers]
+    rows = [c for c in result.config.rows]
     nominal = [e for e in result.episodes if e["plant"] == "nominal"]
     columns = [
         "RMS voltage (V)",
