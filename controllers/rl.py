@@ -37,6 +37,7 @@ __all__ = [
     "PPOConfig",
     "SB3VectorEnv",
     "actor_layers",
+    "make_ppo",
     "make_training_env",
     "train_ppo",
 ]
@@ -87,8 +88,8 @@ class PPOConfig:
     """
 
     n_steps: int = 256
-    batch_size: int = 1024
-    n_epochs: int = 5
+    batch_size: int = 512
+    n_epochs: int = 10
     learning_rate: float = 5e-4
     final_lr_fraction: float = 0.1
     gamma: float = 0.98
@@ -244,14 +245,18 @@ class _ProgressCallback(BaseCallback):
             self._next += self.every
 
 
-def _ppo(venv: VecEnv, config: PPOConfig, seed: int) -> PPO:
+def make_ppo(venv: VecEnv, config: PPOConfig, seed: int) -> PPO:
+    """SB3 PPO on ``venv`` with the hyperparameters of ``config``, seeded (CPU).
+
+    The minibatch is at most one rollout (``n_steps`` x the number of envs).
+    """
     activation = {"tanh": torch.nn.Tanh, "relu": torch.nn.ReLU}[config.activation]
     arch = list(config.net_arch)
     return PPO(
         "MlpPolicy",
         venv,
         n_steps=config.n_steps,
-        batch_size=config.batch_size,
+        batch_size=min(config.batch_size, config.n_steps * venv.num_envs),
         n_epochs=config.n_epochs,
         learning_rate=_linear_schedule(config.learning_rate, config.final_lr_fraction),
         gamma=config.gamma,
@@ -324,7 +329,7 @@ def train_ppo(
     threads = torch.get_num_threads()
     torch.set_num_threads(config.torch_threads)
     try:
-        model = _ppo(venv, config, seed)
+        model = make_ppo(venv, config, seed)
         callback = _ProgressCallback(100_000, progress)
         start = time.perf_counter()
         model.learn(total_timesteps=total_steps, callback=callback)

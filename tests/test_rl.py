@@ -188,3 +188,29 @@ def test_ppo_config_and_train_arguments_are_validated(tmp_path):
             activation="gelu",
             observation=ObservationConfig(stroke_um=1.0, u_max=1.0, bound_um=2.0, preview=0),
         )
+
+
+def test_train_rl_subcommand_trains_and_refuses_without_the_extra(tmp_path, monkeypatch):
+    import argparse
+    import importlib.util
+
+    from piezo_cli.command import CommandLineError
+    from piezo_cli.train_rl import MISSING_EXTRA, TRAIN_RL
+
+    parser = argparse.ArgumentParser()
+    TRAIN_RL.add_arguments(parser)
+    out = tmp_path / "cli"
+    args = parser.parse_args(["--seed", "2", "--steps", "64", "--num-envs", "2", "--out", str(out)])
+    assert TRAIN_RL.run(args) == 0
+    assert load_policy(out).metadata["training"]["seed"] == 2
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "stable_baselines3" else real(name, *a),
+    )
+    args.out = str(tmp_path / "never")
+    with pytest.raises(CommandLineError, match=r"pip install \"piezo-testbed\[rl\]\""):
+        TRAIN_RL.run(args)
+    assert not (tmp_path / "never").exists()
+    assert MISSING_EXTRA.startswith("piezo train-rl needs the optional extra")
