@@ -274,15 +274,75 @@ def test_learns_identity_exactly(name):
     np.testing.assert_allclose(nls(u_test), u_test, atol=1e-9)
 
 
-def test_same_seed_same_model_bitwise(trained):
+def _record_without_time(nls):
+    return {k: v for k, v in nls.training.items() if k != "wall_time_s"}
+
+
+@pytest.mark.parametrize("name", ["play", "past-inputs", "bouc-wen"])
+def test_same_seed_same_model_bitwise(name):
     u = rich_input(1500, seed=2)
     z = pi_hysteresis(u)
-    a = fit_nls(u, z, max_epochs=4, seed=7, lbfgs_iterations=5)
-    b = fit_nls(u, z, max_epochs=4, seed=7, lbfgs_iterations=5)
-    c = fit_nls(u, z, max_epochs=4, seed=8, lbfgs_iterations=5)
+    kwargs = {"features": name, "hidden": (8, 8), "max_epochs": 4, "lbfgs_iterations": 5}
+    a = fit_nls(u, z, seed=7, **kwargs)
+    b = fit_nls(u, z, seed=7, **kwargs)
+    c = fit_nls(u, z, seed=8, **kwargs)
+    assert a.arrays().keys() == b.arrays().keys()
     for key, value in a.arrays().items():
         np.testing.assert_array_equal(value, b.arrays()[key])
+    assert _record_without_time(a) == _record_without_time(b)
     assert any(not np.array_equal(v, c.arrays()[k]) for k, v in a.arrays().items())
+
+
+def test_early_stopping_keeps_the_best_validating_weights():
+    u = rich_input(2000, seed=2)
+    z = pi_hysteresis(u)
+    kwargs = {"hidden": (8, 8), "learning_rate": 1e-2, "batch_size": 128, "seed": 1}
+    nls = fit_nls(u, z, max_epochs=40, patience=3, **kwargs)
+    record = nls.training
+    assert 1 <= record["best_epoch"] < record["epochs"] < 40  # improved, then stopped early
+    assert record["epochs"] - record["best_epoch"] == 3  # after `patience` epochs
+    # the recorded validation loss is that of the returned network on the held-out block
+    held_out = slice(record["n_train"], None)
+    validation_mse = np.mean((nls(u)[held_out] - z[held_out]) ** 2)
+    assert record["validation_mse"] == pytest.approx(validation_mse, rel=1e-9, abs=0.0)
+    assert record["validation_mse"] < record["affine_validation_mse"]
+    # and that network is the one of epoch best_epoch: a run that ends there returns it too
+    ended = fit_nls(u, z, max_epochs=record["best_epoch"], patience=3, **kwargs)
+    assert ended.training["validation_mse"] == record["validation_mse"]
+    for key, value in nls.arrays().items():
+        np.testing.assert_array_equal(value, ended.arrays()[key])
+
+
+def test_without_validation_block_the_training_loss_is_monitored():
+    u = rich_input(1000, seed=2)
+    z = pi_hysteresis(u)
+    nls = fit_nls(u, z, hidden=(8,), max_epochs=3, validation_fraction=0.0, lbfgs_iterations=2)
+    record = nls.training
+    assert record["n_validation"] == 0 and record["epochs"] == 3  # no early stopping
+    assert record["validation_mse"] == record["train_mse"]
+    assert record["train_mse"] == pytest.approx(np.mean((nls(u) - z) ** 2), rel=1e-9, abs=0.0)
+
+
+@pytest.mark.parametrize(
+    ("feature_map", "kwargs"),
+    [
+        (PlayFeatures(radii=(2.0, 7.0, 15.0)), {"features": "play", "radii": (2.0, 7.0, 15.0)}),
+        (PastInputFeatures(n_past=3), {"features": "past-inputs", "n_past": 3}),
+        (BoucWenFeatures(levels=(3.0, 12.0)), {"features": "bouc-wen", "levels": (3.0, 12.0)}),
+    ],
+)
+def test_affine_start_is_exact_for_a_map_affine_in_the_features(feature_map, kwargs):
+    coef = np.linspace(0.8, -0.3, feature_map.n_features)
+
+    def affine(u):
+        return 1.5 + feature_map.features(u, feature_map.initial_state())[0] @ coef
+
+    u = rich_input(1500, seed=6)
+    nls = fit_nls(u, affine(u), max_epochs=0, skip_ridge=0.0, hidden=(8,), **kwargs)
+    assert nls.training["epochs"] == 0
+    assert nls.training["affine_validation_mse"] < 1e-20
+    u_test = rich_input(700, seed=7) * 1.3  # other turning points, beyond the training range
+    np.testing.assert_allclose(nls(u_test), affine(u_test), rtol=0.0, atol=1e-9)
 
 
 def test_training_restores_torch_threads():
@@ -296,7 +356,16 @@ def test_z_weights_validation_and_effect():
     u = rich_input(800, seed=2)
     with pytest.raises(ValueError, match="z_weights"):
         fit_nls(u, u, z_weights=-np.ones(800))
-    fit_nls(u, u, z_weights=np.linspace(0.5, 1.0, 800), max_epochs=1)
+    # samples of zero weight do not pull the fit: z = u learnt exactly despite corrupted samples
+    z = u.copy()
+    z[100:200] += 5.0
+    weights = np.ones(800)
+    weights[100:200] = 0.0
+    kwargs = {"max_epochs": 0, "skip_ridge": 0.0, "hidden": (4,)}
+    weighted = fit_nls(u, z, z_weights=weights, **kwargs)
+    np.testing.assert_allclose(weighted(u), u, rtol=0.0, atol=1e-9)
+    unweighted = fit_nls(u, z, **kwargs)
+    assert np.max(np.abs(unweighted(u) - u)) > 0.1
 
 
 @pytest.mark.parametrize(
