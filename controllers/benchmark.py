@@ -83,8 +83,20 @@ PLANTS: dict[str, Callable[[], dict[str, Any]]] = {
     "noise-3um": lambda: {"noise_bound": 3.0},
     "stiffness+20%": lambda: {"bender": _tolerance_sheet(1.2)},
     "stiffness-20%": lambda: {"bender": _tolerance_sheet(0.8)},
+    "random-plants": lambda: {"randomize": True},
 }
-"""Plant name -> env keyword arguments (changes from the nominal PL140 the model came from)."""
+"""Plant name -> env keyword arguments (changes from the nominal PL140 the model came from).
+
+``random-plants`` is the Monte Carlo table: each of ``BenchmarkConfig.draws`` episodes per
+reference draws a new plant from the datasheet tolerances (``piezo_env.DomainRandomization``:
+stiffness, blocking force and resonance +-20 %, damping 0.01-0.04, hysteresis +-30 %) with
+its own seed; the report gives the distribution of each controller's RMSE over the draws.
+"""
+
+MONTE_CARLO = "random-plants"
+
+MONTE_CARLO_REFERENCES = ("sine-10Hz", "sine-50Hz", "multisine")
+"""The references run on the random plants (when selected)."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +129,8 @@ class BenchmarkConfig:
     policies : tuple of str
         Folders of trained policies (:func:`controllers.policy.save_policy`), each run as a
         controller named after its folder (``ppo-seed0`` ...), on every plant.
+    draws : int
+        Random plants of the Monte Carlo table (``random-plants``), seeds seed .. seed+draws-1.
     """
 
     controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
@@ -129,6 +143,7 @@ class BenchmarkConfig:
     backend: str = "local"
     controller_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     policies: tuple[str, ...] = ()
+    draws: int = 10
 
     def __post_init__(self) -> None:
         self._check_policies()
@@ -144,7 +159,7 @@ class BenchmarkConfig:
         for name in self.plants:
             if name not in PLANTS:
                 raise ValueError(f"unknown plant {name!r}; valid: {', '.join(PLANTS)}")
-        for name in ("steps", "jobs"):
+        for name in ("steps", "jobs", "draws"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -203,14 +218,13 @@ class BenchmarkConfig:
         out = []
         for plant in self.plants:
             nominal = plant == "nominal"
-            refs = (
-                self.references
-                if nominal
-                else tuple(r for r in self.references if r in ROBUSTNESS_REFERENCES)
-            )
+            chosen = MONTE_CARLO_REFERENCES if plant == MONTE_CARLO else ROBUSTNESS_REFERENCES
+            refs = self.references if nominal else tuple(r for r in self.references if r in chosen)
             robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders)
             for controller in self.rows:
-                if refs and (nominal or controller in robust):
+                # An oracle's model is one plant: it has no meaning over random plants.
+                oracle_on_random = plant == MONTE_CARLO and controller.endswith("-oracle")
+                if refs and (nominal or controller in robust) and not oracle_on_random:
                     out.append((plant, controller, refs))
         return out
 
@@ -272,15 +286,22 @@ def _run_group(
 
     env = _make_env(config, plant)
     episodes, traces = [], {}
+    draws = range(config.draws) if plant == MONTE_CARLO else [None]
     with threadpool_limits(1):
         built = _build(controller, model_dir, env, config)
         for ref_name, reference in references.items():
-            episode = ctl.run_episode(
-                env, built, seed=config.seed, reference=reference, stroke_um=NOMINAL_STROKE_UM
-            )
-            episodes.append(
-                {"plant": plant, "controller": controller, "reference": ref_name, **episode.metrics}
-            )
+            for draw in draws:
+                episode = ctl.run_episode(
+                    env,
+                    built,
+                    seed=config.seed + (draw or 0),
+                    reference=reference,
+                    stroke_um=NOMINAL_STROKE_UM,
+                )
+                record = {"plant": plant, "controller": controller, "reference": ref_name}
+                if draw is not None:
+                    record["draw"] = draw
+                episodes.append({**record, **episode.metrics})
             if plant == "nominal" and ref_name in TRACE_REFERENCES:
                 traces[ref_name] = {
                     "deflection_um": episode.deflection_um.tolist(),

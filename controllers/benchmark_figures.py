@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.benchmark import DT, BenchmarkResult
+from controllers.benchmark import DT, MONTE_CARLO, BenchmarkResult
 from controllers.references import REFERENCES
 
 __all__ = ["draw_figures"]
@@ -98,12 +98,12 @@ def _robustness(result: BenchmarkResult, path: Path) -> Path:
 
     cfg = result.config
     index = {
-        (e["plant"], e["controller"], e["reference"]): e["rmse_percent"] for e in result.episodes
+        (e["plant"], e["controller"], e["reference"]): e["rmse_percent"]
+        for e in result.episodes
+        if e["plant"] != MONTE_CARLO
     }
-    plants = list(cfg.plants)
-    controllers = [
-        c for c in cfg.rows if sum(1 for k in index if k[1] == c and k[0] != "nominal")
-    ]
+    plants = [p for p in cfg.plants if p != MONTE_CARLO]
+    controllers = [c for c in cfg.rows if sum(1 for k in index if k[1] == c and k[0] != "nominal")]
     # Smooth references only: a step's ~0.9 % (the drive limit) would swamp them in the mean.
     refs = sorted(
         {k[2] for k in index if k[0] != "nominal" and REFERENCES[k[2]].smooth},

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.benchmark import BenchmarkResult
+from controllers.benchmark import MONTE_CARLO, BenchmarkResult
 from controllers.references import REFERENCES
 
 __all__ = ["check_targets", "machine", "tracking_tables", "write_benchmark"]
@@ -47,7 +47,38 @@ def machine() -> dict[str, Any]:
 
 
 def _lookup(result: BenchmarkResult) -> dict[tuple[str, str, str], dict[str, Any]]:
-    return {(e["plant"], e["controller"], e["reference"]): e for e in result.episodes}
+    """Episodes by (plant, controller, reference); the Monte Carlo draws are left out."""
+    return {
+        (e["plant"], e["controller"], e["reference"]): e
+        for e in result.episodes
+        if e["plant"] != MONTE_CARLO
+    }
+
+
+def monte_carlo_table(result: BenchmarkResult) -> str:
+    """RMSE (% of the full stroke) over random plants: median, 90th percentile and worst."""
+    draws = [e for e in result.episodes if e["plant"] == MONTE_CARLO]
+    if not draws:
+        return ""
+    cfg = result.config
+    rows = [c for c in cfg.rows if any(e["controller"] == c for e in draws)]
+    refs = [r for r in cfg.references if any(e["reference"] == r for e in draws)]
+
+    def cell(row: str, ref: str) -> str:
+        values = [
+            e["rmse_percent"] for e in draws if (e["controller"], e["reference"]) == (row, ref)
+        ]
+        if not values:
+            return ""
+        median, p90, worst = np.quantile(values, [0.5, 0.9, 1.0])
+        return f"{median:.3f} / {p90:.3f} / {worst:.3f}"
+
+    n = cfg.draws
+    head = (
+        f"### Monte Carlo: {n} plants drawn from the datasheet tolerances, RMSE (% of the full "
+        "stroke), median / 90th percentile / worst\n"
+    )
+    return head + "\n" + _table(rows, refs, cell, "controller") + "\n"
 
 
 def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
@@ -94,7 +125,7 @@ def tracking_tables(result: BenchmarkResult) -> str:
     index = _lookup(result)
     cfg = result.config
     parts = []
-    for plant in cfg.plants:
+    for plant in (p for p in cfg.plants if p != MONTE_CARLO):
         controllers = [c for c in cfg.rows if any(k[:2] == (plant, c) for k in index)]
         refs = [r for r in cfg.references if any(k[0] == plant and k[2] == r for k in index)]
         if not controllers:
@@ -232,6 +263,7 @@ def _markdown(result: BenchmarkResult, meta: dict[str, Any], checks: list[dict])
         "## Tracking",
         "",
         tracking_tables(result),
+        monte_carlo_table(result),
         "## Effort and compute time",
         "",
         _effort_table(result),

@@ -134,3 +134,23 @@ def test_cli_refuses_bad_calls_in_one_line_before_any_work(
     err = capsys.readouterr().err.strip()
     assert message in err
     assert len(err.splitlines()) == 1
+
+
+def test_monte_carlo_plants_differ_per_draw_and_leave_oracles_out():
+    from controllers.benchmark_report import monte_carlo_table
+
+    config = BenchmarkConfig(
+        controllers=("mpc", "mpc-oracle"),
+        references=("sine-10Hz",),
+        plants=("random-plants",),
+        steps=100,
+        draws=3,
+    )
+    assert [g[1] for g in config.groups()] == ["mpc"]
+    result = run_benchmark(config, MODEL_DIR)
+    rmse = [e["rmse_percent"] for e in result.episodes]
+    assert [e["draw"] for e in result.episodes] == [0, 1, 2]
+    assert len(set(rmse)) == 3  # three different plants
+    median, p90, worst = np.quantile(rmse, [0.5, 0.9, 1.0])
+    assert f"{median:.3f} / {p90:.3f} / {worst:.3f}" in monte_carlo_table(result)
+    assert tracking_tables(result) == ""  # the draws are not a plant table
