@@ -295,7 +295,8 @@ class PolicyController(Controller):
     model : str or Path
         The policy folder (``policy.json`` + ``weights.npz``).
     task : ControlTask
-        The task it runs on; its drive range, stroke and preview must be the policy's.
+        The task it runs on; its drive range and stroke must be the policy's, its preview at
+        least the policy's (a longer preview is cut to the one the policy was trained on).
     settings : PolicyController.Settings, optional
     name : str
         Name in reports.
@@ -344,8 +345,12 @@ class PolicyController(Controller):
 
     def _check_task(self, task: ControlTask) -> None:
         config, where = self.policy.observation, self.policy.folder / POLICY_FILE
+        if config.preview > task.preview:
+            raise ValueError(
+                f"{where}: field 'observation.preview' = {config.preview} but the env shows only "
+                f"{task.preview} samples ahead; make the env with preview >= {config.preview}"
+            )
         for field, mine, theirs in (
-            ("preview", config.preview, task.preview),
             ("stroke_um", config.stroke_um, task.stroke_um),
             ("u_max", config.u_max, task.u_max),
         ):
@@ -355,11 +360,16 @@ class PolicyController(Controller):
                     f"has {theirs}; make the env to match (e.g. preview={mine})"
                 )
 
+    def _own(self, observation: np.ndarray) -> np.ndarray:
+        """The part of the observation the policy was trained on: y, r_t and its preview."""
+        return observation[: 2 + self.policy.observation.preview]
+
     def _reset(self, observation: np.ndarray) -> None:
-        self._history.start(_ROW, observation, self.settings.initial_voltage)
+        self._history.start(_ROW, self._own(observation), self.settings.initial_voltage)
         self._last_voltage = None
 
     def _act(self, observation: np.ndarray) -> float:
+        observation = self._own(observation)
         if self._last_voltage is not None:
             self._history.push(_ROW, observation, self._last_voltage)
         normalized = self._history.observe(observation[None])

@@ -104,7 +104,7 @@ def test_registry_style_construction(trained):
     controller = PolicyController(trained, task, PolicyController.Settings(), name="ppo")
     assert controller.describe()["name"] == "ppo"
     with pytest.raises(ValueError, match="preview"):
-        PolicyController(trained, ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=5))
+        PolicyController(trained, ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=2))
     with pytest.raises(ValueError, match="unknown option"):
         make_policy_controller(trained, gym.make(ENV_ID, preview=3), gain=2.0)
 
@@ -214,3 +214,20 @@ def test_train_rl_subcommand_trains_and_refuses_without_the_extra(tmp_path, monk
         TRAIN_RL.run(args)
     assert not (tmp_path / "never").exists()
     assert MISSING_EXTRA.startswith("piezo train-rl needs the optional extra")
+
+
+def test_a_longer_preview_is_cut_to_the_policys_own(trained):
+    """Same noise and reference: the samples beyond the policy's preview change nothing."""
+    import controllers
+
+    t = np.arange(1, 260) * 1e-3
+    reference = 400.0 * np.sin(2 * np.pi * 10.0 * t)
+    voltages = []
+    for preview in (3, 8):
+        env = gym.make(ENV_ID, preview=preview)
+        controller = controllers.make("policy", trained, env)
+        episode = controllers.run_episode(
+            env, controller, seed=5, reference=reference, max_steps=200
+        )
+        voltages.append(episode.voltage_V)
+    np.testing.assert_array_equal(voltages[0], voltages[1])
