@@ -99,7 +99,7 @@ def seed_groups(labels: list[str]) -> dict[str, list[str]]:
 
 
 def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]):
-    """Table cell of one metric: a row's value, or mean +- std over a recipe's seeds."""
+    """Table cell of one metric: a row's value, or mean +- sample std over a recipe's seeds."""
 
     def cell(row: str, ref: str) -> str:
         if row.endswith(" (seeds)"):
@@ -110,7 +110,7 @@ def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]
             ]
             if not values:
                 return ""
-            return f"{np.mean(values):.{digits}f} +- {np.std(values):.{digits}f}"
+            return f"{np.mean(values):.{digits}f} +- {np.std(values, ddof=1):.{digits}f}"
         e = index.get((plant, row, ref))
         return "" if e is None else f"{e[key]:.{digits}f}"
 
