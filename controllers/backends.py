@@ -12,9 +12,10 @@ Backends
     Every task is a Ray task asking for one CPU. By default a private Ray instance with ``jobs``
     CPUs is started on this machine for the call and shut down after it; with an address (the
     ``address`` argument, else the ``RAY_ADDRESS`` environment variable, Ray's own convention,
-    which ``piezo benchmark --address`` sets) the tasks go to that existing cluster, which keeps
-    running, and its CPUs, not ``jobs``, decide how many run at once. A Ray connection the caller
-    already opened with ``ray.init`` is used as it is and left open. Ray is the optional extra
+    the default of ``ray.init``) the tasks go to that existing cluster, which keeps running, and
+    its CPUs, not ``jobs``, decide how many run at once. A Ray connection the caller already
+    opened (``ray.init`` or :func:`connect_ray`, as ``piezo benchmark --address`` does before
+    any work) is used as it is and left open. Ray is the optional extra
     ``pip install "piezo-testbed[ray]"`` and is imported only here, only when asked for.
 
     Workers import ``function`` by its module, so every node needs this project (same version)
@@ -29,12 +30,13 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import socket
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from typing import Any
 
-__all__ = ["BACKENDS", "RAY_INSTALL_HINT", "check_backend", "run_tasks"]
+__all__ = ["BACKENDS", "RAY_INSTALL_HINT", "check_backend", "connect_ray", "run_tasks"]
 
 BACKENDS = ("local", "ray")
 """Names accepted by :func:`run_tasks`."""
@@ -164,7 +166,7 @@ def _run_ray(
 ) -> list[Any]:
     import ray
 
-    started = _connect_ray(ray, jobs, address)
+    started = connect_ray(address, jobs=jobs)
     pending: list[Any] = []
     try:
         remote = ray.remote(_call).options(num_cpus=1, max_retries=0)
@@ -195,12 +197,41 @@ def _call(function: Callable[..., Any], *args: Any) -> Any:
     return function(*args)
 
 
-def _connect_ray(ray: Any, jobs: int, address: str | None) -> bool:
-    """Connect to Ray; True if this call started the instance (and must shut it down)."""
+def connect_ray(address: str | None = None, *, jobs: int = 1) -> bool:
+    """Open this process's Ray connection unless one is open; True if this call opened it.
+
+    Parameters
+    ----------
+    address : str, optional
+        An existing cluster (``"auto"``, ``"HOST:PORT"``, ``"ray://HOST:PORT"``); default
+        ``RAY_ADDRESS`` from the environment, else a private local instance started now.
+    jobs : int
+        CPUs of the private local instance (ignored for an existing cluster).
+
+    Returns
+    -------
+    bool
+        Whether the connection is new: who opened it closes it with ``ray.shutdown()``.
+        :func:`run_tasks` leaves a connection opened before it open, so a command line can
+        call this first to refuse an unreachable cluster before any work.
+
+    Raises
+    ------
+    RuntimeError
+        Ray is not installed.
+    ConnectionError
+        No cluster at ``address`` (a cluster with token authentication also needs
+        ``RAY_AUTH_MODE=token`` and its token in this process's environment; see Ray's
+        documentation).
+    """
+    check_backend("ray")
+    import ray
+
     if ray.is_initialized():
         return False
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
+        _probe(address)
         ray.init(address=address, log_to_driver=False)
         return True
     # "local" starts a private instance even if `ray start` left one running on this machine.
@@ -220,3 +251,14 @@ def _connect_ray(ray: Any, jobs: int, address: str | None) -> bool:
         if saved is None:
             del os.environ["RAY_USAGE_STATS_ENABLED"]
     return True
+
+
+def _probe(address: str, timeout_s: float = 5.0) -> None:
+    """Refuse a ``HOST:PORT`` nobody listens on: ``ray.init`` would retry it for many minutes."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        return  # "auto" and other forms Ray resolves itself
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as error:
+        raise ConnectionError(f"nothing answers at {host}:{port} ({error})") from None

@@ -103,12 +103,12 @@ def _config(args: argparse.Namespace):
 
 
 def _check_backend(args: argparse.Namespace) -> None:
-    """Refuse a backend that cannot run here, and hand ``--address`` to the ray backend.
+    """Refuse a backend that cannot run here; with ``--address``, connect to the cluster now.
 
-    :mod:`controllers.backends` reads the cluster address from ``RAY_ADDRESS`` (Ray's own
-    variable), so ``--address`` sets it for this process.
+    The connection stays open for the run (:func:`controllers.backends.run_tasks` uses an open
+    one), so an unreachable cluster is refused before the identification or the benchmark.
     """
-    from controllers.backends import check_backend
+    from controllers.backends import check_backend, connect_ray
 
     try:
         check_backend(args.backend)
@@ -116,11 +116,17 @@ def _check_backend(args: argparse.Namespace) -> None:
         raise CommandLineError(str(error)) from None
     if args.address is None:
         return
+    address = args.address.strip()
     if args.backend != "ray":
         raise CommandLineError(f"--address is for --backend ray, not --backend {args.backend}")
-    if not args.address.strip():
+    if not address:
         raise CommandLineError("--address needs a Ray address: auto, HOST:PORT or ray://HOST:PORT")
-    os.environ["RAY_ADDRESS"] = args.address.strip()
+    try:
+        connect_ray(address)
+    except (ConnectionError, RuntimeError) as error:
+        raise CommandLineError(
+            f"--address {address}: cannot connect to the Ray cluster: {error}"
+        ) from None
 
 
 def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
@@ -153,25 +159,28 @@ def run(args: argparse.Namespace) -> int:
     _check_backend(args)
     from controllers.benchmark import run_benchmark, terminal_progress
     from controllers.benchmark_report import check_targets, machine, write_benchmark
+    from piezo_env import TaskConfig
 
     model_dir, timing = _model(args, out)
     start = time.perf_counter()
     # Ray workers on other nodes do not share this working directory.
     run_dir = os.path.abspath(model_dir) if args.backend == "ray" else model_dir
     result = run_benchmark(config, run_dir, progress=terminal_progress(args.quiet))
+    timing["benchmark_s"] = round(time.perf_counter() - start, 1)
+    task = TaskConfig()
     meta = {
         "model": model_dir,
-        "dt": 1e-3,
-        "noise_bound_um": 1.0,
+        "dt": task.dt,
+        "noise_bound_um": task.noise_bound,
         "machine": machine(),
         "timing": timing,
     }
     paths = write_benchmark(result, out, meta)
-    timing["benchmark_s"] = round(time.perf_counter() - start, 1)
     text = (out / "benchmark.md").read_text(encoding="utf-8")
     print(text.split("## Effort")[0].split("## Tracking")[1].split("### Nominal PL140: max")[0])
-    failed = [c for c in check_targets(result) if not c["holds"]]
-    print(f"targets: {len(check_targets(result)) - len(failed)} hold, {len(failed)} do not")
+    checks = check_targets(result)
+    failed = [c for c in checks if not c["holds"]]
+    print(f"targets: {len(checks) - len(failed)} hold, {len(failed)} do not")
     for c in failed:
         print(f"  not met: {c['target']}: {c['value']:.4g} (limit {c['limit']:.4g})")
     print("time: " + ", ".join(f"{k} {v} s" for k, v in timing.items()))

@@ -70,6 +70,7 @@ def test_missing_ray_is_one_clear_error(monkeypatch):
         (["--backend", "dask"], "unknown backend 'dask'; valid: local, ray"),
         (["--backend", "ray", "--address", ""], "--address needs a Ray address"),
         (["--address", "auto"], "--address is for --backend ray"),
+        (["--backend", "ray", "--address", "127.0.0.1:1"], "cannot connect to the Ray cluster"),
     ],
 )
 def test_cli_refuses_bad_backends_in_one_line_before_any_work(
