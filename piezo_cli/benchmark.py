@@ -81,6 +81,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "every node needs this project and the --model folder); default: a local Ray instance "
         "of --jobs CPUs started for the run",
     )
+    parser.add_argument(
+        "--policies",
+        default="docs/policies/*",
+        metavar="GLOB",
+        help="folders of trained policies (piezo train-rl) to run as controllers, a glob or "
+        "comma-separated folders; 'none' for none (the default finds the committed PPO "
+        "policies when run from the project folder)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -97,9 +105,26 @@ def _config(args: argparse.Namespace):
             preview=args.preview,
             jobs=args.jobs,
             backend=args.backend,
+            policies=_policies(args.policies),
         )
     except ValueError as error:
         raise CommandLineError(str(error)) from None
+
+
+def _policies(text: str) -> tuple[str, ...]:
+    """Policy folders from ``--policies``: 'none', a glob, or comma-separated folders."""
+    import glob
+
+    if text.strip().lower() == "none":
+        return ()
+    folders: list[str] = []
+    for part in _names(text):
+        matches = sorted(glob.glob(part))
+        if any(ch in part for ch in "*?["):
+            folders += [m for m in matches if os.path.isfile(os.path.join(m, "policy.json"))]
+        else:
+            folders.append(part)  # an explicit folder must load: BenchmarkConfig checks it
+    return tuple(folders)
 
 
 def _check_backend(args: argparse.Namespace) -> None:
