@@ -123,7 +123,7 @@ def no_work(monkeypatch):
         (["--references", "sine-3Hz"], "unknown reference 'sine-3Hz'"),
         (["--out", "/dev/null/x"], "cannot write to /dev/null/x"),
         (["--model", "/nonexistent/model"], "--model /nonexistent/model: cannot load the model"),
-        (["--policies", "/nonexistent/policy"], "/nonexistent/policy/policy.json: missing"),
+        (["--policies", "/nonexistent/ppo"], "/nonexistent/ppo/policy.json: missing"),
     ],
 )
 def test_cli_refuses_bad_calls_in_one_line_before_any_work(
