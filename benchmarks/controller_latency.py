@@ -61,8 +61,16 @@ def controller_times(env, name: str, steps: int, **options) -> dict[str, np.ndar
     """Step times (us) of one controller, plus its QP and inverse times where it has them."""
     c = controllers.make(name, MODEL_DIR, env, **options)
     parts: dict[str, list[float]] = {"qp": [], "inverse": []}
-    if hasattr(c, "_solver") and hasattr(c._solver, "solve"):
-        timed(c._solver, "solve", parts["qp"])
+    if hasattr(c, "_setup_solver"):
+        # The OSQP solver is set up afresh at each reset: time the solve of each new one.
+        setup = c._setup_solver
+
+        def timed_setup():
+            solver = setup()
+            timed(solver, "solve", parts["qp"])
+            return solver
+
+        c._setup_solver = timed_setup
     nonlinearity = getattr(getattr(c, "model", None), "nonlinearity", None)
     if nonlinearity is not None:
         timed(nonlinearity, "inverse", parts["inverse"])
@@ -115,7 +123,7 @@ def main() -> None:
                     f"{r['rmse'][0]:.3f}",
                 ]
             )
-    lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
+        lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
     lines += [
         f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
         f"{np.quantile(cart, 0.99):.1f} us. Episodes: PL140, noise on, preview 20, 500 um "

@@ -38,21 +38,17 @@ generated C called through ctypes (about 7 us), network in numpy.
 
 The compiled library is cached on disk (``$PIEZO_CACHE`` or ``~/.cache/piezo-testbed``), keyed
 by the hash of the generated source, so compilation (a few seconds) happens once per model and
-horizon.
+horizon (:mod:`controllers._codegen`, shared with the compiled NLS inverse).
 """
 
 from __future__ import annotations
 
-import ctypes
-import hashlib
-import os
-import shutil
-import subprocess
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from controllers._codegen import CompiledFunction, as_numpy
+from controllers._codegen import compile_function as _compile
 
 __all__ = [
     "CompiledFunction",
@@ -61,8 +57,6 @@ __all__ = [
     "compile_function",
     "horizon_function",
 ]
-
-_COMPILE_FLAGS = ("-O1", "-shared", "-fPIC")
 
 
 def horizon_function(nonlinearity: Any, horizon: int) -> Any:
@@ -79,67 +73,8 @@ def horizon_function(nonlinearity: Any, horizon: int) -> Any:
     return casadi.Function("nmpc_horizon", [u, state0], [casadi.vertcat(*zs)], ["u", "s"], ["z"])
 
 
-class CompiledFunction:
-    """A casadi Function generated as C, compiled, and called through ctypes on numpy buffers.
-
-    Inputs are copied into float64 buffers, outputs are written by the C code into dense
-    float64 buffers (casadi's column-major order) that are returned without copies; the next
-    call overwrites them.
-
-    Parameters
-    ----------
-    library : pathlib.Path
-        Shared library holding the generated function.
-    function : casadi.Function
-        The function it was generated from (for names and dense output shapes).
-    """
-
-    def __init__(self, library: Path, function: Any) -> None:
-        self.library = library
-        lib = ctypes.CDLL(str(library))
-        name = function.name()
-        sizes = [ctypes.c_longlong() for _ in range(4)]
-        getattr(lib, f"{name}_work")(*[ctypes.byref(s) for s in sizes])
-        n_arg, n_res, n_iw, n_w = (max(s.value, 1) for s in sizes)
-        self._iw = np.zeros(n_iw, dtype=np.int64)
-        self._w = np.zeros(n_w)
-        self.inputs = [np.zeros(function.numel_in(i)) for i in range(function.n_in())]
-        # Column-major (rows, cols) is row-major (cols, rows).
-        self.outputs = [
-            np.zeros((function.size2_out(i), function.size1_out(i)))
-            for i in range(function.n_out())
-        ]
-        pointer = ctypes.c_void_p
-        self._arg = (pointer * n_arg)(*[b.ctypes.data for b in self.inputs])
-        self._res = (pointer * n_res)(*[b.ctypes.data for b in self.outputs])
-        self._fn = getattr(lib, name)
-        self._fn.restype = ctypes.c_int
-        self._fn.argtypes = [pointer] * 4 + [ctypes.c_int]
-        self._lib = lib
-        self._call_args = (
-            ctypes.addressof(self._arg),
-            ctypes.addressof(self._res),
-            self._iw.ctypes.data,
-            self._w.ctypes.data,
-            0,
-        )
-
-    def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
-        """Evaluate; outputs as (cols, rows) arrays (the transpose of casadi's shapes)."""
-        for buffer, value in zip(self.inputs, args, strict=True):
-            buffer[:] = value
-        if self._fn(*self._call_args) != 0:
-            raise RuntimeError(f"generated function in {self.library} returned an error")
-        return self.outputs
-
-
-def _cache_dir() -> Path:
-    root = os.environ.get("PIEZO_CACHE") or Path.home() / ".cache" / "piezo-testbed"
-    return Path(root) / "nmpc"
-
-
 def compile_function(function: Any) -> tuple[CompiledFunction | None, str]:
-    """Generate C for a casadi Function, compile it (cached on disk) and load it.
+    """:func:`controllers._codegen.compile_function` (``-O1``, cache folder ``nmpc``).
 
     Returns
     -------
@@ -148,39 +83,8 @@ def compile_function(function: Any) -> tuple[CompiledFunction | None, str]:
     note : str
         What happened (the library, or why compilation failed), for reports.
     """
-    import casadi
-
-    compiler = shutil.which(os.environ.get("CC", "cc"))
-    if compiler is None:
-        return None, "no C compiler found (set CC); using casadi's virtual machine"
-    name = function.name()
-    try:
-        cache = _cache_dir()
-        cache.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=cache) as tmp:
-            generator = casadi.CodeGenerator(f"{name}.c", {"with_header": False})
-            generator.add(function)
-            generator.generate(f"{tmp}/")
-            source = Path(tmp) / f"{name}.c"
-            key = hashlib.sha256(source.read_bytes() + " ".join(_COMPILE_FLAGS).encode())
-            library = cache / f"{name}_{key.hexdigest()[:16]}.so"
-            if not library.exists():
-                staged = Path(tmp) / library.name
-                subprocess.run(
-                    [compiler, *_COMPILE_FLAGS, "-o", str(staged), str(source), "-lm"],
-                    check=True,
-                    capture_output=True,
-                    timeout=300,
-                )
-                os.replace(staged, library)  # atomic: concurrent builders never see half a file
-        return CompiledFunction(library, function), f"generated C, {library.name}"
-    except (OSError, subprocess.SubprocessError, RuntimeError, AttributeError) as exc:
-        return None, f"compilation failed ({type(exc).__name__}); using casadi's virtual machine"
-
-
-def _as_numpy(outputs: Any) -> list[np.ndarray]:
-    """casadi VM outputs as (cols, rows) numpy arrays, like :class:`CompiledFunction` gives."""
-    return [np.asarray(o.full()).T for o in outputs]
+    compiled, note = _compile(function)
+    return compiled, note if compiled is not None else f"{note}; using casadi's virtual machine"
 
 
 class StructuredHorizon:
@@ -215,7 +119,7 @@ class StructuredHorizon:
         compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
         if compiled:
             compiled_fn, self.backend = compile_function(self.function)
-        self._features = compiled_fn or (lambda *a: _as_numpy(self.function(*a)))
+        self._features = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
         mlp = nls.to_numpy()
         self._w_t = [np.ascontiguousarray(w.T) for w in mlp.weights]
         self._w = list(mlp.weights)
@@ -277,7 +181,7 @@ class GenericHorizon:
         compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
         if compiled:
             compiled_fn, self.backend = compile_function(self.function)
-        self._call = compiled_fn or (lambda *a: _as_numpy(self.function(*a)))
+        self._call = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
 
     def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z (N,) (equivalent V) along ``u`` (N,) (V) from ``state``, and dz/du (N, N)."""
