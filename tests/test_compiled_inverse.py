@@ -182,3 +182,16 @@ def test_non_monotone_map_falls_back_to_the_numpy_inverse(out_weight, target, pr
     assert inverse.fallbacks == 1
     assert result.status == expected.status == "non-monotone"
     assert (result.u, result.z) == (expected.u, expected.z)
+
+
+@pytest.mark.parametrize("compiler", [True, False])
+def test_reachable_range_equals_the_prediction_model(shipped, compiler, monkeypatch, tmp_path):
+    model = PredictionModel.from_hammerstein(MODEL_DIR, U_RANGE[1])
+    if not compiler:
+        monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    inverse = CompiledInverse(shipped, U_RANGE)
+    assert inverse.compiled == compiler
+    for state in reached_states(shipped, 10, seed=8):
+        assert inverse.reachable(state) == pytest.approx(
+            model.nonlinearity.reachable(state), abs=1e-12
+        )
