@@ -71,7 +71,6 @@ class IdentifiedNLS:
         # Unchecked fast paths for the control loop: states come from this object itself.
         self._features = nls.feature_map
         self._network = nls.to_numpy()
-        self._ends = np.array(self.u_range)
         self._inverse = CompiledInverse(nls, self.u_range)
 
     def initial_state(self) -> np.ndarray:
@@ -90,8 +89,7 @@ class IdentifiedNLS:
         return self._inverse.solve(z_target, state)
 
     def reachable(self, state: np.ndarray) -> tuple[float, float]:
-        low, high = self._network(self._features.candidates(self._ends, state))
-        return (float(low), float(high)) if low <= high else (float(high), float(low))
+        return self._inverse.reachable(state)  # generated C (numpy without a compiler)
 
     def casadi_step(self) -> Any:
         return self.nls.to_casadi_step()
