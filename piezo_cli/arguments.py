@@ -20,8 +20,11 @@ __all__ = [
     "env_kwargs",
     "finite_float",
     "non_negative_float",
+    "non_negative_int",
     "positive_float",
+    "positive_int",
     "seed",
+    "whole_number",
 ]
 
 BENDER_CHOICES: tuple[str, ...] = tuple(
@@ -68,15 +71,30 @@ def non_negative_float(text: str) -> float:
     return value
 
 
-def seed(text: str) -> int:
-    """A non-negative whole number (argparse type), as numpy and Gymnasium accept for seeds."""
+def whole_number(text: str, minimum: int) -> int:
+    """``text`` as a whole number >= ``minimum``, or an argparse error saying so."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+        value = minimum - 1
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got {text!r}")
     return value
+
+
+def seed(text: str) -> int:
+    """A non-negative whole number (argparse type), as numpy and Gymnasium accept for seeds."""
+    return whole_number(text, 0)
+
+
+def non_negative_int(text: str) -> int:
+    """A whole number >= 0 (argparse type)."""
+    return whole_number(text, 0)
+
+
+def positive_int(text: str) -> int:
+    """A whole number >= 1 (argparse type)."""
+    return whole_number(text, 1)
 
 
 def _bender(text: str) -> str:

@@ -6,7 +6,7 @@ import argparse
 import os
 import time
 
-from piezo_cli.arguments import seed
+from piezo_cli.arguments import positive_int, seed
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
 
@@ -15,16 +15,6 @@ __all__ = ["BENCHMARK"]
 
 def _names(text: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in text.split(",") if part.strip())
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,12 +49,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--plants", type=_names, default=tuple(PLANTS), metavar="A,B", help="comma-separated plants"
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the noise and references")
-    parser.add_argument("--steps", type=_positive_int, default=2000, help="steps per episode")
+    parser.add_argument("--steps", type=positive_int, default=2000, help="steps per episode")
     parser.add_argument(
         "--preview", type=int, default=20, help="reference samples every controller sees ahead"
     )
     parser.add_argument(
-        "--jobs", type=_positive_int, default=default_jobs(), help="worker processes"
+        "--jobs", type=positive_int, default=default_jobs(), help="worker processes"
     )
     parser.add_argument(
         "--backend",

@@ -6,7 +6,7 @@ import argparse
 import importlib.util
 import time
 
-from piezo_cli.arguments import add_env_arguments, env_kwargs, seed
+from piezo_cli.arguments import add_env_arguments, env_kwargs, non_negative_int, positive_int, seed
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
 
@@ -15,38 +15,18 @@ __all__ = ["TRAIN_RL"]
 MISSING_EXTRA = 'piezo train-rl needs the optional extra: pip install "piezo-testbed[rl]"'
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or more, got {text!r}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo train-rl``."""
     parser.add_argument("--out", default="out/policy", metavar="DIR", help="policy folder")
     parser.add_argument("--seed", type=seed, default=0, help="seed of torch and the envs")
     parser.add_argument(
-        "--steps", type=_positive_int, default=3_000_000, help="env steps over all envs"
+        "--steps", type=positive_int, default=3_000_000, help="env steps over all envs"
     )
     parser.add_argument(
-        "--num-envs", type=_positive_int, default=16, help="sub-envs of the native vector env"
+        "--num-envs", type=positive_int, default=16, help="sub-envs of the native vector env"
     )
     parser.add_argument(
-        "--preview", type=_non_negative_int, default=10, help="reference samples seen ahead"
+        "--preview", type=non_negative_int, default=10, help="reference samples seen ahead"
     )
     add_env_arguments(parser)
 
