@@ -5,8 +5,10 @@ from __future__ import annotations
 import datetime
 import os
 import platform
+import time
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import threadpoolctl
 
@@ -64,3 +66,21 @@ def write_result(name: str, lines: list[str]) -> Path:
     path = RESULTS / f"{name}.md"
     path.write_text(text, encoding="utf-8")
     return path
+
+
+def single_env_step_times(env_id: str, steps: int, seed: int = 0) -> np.ndarray:
+    """Per-step wall times (s) of ``steps`` random-action steps through gym.make, with resets."""
+    env = gym.make(env_id)
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    actions = [env.action_space.sample() for _ in range(steps)]
+    times = np.empty(steps)
+    clock = time.perf_counter
+    for i, action in enumerate(actions):
+        start = clock()
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+        times[i] = clock() - start
+    env.close()
+    return times

@@ -17,7 +17,7 @@ import time
 
 import gymnasium as gym
 import numpy as np
-from _common import header, markdown_table, write_result
+from _common import header, markdown_table, single_env_step_times, write_result
 from threadpoolctl import threadpool_limits
 
 import controllers
@@ -26,22 +26,6 @@ import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 MODEL_DIR = "docs/identify/model"
 STEPS = 2000
 IPOPT_STEPS = 200
-
-
-def cartpole_step_us(steps: int = 20_000) -> np.ndarray:
-    """Per-step times (us) of CartPole-v1 through gym.make, random actions, with resets."""
-    env = gym.make("CartPole-v1")
-    env.reset(seed=0)
-    env.action_space.seed(0)
-    times = np.empty(steps)
-    for i in range(steps):
-        action = env.action_space.sample()
-        start = time.perf_counter()
-        _, _, terminated, truncated, _ = env.step(action)
-        times[i] = time.perf_counter() - start
-        if terminated or truncated:
-            env.reset()
-    return times * 1e6
 
 
 def timed(obj: object, name: str, sink: list[float]) -> None:
@@ -104,7 +88,7 @@ def main() -> None:
     ]
     rows = []
     with threadpool_limits(1):
-        cart = cartpole_step_us()
+        cart = single_env_step_times("CartPole-v1", 20_000) * 1e6
         cart_median = float(np.median(cart))
         for label, name, steps, options in runs:
             try:

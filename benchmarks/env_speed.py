@@ -15,31 +15,13 @@ import time
 
 import gymnasium as gym
 import numpy as np
-from _common import header, markdown_table, write_result
+from _common import header, markdown_table, single_env_step_times, write_result
 
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 
 SINGLE_STEPS = 60_000
 VECTOR_BATCHES = 2_001  # one PiezoBender episode and its autoreset
 ROUNDS = 5
-
-
-def single_env_step_times(env_id: str, steps: int, seed: int = 0) -> np.ndarray:
-    """Per-step wall times (s) of ``steps`` random-action steps through gym.make, with resets."""
-    env = gym.make(env_id)
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    actions = [env.action_space.sample() for _ in range(steps)]
-    times = np.empty(steps)
-    clock = time.perf_counter
-    for i, action in enumerate(actions):
-        start = clock()
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-        times[i] = clock() - start
-    env.close()
-    return times
 
 
 def vector_env_rate(env_id: str, num_envs: int, seed: int = 0) -> float:

@@ -21,11 +21,10 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 import scipy.optimize
 import threadpoolctl
-from _common import header, markdown_table, write_result
+from _common import header, markdown_table, single_env_step_times, write_result
 
 from controllers._compiled_inverse import CompiledInverse
 from identification.hammerstein import HammersteinModel
@@ -102,24 +101,6 @@ def inverse_times(nls, solver, u_true: np.ndarray, z: np.ndarray) -> tuple[np.nd
     return times, error
 
 
-def cartpole_step_times(steps: int, seed: int) -> np.ndarray:
-    """Per-step wall times (s) of CartPole-v1 through gym.make, random actions, with resets."""
-    env = gym.make("CartPole-v1")
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    actions = [env.action_space.sample() for _ in range(steps)]
-    times = np.empty(steps)
-    clock = time.perf_counter
-    for i, action in enumerate(actions):
-        start = clock()
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-        times[i] = clock() - start
-    env.close()
-    return times
-
-
 def pass_statistics(nls, z: np.ndarray) -> tuple[float, float]:
     """Mean batched network passes per new inverse call, and the median time (s) of one pass
     of two rows (features + network), the unit a Newton step costs."""
@@ -172,7 +153,7 @@ def run_rounds(nls, solvers: dict, u_true: np.ndarray, z: np.ndarray) -> tuple[d
             times, error = inverse_times(nls, solver, u_true, z)
             results[name].append(times)
             errors[name] = max(errors[name], error)
-        results["cart"].append(cartpole_step_times(CARTPOLE_STEPS, seed=r))
+        results["cart"].append(single_env_step_times("CartPole-v1", CARTPOLE_STEPS, seed=r))
     return results, errors
 
 
