@@ -378,11 +378,16 @@ class PIDController(Controller):
                     raise ValueError(f"{name} out of range or not a number: {value!r}")
 
     def __init__(
-        self, model: PredictionModel, task: ControlTask, settings: Settings, *, name: str = "pid"
+        self,
+        model: PredictionModel,
+        task: ControlTask,
+        settings: Settings | None = None,
+        *,
+        name: str = "pid",
     ) -> None:
         super().__init__(task)
         self.name = name
-        self.settings = settings
+        self.settings = settings = settings or self.Settings()
         self.model = model
         self.notch = None
         self.resonance_hz = math.nan

@@ -43,6 +43,16 @@ def test_prediction_equals_the_model_simulation(model, jacobian):
     np.testing.assert_allclose(predicted, model.simulate(u), rtol=1e-10, atol=1e-9)
 
 
+def test_prediction_equals_the_hammerstein_model_simulation(model):
+    """Against the identification package's own free run (its y[t] is before u[t])."""
+    from identification.hammerstein import HammersteinModel
+
+    controller = NonlinearMPC(model, TASK, NMPCSettings(horizon=HORIZON))
+    u = random_plan(3)
+    free_run = HammersteinModel.load(MODEL_DIR).simulate(np.r_[u, 0.0])[1:]
+    np.testing.assert_allclose(controller.predict_deflection(u), free_run, rtol=1e-10, atol=1e-9)
+
+
 def memory_after(model: PredictionModel, voltages: np.ndarray) -> np.ndarray:
     state = model.nonlinearity.initial_state()
     for v in voltages:
