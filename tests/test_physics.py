@@ -22,7 +22,8 @@ def test_static_tip_deflection_matches_datasheet(name, n_elements):
     params = bender_parameters(name)
     beam = assemble_beam(params, n_elements)
     w_tip = beam.static_deflection(params.rated_voltage)[-2]
-    assert w_tip == pytest.approx(params.datasheet.free_deflection, rel=5e-3)
+    # Exact for any n (Hermite elements carry a uniform moment exactly): only rounding remains.
+    assert w_tip == pytest.approx(params.datasheet.free_deflection, rel=1e-10)
 
 
 @pytest.mark.parametrize("name", BENDERS)
@@ -33,7 +34,7 @@ def test_blocking_force_matches_datasheet(name):
     e = beam.tip_force_input
     # Tip force that cancels the piezo deflection: e^T K^-1 (b U + e F) = 0.
     force = -(e @ k_inv @ beam.piezo_input) * params.rated_voltage / (e @ k_inv @ e)
-    assert abs(force) == pytest.approx(params.datasheet.blocking_force, rel=5e-3)
+    assert abs(force) == pytest.approx(params.datasheet.blocking_force, rel=1e-10)
     assert params.blocking_force(params.rated_voltage) == pytest.approx(
         params.datasheet.blocking_force
     )
@@ -58,7 +59,8 @@ def test_fe_frequencies_converge_to_cantilever_from_above(name):
 @pytest.mark.parametrize("name", BENDERS)
 def test_calibrated_first_mode_is_datasheet_resonance(name):
     model = PiezoBenderModel(name)
-    assert model.beam.frequencies[0] == pytest.approx(model.params.datasheet.resonance, rel=1e-3)
+    # The density calibrates the continuum mode; 10 elements are within 1e-6 of it.
+    assert model.beam.frequencies[0] == pytest.approx(model.params.datasheet.resonance, rel=1e-5)
     assert model.params.density_source.startswith("calibrated")
 
 
