@@ -47,6 +47,7 @@ from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
 from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
+from piezo_env.task import TaskConfig
 
 __all__ = [
     "ArxEstimate",
@@ -160,7 +161,7 @@ class IdentificationConfig:
         make_signal(
             self.rich_signal,
             16,
-            dt=float(self.env_kwargs.get("dt", 1e-3)),
+            dt=float(self.env_kwargs.get("dt", TaskConfig().dt)),
             rng=np.random.default_rng(0),
             amplitude=self.rich_amplitude,
             **self.rich_signal_params(),

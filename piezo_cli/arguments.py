@@ -116,12 +116,19 @@ def _hysteresis(text: str) -> str:
 
 
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the options that configure the simulated bender (``--bender``, ``--dt``, ...)."""
+    """Add the options that configure the simulated bender (``--bender``, ``--dt``, ...).
+
+    Their defaults are the task's own (:class:`piezo_env.TaskConfig`), written once there.
+    """
+    from piezo_env import TaskConfig
+
+    task = TaskConfig()
+    hysteresis = next(k for k, v in HYSTERESIS_CHOICES.items() if v == task.hysteresis)
     env = parser.add_argument_group("simulated bender")
     env.add_argument(
         "--bender",
         type=_bender,
-        default="PL140",
+        default=task.bender,
         choices=BENDER_CHOICES,
         metavar="NAME",
         help=f"PI PICMA bender type: {_or(_SHORT_NAMES)} (the .10 suffix is optional)",
@@ -129,21 +136,23 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     env.add_argument(
         "--hysteresis",
         type=_hysteresis,
-        default="bouc-wen",
+        default=hysteresis,
         choices=tuple(HYSTERESIS_CHOICES),
         help="input hysteresis model",
     )
     env.add_argument(
         "--noise-bound",
         type=non_negative_float,
-        default=1.0,
+        default=task.noise_bound,
         metavar="UM",
         help="sensor noise bound r in micrometres: uniform noise in [-r, r]; 0 for none",
     )
     env.add_argument(
-        "--dt", type=positive_float, default=1e-3, metavar="S", help="sample time in seconds"
+        "--dt", type=positive_float, default=task.dt, metavar="S", help="sample time in seconds"
     )
-    env.add_argument("--creep", action="store_true", help="add linear creep")
+    env.add_argument(
+        "--creep", action="store_true", default=bool(task.creep), help="add linear creep"
+    )
 
 
 def env_kwargs(args: argparse.Namespace) -> dict[str, object]:
