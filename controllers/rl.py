@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -40,6 +40,7 @@ __all__ = [
     "make_ppo",
     "make_training_env",
     "train_ppo",
+    "train_seeds",
 ]
 
 ENV_ID = "piezo_env:PiezoBender-v0"
@@ -378,4 +379,67 @@ def _write(model: PPO, env: Any, out_dir: str | Path, config: PPOConfig, trainin
         activation=config.activation,
         observation=env.config,
         extra=extra,
+    )
+
+
+def _train_task(seed: int, total_steps: int, out_dir: str, kwargs: dict[str, Any]) -> Path:
+    return train_ppo(seed, total_steps, out_dir, **kwargs)
+
+
+def train_seeds(
+    seeds: Sequence[int],
+    total_steps: int,
+    out_root: str | Path,
+    *,
+    jobs: int = 1,
+    backend: str = "local",
+    address: str | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+    **train_kwargs: Any,
+) -> list[Path]:
+    """Train one policy per seed, each seed a task of :func:`controllers.backends.run_tasks`.
+
+    The seeds are independent runs, so they spread over worker processes or a Ray cluster the
+    way the benchmark's episodes do (one torch thread each, ``PPOConfig.torch_threads``), and
+    every policy is the same as :func:`train_ppo` with that seed would write. RLlib is not used:
+    the env is batched natively and PPO on a few cores is bound by the gradient updates, so
+    parallelism across seeds (and sweeps) is what pays.
+
+    Parameters
+    ----------
+    seeds : sequence of int
+        One training run each.
+    total_steps : int
+        Env steps per run.
+    out_root : str or Path
+        Parent folder; run ``s`` writes ``out_root/ppo-seed{s}``.
+    jobs, backend, address
+        As for :func:`controllers.backends.run_tasks` (``"local"`` or ``"ray"``).
+    progress : callable, optional
+        ``progress(done, total, label)`` after each run.
+    **train_kwargs
+        Further keyword arguments of :func:`train_ppo` (not ``progress``).
+
+    Returns
+    -------
+    list of pathlib.Path
+        The policy folders, in the order of ``seeds``.
+    """
+    from controllers.backends import run_tasks
+
+    seeds = [int(s) for s in seeds]
+    if len(set(seeds)) != len(seeds) or not seeds:
+        raise ValueError(f"seeds must be distinct and at least one, got {seeds}")
+    tasks = [
+        (seed, total_steps, str(Path(out_root) / f"ppo-seed{seed}"), train_kwargs)
+        for seed in seeds
+    ]
+    return run_tasks(
+        _train_task,
+        tasks,
+        jobs=jobs,
+        backend=backend,
+        address=address,
+        labels=[f"ppo seed {s}" for s in seeds],
+        progress=progress,
     )

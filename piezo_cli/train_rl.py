@@ -28,7 +28,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--preview", type=non_negative_int, default=10, help="reference samples seen ahead"
     )
+    parser.add_argument(
+        "--seeds",
+        type=_seeds,
+        default=None,
+        metavar="A,B",
+        help="train one policy per seed into OUT/ppo-seedN instead of --seed, in parallel",
+    )
+    parser.add_argument("--jobs", type=positive_int, default=1, help="worker processes for --seeds")
+    parser.add_argument(
+        "--backend",
+        default="local",
+        choices=("local", "ray"),
+        help="where the --seeds runs go: local processes or Ray (extra ray)",
+    )
     add_env_arguments(parser)
+
+
+def _seeds(text: str) -> tuple[int, ...]:
+    values = tuple(seed(part.strip()) for part in text.split(",") if part.strip())
+    if not values or len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"expected distinct seeds such as 0,1,2, got {text!r}")
+    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from controllers.rl import train_ppo
 
     start = time.perf_counter()
+    if args.seeds is not None:
+        return _run_seeds(args, out, start)
     folder = train_ppo(
         args.seed,
         args.steps,
@@ -51,6 +74,31 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"trained in {time.perf_counter() - start:.0f} s; wrote {folder / 'policy.json'} "
         f"and {folder / 'weights.npz'}"
+    )
+    return 0
+
+
+def _run_seeds(args: argparse.Namespace, out, start: float) -> int:
+    from controllers.backends import check_backend
+    from controllers.rl import train_seeds
+
+    try:
+        check_backend(args.backend)
+    except (ValueError, RuntimeError) as error:
+        raise CommandLineError(str(error)) from None
+    folders = train_seeds(
+        args.seeds,
+        args.steps,
+        out,
+        jobs=args.jobs,
+        backend=args.backend,
+        num_envs=args.num_envs,
+        preview=args.preview,
+        env_kwargs=env_kwargs(args),
+    )
+    print(
+        f"trained {len(folders)} policies in {time.perf_counter() - start:.0f} s: "
+        + ", ".join(str(f) for f in folders)
     )
     return 0
 
@@ -72,5 +120,6 @@ TRAIN_RL = Subcommand(
     examples=(
         "piezo train-rl --seed 0 --out out/ppo-seed0",
         "piezo train-rl --seed 1 --steps 500000 --num-envs 32 --out out/ppo-quick",
+        "piezo train-rl --seeds 0,1,2 --jobs 2 --out out/ppo",
     ),
 )

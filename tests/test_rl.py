@@ -231,3 +231,25 @@ def test_a_longer_preview_is_cut_to_the_policys_own(trained):
         )
         voltages.append(episode.voltage_V)
     np.testing.assert_array_equal(voltages[0], voltages[1])
+
+
+def test_seeds_trained_in_worker_processes_equal_train_ppo(trained, tmp_path):
+    """Each seed a task of the benchmark's backends: the same policy as a run on its own."""
+    from controllers.rl import train_seeds
+
+    folders = train_seeds(
+        [0, 1],
+        256,
+        tmp_path,
+        jobs=2,
+        num_envs=4,
+        preview=3,
+        n_inputs=2,
+        n_errors=2,
+        config=TINY,
+    )
+    assert [f.name for f in folders] == ["ppo-seed0", "ppo-seed1"]
+    assert (folders[0] / "weights.npz").read_bytes() == (trained / "weights.npz").read_bytes()
+    assert (folders[1] / "weights.npz").read_bytes() != (trained / "weights.npz").read_bytes()
+    with pytest.raises(ValueError, match="distinct"):
+        train_seeds([1, 1], 256, tmp_path)
