@@ -115,9 +115,9 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
     **settings
         The fields of :class:`piezo_env.TaskConfig`, each documented there with its unit and
         default (``help(piezo_env.TaskConfig)``): ``bender``, ``n_elements``, ``dt``,
-        ``hysteresis``, ``creep``, ``noise_bound``, ``reference``, ``preview``,
-        ``deflection_limit``, ``damping_ratio``, ``randomize``. An unknown keyword raises
-        TypeError naming the valid ones.
+        ``hysteresis``, ``creep``, ``noise_bound``, ``reference``, ``reference_band``,
+        ``preview``, ``deflection_limit``, ``damping_ratio``, ``randomize``. An unknown
+        keyword raises TypeError naming the valid ones.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}

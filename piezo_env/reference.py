@@ -7,8 +7,11 @@ reset under a seed gives the same reference.
 ``"random"`` (the default) picks one of the shapes below with random parameters:
 
 - ``"steps"``: random levels held 50..400 samples (RAND of the paper, in um),
-- ``"sine"`` / ``"triangle"``: 0.5..20 Hz (log-uniform), random phase,
-- ``"multisine"``: 5 tones in 0.5..20 Hz with random phases.
+- ``"sine"`` / ``"triangle"``: a frequency drawn log-uniform in the band, random phase,
+- ``"multisine"``: 5 tones spread over the band with random phases.
+
+The band is 0.5..20 Hz by default (:data:`DEFAULT_BAND`); the env option
+``TaskConfig.reference_band`` sets another (checked by :func:`check_reference_band`).
 
 Amplitudes are 20..80 % of the stroke, so every reference is reachable inside the drive range.
 An episode's reference is a :class:`ReferenceStream`: segments of 2048 samples, each a fresh
@@ -29,12 +32,14 @@ import numpy as np
 from piezo_env import signals
 
 __all__ = [
+    "DEFAULT_BAND",
     "REFERENCE_NAMES",
     "REFERENCE_SHAPES",
     "SEGMENT",
     "ReferenceDraw",
     "ReferenceStream",
     "check_reference_array",
+    "check_reference_band",
     "draw_reference",
     "make_reference",
     "render_references",
@@ -46,8 +51,34 @@ REFERENCE_SHAPES = ("steps", "sine", "triangle", "multisine")
 REFERENCE_NAMES = ("random", *REFERENCE_SHAPES)
 """Every valid reference name."""
 
-_F_MIN, _F_MAX = 0.5, 20.0
+DEFAULT_BAND = (0.5, 20.0)
+"""Frequency band (Hz) of the random sines, triangles and multisines unless the env sets one."""
+
 _TONES = 5
+
+
+def check_reference_band(band: object, dt: float) -> tuple[float, float]:
+    """The band ``(low, high)`` (Hz) as two floats, or ValueError saying what is wrong.
+
+    A band needs 0 < low <= high <= 0.25 / dt (half the Nyquist frequency, so that a period
+    has at least four samples). :data:`DEFAULT_BAND` is always valid: at a sample time too
+    coarse for it, its top is cut to 0.25 / dt when drawing.
+    """
+    try:
+        low, high = (float(f) for f in band)  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"reference_band must be a pair (low, high) of frequencies in Hz, got {band!r}"
+        ) from None
+    if (low, high) == DEFAULT_BAND:
+        return DEFAULT_BAND
+    top = 0.25 / dt
+    if not (0.0 < low <= high <= top):
+        raise ValueError(
+            f"reference_band must satisfy 0 < low <= high <= 0.25/dt = {top:g} Hz, "
+            f"got {band!r}; e.g. reference_band=(0.5, {min(100.0, top):g})"
+        )
+    return low, high
 
 
 @dataclass(frozen=True)
@@ -61,7 +92,7 @@ class ReferenceDraw:
     amplitude : float
         Peak value (um).
     frequency : float
-        Frequency (Hz) of the sine and triangle shapes.
+        Frequency (Hz) of the sine and triangle shapes; the top tone of the multisine.
     phase : float
         Phase at t = 0 (rad) of the sine and triangle shapes.
     levels : ndarray or None
@@ -70,6 +101,8 @@ class ReferenceDraw:
         Samples per step level.
     tone_phases : ndarray or None
         Phases (rad) of the multisine tones.
+    low_frequency : float
+        Lowest multisine tone (Hz): the bottom of the band.
     """
 
     shape: str
@@ -79,12 +112,23 @@ class ReferenceDraw:
     levels: np.ndarray | None = None
     hold: int = 1
     tone_phases: np.ndarray | None = None
+    low_frequency: float = DEFAULT_BAND[0]
 
 
 def draw_reference(
-    kind: str, n: int, *, dt: float, stroke_um: float, rng: np.random.Generator
+    kind: str,
+    n: int,
+    *,
+    dt: float,
+    stroke_um: float,
+    rng: np.random.Generator,
+    band: tuple[float, float] = DEFAULT_BAND,
 ) -> ReferenceDraw:
-    """Draw the parameters of an ``n``-sample reference of the named ``kind`` from ``rng``."""
+    """Draw the parameters of an ``n``-sample reference of the named ``kind`` from ``rng``.
+
+    ``band`` (Hz, see :func:`check_reference_band`) bounds the sine, triangle and multisine
+    frequencies; the number of draws from ``rng`` does not depend on it.
+    """
     if kind == "random":
         kind = REFERENCE_SHAPES[int(rng.integers(len(REFERENCE_SHAPES)))]
     if kind not in REFERENCE_SHAPES:
@@ -92,15 +136,15 @@ def draw_reference(
             f"unknown reference {kind!r}; use one of {REFERENCE_NAMES} or an array (um)"
         )
     amplitude = stroke_um * rng.uniform(0.2, 0.8)
-    f_max = min(_F_MAX, 0.25 / dt)
-    frequency = math.exp(rng.uniform(math.log(_F_MIN), math.log(f_max)))
+    f_min, f_max = band[0], min(band[1], 0.25 / dt)
+    frequency = math.exp(rng.uniform(math.log(f_min), math.log(f_max)))
     if kind == "steps":
         hold = int(rng.integers(50, 401))
         levels = rng.uniform(-amplitude, amplitude, size=-(-n // hold))
         return ReferenceDraw(kind, amplitude, frequency, levels=levels, hold=hold)
     if kind == "multisine":
         phases = rng.uniform(0.0, 2.0 * np.pi, size=_TONES)
-        return ReferenceDraw(kind, amplitude, f_max, tone_phases=phases)
+        return ReferenceDraw(kind, amplitude, f_max, tone_phases=phases, low_frequency=f_min)
     return ReferenceDraw(kind, amplitude, frequency, phase=rng.uniform(0.0, 2.0 * math.pi))
 
 
@@ -131,8 +175,8 @@ def render_references(draws: list[ReferenceDraw], n: int, *, dt: float) -> np.nd
             w = 2.0 * np.pi * dt * np.array([d.frequency for d in group])[:, None]
             phase = np.array([d.phase for d in group])[:, None]
             out[index] = amplitude * signals.sums_of_sines(w, phase, n)
-        else:  # multisine: _TONES tones spread from _F_MIN to the draw's top frequency
-            tones = np.array([np.linspace(_F_MIN, d.frequency, _TONES) for d in group])
+        else:  # multisine: _TONES tones spread over the draw's band
+            tones = np.array([np.linspace(d.low_frequency, d.frequency, _TONES) for d in group])
             phase = np.array([d.tone_phases for d in group])
             x = signals.sums_of_sines(2.0 * np.pi * dt * tones, phase, n)
             out[index] = x * (amplitude / np.abs(x).max(axis=1, keepdims=True))
@@ -140,7 +184,13 @@ def render_references(draws: list[ReferenceDraw], n: int, *, dt: float) -> np.nd
 
 
 def make_reference(
-    kind: str, n: int, *, dt: float, stroke_um: float, rng: np.random.Generator
+    kind: str,
+    n: int,
+    *,
+    dt: float,
+    stroke_um: float,
+    rng: np.random.Generator,
+    band: tuple[float, float] = DEFAULT_BAND,
 ) -> np.ndarray:
     """A reference of ``n`` samples (um) of the named ``kind``.
 
@@ -156,8 +206,10 @@ def make_reference(
         One-sided stroke of the bender (um); amplitudes are 20..80 % of it.
     rng : numpy.random.Generator
         Source of every random parameter.
+    band : (float, float)
+        Frequency band (Hz) of the sine, triangle and multisine shapes.
     """
-    draw = draw_reference(kind, n, dt=dt, stroke_um=stroke_um, rng=rng)
+    draw = draw_reference(kind, n, dt=dt, stroke_um=stroke_um, rng=rng, band=band)
     return render_references([draw], n, dt=dt)[0]
 
 
@@ -216,6 +268,8 @@ class ReferenceStream:
     first : ndarray, optional
         The first segment of a named reference, already drawn from ``rng`` and rendered (the
         vector env renders the segments of many sub-envs in one batch).
+    band : (float, float)
+        Frequency band (Hz) of the named reference's segments.
     """
 
     def __init__(
@@ -227,12 +281,15 @@ class ReferenceStream:
         bound: float,
         rng: np.random.Generator | None,
         first: np.ndarray | None = None,
+        band: tuple[float, float] = DEFAULT_BAND,
     ) -> None:
         self._name = spec if isinstance(spec, str) else None
-        self._dt, self._stroke, self._rng = dt, stroke_um, rng
+        self._dt, self._stroke, self._rng, self._band = dt, stroke_um, rng, band
         if self._name is not None:
             if first is None:
-                first = make_reference(self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng)
+                first = make_reference(
+                    self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng, band=band
+                )
             self._values = np.asarray(first, dtype=np.float32)
         else:
             values = check_reference_array(spec)
@@ -259,7 +316,12 @@ class ReferenceStream:
                 extra = np.concatenate(
                     [
                         make_reference(
-                            self._name, SEGMENT, dt=self._dt, stroke_um=self._stroke, rng=self._rng
+                            self._name,
+                            SEGMENT,
+                            dt=self._dt,
+                            stroke_um=self._stroke,
+                            rng=self._rng,
+                            band=self._band,
                         ).astype(np.float32)
                         for _ in range(count)
                     ]

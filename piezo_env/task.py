@@ -21,7 +21,13 @@ from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.discrete import Creep
 from piezo_env.fem import DEFAULT_ELEMENTS, check_damping_ratio
 from piezo_env.hysteresis import Hysteresis, make_hysteresis
-from piezo_env.reference import REFERENCE_NAMES, ReferenceStream, check_reference_array
+from piezo_env.reference import (
+    DEFAULT_BAND,
+    REFERENCE_NAMES,
+    ReferenceStream,
+    check_reference_array,
+    check_reference_band,
+)
 
 if TYPE_CHECKING:
     from piezo_env.model import PiezoBenderModel
@@ -76,6 +82,11 @@ class TaskConfig:
         array (um), whose last value holds past its end; or None: regulation to zero
         deflection, and the observation is the measured deflection alone (then ``preview``
         must be 0). An array is stored as a read-only float64 copy.
+    reference_band : (float, float)
+        Frequency band ``(low, high)`` (Hz) of the named references' sines and triangles (drawn
+        log-uniform in it) and multisines (tones spread over it); steps and arrays ignore it.
+        0 < low <= high <= 0.25 / dt; the default (0.5, 20) is always accepted (its top is cut
+        to 0.25 / dt at a coarser dt). Stored as a tuple of two floats.
     preview : int or None
         Future reference samples in the observation, integer >= 0. None (the default) becomes
         1 with a reference and 0 without. With ``preview >= 1`` the observation holds r_{t+1},
@@ -101,6 +112,7 @@ class TaskConfig:
     creep: bool | Creep = False
     noise_bound: float = 1.0
     reference: str | np.ndarray | None = "random"
+    reference_band: tuple[float, float] = DEFAULT_BAND
     preview: int | None = None
     deflection_limit: float | None = None
     damping_ratio: float = 0.02
@@ -128,6 +140,9 @@ class TaskConfig:
         _check_noise_bound(self.noise_bound)
         reference = _check_reference(self.reference)
         object.__setattr__(self, "reference", reference)
+        object.__setattr__(
+            self, "reference_band", check_reference_band(self.reference_band, self.dt)
+        )
         preview = _check_preview(self.preview, reference)
         object.__setattr__(self, "preview", preview)
         limit = self.deflection_limit
@@ -225,6 +240,7 @@ class BenderTask:
         self.preview = config.preview
         self.deflection_limit = config.deflection_limit
         self.reference = config.reference
+        self.reference_band = config.reference_band
         self.randomization = config.randomize
         self.bound = observation_bound(self.model, self.noise_bound)
         if self.randomization is not None:
@@ -269,7 +285,13 @@ class BenderTask:
         """The reference of one episode, drawn from ``rng`` (``first``: its rendered start)."""
         model = self.model
         return ReferenceStream(
-            spec, dt=model.dt, stroke_um=model.stroke_um, bound=self.bound, rng=rng, first=first
+            spec,
+            dt=model.dt,
+            stroke_um=model.stroke_um,
+            bound=self.bound,
+            rng=rng,
+            first=first,
+            band=self.reference_band,
         )
 
 

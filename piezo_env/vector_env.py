@@ -299,7 +299,14 @@ class PiezoBenderVectorEnv(VectorEnv):
             rng = self._rngs[i]
             if named:
                 draws.append(
-                    draw_reference(spec, SEGMENT, dt=model.dt, stroke_um=model.stroke_um, rng=rng)
+                    draw_reference(
+                        spec,
+                        SEGMENT,
+                        dt=model.dt,
+                        stroke_um=model.stroke_um,
+                        rng=rng,
+                        band=self.task.reference_band,
+                    )
                 )
             if r > 0:
                 noise.append(rng.uniform(-r, r, NOISE_BLOCK))
