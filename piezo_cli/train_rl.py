@@ -42,7 +42,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=("local", "ray"),
         help="where the --seeds runs go: local processes or Ray (extra ray)",
     )
+    parser.add_argument(
+        "--reference-band",
+        type=_band,
+        default=None,
+        metavar="LOW,HIGH",
+        help="frequency band (Hz) of the random training references (default: the env's, "
+        "0.5,20; the committed policies used 0.5,60)",
+    )
     add_env_arguments(parser)
+
+
+def _band(text: str) -> tuple[float, float]:
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        low, high = (float(p) for p in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW,HIGH in Hz, got {text!r}") from None
+    return low, high
+
+
+def _kwargs(args: argparse.Namespace) -> dict:
+    """The env settings of a training run: the bender options and the reference band."""
+    kwargs = env_kwargs(args)
+    if args.reference_band is not None:
+        kwargs["reference_band"] = args.reference_band
+    return kwargs
 
 
 def _seeds(text: str) -> tuple[int, ...]:
@@ -68,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         out,
         num_envs=args.num_envs,
         preview=args.preview,
-        env_kwargs=env_kwargs(args),
+        env_kwargs=_kwargs(args),
         progress=print,
     )
     print(
@@ -94,7 +119,7 @@ def _run_seeds(args: argparse.Namespace, out, start: float) -> int:
         backend=args.backend,
         num_envs=args.num_envs,
         preview=args.preview,
-        env_kwargs=env_kwargs(args),
+        env_kwargs=_kwargs(args),
     )
     print(
         f"trained {len(folders)} policies in {time.perf_counter() - start:.0f} s: "
