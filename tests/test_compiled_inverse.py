@@ -6,10 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from handmade import handmade_nls
 
 from controllers import PredictionModel
 from controllers._compiled_inverse import FALLBACK, OK, CompiledInverse, inverse_function
-from identification.features import PastInputFeatures, play_operators
+from identification.features import play_operators
 from identification.hammerstein import HammersteinModel
 from identification.nls import NLS, fit_nls
 
@@ -145,23 +146,6 @@ def test_identified_model_inverts_with_the_compiled_inverse(shipped, monkeypatch
                 model.nonlinearity.inverse(target, state),
                 fallback.nonlinearity.inverse(target, state),
             )
-
-
-def handmade_nls(out_weight: float) -> NLS:
-    """z = u + out_weight * tanh(u) on +-5 V (past-input features): not monotone for < -1."""
-    params = {
-        "feature_mean": np.zeros(2),
-        "feature_scale": np.ones(2),
-        "z_mean": np.array(0.0),
-        "z_scale": np.array(1.0),
-        "layer0_weight": np.array([[1.0, 0.0]]),
-        "layer0_bias": np.zeros(1),
-        "out_weight": np.array([out_weight]),
-        "out_bias": np.array(0.0),
-        "skip_weight": np.array([1.0, 0.0]),
-        "skip_bias": np.array(0.0),
-    }
-    return NLS(PastInputFeatures(n_past=1), params, u_range=(-5.0, 5.0))
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+from handmade import handmade_nls
 
 from identification.features import (
     BoucWenFeatures,
@@ -211,25 +212,8 @@ def test_inverse_saturates_out_of_range(trained):
     assert nls.inverse(-1e6) == pytest.approx(-30.0)
 
 
-def _handmade_nls(out_weight):
-    """z = u + out_weight * tanh(u) with identity normalization (past-input features)."""
-    params = {
-        "feature_mean": np.zeros(2),
-        "feature_scale": np.ones(2),
-        "z_mean": np.array(0.0),
-        "z_scale": np.array(1.0),
-        "layer0_weight": np.array([[1.0, 0.0]]),
-        "layer0_bias": np.zeros(1),
-        "out_weight": np.array([out_weight]),
-        "out_bias": np.array(0.0),
-        "skip_weight": np.array([1.0, 0.0]),
-        "skip_bias": np.array(0.0),
-    }
-    return NLS(PastInputFeatures(n_past=1), params, u_range=(-5.0, 5.0))
-
-
 def test_inverse_of_non_monotone_map_warns_and_picks_nearest_root():
-    nls = _handmade_nls(-2.0)  # z = u - 2 tanh(u): roots of z = 0 at 0 and about +-1.915
+    nls = handmade_nls(-2.0)  # z = u - 2 tanh(u): roots of z = 0 at 0 and about +-1.915
     result = nls.solve_inverse(0.0, [1.8])  # previous input 1.8 V is the reference
     assert result.status == "non-monotone"
     assert result.u == pytest.approx(1.91501, abs=1e-4)
@@ -239,7 +223,7 @@ def test_inverse_of_non_monotone_map_warns_and_picks_nearest_root():
         nls.inverse_sequence([0.0, 0.0])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert _handmade_nls(2.0).inverse(0.0) == pytest.approx(0.0, abs=1e-9)
+        assert handmade_nls(2.0).inverse(0.0) == pytest.approx(0.0, abs=1e-9)
 
 
 # -- training ---------------------------------------------------------------------------------
