@@ -35,7 +35,7 @@ import scipy.sparse
 from controllers.base import Controller
 from controllers.observer import DisturbanceObserver
 from controllers.prediction import PredictionModel
-from controllers.settings import USABLE_OSQP_STATUS, measurement_std, number_at_least
+from controllers.settings import USABLE_OSQP_STATUS, check_settings
 from controllers.task import ControlTask
 
 __all__ = ["LinearMPC", "prediction_matrices"]
@@ -135,28 +135,12 @@ class MPCSettings:
     shortcut: bool = True
 
     def __post_init__(self) -> None:
-        if isinstance(self.horizon, bool) or not isinstance(self.horizon, int) or self.horizon < 1:
-            raise ValueError(f"horizon must be an integer >= 1 (samples), got {self.horizon!r}")
-        if (
-            isinstance(self.max_iter, bool)
-            or not isinstance(self.max_iter, int)
-            or self.max_iter < 1
-        ):
-            raise ValueError(f"max_iter must be an integer >= 1, got {self.max_iter!r}")
-        for name in ("rate_weight", "process_std", "slope_std"):
-            if not number_at_least(getattr(self, name), 0.0):
-                raise ValueError(
-                    f"{name} must be a finite number >= 0, got {getattr(self, name)!r}"
-                )
-        for name in ("disturbance_std", "eps_abs", "eps_rel"):
-            if not number_at_least(getattr(self, name), 0.0) or getattr(self, name) == 0:
-                raise ValueError(f"{name} must be a finite number > 0, got {getattr(self, name)!r}")
-        if self.measurement_std is not None and not (
-            number_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
-        ):
-            raise ValueError(
-                f"measurement_std must be > 0 um or None, got {self.measurement_std!r}"
-            )
+        check_settings(
+            self,
+            integers=("horizon", "max_iter"),
+            non_negative=("rate_weight", "process_std", "slope_std"),
+            positive=("disturbance_std", "eps_abs", "eps_rel"),
+        )
 
 
 class LinearMPC(Controller):
@@ -193,15 +177,7 @@ class LinearMPC(Controller):
         z_min, z_max = model.z_bounds
         self._lower = np.full(settings.horizon, z_min)
         self._upper = np.full(settings.horizon, z_max)
-        self.observer = DisturbanceObserver(
-            model.a,
-            model.b,
-            model.c,
-            measurement_std=measurement_std(settings.measurement_std, task),
-            disturbance_std=settings.disturbance_std,
-            process_std=settings.process_std,
-            slope_std=settings.slope_std,
-        )
+        self.observer = DisturbanceObserver.for_controller(model, task, settings)
         self._reset(None)
 
     def _setup_solver(self) -> osqp.OSQP:

@@ -53,7 +53,7 @@ from controllers.base import Controller
 from controllers.mpc import MPCSettings, prediction_matrices
 from controllers.observer import DisturbanceObserver
 from controllers.prediction import IdentifiedNLS, PredictionModel
-from controllers.settings import USABLE_OSQP_STATUS, measurement_std, number_at_least
+from controllers.settings import USABLE_OSQP_STATUS, check_settings
 from controllers.task import ControlTask
 
 __all__ = ["NMPCSettings", "NonlinearMPC"]
@@ -130,31 +130,18 @@ class NMPCSettings:
             raise ValueError(f"solver must be one of {_SOLVERS}, got {self.solver!r}")
         if self.jacobian not in _JACOBIANS:
             raise ValueError(f"jacobian must be one of {_JACOBIANS}, got {self.jacobian!r}")
-        for name in ("horizon", "sqp_iterations", "max_qp_iterations", "ipopt_max_iter"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        for name in ("rate_weight", "process_std", "step_tolerance"):
-            if not number_at_least(getattr(self, name), 0.0):
-                raise ValueError(
-                    f"{name} must be a finite number >= 0, got {getattr(self, name)!r}"
-                )
-        for name in (
-            "tracking_weight",
-            "disturbance_std",
-            "eps_abs",
-            "eps_rel",
-            "ipopt_max_cpu_time",
-        ):
-            value = getattr(self, name)
-            if not number_at_least(value, 0.0) or value == 0:
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        if self.measurement_std is not None and not (
-            number_at_least(self.measurement_std, 0.0) and self.measurement_std > 0
-        ):
-            raise ValueError(
-                f"measurement_std must be > 0 um or None, got {self.measurement_std!r}"
-            )
+        check_settings(
+            self,
+            integers=("horizon", "sqp_iterations", "max_qp_iterations", "ipopt_max_iter"),
+            non_negative=("rate_weight", "process_std", "step_tolerance"),
+            positive=(
+                "tracking_weight",
+                "disturbance_std",
+                "eps_abs",
+                "eps_rel",
+                "ipopt_max_cpu_time",
+            ),
+        )
 
 
 def make_horizon(model: PredictionModel, horizon: int, jacobian: str) -> Any:
@@ -203,15 +190,7 @@ class NonlinearMPC(Controller):
         n_hor = settings.horizon
         self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
         self.horizon = make_horizon(model, n_hor, settings.jacobian)
-        measurement = measurement_std(settings.measurement_std, task)
-        self.observer = DisturbanceObserver(
-            model.a,
-            model.b,
-            model.c,
-            measurement_std=measurement,
-            disturbance_std=settings.disturbance_std,
-            process_std=settings.process_std,
-        )
+        self.observer = DisturbanceObserver.for_controller(model, task, settings)
         diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
         self._rate_hessian = settings.rate_weight * diff.T @ diff
         if settings.solver == "rti":

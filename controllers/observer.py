@@ -22,6 +22,8 @@ matrix-vector products.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.linalg
 
@@ -97,6 +99,32 @@ class DisturbanceObserver:
         self.gain = (p @ ca.T / (ca @ p @ ca.T + r)).ravel()
         self.a_aug, self.b_aug, self.c_aug = aa, ba, ca[0]
         self.estimate = np.zeros(m)
+
+    @classmethod
+    def for_controller(cls, model: Any, task: Any, settings: Any) -> DisturbanceObserver:
+        """The observer a model-based controller's settings describe.
+
+        Parameters
+        ----------
+        model : controllers.prediction.PredictionModel
+            Its linear part ``(a, b, c)`` is the observer's model.
+        task : controllers.task.ControlTask
+            Gives the sensor noise when ``settings.measurement_std`` is None.
+        settings
+            Has ``measurement_std``, ``disturbance_std``, ``process_std`` and, optionally,
+            ``slope_std`` (0 without it).
+        """
+        from controllers.settings import measurement_std
+
+        return cls(
+            model.a,
+            model.b,
+            model.c,
+            measurement_std=measurement_std(settings.measurement_std, task),
+            disturbance_std=settings.disturbance_std,
+            process_std=settings.process_std,
+            slope_std=getattr(settings, "slope_std", 0.0),
+        )
 
     def reset(self, estimate: np.ndarray | None = None) -> None:
         """Set the prior ``[x; d (; s)]`` (default: rest, no disturbance)."""

@@ -6,7 +6,7 @@ import math
 
 from controllers.task import ControlTask
 
-__all__ = ["USABLE_OSQP_STATUS", "measurement_std", "number_at_least"]
+__all__ = ["USABLE_OSQP_STATUS", "check_settings", "measurement_std", "number_at_least"]
 
 USABLE_OSQP_STATUS = ("solved", "solved inaccurate")
 """OSQP statuses whose solution is applied; any other falls back to the shifted plan."""
@@ -20,6 +20,35 @@ def number_at_least(value: object, low: float) -> bool:
         and math.isfinite(value)
         and value >= low
     )
+
+
+def check_settings(
+    settings: object,
+    *,
+    integers: tuple[str, ...] = (),
+    non_negative: tuple[str, ...] = (),
+    positive: tuple[str, ...] = (),
+) -> None:
+    """Raise ValueError naming the first field of ``settings`` outside its domain.
+
+    ``integers`` must be integers >= 1, ``non_negative`` finite numbers >= 0, ``positive``
+    finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um).
+    """
+    for name in integers:
+        value = getattr(settings, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    for name in non_negative:
+        value = getattr(settings, name)
+        if not number_at_least(value, 0.0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    for name in positive:
+        value = getattr(settings, name)
+        if not number_at_least(value, 0.0) or value == 0:
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    value = getattr(settings, "measurement_std", None)
+    if value is not None and not (number_at_least(value, 0.0) and value > 0):
+        raise ValueError(f"measurement_std must be > 0 um or None, got {value!r}")
 
 
 def measurement_std(setting: float | None, task: ControlTask) -> float:
