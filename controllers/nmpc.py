@@ -193,17 +193,13 @@ class NonlinearMPC(Controller):
         self.observer = DisturbanceObserver.for_controller(model, task, settings)
         diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
         self._rate_hessian = settings.rate_weight * diff.T @ diff
-        if settings.solver == "rti":
-            self._setup_qp()
-        else:
+        if settings.solver == "ipopt":
             self._nlp = self._build_nlp()
-        self._plan = np.zeros(n_hor)
-        self._u_prev = 0.0
-        self._memory = model.nonlinearity.initial_state()
+        self._reset(None)
 
     # -- episode ------------------------------------------------------------------------------
 
-    def _reset(self, observation: np.ndarray) -> None:
+    def _reset(self, observation: np.ndarray | None) -> None:
         if self.settings.solver == "rti":
             self._setup_qp()  # afresh: no adapted step size or duals carry over episodes
         self.observer.reset()
