@@ -10,7 +10,7 @@ from typing import Any
 from controllers.prediction import PredictionModel
 from controllers.task import ControlTask
 
-__all__ = ["CONTROLLERS", "make", "prediction_model"]
+__all__ = ["CONTROLLERS", "make", "prediction_model", "settings_for"]
 
 CONTROLLERS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "pid": ("controllers.pid", "PIDController", {"notch": False, "feedforward": False}),
@@ -76,12 +76,24 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     ValueError
         For an unknown name or option (the message lists the valid ones) or a bad value.
     """
+    cls, settings = settings_for(name, options)
+    task = ControlTask.from_env(env)
+    if name != "policy":  # a policy's model is its folder; it has no prediction model
+        model = prediction_model(model, env)
+    return cls(model, task, settings, name=name)
+
+
+def settings_for(name: str, options: dict[str, Any]) -> tuple[type, Any]:
+    """The controller class of ``name`` and its validated ``Settings`` for ``options``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name or option (the message lists the valid ones) or a bad value.
+    """
     if name not in CONTROLLERS:
         raise ValueError(f"unknown controller {name!r}; valid: {', '.join(CONTROLLERS)}")
     module, cls_name, preset = CONTROLLERS[name]
-    if name == "policy":  # model is the policy folder; it has no prediction model
-        cls = getattr(importlib.import_module(module), cls_name)
-        return cls(model, ControlTask.from_env(env), cls.Settings(**options), name=name)
     cls = getattr(importlib.import_module(module), cls_name)
     valid = {f.name for f in dataclasses.fields(cls.Settings)} - set(preset)
     unknown = sorted(set(options) - valid)
@@ -90,6 +102,4 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
             f"unknown option(s) {unknown} for controller {name!r}; "
             f"valid: {', '.join(sorted(valid))}"
         )
-    settings = cls.Settings(**{**preset, **options})
-    task = ControlTask.from_env(env)
-    return cls(prediction_model(model, env), task, settings, name=name)
+    return cls, cls.Settings(**{**preset, **options})
