@@ -394,21 +394,17 @@ class PolicyController(Controller):
 def make_policy_controller(path: str | Path, env: Any, **options: Any) -> PolicyController:
     """A :class:`PolicyController` for the policy folder ``path`` on ``env``.
 
+    The same as ``controllers.make("policy", path, env, **options)``.
+
     Parameters
     ----------
     path : str or Path
         The policy folder.
     env : gymnasium.Env
-        A ``PiezoBender-v0`` env (its preview must be the policy's).
+        A ``PiezoBender-v0`` env (its preview at least the policy's).
     **options
         Fields of :class:`PolicyController.Settings`; unknown ones raise ValueError.
     """
-    valid = set(PolicyController.Settings.__dataclass_fields__)
-    unknown = sorted(set(options) - valid)
-    if unknown:
-        raise ValueError(
-            f"unknown option(s) {unknown} for the policy controller; "
-            f"valid: {', '.join(sorted(valid))}"
-        )
-    task = ControlTask.from_env(env)
-    return PolicyController(path, task, PolicyController.Settings(**options))
+    from controllers.registry import make
+
+    return make("policy", path, env, **options)
