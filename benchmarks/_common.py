@@ -12,18 +12,9 @@ import gymnasium as gym
 import numpy as np
 import threadpoolctl
 
+from controllers.benchmark_report import cpu_name
+
 RESULTS = Path(__file__).parent / "results"
-
-
-def cpu_name() -> str:
-    """CPU model from /proc/cpuinfo, or platform.processor()."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def machine_line() -> str:

@@ -17,10 +17,21 @@ import numpy as np
 from controllers.benchmark import MONTE_CARLO, BenchmarkResult
 from controllers.references import REFERENCES
 
-__all__ = ["check_targets", "machine", "tracking_tables", "write_benchmark"]
+__all__ = ["check_targets", "cpu_name", "machine", "tracking_tables", "write_benchmark"]
 
 _PACKAGES = ("numpy", "scipy", "gymnasium", "control", "osqp", "casadi", "torch")
 _TIMING_KEYS = ("compute_median_us", "compute_p99_us", "compute_max_us")
+
+
+def cpu_name() -> str:
+    """CPU model from /proc/cpuinfo, or platform.processor()."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def machine() -> dict[str, Any]:
@@ -38,7 +49,7 @@ def machine() -> dict[str, Any]:
     return {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
+        "processor": cpu_name(),
         "cores": cores,
         "python": platform.python_version(),
         "packages": versions,
