@@ -128,15 +128,20 @@ def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]
     return cell
 
 
-def tracking_tables(result: BenchmarkResult) -> str:
+def tracking_tables(
+    result: BenchmarkResult, *, plants: tuple[str, ...] | None = None, max_errors: bool = True
+) -> str:
     """RMSE and max-error tables per plant (deterministic: bitwise equal for any ``jobs``).
 
     Several seeds of one trained recipe also get a row ``NAME (seeds)`` with mean +- std.
+    ``plants`` selects the plants (default all but the Monte Carlo draws); ``max_errors``
+    adds the nominal plant's max-error table.
     """
     index = _lookup(result)
     cfg = result.config
     parts = []
-    for plant in (p for p in cfg.plants if p != MONTE_CARLO):
+    chosen = cfg.plants if plants is None else plants
+    for plant in (p for p in chosen if p != MONTE_CARLO):
         controllers = [c for c in cfg.rows if any(k[:2] == (plant, c) for k in index)]
         refs = [r for r in cfg.references if any(k[0] == plant and k[2] == r for k in index)]
         if not controllers:
@@ -149,7 +154,7 @@ def tracking_tables(result: BenchmarkResult) -> str:
         title = "Nominal PL140" if plant == "nominal" else f"Plant: {plant}"
         parts.append(f"### {title}: RMSE (% of the full stroke)\n")
         parts.append(_table(controllers, refs, rmse, "controller") + "\n")
-        if plant == "nominal":
+        if plant == "nominal" and max_errors:
             parts.append(f"### {title}: max |error| (um)\n")
             parts.append(_table(controllers, refs, max_error, "controller") + "\n")
     return "\n".join(parts)

@@ -173,7 +173,12 @@ def run(args: argparse.Namespace) -> int:
     config = _config(args)
     _check_backend(args)
     from controllers.benchmark import run_benchmark, terminal_progress
-    from controllers.benchmark_report import check_targets, machine, write_benchmark
+    from controllers.benchmark_report import (
+        check_targets,
+        machine,
+        tracking_tables,
+        write_benchmark,
+    )
     from piezo_env import TaskConfig
 
     model_dir, timing = _model(args, out)
@@ -191,8 +196,7 @@ def run(args: argparse.Namespace) -> int:
         "timing": timing,
     }
     paths = write_benchmark(result, out, meta)
-    text = (out / "benchmark.md").read_text(encoding="utf-8")
-    print(text.split("## Effort")[0].split("## Tracking")[1].split("### Nominal PL140: max")[0])
+    print(tracking_tables(result, plants=("nominal",), max_errors=False))
     checks = check_targets(result)
     failed = [c for c in checks if not c["holds"]]
     print(f"targets: {len(checks) - len(failed)} hold, {len(failed)} do not")
