@@ -11,7 +11,7 @@ from controllers.references import REFERENCES
 
 __all__ = ["draw_figures"]
 
-_WINDOWS = {"sine-50Hz": (0.90, 0.96), "multisine": (0.60, 0.90), "steps": (0.38, 0.46)}
+_WINDOWS = {"sine-50Hz": (0.90, 0.96), "multisine": (0.60, 0.75), "steps": (0.38, 0.46)}
 """Time windows (s) shown per reference: a few periods, a readable stretch, one step."""
 
 
@@ -27,29 +27,47 @@ def draw_figures(result: BenchmarkResult, out: Path) -> list[Path]:
     ]
 
 
+def _shown_rows(result: BenchmarkResult, refs: list[str]) -> tuple[list[str], list[str]]:
+    """Rows worth a curve, and the rows left out: one seed per trained recipe, and no row whose
+    RMSE is within 1 % of a row already shown on every reference drawn (nmpc beside mpc)."""
+    from controllers.benchmark_report import seed_groups
+
+    rmse = {
+        (e["controller"], e["reference"]): e["rmse_percent"]
+        for e in result.episodes
+        if e["plant"] == "nominal"
+    }
+    rows = [c for c in result.config.rows if all(c in result.traces[r] for r in refs)]
+    later_seeds = {m for members in seed_groups(rows).values() for m in members[1:]}
+    shown: list[str] = []
+    for row in rows:
+        twin = any(
+            all(abs(rmse[(row, r)] / rmse[(s, r)] - 1.0) < 0.01 for r in refs) for s in shown
+        )
+        if row not in later_seeds and not twin:
+            shown.append(row)
+    return shown, [r for r in rows if r not in shown]
+
+
 def _tracking(result: BenchmarkResult, path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     refs = [r for r in _WINDOWS if r in result.traces]
-    fig, axes = plt.subplots(
-        2, max(len(refs), 1), figsize=(5.2 * max(len(refs), 1), 6.5), squeeze=False, sharex="col"
-    )
-    dt = DT
+    shown, omitted = _shown_rows(result, refs)
+    columns = max(len(refs), 1)
+    fig, axes = plt.subplots(2, columns, figsize=(5.2 * columns, 7), squeeze=False, sharex="col")
     for j, ref in enumerate(refs):
         traces = result.traces[ref]
         lo, hi = _WINDOWS[ref]
-        first = next(iter(traces.values()))
-        t = (np.arange(len(first["reference_um"])) + 1) * dt
+        reference = np.asarray(traces[shown[0]]["reference_um"])
+        t = (np.arange(reference.size) + 1) * DT
         window = (t >= lo) & (t <= hi)
         top, bottom = axes[0, j], axes[1, j]
-        top.plot(
-            t[window], np.asarray(first["reference_um"])[window], "k--", lw=1.5, label="reference"
-        )
-        for name, data in traces.items():
-            y = np.asarray(data["deflection_um"])
-            e = y - np.asarray(data["reference_um"])
-            top.plot(t[window], y[window], lw=1, label=name)
-            bottom.plot(t[window], e[window], lw=1, label=name)
+        for name in shown:
+            y = np.asarray(traces[name]["deflection_um"])
+            top.plot(t[window], y[window], lw=1.1, label=name)
+            bottom.plot(t[window], (y - reference)[window], lw=1.1)
+        top.plot(t[window], reference[window], "k--", lw=1.6, label="reference")
         top.set_title(ref)
         top.set_ylabel("deflection (um)")
         bottom.set_ylabel("error (um)")
@@ -57,9 +75,15 @@ def _tracking(result: BenchmarkResult, path: Path) -> Path:
         bottom.set_yscale("symlog", linthresh=2.0)
         bottom.grid(True, alpha=0.3)
         top.grid(True, alpha=0.3)
-    axes[0, 0].legend(fontsize=7, loc="best")
-    fig.suptitle("Nominal PL140: tracking (top) and error, symlog beyond 2 um (bottom)")
-    fig.tight_layout()
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
+    note = f" (not drawn, overlapping a drawn row or another seed: {', '.join(omitted)})"
+    fig.suptitle(
+        "Nominal PL140: tracking (top) and error, symlog beyond 2 um (bottom)"
+        + (note if omitted else ""),
+        fontsize=10,
+    )
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -74,7 +98,7 @@ def _summary(result: BenchmarkResult, path: Path) -> Path:
     }
     controllers = [c for c in cfg.rows if any(k[0] == c for k in nominal)]
     refs = [r for r in cfg.references if any(k[1] == r for k in nominal)]
-    fig, ax = plt.subplots(figsize=(11, 4.5))
+    fig, ax = plt.subplots(figsize=(11, 5.2))
     width = 0.8 / max(len(controllers), 1)
     x = np.arange(len(refs))
     for i, c in enumerate(controllers):
@@ -85,7 +109,7 @@ def _summary(result: BenchmarkResult, path: Path) -> Path:
     ax.set_ylabel("RMSE (% of full stroke)")
     ax.set_title("Nominal PL140: tracking RMSE per controller and reference (log scale)")
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=4)
+    ax.legend(fontsize=8, ncol=6, loc="upper center", bbox_to_anchor=(0.5, -0.2))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
