@@ -5,7 +5,7 @@ amplitude, 1 kHz sampling) through the shipped model's NLS (``docs/identify/mode
 sample by sample with the memory state carried, as a controller does. Old: the grid (65 points)
 plus Brent's method that ``NLS.solve_inverse`` used before; numpy: ``NLS.solve_inverse`` (one
 batched grid pass, then safeguarded Newton); compiled: the generated-C inverse the controllers
-use (:class:`controllers._compiled_inverse.CompiledInverse`: range ends, warm start, then
+use (:class:`controllers.native.compiled_inverse.CompiledInverse`: range ends, warm start, then
 Newton with the exact derivative, in one ctypes call). Each call is timed with
 ``time.perf_counter``; a
 CartPole-v1 step through ``gymnasium.make`` is measured in the same run, in alternating rounds,
@@ -26,7 +26,7 @@ import scipy.optimize
 import threadpoolctl
 from _common import header, markdown_table, single_env_step_times, write_result
 
-from controllers._compiled_inverse import CompiledInverse
+from controllers.native.compiled_inverse import CompiledInverse
 from identification.hammerstein import HammersteinModel
 
 MODEL = Path(__file__).resolve().parents[1] / "docs" / "identify" / "model"

@@ -18,10 +18,10 @@ Solvers
     ``sqp_iterations`` times (stop early once a step moves no voltage by more than
     ``step_tolerance``). Two iterations are the default because one loses accuracy at input
     reversals, where the hysteresis features kink. The Jacobian comes from
-    :class:`controllers._nmpc_horizon.StructuredHorizon` for the identified NLS (feature
+    :class:`controllers.native.nmpc_horizon.StructuredHorizon` for the identified NLS (feature
     recursion in generated C called through ctypes, network batched in numpy: ~40 us at
     N = 20, against 1.8-3.6 ms for casadi's Jacobian of the unrolled horizon; the module
-    :mod:`controllers._nmpc_horizon` lists every path measured) and from casadi's generic
+    :mod:`controllers.native.nmpc_horizon` lists every path measured) and from casadi's generic
     Jacobian for any other nonlinearity (the plant's hysteresis in the oracle). The QP is
     dense and small (N variables, identity constraint matrix): OSQP is set up once with a
     dense upper-triangular P pattern; each iteration updates ``Px`` and ``q`` and warm-starts,
@@ -48,9 +48,9 @@ import numpy as np
 import osqp
 import scipy.sparse
 
-from controllers._nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.base import Controller
 from controllers.mpc import MPCSettings, prediction_matrices
+from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.observer import DisturbanceObserver
 from controllers.prediction import IdentifiedNLS, PredictionModel
 from controllers.settings import USABLE_OSQP_STATUS, check_settings

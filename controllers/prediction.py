@@ -64,7 +64,7 @@ class IdentifiedNLS:
     """
 
     def __init__(self, nls: Any, u_range: tuple[float, float]) -> None:
-        from controllers._compiled_inverse import CompiledInverse
+        from controllers.native.compiled_inverse import CompiledInverse
 
         self.nls = nls
         self.u_range = (float(u_range[0]), float(u_range[1]))
@@ -83,7 +83,7 @@ class IdentifiedNLS:
     def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
         """Voltage reaching ``z_target`` (equivalent V) from ``state``, clipped to the range.
 
-        Generated C (:mod:`controllers._compiled_inverse`, ~14 us, to 1e-9 V); the numpy
+        Generated C (:mod:`controllers.native.compiled_inverse`, ~14 us, to 1e-9 V); the numpy
         ``self.nls.solve_inverse`` when no compiler works or the map is found non-monotone.
         """
         return self._inverse.solve(z_target, state)

@@ -9,7 +9,7 @@ import pytest
 from handmade import handmade_nls
 
 from controllers import PredictionModel
-from controllers._compiled_inverse import FALLBACK, OK, CompiledInverse, inverse_function
+from controllers.native.compiled_inverse import FALLBACK, OK, CompiledInverse, inverse_function
 from identification.features import play_operators
 from identification.hammerstein import HammersteinModel
 from identification.nls import NLS, fit_nls

@@ -10,7 +10,7 @@ import pytest
 
 import controllers
 from controllers import ControlTask, PredictionModel
-from controllers._nmpc_horizon import GenericHorizon, StructuredHorizon
+from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon
 from controllers.nmpc import NMPCSettings, NonlinearMPC
 
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")

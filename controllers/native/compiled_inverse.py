@@ -34,12 +34,13 @@ interior grid nodes, so a wiggle between nodes that no iterate touches can be fl
 and not here; then this path returns one exact root (status ok), which is the only root
 whenever the map is monotone. Not stopping within ``max_iter`` iterations also returns ``FALLBACK``.
 
-The function is generated as C, compiled once (cached on disk, see :mod:`controllers._codegen`)
-and called through ctypes on preallocated buffers by :class:`CompiledInverse`; without a
-working compiler :class:`CompiledInverse` runs the numpy inverse instead. Measured on the
-shipped model (``benchmarks/inverse_speed.py``, one thread): 14.8 us median, 18.8 us p99 per
-call including the Python wrapper, against 65 us for the numpy inverse; passes cost about
-1.5 us (z) and 2.9 us (z and dz/du) each, most of it the 96 tanh and the scalar products.
+The function is generated as C, compiled once (cached on disk, see
+:mod:`controllers.native.codegen`) and called through ctypes on preallocated buffers by
+:class:`CompiledInverse`; without a working compiler :class:`CompiledInverse` runs the numpy
+inverse instead. Measured on the shipped model (``benchmarks/inverse_speed.py``, one thread):
+14.8 us median, 18.8 us p99 per call including the Python wrapper, against 65 us for the numpy
+inverse; passes cost about 1.5 us (z) and 2.9 us (z and dz/du) each, most of it the 96 tanh and
+the scalar products.
 """
 
 from __future__ import annotations
@@ -50,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers._codegen import CompiledFunction, compile_function
+from controllers.native.codegen import CompiledFunction, compile_function
 from piezo_env.inverse import InverseResult
 
 __all__ = [

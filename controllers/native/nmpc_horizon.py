@@ -38,7 +38,7 @@ generated C called through ctypes (about 7 us), network in numpy.
 
 The compiled library is cached on disk (``$PIEZO_CACHE`` or ``~/.cache/piezo-testbed``), keyed
 by the hash of the generated source, so compilation (a few seconds) happens once per model and
-horizon (:mod:`controllers._codegen`, shared with the compiled NLS inverse).
+horizon (:mod:`controllers.native.codegen`, shared with the compiled NLS inverse).
 """
 
 from __future__ import annotations
@@ -47,8 +47,8 @@ from typing import Any
 
 import numpy as np
 
-from controllers._codegen import CompiledFunction, as_numpy
-from controllers._codegen import compile_function as _compile
+from controllers.native.codegen import CompiledFunction, as_numpy
+from controllers.native.codegen import compile_function as _compile
 
 __all__ = [
     "CompiledFunction",
@@ -74,7 +74,7 @@ def horizon_function(nonlinearity: Any, horizon: int) -> Any:
 
 
 def compile_function(function: Any) -> tuple[CompiledFunction | None, str]:
-    """:func:`controllers._codegen.compile_function` (``-O1``, cache folder ``nmpc``).
+    """:func:`controllers.native.codegen.compile_function` (``-O1``, cache folder ``nmpc``).
 
     Returns
     -------
