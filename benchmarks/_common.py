@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 import threadpoolctl
 
-from controllers.benchmark_report import cpu_name
+from benchmarks.machine import cpu_name
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -37,7 +37,7 @@ def header(title: str, script: str) -> list[str]:
         "",
         f"Date: {datetime.date.today().isoformat()}  ",
         f"Machine: {machine_line()}  ",
-        f"Produced by `python benchmarks/{script}`.",
+        f"Produced by `python -m benchmarks.{script.removesuffix('.py')}`.",
         "",
     ]
 

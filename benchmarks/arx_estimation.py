@@ -7,7 +7,7 @@ sampled at 1 kHz, PRBS input), prints a table of the relative parameter error
 recursive estimator (batch ``update_many`` and one sample at a time through ``update``). Writes the
 table to ``benchmarks/results/arx_estimation.md``.
 
-Run: ``python benchmarks/arx_estimation.py`` (about a minute on 2 cores).
+Run: ``python -m benchmarks.arx_estimation`` (about a minute on 2 cores).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 import threadpoolctl
-from _common import header, markdown_table, write_result
 
+from benchmarks._common import header, markdown_table, write_result
 from identification.arx import ARXModel
 from identification.bayes_uniform import BayesUniformEstimator
 from identification.estimation import METHODS, fit_arx

@@ -8,7 +8,7 @@ CartPole-v1 step through ``gymnasium.make``, the reference the ratios are taken 
 (absolute times on shared machines drift; ratios travel). IPOPT (``nmpc-ipopt``) runs a shorter
 episode. Writes ``benchmarks/results/controller_latency.md``.
 
-Run: ``python benchmarks/controller_latency.py`` (a few minutes).
+Run: ``python -m benchmarks.controller_latency`` (a few minutes).
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import time
 
 import gymnasium as gym
 import numpy as np
-from _common import header, markdown_table, single_env_step_times, write_result
 from threadpoolctl import threadpool_limits
 
 import controllers
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from benchmarks._common import header, markdown_table, single_env_step_times, write_result
 
 MODEL_DIR = "docs/identify/model"
 STEPS = 2000

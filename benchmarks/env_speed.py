@@ -6,7 +6,7 @@ included, beside CartPole-v1 made the same way. Vector env: native vector env-st
 N = 1, 64, 1024, 4096 beside CartPole-v1's native vector env. Ratios > 1 mean PiezoBender is
 faster. Writes ``benchmarks/results/env_speed.md``.
 
-Run: ``python benchmarks/env_speed.py`` (about a minute).
+Run: ``python -m benchmarks.env_speed`` (about a minute).
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import time
 
 import gymnasium as gym
 import numpy as np
-from _common import header, markdown_table, single_env_step_times, write_result
 
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from benchmarks._common import header, markdown_table, single_env_step_times, write_result
 
 SINGLE_STEPS = 60_000
 VECTOR_BATCHES = 2_001  # one PiezoBender episode and its autoreset

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.benchmark import DT, MONTE_CARLO, BenchmarkResult
-from controllers.references import REFERENCES
+from benchmarks.references import REFERENCES
+from benchmarks.rows import seed_groups
+from benchmarks.runner import DT, MONTE_CARLO, BenchmarkResult
 
 __all__ = ["draw_figures"]
 
@@ -30,8 +31,6 @@ def draw_figures(result: BenchmarkResult, out: Path) -> list[Path]:
 def _shown_rows(result: BenchmarkResult, refs: list[str]) -> tuple[list[str], list[str]]:
     """Rows worth a curve, and the rows left out: one seed per trained recipe, and no row whose
     RMSE is within 1 % of a row already shown on every reference drawn (nmpc beside mpc)."""
-    from controllers.benchmark_report import seed_groups
-
     rmse = {
         (e["controller"], e["reference"]): e["rmse_percent"]
         for e in result.episodes

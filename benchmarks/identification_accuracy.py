@@ -16,7 +16,7 @@
    (``features="auto"``) and scores them on held-out RAND (hold 10).
 
 Writes ``benchmarks/results/identification_accuracy.md``. Run:
-``python benchmarks/identification_accuracy.py`` (about three minutes on two cores).
+``python -m benchmarks.identification_accuracy`` (about three minutes on two cores).
 """
 
 from __future__ import annotations
@@ -27,10 +27,10 @@ from dataclasses import replace
 
 import gymnasium as gym
 import numpy as np
-from _common import header, markdown_table, write_result
-from _narx import NARXNetwork
 
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from benchmarks._common import header, markdown_table, write_result
+from benchmarks._narx import NARXNetwork
 from identification.features import FEATURE_SETS
 from identification.metrics import fit_metrics
 from identification.pipeline import IdentificationConfig, collect, identify, write_outputs

@@ -12,7 +12,7 @@ CartPole-v1 step through ``gymnasium.make`` is measured in the same run, in alte
 as the reference. BLAS is limited to one thread (threadpoolctl) for the whole run. Writes
 ``benchmarks/results/inverse_speed.md``.
 
-Run: ``python benchmarks/inverse_speed.py`` (about ten seconds; the first run also compiles
+Run: ``python -m benchmarks.inverse_speed`` (about ten seconds; the first run also compiles
 the inverse, a few seconds).
 """
 
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import scipy.optimize
 import threadpoolctl
-from _common import header, markdown_table, single_env_step_times, write_result
 
+from benchmarks._common import header, markdown_table, single_env_step_times, write_result
 from controllers.native.compiled_inverse import CompiledInverse
 from identification.hammerstein import HammersteinModel
 

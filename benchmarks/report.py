@@ -1,60 +1,22 @@
-"""Tables, JSON and figures of a :class:`controllers.benchmark.BenchmarkResult`."""
+"""Tables, JSON and figures of a :class:`benchmarks.runner.BenchmarkResult`."""
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
-import os
-import platform
-import re
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controllers.benchmark import MONTE_CARLO, BenchmarkResult
-from controllers.references import REFERENCES
+from benchmarks.figures import draw_figures
+from benchmarks.references import REFERENCES
+from benchmarks.rows import seed_groups
+from benchmarks.runner import MONTE_CARLO, BenchmarkResult
 
-__all__ = ["check_targets", "cpu_name", "machine", "tracking_tables", "write_benchmark"]
+__all__ = ["check_targets", "tracking_tables", "write_benchmark"]
 
-_PACKAGES = ("numpy", "scipy", "gymnasium", "control", "osqp", "casadi", "torch")
 _TIMING_KEYS = ("compute_median_us", "compute_p99_us", "compute_max_us")
-
-
-def cpu_name() -> str:
-    """CPU model from /proc/cpuinfo, or platform.processor()."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine() -> dict[str, Any]:
-    """Where and with what the benchmark ran."""
-    versions = {}
-    for name in _PACKAGES:
-        try:
-            versions[name] = version(name)
-        except PackageNotFoundError:
-            versions[name] = None
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover
-        cores = os.cpu_count()
-    return {
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "platform": platform.platform(),
-        "processor": cpu_name(),
-        "cores": cores,
-        "python": platform.python_version(),
-        "packages": versions,
-        "blas_threads_in_loop": 1,
-    }
 
 
 def _lookup(result: BenchmarkResult) -> dict[tuple[str, str, str], dict[str, Any]]:
@@ -97,16 +59,6 @@ def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
     for row in rows:
         lines.append(f"| {row} | " + " | ".join(cell(row, c) for c in columns) + " |")
     return "\n".join(lines)
-
-
-def seed_groups(labels: list[str]) -> dict[str, list[str]]:
-    """Rows that are seeds of one recipe (``ppo-seed0``, ``ppo-seed1`` ...): name -> labels."""
-    groups: dict[str, list[str]] = {}
-    for label in labels:
-        match = re.fullmatch(r"(.+)-seed\d+", label)
-        if match:
-            groups.setdefault(match.group(1), []).append(label)
-    return {name: members for name, members in groups.items() if len(members) > 1}
 
 
 def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]):
@@ -338,7 +290,5 @@ def write_benchmark(
     path.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     paths = [md, path]
     if figures:
-        from controllers.benchmark_figures import draw_figures
-
         paths += draw_figures(result, out)
     return paths

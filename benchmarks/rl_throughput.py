@@ -4,17 +4,17 @@ Three ways to give PPO N = 16 PiezoBender-v0 envs in the training observation
 (:mod:`piezo_env.wrappers`), measured in the same process, alternating in rounds:
 
 - **native**: the natively batched vector env + ``TrackingObservationVector``, through
-  :class:`controllers.rl.SB3VectorEnv` (the adapter ``piezo train-rl`` uses);
+  :class:`piezo_rl.ppo.SB3VectorEnv` (the adapter ``piezo train-rl`` uses);
 - **sync**: Gymnasium's ``SyncVectorEnv`` of N ``gym.make`` envs each wrapped in
   ``TrackingObservation``, through the same adapter;
 - **dummy**: SB3's usual wrapping, ``DummyVecEnv`` of N ``Monitor``-wrapped single envs.
 
-PPO runs the recipe's hyperparameters (:class:`controllers.rl.PPOConfig`, one torch thread)
+PPO runs the recipe's hyperparameters (:class:`piezo_rl.ppo.PPOConfig`, one torch thread)
 for a fixed number of steps; the env-steps/s include the PPO updates. The raw rates (random
 actions in [-1, 1], no PPO, autoreset included) show what the env side alone costs. Ratios > 1
 mean the native vector env is faster. Writes ``benchmarks/results/rl_throughput.md``.
 
-Run: ``python benchmarks/rl_throughput.py`` (about two minutes).
+Run: ``python -m benchmarks.rl_throughput`` (about two minutes).
 """
 
 from __future__ import annotations
@@ -24,11 +24,12 @@ import time
 import gymnasium as gym
 import numpy as np
 import torch
-from _common import header, markdown_table, write_result
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
-from controllers.rl import (
+from benchmarks._common import header, markdown_table, write_result
+from piezo_env.wrappers import TrackingObservation
+from piezo_rl.ppo import (
     ENV_ID,
     EPISODE_STEPS,
     PPOConfig,
@@ -36,7 +37,6 @@ from controllers.rl import (
     make_ppo,
     make_training_env,
 )
-from piezo_env.wrappers import TrackingObservation
 
 NUM_ENVS = 16
 PREVIEW = 10
@@ -116,7 +116,7 @@ def main() -> None:
     lines += [
         f"N = {NUM_ENVS} PiezoBender-v0 envs (preview {PREVIEW}, 2000-step episodes, random "
         "references, 1 um noise) in the training observation of piezo_env.wrappers. PPO: the "
-        f"recipe of controllers.rl.PPOConfig, {PPO_STEPS:,} steps per run, one torch thread; "
+        f"recipe of piezo_rl.ppo.PPOConfig, {PPO_STEPS:,} steps per run, one torch thread; "
         "raw: random actions, no PPO. Medians over "
         f"{ROUNDS} alternating rounds; ratios are medians of the per-round ratios.",
         "",

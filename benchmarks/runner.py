@@ -3,7 +3,7 @@
 :func:`run_benchmark` runs each selected controller on each reference of the nominal PL140 and
 on the robustness plants (the same identified model and settings on plants it was not
 identified on), and returns every episode's metrics. ``piezo benchmark`` calls it and writes
-the tables and figures (:mod:`controllers.benchmark_report`).
+the tables and figures (:mod:`benchmarks.report`).
 
 Fairness. Every controller sees the same observation: the measured deflection and a preview
 of the reference (``preview`` samples, 20 by default), on the same noise sequence (the same
@@ -19,9 +19,6 @@ same for any ``jobs``; only the measured compute times differ from run to run.
 
 from __future__ import annotations
 
-import dataclasses
-import os
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -30,12 +27,21 @@ from typing import Any
 
 import numpy as np
 
-from controllers.backends import BACKENDS, run_tasks
-from controllers.references import REFERENCES, make_reference
+from benchmarks.plants import (
+    DT,
+    MONTE_CARLO,
+    MONTE_CARLO_REFERENCES,
+    NOMINAL_STROKE_UM,
+    PLANTS,
+)
+from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
+from piezo_parallel.backends import BACKENDS, run_tasks
 
 __all__ = [
     "DEFAULT_CONTROLLERS",
+    "DT",
+    "MONTE_CARLO",
     "PLANTS",
     "BenchmarkConfig",
     "BenchmarkResult",
@@ -54,51 +60,6 @@ ROBUSTNESS_REFERENCES = ("sine-10Hz", "sine-50Hz", "sine-100Hz", "multisine", "s
 TRACE_REFERENCES = ("sine-50Hz", "multisine", "steps")
 """References whose nominal time series are kept for the tracking figure."""
 
-NOMINAL_STROKE_UM = 1000.0
-"""One-sided stroke of the nominal PL140 (um): every plant's percentages are of 2 x this."""
-
-DT = 1e-3
-"""Sample time of the benchmark's env (s), the default of PiezoBender-v0."""
-
-
-def _tolerance_sheet(scale: float) -> Any:
-    """PL140 whose stiffness and resonance are off by ``scale`` (blocking force as rated)."""
-    from piezo_env import get_datasheet
-
-    sheet = get_datasheet("PL140")
-    return dataclasses.replace(
-        sheet,
-        name=f"{sheet.name} (stiffness and resonance x{scale:g})",
-        free_deflection=sheet.free_deflection / scale,
-        resonance=sheet.resonance * scale,
-    )
-
-
-PLANTS: dict[str, Callable[[], dict[str, Any]]] = {
-    "nominal": dict,
-    "damping-0.01": lambda: {"damping_ratio": 0.01},
-    "damping-0.04": lambda: {"damping_ratio": 0.04},
-    "prandtl-ishlinskii": lambda: {"hysteresis": "prandtl-ishlinskii"},
-    "creep": lambda: {"creep": True},
-    "noise-3um": lambda: {"noise_bound": 3.0},
-    "stiffness+20%": lambda: {"bender": _tolerance_sheet(1.2)},
-    "stiffness-20%": lambda: {"bender": _tolerance_sheet(0.8)},
-    "random-plants": lambda: {"randomize": True},
-}
-"""Plant name -> env keyword arguments (changes from the nominal PL140 the model came from).
-
-``random-plants`` is the Monte Carlo table: each of ``BenchmarkConfig.draws`` episodes per
-reference draws a new plant from the datasheet tolerances (``piezo_env.DomainRandomization``:
-stiffness, blocking force and resonance +-20 %, damping 0.01-0.04, hysteresis +-30 %) with
-its own seed; the report gives the distribution of each controller's RMSE over the draws.
-"""
-
-MONTE_CARLO = "random-plants"
-
-MONTE_CARLO_REFERENCES = ("sine-10Hz", "sine-50Hz", "multisine")
-"""The references run on the random plants (when selected)."""
-
-
 @dataclass(frozen=True)
 class BenchmarkConfig:
     """What to run.
@@ -108,7 +69,7 @@ class BenchmarkConfig:
     controllers : tuple of str
         Registry names (:data:`controllers.CONTROLLERS`), optionally suffixed ``-oracle``.
     references : tuple of str
-        Names in :data:`controllers.references.REFERENCES`.
+        Names in :data:`benchmarks.references.REFERENCES`.
     plants : tuple of str
         Names in :data:`PLANTS`; ``"nominal"`` runs every reference, the others
         :data:`ROBUSTNESS_REFERENCES` with :data:`ROBUSTNESS_CONTROLLERS`.
@@ -122,7 +83,7 @@ class BenchmarkConfig:
     jobs : int
         Worker processes (1: run in this process).
     backend : str
-        Where the workers run (:data:`controllers.backends.BACKENDS`); results do not depend
+        Where the workers run (:data:`piezo_parallel.backends.BACKENDS`); results do not depend
         on it.
     controller_options : dict
         Per controller name, options passed to :func:`controllers.make`.
@@ -329,7 +290,7 @@ def run_benchmark(
     -----
     With ``jobs > 1`` the groups run in spawned worker processes (no forked BLAS or torch
     thread state), so a script calling this must do so under ``if __name__ == "__main__":``.
-    See :mod:`controllers.backends`.
+    See :mod:`piezo_parallel.backends`.
     """
     groups = config.groups()
     start = time.perf_counter()
@@ -355,28 +316,3 @@ def run_benchmark(
             traces.setdefault(ref, {})[controller] = data
     timing = {"episodes_s": round(time.perf_counter() - start, 1)}
     return BenchmarkResult(config, episodes, described, traces, timing)
-
-
-def default_jobs() -> int:
-    """All cores this process may use."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover (not Linux)
-        return os.cpu_count() or 1
-
-
-def terminal_progress(quiet: bool) -> Callable[[int, int, str], None] | None:
-    """A one-line progress bar on a terminal; None under CI, with ``quiet`` or when piped."""
-    if quiet or os.environ.get("CI") or not sys.stderr.isatty():
-        return None
-
-    def show(done: int, total: int, label: str) -> None:
-        width = 30
-        filled = round(width * done / total)
-        bar = "#" * filled + "." * (width - filled)
-        sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}")
-        if done == total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-
-    return show

@@ -4,19 +4,18 @@ Identifies the default PL140 (seed 0), runs every default controller on every re
 robustness plant, writes the full report and figures to ``docs/benchmark/`` and the tables, with
 the machine and the date, to ``benchmarks/results/tracking.md``.
 
-Run: ``python benchmarks/tracking.py`` (a few minutes on 2 cores).
+Run: ``python -m benchmarks.tracking`` (a few minutes on 2 cores).
 """
 
 from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
-from _common import RESULTS
-
-from piezo_cli.main import main as piezo
+from benchmarks._common import RESULTS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def main() -> int:
     os.chdir(ROOT)  # relative paths in the committed report; finds docs/policies
     out = Path("docs") / "benchmark"
-    status = piezo(["benchmark", "--out", str(out), "--quiet", *sys.argv[1:]])
+    command = [sys.executable, "-m", "piezo_cli.main", "benchmark", "--out", str(out), "--quiet"]
+    status = subprocess.run([*command, *sys.argv[1:]], check=False).returncode
     if status == 0:
         RESULTS.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(out / "benchmark.md", RESULTS / "tracking.md")

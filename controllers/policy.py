@@ -179,7 +179,7 @@ def load_policy(folder: str | Path) -> LoadedPolicy:
     if not json_path.is_file():
         raise ValueError(
             f"{json_path}: missing; a policy folder holds {POLICY_FILE} and "
-            f"{WEIGHTS_FILE} (written by controllers.rl.train_ppo)"
+            f"{WEIGHTS_FILE}, as `piezo train-rl --out FOLDER` writes them"
         )
     try:
         document = json.loads(json_path.read_text(encoding="utf-8"))

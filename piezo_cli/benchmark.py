@@ -1,4 +1,4 @@
-"""``piezo benchmark``: the command line of :mod:`controllers.benchmark` (MPC against PID)."""
+"""``piezo benchmark``: the command line of :mod:`benchmarks.runner` (MPC against PID)."""
 
 from __future__ import annotations
 
@@ -19,8 +19,9 @@ def _names(text: str) -> tuple[str, ...]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo benchmark``."""
-    from controllers.benchmark import DEFAULT_CONTROLLERS, PLANTS, default_jobs
-    from controllers.references import REFERENCES
+    from benchmarks.references import REFERENCES
+    from benchmarks.runner import DEFAULT_CONTROLLERS, PLANTS
+    from piezo_parallel.backends import default_jobs
 
     parser.add_argument("--out", default="out/benchmark", metavar="DIR", help="output folder")
     parser.add_argument(
@@ -83,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _config(args: argparse.Namespace):
-    from controllers.benchmark import BenchmarkConfig
+    from benchmarks.runner import BenchmarkConfig
 
     try:
         return BenchmarkConfig(
@@ -120,10 +121,10 @@ def _policies(text: str) -> tuple[str, ...]:
 def _check_backend(args: argparse.Namespace) -> None:
     """Refuse a backend that cannot run here; with ``--address``, connect to the cluster now.
 
-    The connection stays open for the run (:func:`controllers.backends.run_tasks` uses an open
+    The connection stays open for the run (:func:`piezo_parallel.backends.run_tasks` uses an open
     one), so an unreachable cluster is refused before the identification or the benchmark.
     """
-    from controllers.backends import check_backend, connect_ray
+    from piezo_parallel.backends import check_backend, connect_ray
 
     try:
         check_backend(args.backend)
@@ -172,13 +173,10 @@ def run(args: argparse.Namespace) -> int:
     out = prepare_output_dir(args.out)
     config = _config(args)
     _check_backend(args)
-    from controllers.benchmark import run_benchmark, terminal_progress
-    from controllers.benchmark_report import (
-        check_targets,
-        machine,
-        tracking_tables,
-        write_benchmark,
-    )
+    from benchmarks.machine import machine
+    from benchmarks.report import check_targets, tracking_tables, write_benchmark
+    from benchmarks.runner import run_benchmark
+    from piezo_cli.output import terminal_progress
     from piezo_env import TaskConfig
 
     model_dir, timing = _model(args, out)

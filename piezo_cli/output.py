@@ -1,15 +1,18 @@
-"""The output folder of a subcommand, created and proven writable before any work starts."""
+"""What a subcommand shows and writes: its output folder, created and proven writable before any
+work starts, and the progress bar on a terminal."""
 
 from __future__ import annotations
 
 import errno
 import os
+import sys
+from collections.abc import Callable
 from pathlib import Path
 from tempfile import mkstemp
 
 from piezo_cli.command import CommandLineError
 
-__all__ = ["prepare_output_dir"]
+__all__ = ["prepare_output_dir", "terminal_progress"]
 
 _REASONS = {
     errno.EACCES: "permission denied",
@@ -88,3 +91,20 @@ def _file_in_the_way(folder: Path) -> Path | None:
         if part.exists() and not part.is_dir():
             return part
     return None
+
+
+def terminal_progress(quiet: bool) -> Callable[[int, int, str], None] | None:
+    """A one-line progress bar on a terminal; None under CI, with ``quiet`` or when piped."""
+    if quiet or os.environ.get("CI") or not sys.stderr.isatty():
+        return None
+
+    def show(done: int, total: int, label: str) -> None:
+        width = 30
+        filled = round(width * done / total)
+        bar = "#" * filled + "." * (width - filled)
+        sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}")
+        if done == total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+    return show

@@ -1,4 +1,4 @@
-"""``piezo train-rl``: the command line of :func:`controllers.rl.train_ppo` (extra ``rl``)."""
+"""``piezo train-rl``: the command line of :func:`piezo_rl.ppo.train_ppo` (extra ``rl``)."""
 
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     if importlib.util.find_spec("stable_baselines3") is None:
         raise CommandLineError(MISSING_EXTRA)
     out = prepare_output_dir(args.out)
-    from controllers.rl import train_ppo
+    from piezo_rl.ppo import train_ppo
 
     start = time.perf_counter()
     if args.seeds is not None:
@@ -104,8 +104,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_seeds(args: argparse.Namespace, out, start: float) -> int:
-    from controllers.backends import check_backend
-    from controllers.rl import train_seeds
+    from piezo_parallel.backends import check_backend
+    from piezo_rl.ppo import train_seeds
 
     try:
         check_backend(args.backend)

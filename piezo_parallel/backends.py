@@ -36,7 +36,14 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from typing import Any
 
-__all__ = ["BACKENDS", "RAY_INSTALL_HINT", "check_backend", "connect_ray", "run_tasks"]
+__all__ = [
+    "BACKENDS",
+    "RAY_INSTALL_HINT",
+    "check_backend",
+    "connect_ray",
+    "default_jobs",
+    "run_tasks",
+]
 
 BACKENDS = ("local", "ray")
 """Names accepted by :func:`run_tasks`."""
@@ -262,3 +269,11 @@ def _probe(address: str, timeout_s: float = 5.0) -> None:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
     except OSError as error:
         raise ConnectionError(f"nothing answers at {host}:{port} ({error})") from None
+
+
+def default_jobs() -> int:
+    """All cores this process may use."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover (not Linux)
+        return os.cpu_count() or 1

@@ -397,7 +397,7 @@ def train_seeds(
     progress: Callable[[int, int, str], None] | None = None,
     **train_kwargs: Any,
 ) -> list[Path]:
-    """Train one policy per seed, each seed a task of :func:`controllers.backends.run_tasks`.
+    """Train one policy per seed, each seed a task of :func:`piezo_parallel.backends.run_tasks`.
 
     The seeds are independent runs, so they spread over worker processes or a Ray cluster the
     way the benchmark's episodes do (one torch thread each, ``PPOConfig.torch_threads``), and
@@ -414,7 +414,7 @@ def train_seeds(
     out_root : str or Path
         Parent folder; run ``s`` writes ``out_root/ppo-seed{s}``.
     jobs, backend, address
-        As for :func:`controllers.backends.run_tasks` (``"local"`` or ``"ray"``).
+        As for :func:`piezo_parallel.backends.run_tasks` (``"local"`` or ``"ray"``).
     progress : callable, optional
         ``progress(done, total, label)`` after each run.
     **train_kwargs
@@ -425,7 +425,7 @@ def train_seeds(
     list of pathlib.Path
         The policy folders, in the order of ``seeds``.
     """
-    from controllers.backends import run_tasks
+    from piezo_parallel.backends import run_tasks
 
     seeds = [int(s) for s in seeds]
     if len(set(seeds)) != len(seeds) or not seeds:

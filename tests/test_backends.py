@@ -13,10 +13,10 @@ from collections.abc import Iterator
 
 import pytest
 
-from controllers.backends import BACKENDS, RAY_INSTALL_HINT, check_backend, run_tasks
-from controllers.benchmark import BenchmarkConfig, run_benchmark
-from controllers.benchmark_report import deterministic_json, tracking_tables
+from benchmarks.report import deterministic_json, tracking_tables
+from benchmarks.runner import BenchmarkConfig, run_benchmark
 from piezo_cli.main import main
+from piezo_parallel.backends import BACKENDS, RAY_INSTALL_HINT, check_backend, run_tasks
 
 MODEL_DIR = "docs/identify/model"
 
@@ -59,7 +59,7 @@ def test_backends_list_ray_and_refuse_unknown_names():
 
 
 def test_missing_ray_is_one_clear_error(monkeypatch):
-    monkeypatch.setattr("controllers.backends._ray_installed", lambda: False)
+    monkeypatch.setattr("piezo_parallel.backends._ray_installed", lambda: False)
     with pytest.raises(RuntimeError, match=r'pip install "piezo-testbed\[ray\]"'):
         run_tasks(operator.neg, [(1,)], backend="ray")
 
@@ -76,7 +76,7 @@ def test_missing_ray_is_one_clear_error(monkeypatch):
 def test_cli_refuses_bad_backends_in_one_line_before_any_work(
     argv, message, monkeypatch, tmp_path, capsys
 ):
-    monkeypatch.setattr("controllers.benchmark.run_benchmark", _refuse)
+    monkeypatch.setattr("benchmarks.runner.run_benchmark", _refuse)
     monkeypatch.setattr("identification.pipeline.identify", _refuse)
     assert main(["benchmark", *argv, "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
@@ -85,8 +85,8 @@ def test_cli_refuses_bad_backends_in_one_line_before_any_work(
 
 
 def test_cli_without_ray_says_how_to_install_it(monkeypatch, tmp_path, capsys):
-    monkeypatch.setattr("controllers.backends._ray_installed", lambda: False)
-    monkeypatch.setattr("controllers.benchmark.run_benchmark", _refuse)
+    monkeypatch.setattr("piezo_parallel.backends._ray_installed", lambda: False)
+    monkeypatch.setattr("benchmarks.runner.run_benchmark", _refuse)
     monkeypatch.setattr("identification.pipeline.identify", _refuse)
     assert main(["benchmark", "--backend", "ray", "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()

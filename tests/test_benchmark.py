@@ -8,15 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from controllers.benchmark import BenchmarkConfig, run_benchmark
-from controllers.benchmark_report import (
-    deterministic_json,
-    machine,
-    tracking_tables,
-    write_benchmark,
-)
+from benchmarks.machine import machine
+from benchmarks.references import REFERENCES, make_reference
+from benchmarks.report import deterministic_json, tracking_tables, write_benchmark
+from benchmarks.runner import BenchmarkConfig, run_benchmark
 from controllers.metrics import tracking_metrics
-from controllers.references import REFERENCES, make_reference
 from piezo_cli.main import main
 
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
@@ -112,7 +108,7 @@ def no_work(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("work started before the arguments were checked")
 
-    monkeypatch.setattr("controllers.benchmark.run_benchmark", refuse)
+    monkeypatch.setattr("benchmarks.runner.run_benchmark", refuse)
     monkeypatch.setattr("identification.pipeline.identify", refuse)
 
 
@@ -138,7 +134,7 @@ def test_cli_refuses_bad_calls_in_one_line_before_any_work(
 
 
 def test_monte_carlo_plants_differ_per_draw_and_leave_oracles_out():
-    from controllers.benchmark_report import monte_carlo_table
+    from benchmarks.report import monte_carlo_table
 
     config = BenchmarkConfig(
         controllers=("mpc", "mpc-oracle"),

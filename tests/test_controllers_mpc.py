@@ -204,7 +204,7 @@ def test_bad_observations_and_options_are_refused(env):
 )
 def test_a_reused_controller_equals_a_fresh_one(env, name, model):
     """Nothing carries over episodes: solver state included (steps make OSQP work)."""
-    from controllers.references import make_reference
+    from benchmarks.references import make_reference
 
     steps = make_reference("steps", 321, dt=1e-3, seed=0)
     random_steps = make_reference("random-steps", 321, dt=1e-3, seed=0)

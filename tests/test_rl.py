@@ -17,14 +17,14 @@ from controllers.policy import (
     make_policy_controller,
     save_policy,
 )
-from controllers.rl import (
+from piezo_env.wrappers import ObservationConfig, TrackingObservation
+from piezo_rl.ppo import (
     PPOConfig,
     SB3VectorEnv,
     actor_layers,
     make_training_env,
     train_ppo,
 )
-from piezo_env.wrappers import ObservationConfig, TrackingObservation
 
 ENV_ID = "piezo_env:PiezoBender-v0"
 TINY = PPOConfig(n_steps=32, batch_size=64, n_epochs=2, net_arch=(16, 16))
@@ -235,7 +235,7 @@ def test_a_longer_preview_is_cut_to_the_policys_own(trained):
 
 def test_seeds_trained_in_worker_processes_equal_train_ppo(trained, tmp_path):
     """Each seed a task of the benchmark's backends: the same policy as a run on its own."""
-    from controllers.rl import train_seeds
+    from piezo_rl.ppo import train_seeds
 
     folders = train_seeds(
         [0, 1],

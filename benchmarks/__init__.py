@@ -1,0 +1,18 @@
+"""The closed-loop benchmark harness and the speed scripts.
+
+The harness (``piezo benchmark``) owns episodes' set-up, references, plants, metrics tables,
+reports and figures; it knows a controller only through its protocol (``reset``, ``act``,
+optional ``stats`` and ``describe``):
+
+- :mod:`benchmarks.references`: the named reference signals every controller tracks.
+- :mod:`benchmarks.plants`: the nominal and robustness plants (env keyword arguments).
+- :mod:`benchmarks.runner`: :class:`~benchmarks.runner.BenchmarkConfig` and
+  :func:`~benchmarks.runner.run_benchmark` (episode groups on the local pool or Ray).
+- :mod:`benchmarks.report`: tables, JSON and the Markdown report.
+- :mod:`benchmarks.figures`: the figures of a run.
+
+The speed and accuracy scripts run as modules from the project folder, each printing a table
+and writing it with the machine and the date to ``benchmarks/results/``:
+``python -m benchmarks.env_speed`` (likewise ``controller_latency``, ``inverse_speed``,
+``arx_estimation``, ``identification_accuracy``, ``rl_throughput``, ``tracking``).
+"""

@@ -1,0 +1,24 @@
+"""Where independent tasks run: this process, a local pool of spawned workers, or Ray.
+
+One home for distributed execution, used by the benchmark harness (episode groups) and by RL
+training (one seed per task); it imports nothing else of the project. See
+:mod:`piezo_parallel.backends`.
+"""
+
+from piezo_parallel.backends import (
+    BACKENDS,
+    RAY_INSTALL_HINT,
+    check_backend,
+    connect_ray,
+    default_jobs,
+    run_tasks,
+)
+
+__all__ = [
+    "BACKENDS",
+    "RAY_INSTALL_HINT",
+    "check_backend",
+    "connect_ray",
+    "default_jobs",
+    "run_tasks",
+]
