@@ -10,12 +10,10 @@ through the notch ``N(z)`` (identity without one) and is clipped to the drive ra
 integrator is protected by back-calculation (``I += g (u_sat - u)``), so it stays bounded
 under saturation.
 
-**Tuning rule** (MIGO-style, Astrom & Hagglund 2006, ch. 7): maximise the integral gain ki
-(= the best rejection of low-frequency disturbances and model error) over (kp, ki, kd) subject
-to the maximum sensitivity ``Ms = max_w |1 / (1 + L(e^jw dt))| <= Ms_max`` and a stable closed
-loop, with ``L = C N P`` evaluated on a frequency grid up to the Nyquist frequency and ``P`` the
-prediction model's linear part (z -> um; the identified nonlinearity has unit small-signal gain,
-so z is volts for small signals). The search is scipy's SLSQP from several starts.
+**Tuning** (:mod:`controllers.pid_tuning`): maximise the integral gain ki subject to the
+maximum sensitivity ``Ms <= Ms_max`` and a stable closed loop on the prediction model's linear
+part (z -> um; the identified nonlinearity has unit small-signal gain, so z is volts for small
+signals), solved in closed form per (kp, kd) so that the gains do not depend on rounding.
 
 **Notch**: the model's lightly damped resonance is the complex pole pair of ``model.a`` with the
 smallest damping ratio. The notch puts its zeros on those poles and its poles at the same
@@ -45,278 +43,22 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-import scipy.optimize
 
 from controllers.base import Controller
+from controllers.pid_tuning import (
+    PIDGains,
+    TuningError,
+    closed_loop_report,
+    loop_transfer,
+    notch_filter,
+    resonance,
+    tune_pid,
+)
 from controllers.prediction import PredictionModel
 from controllers.task import ControlTask
+from piezo_env.checks import require_number
 
-__all__ = [
-    "PIDController",
-    "PIDGains",
-    "closed_loop_report",
-    "notch_filter",
-    "pid_transfer",
-    "resonance",
-    "tune_pid",
-]
-
-
-@dataclass(frozen=True)
-class PIDGains:
-    """Parallel-form PID gains (the plant input per um of error).
-
-    Attributes
-    ----------
-    kp : float
-        Proportional gain (V/um).
-    ki : float
-        Integral gain (V/(um s)).
-    kd : float
-        Derivative gain (V s/um).
-    tf : float
-        Derivative filter time constant (s).
-    """
-
-    kp: float
-    ki: float
-    kd: float
-    tf: float
-
-
-def pid_transfer(gains: PIDGains, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Numerator and denominator (descending powers of z) of the discrete PID C(z).
-
-    Parameters
-    ----------
-    gains : PIDGains
-    dt : float
-        Sample time (s).
-    """
-    a = math.exp(-dt / gains.tf)
-    kdd = gains.kd * (1.0 - a) / dt
-    den = np.polymul([1.0, -1.0], [1.0, -a])
-    num = gains.kp * den + gains.ki * dt * np.polymul([1.0, 0.0], [1.0, -a])
-    num = num + kdd * np.polymul([1.0, -1.0], [1.0, -1.0])
-    return num, den
-
-
-def _pid_response(x: np.ndarray, zinv: np.ndarray, dt: float, a: float) -> np.ndarray:
-    """C on the unit circle for x = (kp, ki, kd), with zinv = e^-jw dt."""
-    one_minus = 1.0 - zinv
-    return x[0] + x[1] * dt / one_minus + x[2] * (1.0 - a) / dt * one_minus / (1.0 - a * zinv)
-
-
-def resonance(a: np.ndarray, dt: float) -> tuple[float, float, complex]:
-    """The least damped complex pole pair of a discrete model.
-
-    Parameters
-    ----------
-    a : numpy.ndarray
-        State matrix (sample time ``dt``).
-    dt : float
-        Sample time (s).
-
-    Returns
-    -------
-    frequency_hz, damping, pole
-        Natural frequency (Hz), damping ratio and the pole with positive imaginary part.
-
-    Raises
-    ------
-    ValueError
-        If the model has no complex pole pair (nothing to notch).
-    """
-    poles = np.linalg.eigvals(a)
-    poles = poles[(poles.imag > 1e-9) & (np.abs(poles) > 1e-9)]
-    if poles.size == 0:
-        raise ValueError("notch: the model has no complex pole pair (no resonance to notch)")
-    s = np.log(poles) / dt
-    damping = -s.real / np.abs(s)
-    k = int(np.argmin(damping))
-    return float(np.abs(s[k]) / (2 * np.pi)), float(damping[k]), complex(poles[k])
-
-
-def notch_filter(pole: complex, dt: float, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """Notch with zeros on ``pole`` (and its conjugate), poles at ``damping``, unit DC gain.
-
-    Parameters
-    ----------
-    pole : complex
-        Discrete resonant pole to cancel.
-    dt : float
-        Sample time (s).
-    damping : float
-        Damping ratio of the notch's own poles (same natural frequency).
-
-    Returns
-    -------
-    num, den : numpy.ndarray
-        Biquad coefficients in descending powers of z (den monic).
-    """
-    wn = abs(np.log(pole)) / dt
-    s = wn * complex(-damping, math.sqrt(max(1.0 - damping**2, 0.0)))
-    q = np.exp(s * dt)
-    num = np.real(np.poly([pole, np.conj(pole)]))
-    den = np.real(np.poly([q, np.conj(q)]))
-    return num * (den.sum() / num.sum()), den
-
-
-def _frequency_grid(dt: float, f_res: float | None) -> np.ndarray:
-    """Frequencies (Hz) from 0.1 Hz to just below Nyquist, dense around the resonance."""
-    nyquist = 0.5 / dt
-    grid = np.geomspace(0.1, 0.999 * nyquist, 1500)
-    if f_res is not None:
-        grid = np.union1d(grid, np.linspace(0.8 * f_res, 1.25 * f_res, 400))
-    return grid
-
-
-def _closed_loop_stable(x: np.ndarray, plant: tuple, notch: tuple, dt: float, a: float) -> bool:
-    """Whether 1 + C N P has all its roots inside the unit circle."""
-    c_num, c_den = pid_transfer(PIDGains(x[0], x[1], x[2], -dt / math.log(a)), dt)
-    num = np.polymul(np.polymul(c_num, notch[0]), plant[0])
-    den = np.polymul(np.polymul(c_den, notch[1]), plant[1])
-    char = np.polyadd(den, num)
-    return bool(np.abs(np.roots(char)).max() < 1.0 - 1e-9)
-
-
-def tune_pid(
-    model: PredictionModel,
-    *,
-    notch: tuple[np.ndarray, np.ndarray] | None,
-    ms_max: float,
-    derivative_filter_s: float,
-    use_derivative: bool = True,
-) -> PIDGains:
-    """Maximise ki subject to Ms <= ``ms_max`` and closed-loop stability (MIGO-style).
-
-    Parameters
-    ----------
-    model : PredictionModel
-        Its linear part (z -> um) is the plant.
-    notch : (num, den) or None
-        Notch in series with the PID.
-    ms_max : float
-        Bound on the maximum sensitivity.
-    derivative_filter_s : float
-        Derivative filter time constant Tf (s), fixed during the search.
-    use_derivative : bool
-        Search kd too (else kd = 0: PI).
-
-    Returns
-    -------
-    PIDGains
-    """
-    dt = model.dt
-    plant, notch, freqs, loop0 = _loop_data(model, notch)
-    k0 = 1.0 / abs(float(np.real(loop0[0])))  # 1 / DC gain: the natural gain scale
-    zinv, loop0 = np.exp(-2j * np.pi * freqs[1:] * dt), loop0[1:]
-    a = math.exp(-dt / derivative_filter_s)
-    scale = np.array([k0, k0 / dt, k0 * dt])
-
-    def inverse_sensitivity(x: np.ndarray) -> np.ndarray:
-        gains = x * scale
-        return np.abs(1.0 + _pid_response(gains, zinv, dt, a) * loop0)
-
-    def margin(x: np.ndarray) -> float:
-        return float(inverse_sensitivity(x).min() - 1.0 / ms_max)
-
-    bounds = [(0.0, 5.0), (1e-6, 3.0), (0.0, 5.0 if use_derivative else 0.0)]
-    best = None
-    for start in _starts(use_derivative):
-        res = scipy.optimize.minimize(
-            lambda x: -x[1],
-            start,
-            method="SLSQP",
-            bounds=bounds,
-            constraints=[{"type": "ineq", "fun": margin}],
-            options={"maxiter": 300, "ftol": 1e-10},
-        )
-        x = np.clip(res.x, [b[0] for b in bounds], [b[1] for b in bounds])
-        if margin(x) < -1e-6 or not _closed_loop_stable(x * scale, plant, notch, dt, a):
-            continue
-        if best is None or x[1] > best[1]:
-            best = x
-    if best is None:
-        raise ValueError(f"ms_max: no stabilising PID found with Ms <= {ms_max}")
-    kp, ki, kd = (float(v) for v in best * scale)
-    return PIDGains(kp, ki, kd, derivative_filter_s)
-
-
-def _starts(use_derivative: bool) -> list[np.ndarray]:
-    """SLSQP starting points (scaled kp, ki, kd): small, stabilising gains of several shapes."""
-    shapes = [(0.0, 0.0), (0.1, 0.0), (0.3, 0.0)]
-    if use_derivative:
-        shapes += [(0.1, 0.1), (0.3, 0.3)]
-    return [np.array([kp, ki, kd]) for ki in (1e-3, 1e-2) for kp, kd in shapes]
-
-
-def _loop_data(
-    model: PredictionModel, notch: tuple[np.ndarray, np.ndarray] | None
-) -> tuple[tuple, tuple, np.ndarray, np.ndarray]:
-    """Plant polynomials, notch polynomials, frequency grid (Hz) and N P on that grid."""
-    import control
-
-    tf = control.ss2tf(model.to_control())
-    plant = (np.atleast_1d(np.squeeze(tf.num[0][0])), np.atleast_1d(np.squeeze(tf.den[0][0])))
-    notch = notch if notch is not None else (np.array([1.0]), np.array([1.0]))
-    try:
-        f_res = resonance(model.a, model.dt)[0]
-    except ValueError:
-        f_res = None
-    freqs = np.concatenate([[0.0], _frequency_grid(model.dt, f_res)])
-    z = np.exp(2j * np.pi * freqs * model.dt)
-    response = np.polyval(plant[0], z) / np.polyval(plant[1], z)
-    response = response * np.polyval(notch[0], z) / np.polyval(notch[1], z)
-    return plant, notch, freqs, response
-
-
-def closed_loop_report(
-    model: PredictionModel, gains: PIDGains, notch: tuple[np.ndarray, np.ndarray] | None
-) -> dict[str, float]:
-    """Margins, Ms and closed-loop bandwidth of ``L = C N P`` on a dense frequency grid.
-
-    The loop is python-control's product of the PID, notch and model transfer functions,
-    evaluated at 20,000 frequencies up to Nyquist. (``control.stability_margins`` solves
-    polynomial equations in z and reports spurious crossings where the notch cancels the
-    resonant poles, so the margins are read off the grid instead.)
-
-    Returns
-    -------
-    dict
-        ``gain_margin_db``, ``phase_margin_deg``, ``crossover_hz`` (first |L| = 1), ``ms``,
-        ``mt`` (peak |T|), ``bandwidth_hz`` (first frequency where |T| drops below -3 dB),
-        ``resonance_loop_gain_db`` (|L| at the model's resonance, dB).
-    """
-    import control
-
-    dt = model.dt
-    loop = control.tf(*pid_transfer(gains, dt), dt) * control.ss2tf(model.to_control())
-    if notch is not None:
-        loop = loop * control.tf(notch[0], notch[1], dt)
-    freqs = np.union1d(np.geomspace(0.01, 10.0, 2000), np.linspace(10.0, 0.4999 / dt, 20000))
-    resp = np.asarray(loop(np.exp(2j * np.pi * freqs * dt)))
-    gain_cross = np.flatnonzero(np.diff(np.sign(np.abs(resp) - 1.0)))
-    phase_cross = np.flatnonzero((np.diff(np.sign(resp.imag)) != 0) & (resp.real[:-1] < 0))
-    phase = np.degrees(np.angle(resp[gain_cross]))
-    pm = np.where(phase <= 0.0, 180.0 + phase, phase - 180.0)
-    gm = [-20 * np.log10(np.abs(resp[i])) for i in phase_cross]
-    comp = np.abs(resp / (1.0 + resp))
-    below = np.flatnonzero(comp < 1.0 / math.sqrt(2.0))
-    try:
-        f_res = resonance(model.a, dt)[0]
-        peak = float(np.abs(loop(np.exp(2j * np.pi * f_res * dt))))
-    except ValueError:
-        peak = math.nan
-    return {
-        "gain_margin_db": float(min(gm)) if gm else math.inf,
-        "phase_margin_deg": float(pm.min()) if pm.size else math.inf,
-        "crossover_hz": float(freqs[gain_cross[0]]) if gain_cross.size else math.nan,
-        "ms": float(np.abs(1.0 / (1.0 + resp)).max()),
-        "mt": float(comp.max()),
-        "bandwidth_hz": float(freqs[below[0]]) if below.size else 0.5 / dt,
-        "resonance_loop_gain_db": float(20 * np.log10(peak)) if peak > 0 else math.nan,
-    }
+__all__ = ["PIDController", "PIDGains", "TuningError"]
 
 
 class PIDController(Controller):
@@ -362,20 +104,12 @@ class PIDController(Controller):
             for name in ("notch", "feedforward", "derivative"):
                 if not isinstance(getattr(self, name), bool):
                     raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
-            checks = {
-                "ms_max": lambda v: 1.2 <= v <= 3.0,
-                "notch_damping": lambda v: 0.05 <= v <= 1.0,
-                "derivative_filter_s": lambda v: v > 0,
-                "antiwindup_gain": lambda v: 0 < v <= 1.0,
-                "inverse_regularization": lambda v: v >= 0,
-            }
-            for name, ok in checks.items():
-                value = getattr(self, name)
-                if value is None and name == "notch_damping":
-                    continue
-                valid = isinstance(value, (int, float)) and not isinstance(value, bool)
-                if not (valid and math.isfinite(value) and ok(value)):
-                    raise ValueError(f"{name} out of range or not a number: {value!r}")
+            require_number("ms_max", self.ms_max, low=1.2, high=3.0)
+            if self.notch_damping is not None:
+                require_number("notch_damping", self.notch_damping, low=0.05, high=1.0)
+            require_number("derivative_filter_s", self.derivative_filter_s, low=0, low_open=True)
+            require_number("antiwindup_gain", self.antiwindup_gain, low=0, high=1, low_open=True)
+            require_number("inverse_regularization", self.inverse_regularization, low=0)
 
     def __init__(
         self,
@@ -488,6 +222,17 @@ class PIDController(Controller):
         self.stats.status[result.status] += 1
         return result.u
 
+    def loop_polynomials(self) -> dict[str, Any]:
+        """The open loop L = C N P as polynomials in z (descending powers) and its dt (s).
+
+        For Bode and Nyquist plots (python-control: ``control.tf(num, den, dt)``); JSON-safe.
+        """
+        import control
+
+        loop = control.ss2tf(loop_transfer(self.model, self.gains, self.notch))
+        num, den = (np.atleast_1d(np.squeeze(p)) for p in (loop.num[0][0], loop.den[0][0]))
+        return {"num": num.tolist(), "den": den.tolist(), "dt": self.model.dt}
+
     def describe(self) -> dict[str, Any]:
         """Settings, gains, notch, loop margins, Ms, bandwidth and the tuning rule (JSON-safe)."""
         info: dict[str, Any] = {
@@ -495,10 +240,12 @@ class PIDController(Controller):
             "settings": asdict(self.settings),
             "tuning_rule": (
                 f"maximise ki subject to Ms <= {self.settings.ms_max} and a stable closed loop "
-                "(MIGO-style, SLSQP over kp, ki, kd on a frequency grid up to Nyquist)"
+                "(MIGO-style; the largest ki in closed form per (kp, kd) on a frequency grid up "
+                "to Nyquist, maximised over a grid of (kp, kd) and refined)"
             ),
             "gains": asdict(self.gains),
             **self.report,
+            "loop": self.loop_polynomials(),
         }
         if self.notch is not None:
             info["notch_hz"] = self.resonance_hz

@@ -1,0 +1,134 @@
+"""PID tuning: the same gains for any rounding, maximal ki checked by python-control, and
+degenerate results refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import control
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import controllers
+from controllers.pid_tuning import PIDGains, TuningError, notch_filter, resonance, tune_pid
+from controllers.prediction import PredictionModel
+
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
+MS_MAX = 1.8
+
+
+@pytest.fixture(scope="module")
+def model():
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    return controllers.prediction_model(MODEL_DIR, env)
+
+
+def _tune(model: PredictionModel, notched: bool) -> PIDGains:
+    notch = notch_filter(resonance(model.a, model.dt)[2], model.dt, 0.7) if notched else None
+    return tune_pid(model, notch=notch, ms_max=MS_MAX, derivative_filter_s=1e-3)
+
+
+def _perturbed(model: PredictionModel, seed: int, relative: float) -> PredictionModel:
+    rng = np.random.default_rng(seed)
+
+    def jitter(m: np.ndarray) -> np.ndarray:
+        return m * (1.0 + relative * rng.choice([-1.0, 1.0], size=m.shape))
+
+    return dataclasses.replace(model, a=jitter(model.a), b=jitter(model.b), c=jitter(model.c))
+
+
+def _gains(g: PIDGains) -> np.ndarray:
+    return np.array([g.kp, g.ki, g.kd])
+
+
+@pytest.mark.parametrize("notched", [False, True], ids=["pid", "pid-notch"])
+def test_gains_move_smoothly_under_a_tiny_perturbation(model, notched):
+    base = _gains(_tune(model, notched))
+    for seed in range(3):
+        moved = _gains(_tune(_perturbed(model, seed, 1e-12), notched))
+        # A continuous rule moves by ~1e-12 x the sensitivity; a jump would be O(1).
+        np.testing.assert_allclose(moved, base, rtol=1e-7, atol=1e-9 * base[1])
+
+
+_PRINT_GAINS = """
+import json, gymnasium as gym, controllers
+env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+out = {}
+for name in ("pid", "pid-notch", "pid-ff"):
+    g = controllers.make(name, MODEL, env).gains
+    out[name] = [g.kp, g.ki, g.kd]
+print(json.dumps(out))
+"""
+
+
+def _gains_with_threads(threads: int) -> dict[str, list[float]]:
+    env = {**os.environ}
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        env[var] = str(threads)
+    done = subprocess.run(
+        [sys.executable, "-c", _PRINT_GAINS.replace("MODEL", repr(MODEL_DIR))],
+        capture_output=True, text=True, env=env, check=True, timeout=120,
+    )
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_gains_do_not_depend_on_the_blas_thread_count():
+    one, two = _gains_with_threads(1), _gains_with_threads(2)
+    for name in one:
+        np.testing.assert_allclose(one[name], two[name], rtol=1e-9, atol=1e-15, err_msg=name)
+    assert one["pid"][1] > 0.1  # a live integrator (a dead controller once came out at 3.5e-5)
+
+
+def _sensitivity_peak(model: PredictionModel, gains: PIDGains, notch) -> tuple[float, bool]:
+    """Ms and stability from python-control, on its own dense linear grid."""
+    dt = model.dt
+    a = np.exp(-dt / gains.tf)
+    pid = (
+        control.tf([gains.kp], [1.0], dt)
+        + control.tf([gains.ki * dt, 0.0], [1.0, -1.0], dt)
+        + control.tf(gains.kd * (1 - a) / dt * np.array([1.0, -1.0]), [1.0, -a], dt)
+    )
+    loop = pid * control.ss2tf(model.to_control())
+    if notch is not None:
+        loop = loop * control.tf(*notch, dt)
+    freqs = np.linspace(0.05, 0.4999 / dt, 60001)
+    response = loop(np.exp(2j * np.pi * freqs * dt))
+    stable = bool(np.abs(control.feedback(loop, 1).poles()).max() < 1.0)
+    return float(np.abs(1.0 / (1.0 + response)).max()), stable
+
+
+@pytest.mark.parametrize("notched", [False, True], ids=["pid", "pid-notch"])
+def test_tuned_loop_meets_the_bound_and_ki_is_maximal(model, notched):
+    notch = notch_filter(resonance(model.a, model.dt)[2], model.dt, 0.7) if notched else None
+    gains = _tune(model, notched)
+    ms, stable = _sensitivity_peak(model, gains, notch)
+    assert stable
+    assert ms <= MS_MAX * 1.002  # python-control's grid may find a peak between ours
+    # Maximal: 2 % more integral gain at the same kp, kd breaks the bound.
+    more = dataclasses.replace(gains, ki=1.02 * gains.ki)
+    assert _sensitivity_peak(model, more, notch)[0] > MS_MAX
+
+
+def test_a_model_with_negative_dc_gain_is_refused(model):
+    flipped = dataclasses.replace(model, c=-model.c)
+    with pytest.raises(TuningError, match="DC gain"):
+        tune_pid(flipped, notch=None, ms_max=MS_MAX, derivative_filter_s=1e-3)
+
+
+def test_an_unreachable_bound_is_refused():
+    """A plant whose phase is -180 deg with gain above 1 / (1 - 1/Ms) even at DC: an
+    integrator is unstable at any ki > 0 with Ms <= 1.2; the rule says so instead of
+    returning a dead controller."""
+    dt = 1e-3
+    # y_t+1 = -0.95 y_t + u_t: DC gain 1/1.95, Nyquist gain 1/0.05 = 20 at -180 deg.
+    a, b, c = np.array([[-0.95]]), np.array([[1.0]]), np.array([[1.0]])
+    model = PredictionModel(a, b, c, dt, None, "plant")
+    with pytest.raises(TuningError):
+        tune_pid(model, notch=None, ms_max=1.2, derivative_filter_s=1e-3)
