@@ -67,7 +67,7 @@ _HOMES = {
 """Submodule that defines each public name (imported on first access)."""
 
 _DEFAULT_HORIZON = 2000
-"""``max_episode_steps`` of the registered id; equals ``piezo_env.task.DEFAULT_HORIZON`` (a test
+"""``max_episode_steps`` of the registered id; equals ``piezo_env.config.DEFAULT_HORIZON`` (a test
 checks it), written here so that registering does not import the task module."""
 
 

@@ -12,12 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from piezo_env.config import TaskConfig  # the one home of the defaults
 from piezo_env.datasheet import BenderDatasheet
 from piezo_env.discrete import Creep, DiscreteBender, discretize
 from piezo_env.fem import BeamFE, assemble_beam
 from piezo_env.hysteresis import BoucWen, Hysteresis, make_hysteresis
 from piezo_env.parameters import BenderParameters, bender_parameters
-from piezo_env.task import TaskConfig  # the one home of the defaults
 
 __all__ = ["BenderSimulator", "PiezoBenderModel", "SimulationResult"]
 

@@ -65,7 +65,6 @@ __all__ = [
     "DomainRandomization",
     "PlantDraw",
     "RowHysteresis",
-    "drawn_plant",
     "major_loop_peak",
     "padded_layout",
     "randomized_deflection_bound_um",
@@ -238,27 +237,6 @@ def scale_hysteresis(hysteresis: Hysteresis, scale: float, u_max: float) -> Hyst
         f"domain randomisation scales Bouc-Wen, Prandtl-Ishlinskii or no hysteresis, got "
         f"{type(hysteresis).__name__}; pass randomize=None or hysteresis_strength=0"
     )
-
-
-def drawn_plant(nominal: PiezoBenderModel, draw: PlantDraw) -> PiezoBenderModel:
-    """The plant of ``draw``: the nominal model's elements, dt and creep, drawn parameters.
-
-    Built with one BLAS thread: the eigen-decomposition and the per-mode matrix exponentials
-    are tiny, and multi-threaded OpenBLAS stalls on them (measured on 2 cores: median 9.7 ms,
-    p90 220 ms per plant, against 1.4 ms and 9.6 ms single-threaded).
-    """
-    from piezo_env.model import PiezoBenderModel
-
-    hysteresis = scale_hysteresis(nominal.hysteresis, draw.hysteresis_scale, nominal.rated_voltage)
-    with single_blas_thread():
-        return PiezoBenderModel(
-            draw.datasheet(nominal.params.datasheet),
-            n_elements=nominal.beam.n_elements,
-            dt=nominal.dt,
-            hysteresis=hysteresis,
-            creep=nominal.creep if nominal.creep is not None else False,
-            damping_ratio=draw.damping_ratio,
-        )
 
 
 def single_blas_thread() -> Any:

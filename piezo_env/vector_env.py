@@ -72,7 +72,7 @@ class PiezoBenderVectorEnv(VectorEnv):
     ``SyncVectorEnv`` gives it. With ``randomize``, ``info["plant"]`` (a dict of arrays with
     their masks) reports the plants drawn at that reset or autoreset, masked to the
     sub-environments that drew one; ``plant_draws[i]`` is sub-environment i's current draw and
-    ``task.draw_plant``/``piezo_env.randomization.drawn_plant`` rebuild its model.
+    ``task.draw_plant``/``piezo_env.task.drawn_plant`` rebuild its model.
 
     Parameters
     ----------

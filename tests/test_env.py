@@ -54,7 +54,7 @@ def test_package_exposes_its_public_names_lazily():
     """``import piezo_env`` registers the id without importing the env; names load on access."""
     code = (
         "import sys, piezo_env, gymnasium as gym\n"
-        "from piezo_env.task import DEFAULT_HORIZON\n"
+        "from piezo_env.config import DEFAULT_HORIZON\n"
         "assert gym.spec('PiezoBender-v0').max_episode_steps == DEFAULT_HORIZON\n"
         "assert 'piezo_env.env' not in sys.modules and 'piezo_env.model' not in sys.modules\n"
         "assert set(piezo_env.__all__) <= set(dir(piezo_env))\n"

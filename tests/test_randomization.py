@@ -19,11 +19,10 @@ from piezo_env.parameters import cantilever_frequencies
 from piezo_env.randomization import (
     DRAW_ORDER,
     PlantDraw,
-    drawn_plant,
     major_loop_peak,
     randomized_deflection_bound_um,
 )
-from piezo_env.task import BenderTask
+from piezo_env.task import BenderTask, drawn_plant
 from piezo_env.vector_env import PiezoBenderVectorEnv
 
 ENV_ID = "piezo_env:PiezoBender-v0"

@@ -1,8 +1,8 @@
 """The house's shape: imports point one way, between packages and between modules.
 
 The import graph is read from the source (every ``import`` and ``from ... import``, at module
-level or inside a function, ``TYPE_CHECKING`` blocks included), so a lazy import cannot hide a
-circle.
+level or inside a function), so a lazy import cannot hide a circle. Imports under
+``if TYPE_CHECKING:`` are left out: they never run, they only name types for annotations.
 """
 
 from __future__ import annotations
@@ -52,7 +52,16 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
     """Modules of ours that ``name`` imports (the longest known prefix of each import)."""
     is_package = path.name == "__init__.py"
     found = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    type_only = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and ast.unparse(node.test).endswith("TYPE_CHECKING")
+        for inner in ast.walk(node)
+    }
+    for node in ast.walk(tree):
+        if id(node) in type_only:
+            continue
         targets: list[str] = []
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]

@@ -71,6 +71,6 @@ class ExportMixin:
 
     def to_torch(self) -> Any:
         """torch.nn.Module ``F (T, n_f) -> z (T,)`` in float64 with this network's weights."""
-        from identification.nls.training import TorchNLS
+        from identification.nls.torch_module import TorchNLS
 
         return TorchNLS.from_params(self._params)

@@ -18,7 +18,6 @@ h. :func:`_training_record`: epochs, losses and wall time.
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Iterator, Sequence
@@ -42,95 +41,9 @@ from identification.features import (
     default_play_radii,
 )
 from identification.nls.network import NLS
+from identification.nls.torch_module import TorchNLS, load_torch
 
-__all__ = ["TorchNLS", "fit_nls"]
-
-
-# ---------------------------------------------------------------------------------------------
-# the torch module
-
-
-def _torch() -> Any:
-    import torch
-
-    return torch
-
-
-class TorchNLS:
-    """Builders of the torch module (lazy: importing this module does not import torch)."""
-
-    @staticmethod
-    def build(n_features: int, hidden: Sequence[int]) -> Any:
-        torch = _torch()
-        nn = torch.nn
-
-        class TorchNLS(nn.Module):
-            """``z = z_m + z_s (w^T x + c + MLP(x))``, ``x = (F - m) / s``; float64."""
-
-            def __init__(self) -> None:
-                super().__init__()
-                widths = [n_features, *hidden]
-                self.layers = nn.ModuleList(
-                    nn.Linear(a, b, dtype=torch.float64) for a, b in itertools.pairwise(widths)
-                )
-                self.out = nn.Linear(widths[-1], 1, dtype=torch.float64)
-                self.skip = nn.Linear(n_features, 1, dtype=torch.float64)
-                self.register_buffer("feature_mean", torch.zeros(n_features, dtype=torch.float64))
-                self.register_buffer("feature_scale", torch.ones(n_features, dtype=torch.float64))
-                self.register_buffer("z_mean", torch.zeros((), dtype=torch.float64))
-                self.register_buffer("z_scale", torch.ones((), dtype=torch.float64))
-
-            def normalized(self, x: Any) -> Any:
-                h = x
-                for layer in self.layers:
-                    h = torch.tanh(layer(h))
-                return (self.out(h) + self.skip(x)).squeeze(-1)
-
-            def forward(self, features: Any) -> Any:
-                x = (features - self.feature_mean) / self.feature_scale
-                return self.z_mean + self.z_scale * self.normalized(x)
-
-        return TorchNLS()
-
-    @staticmethod
-    def from_params(params: dict[str, np.ndarray]) -> Any:
-        torch = _torch()
-        n_layers = sum(1 for k in params if k.startswith("layer") and k.endswith("_weight"))
-        hidden = [params[f"layer{i}_weight"].shape[0] for i in range(n_layers)]
-        module = TorchNLS.build(params["feature_mean"].size, hidden)
-        state = {
-            "feature_mean": params["feature_mean"],
-            "feature_scale": params["feature_scale"],
-            "z_mean": params["z_mean"],
-            "z_scale": params["z_scale"],
-            "out.weight": params["out_weight"][None, :],
-            "out.bias": params["out_bias"].reshape(1),
-            "skip.weight": params["skip_weight"][None, :],
-            "skip.bias": params["skip_bias"].reshape(1),
-        }
-        for i in range(n_layers):
-            state[f"layers.{i}.weight"] = params[f"layer{i}_weight"]
-            state[f"layers.{i}.bias"] = params[f"layer{i}_bias"]
-        module.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
-        return module
-
-    @staticmethod
-    def to_params(module: Any) -> dict[str, np.ndarray]:
-        sd = {k: v.detach().numpy().astype(np.float64) for k, v in module.state_dict().items()}
-        params = {
-            "feature_mean": sd["feature_mean"],
-            "feature_scale": sd["feature_scale"],
-            "z_mean": sd["z_mean"].reshape(()),
-            "z_scale": sd["z_scale"].reshape(()),
-            "out_weight": sd["out.weight"].reshape(-1),
-            "out_bias": sd["out.bias"].reshape(()),
-            "skip_weight": sd["skip.weight"].reshape(-1),
-            "skip_bias": sd["skip.bias"].reshape(()),
-        }
-        for i in range(len(module.layers)):
-            params[f"layer{i}_weight"] = sd[f"layers.{i}.weight"]
-            params[f"layer{i}_bias"] = sd[f"layers.{i}.bias"]
-        return params
+__all__ = ["TorchNLS", "fit_nls"]  # TorchNLS: re-exported from its own module
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,7 +148,7 @@ def fit_nls(
     NLS
         The fitted nonlinearity; ``nls.training`` records epochs, losses and wall time.
     """
-    torch = _torch()
+    torch = load_torch()
     start = time.perf_counter()
     u_arr, z_arr = _check_signals(u, z)
     settings = _check_training_args(
@@ -526,7 +439,7 @@ def _ridge_skip(x: np.ndarray, t: np.ndarray, w: np.ndarray, ridge: float) -> np
 @contextmanager
 def _torch_threads(num_threads: int) -> Iterator[None]:
     """Run the block with ``num_threads`` torch threads; restore the previous number after."""
-    torch = _torch()
+    torch = load_torch()
     previous_threads = torch.get_num_threads()
     torch.set_num_threads(num_threads)
     try:
@@ -543,7 +456,7 @@ def _initial_network(
     Hidden layers get Glorot-uniform weights drawn from ``generator`` (layer by layer) and zero
     biases; the normalization buffers hold ``data``'s statistics.
     """
-    torch = _torch()
+    torch = load_torch()
     net = TorchNLS.build(n_features, hidden)
     with torch.no_grad():
         for layer in net.layers:
@@ -572,7 +485,7 @@ class _Objective:
     def __init__(
         self, net: Any, data: _Normalised, weights: np.ndarray, settings: _TrainingSettings
     ) -> None:
-        torch = _torch()
+        torch = load_torch()
         x = torch.from_numpy(data.x)
         t = torch.from_numpy(data.t)
         w = torch.from_numpy(weights)
@@ -586,26 +499,26 @@ class _Objective:
 
     def data_loss(self, xb: Any, tb: Any, wb: Any) -> Any:
         """Weighted MSE of the normalized output on the samples ``(xb, tb, wb)`` (a tensor)."""
-        return _torch().mean(wb * (self.net.normalized(xb) - tb) ** 2)
+        return load_torch().mean(wb * (self.net.normalized(xb) - tb) ** 2)
 
     def penalised_loss(self, xb: Any, tb: Any, wb: Any) -> Any:
         """The data loss plus the L2 penalty on the MLP weights (if any): what is minimized."""
         loss = self.data_loss(xb, tb, wb)
         if self.weight_decay:
-            torch = _torch()
+            torch = load_torch()
             loss = loss + self.weight_decay * sum(torch.sum(p**2) for p in self.mlp_params)
         return loss
 
     def validation_loss(self) -> float:
         """Data loss on the validation block (on the training block if there is none)."""
-        with _torch().no_grad():
+        with load_torch().no_grad():
             if not self.has_validation:
                 return float(self.data_loss(*self.train))
             return float(self.data_loss(*self.validation))
 
     def training_loss(self) -> float:
         """Data loss on the training block."""
-        with _torch().no_grad():
+        with load_torch().no_grad():
             return float(self.data_loss(*self.train))
 
 
@@ -643,7 +556,7 @@ def _train_adam(
     step per mini-batch; training stops after ``patience`` epochs without improvement of the
     validation loss (never without a validation block).
     """
-    torch = _torch()
+    torch = load_torch()
     optimizer = torch.optim.Adam(net.parameters(), lr=settings.learning_rate)
     best_loss = objective.validation_loss()
     initial_loss = best_loss
@@ -694,7 +607,7 @@ def _refine_lbfgs(
     """
     if not settings.lbfgs_iterations:
         return adam.best_loss, False
-    torch = _torch()
+    torch = load_torch()
     lbfgs = torch.optim.LBFGS(
         net.parameters(),
         max_iter=settings.lbfgs_iterations,
