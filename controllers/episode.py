@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -64,8 +65,11 @@ def run_episode(
     ----------
     env : gymnasium.Env
         A ``PiezoBender-v0`` env (wrapped or not) with a reference in its observation.
-    controller : Controller
-        Anything with ``reset(observation)``, ``act(observation)`` and ``stats``.
+    controller : object
+        Anything that follows the controller protocol: ``reset(observation)`` and
+        ``act(observation) -> (1,) volts``; ``stats`` (with ``fallbacks``) and ``describe()``
+        are optional. The compute time of every ``act`` call is measured here, the same way
+        for every controller.
     seed : int
         Seed of the env reset (noise and named references).
     reference : ndarray, optional
@@ -85,8 +89,7 @@ def run_episode(
     obs, _ = env.reset(seed=seed, options=options)
     controller.reset(obs)
     arrays = _loop(env, controller, obs, max_steps)
-    stats = controller.stats
-    compute = np.asarray(stats.compute_s[-len(arrays["y"]) :], dtype=float)
+    stats = getattr(controller, "stats", None)
     # The task's (nominal) stroke: with domain randomisation the plant's own changes per reset.
     stroke = float(env.unwrapped.task.stroke_um) if stroke_um is None else float(stroke_um)
     metrics = tracking_metrics(
@@ -94,9 +97,10 @@ def run_episode(
         reference_um=arrays["r"],
         voltage_v=arrays["u"],
         saturated=arrays["sat"],
-        compute_s=compute,
+        compute_s=arrays["compute"],
         stroke_um=stroke,
-        fallbacks=stats.fallbacks,
+        fallbacks=int(getattr(stats, "fallbacks", 0)),
+        dt=float(env.unwrapped.model.dt),
     )
     describe = getattr(controller, "describe", dict)()
     summary = stats.summary() if hasattr(stats, "summary") else {}
@@ -106,7 +110,7 @@ def run_episode(
         reference_um=arrays["r"],
         voltage_V=arrays["u"],
         saturated=arrays["sat"],
-        compute_s=compute,
+        compute_s=arrays["compute"],
         reward=arrays["rew"],
         metrics=metrics,
         controller={**describe, "stats": summary},
@@ -116,10 +120,14 @@ def run_episode(
 def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> dict:
     """Step until the episode ends; the columns of the record as arrays."""
     u_max = float(env.action_space.high[0])
-    columns: dict[str, list] = {k: [] for k in ("y", "m", "r", "u", "sat", "rew")}
+    columns: dict[str, list] = {k: [] for k in ("y", "m", "r", "u", "sat", "rew", "compute")}
+    clock = time.perf_counter
     steps = 0
     while max_steps is None or steps < max_steps:
-        obs, reward, terminated, truncated, info = env.step(controller.act(obs))
+        start = clock()
+        action = controller.act(obs)
+        columns["compute"].append(clock() - start)
+        obs, reward, terminated, truncated, info = env.step(action)
         columns["y"].append(info["deflection_um"])
         columns["m"].append(float(obs[0]))
         columns["r"].append(info["reference_um"])

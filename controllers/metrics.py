@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
 
-__all__ = ["tracking_metrics"]
+__all__ = ["step_metrics", "tracking_metrics"]
 
 
 def tracking_metrics(
@@ -18,6 +19,7 @@ def tracking_metrics(
     compute_s: np.ndarray,
     stroke_um: float,
     fallbacks: int = 0,
+    dt: float | None = None,
 ) -> dict[str, Any]:
     """Figures of merit of an episode.
 
@@ -37,6 +39,9 @@ def tracking_metrics(
         One-sided stroke (um); percentages are of the full stroke, 2 x stroke_um.
     fallbacks : int
         Steps where the controller used its fallback input.
+    dt : float, optional
+        Sample time (s): with it, ``deadline_misses`` (steps whose compute time exceeded dt)
+        and the step-response figures of :func:`step_metrics` are added.
 
     Returns
     -------
@@ -44,7 +49,9 @@ def tracking_metrics(
         ``rmse_um``, ``rmse_percent``, ``max_error_um``, ``max_error_percent``,
         ``rms_voltage_v``, ``voltage_tv_v`` (total variation, sum |u_t - u_t-1|),
         ``saturated_fraction``, ``compute_median_us``, ``compute_p99_us``, ``compute_max_us``,
-        ``fallbacks``, ``steps``.
+        ``fallbacks``, ``steps``; with ``dt`` also ``deadline_misses`` and
+        ``rise_time_ms``, ``overshoot_percent``, ``settling_time_ms``, ``steps_settled``
+        (None on a reference without steps).
     """
     arrays = {
         "deflection_um": np.asarray(deflection_um, float),
@@ -71,6 +78,10 @@ def tracking_metrics(
     rmse = float(np.sqrt(np.mean(error**2)))
     max_error = float(np.max(np.abs(error)))
     median, p99, worst = np.quantile(times, [0.5, 0.99, 1.0]) if times.size else (0.0,) * 3
+    extra: dict[str, Any] = {}
+    if dt is not None:
+        extra["deadline_misses"] = int(np.sum(times > dt * 1e6))
+        extra.update(step_metrics(arrays["deflection_um"], arrays["reference_um"], dt, stroke_um))
     return {
         "steps": int(error.size),
         "rmse_um": rmse,
@@ -84,4 +95,53 @@ def tracking_metrics(
         "compute_p99_us": float(p99),
         "compute_max_us": float(worst),
         "fallbacks": int(fallbacks),
+        **extra,
+    }
+
+
+def step_metrics(
+    deflection_um: np.ndarray, reference_um: np.ndarray, dt: float, stroke_um: float
+) -> dict[str, Any]:
+    """Rise time, overshoot and settling time of the steps in a reference (medians over steps).
+
+    A step is a jump of the reference by more than 1 % of the full stroke between two constant
+    levels (a fast sine is not a step); its response is read over the first 3/4 of the hold (a
+    controller with preview moves before the next step). With ``s = (y - r_before) / (r_after -
+    r_before)``: rise time from s = 0.1 to s = 0.9, overshoot ``100 max(s - 1, 0)`` %, settling
+    time from the jump until ``|y - r_after|`` stays within 2 % of the jump (the definitions of
+    python-control's ``step_info``). Sample i of the arrays is the outcome of action a_i
+    against reference sample r_i; time is counted from the first sample of the new level.
+
+    Returns
+    -------
+    dict
+        ``rise_time_ms``, ``overshoot_percent``, ``settling_time_ms`` (None where there is no
+        step, or no step rose or settled) and ``steps_settled`` ("k of n").
+    """
+    y, r = np.asarray(deflection_um, float), np.asarray(reference_um, float)
+    d = np.abs(np.diff(r))
+    flat = np.concatenate([[False], d <= 1e-9 * stroke_um, [False]])  # level before / after
+    jumps = np.flatnonzero((d > 0.02 * stroke_um) & flat[:-2] & flat[2:]) + 1
+    bounds = np.append(jumps, r.size)
+    rise, over, settle = [], [], []
+    for start, end in itertools.pairwise(bounds):
+        stop = start + max((3 * (end - start)) // 4, 1)
+        before, after = r[start - 1], r[start]
+        s = (y[start:stop] - before) / (after - before)
+        ten, ninety = np.flatnonzero(s >= 0.1), np.flatnonzero(s >= 0.9)
+        if ten.size and ninety.size:
+            rise.append((ninety[0] - ten[0]) * dt)
+        over.append(100.0 * max(float(s.max()) - 1.0, 0.0))
+        outside = np.flatnonzero(np.abs(s - 1.0) > 0.02)
+        if outside.size < s.size and (outside.size == 0 or outside[-1] < s.size - 1):
+            settle.append((outside[-1] + 1 if outside.size else 0) * dt)
+
+    def median_ms(values: list[float], scale: float = 1e3) -> float | None:
+        return float(np.median(values)) * scale if values else None
+
+    return {
+        "rise_time_ms": median_ms(rise),
+        "overshoot_percent": median_ms(over, 1.0),
+        "settling_time_ms": median_ms(settle),
+        "steps_settled": f"{len(settle)} of {jumps.size}" if jumps.size else None,
     }
