@@ -1,13 +1,21 @@
-"""Figures of the closed-loop benchmark: tracking windows, RMSE summary, robustness map."""
+"""Figures of the closed-loop benchmark: tracking windows, RMSE summary, robustness map, and the
+tuned PID loops.
+
+Every figure copes with any selection of controllers, references and plants: a figure with
+nothing to show is not written, and :func:`draw_figures` says why instead. Each row keeps its
+colour in every figure and every run (:func:`benchmarks.rows.row_color`).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from benchmarks.references import REFERENCES
-from benchmarks.rows import seed_groups
+from benchmarks.rows import row_color, seed_groups
 from benchmarks.runner import DT, MONTE_CARLO, BenchmarkResult
 
 __all__ = ["draw_figures"]
@@ -16,16 +24,40 @@ _WINDOWS = {"sine-50Hz": (0.90, 0.96), "multisine": (0.60, 0.75), "steps": (0.38
 """Time windows (s) shown per reference: a few periods, a readable stretch, one step."""
 
 
-def draw_figures(result: BenchmarkResult, out: Path) -> list[Path]:
-    """Write tracking.png, summary.png and robustness.png into ``out``; returns their paths."""
+def draw_figures(result: BenchmarkResult, out: Path) -> dict[str, Path | str]:
+    """Write the figures that have something to show into ``out``.
+
+    Returns
+    -------
+    dict
+        Figure file name -> the path written, or the reason it was not drawn (a str).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
-    return [
-        _tracking(result, out / "tracking.png"),
-        _summary(result, out / "summary.png"),
-        _robustness(result, out / "robustness.png"),
-    ]
+    figures: dict[str, Callable[[BenchmarkResult, Path], str | None]] = {
+        "tracking.png": _tracking,
+        "summary.png": _summary,
+        "robustness.png": _robustness,
+        "pid_loops.png": _pid_loops,
+    }
+    done: dict[str, Path | str] = {}
+    for name, draw in figures.items():
+        path = Path(out) / name
+        reason = draw(result, path)
+        done[name] = reason if reason else path
+    return done
+
+
+def _bender(result: BenchmarkResult) -> str:
+    return str(getattr(result.config, "bender", "PL140"))
+
+
+def _save(fig: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _shown_rows(result: BenchmarkResult, refs: list[str]) -> tuple[list[str], list[str]]:
@@ -48,13 +80,16 @@ def _shown_rows(result: BenchmarkResult, refs: list[str]) -> tuple[list[str], li
     return shown, [r for r in rows if r not in shown]
 
 
-def _tracking(result: BenchmarkResult, path: Path) -> Path:
+def _tracking(result: BenchmarkResult, path: Path) -> str | None:
     import matplotlib.pyplot as plt
 
-    refs = [r for r in _WINDOWS if r in result.traces]
+    refs = [r for r in _WINDOWS if result.traces.get(r)]
+    if not refs:
+        return f"no time series kept: none of {', '.join(_WINDOWS)} was run on the nominal plant"
     shown, omitted = _shown_rows(result, refs)
-    columns = max(len(refs), 1)
-    fig, axes = plt.subplots(2, columns, figsize=(5.2 * columns, 7), squeeze=False, sharex="col")
+    if not shown:
+        return "no controller ran every reference of the tracking figure"
+    fig, axes = plt.subplots(2, len(refs), figsize=(5.2 * len(refs), 7), squeeze=False)
     for j, ref in enumerate(refs):
         traces = result.traces[ref]
         lo, hi = _WINDOWS[ref]
@@ -64,31 +99,30 @@ def _tracking(result: BenchmarkResult, path: Path) -> Path:
         top, bottom = axes[0, j], axes[1, j]
         for name in shown:
             y = np.asarray(traces[name]["deflection_um"])
-            top.plot(t[window], y[window], lw=1.1, label=name)
-            bottom.plot(t[window], (y - reference)[window], lw=1.1)
+            top.plot(t[window], y[window], lw=1.1, label=name, color=row_color(name))
+            bottom.plot(t[window], (y - reference)[window], lw=1.1, color=row_color(name))
         top.plot(t[window], reference[window], "k--", lw=1.6, label="reference")
         top.set_title(ref)
         top.set_ylabel("deflection (um)")
         bottom.set_ylabel("error (um)")
         bottom.set_xlabel("time (s)")
         bottom.set_yscale("symlog", linthresh=2.0)
-        bottom.grid(True, alpha=0.3)
-        top.grid(True, alpha=0.3)
+        for ax in (top, bottom):
+            ax.grid(True, alpha=0.3)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=8)
     note = f" (not drawn, overlapping a drawn row or another seed: {', '.join(omitted)})"
     fig.suptitle(
-        "Nominal PL140: tracking (top) and error, symlog beyond 2 um (bottom)"
+        f"Nominal {_bender(result)}: tracking (top) and error, symlog beyond 2 um (bottom)"
         + (note if omitted else ""),
         fontsize=10,
     )
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
+    _save(fig, path)
+    return None
 
 
-def _summary(result: BenchmarkResult, path: Path) -> Path:
+def _summary(result: BenchmarkResult, path: Path) -> str | None:
     import matplotlib.pyplot as plt
 
     cfg = result.config
@@ -97,28 +131,31 @@ def _summary(result: BenchmarkResult, path: Path) -> Path:
     }
     controllers = [c for c in cfg.rows if any(k[0] == c for k in nominal)]
     refs = [r for r in cfg.references if any(k[1] == r for k in nominal)]
-    fig, ax = plt.subplots(figsize=(11, 5.2))
-    width = 0.8 / max(len(controllers), 1)
+    if not nominal:
+        return "the nominal plant was not run"
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(refs) + 3), 5.2))
+    width = 0.8 / len(controllers)
     x = np.arange(len(refs))
     for i, c in enumerate(controllers):
         values = [nominal[(c, r)]["rmse_percent"] if (c, r) in nominal else np.nan for r in refs]
-        ax.bar(x + (i - (len(controllers) - 1) / 2) * width, values, width, label=c)
+        offset = (i - (len(controllers) - 1) / 2) * width
+        ax.bar(x + offset, values, width, label=c, color=row_color(c))
     ax.set_yscale("log")
     ax.set_xticks(x, refs, rotation=20)
     ax.set_ylabel("RMSE (% of full stroke)")
-    ax.set_title("Nominal PL140: tracking RMSE per controller and reference (log scale)")
+    ax.set_title(
+        f"Nominal {_bender(result)}: tracking RMSE per controller and reference (log scale)"
+    )
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=6, loc="upper center", bbox_to_anchor=(0.5, -0.2))
+    ax.legend(fontsize=8, ncol=min(len(controllers), 6), loc="upper center",
+              bbox_to_anchor=(0.5, -0.2))
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    _save(fig, path)
+    return None
 
 
-def _robustness(result: BenchmarkResult, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import LogNorm
-
+def _robustness_grid(result: BenchmarkResult) -> tuple[np.ndarray, list[str], list[str], list]:
+    """Mean RMSE over the smooth references: controllers x plants (NaN where not run)."""
     cfg = result.config
     index = {
         (e["plant"], e["controller"], e["reference"]): e["rmse_percent"]
@@ -126,7 +163,7 @@ def _robustness(result: BenchmarkResult, path: Path) -> Path:
         if e["plant"] != MONTE_CARLO
     }
     plants = [p for p in cfg.plants if p != MONTE_CARLO]
-    controllers = [c for c in cfg.rows if sum(1 for k in index if k[1] == c and k[0] != "nominal")]
+    controllers = [c for c in cfg.rows if any(k[1] == c and k[0] != "nominal" for k in index)]
     # Smooth references only: a step's ~0.9 % (the drive limit) would swamp them in the mean.
     refs = sorted(
         {k[2] for k in index if k[0] != "nominal" and REFERENCES[k[2]].smooth},
@@ -138,24 +175,26 @@ def _robustness(result: BenchmarkResult, path: Path) -> Path:
             values = [index[(p, c, r)] for r in refs if (p, c, r) in index]
             if values:
                 grid[i, j] = float(np.mean(values))
+    return grid, controllers, plants, refs
+
+
+def _robustness(result: BenchmarkResult, path: Path) -> str | None:
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    grid, controllers, plants, refs = _robustness_grid(result)
+    if not controllers or not refs:
+        return "no robustness plant was run on a smooth reference"
     fig, ax = plt.subplots(figsize=(1.3 * len(plants) + 3, 0.6 * len(controllers) + 2))
     finite = grid[np.isfinite(grid)]
-    norm = LogNorm(vmin=max(finite.min(), 1e-3), vmax=finite.max()) if finite.size else None
-    image = ax.imshow(grid, cmap="viridis", norm=norm, aspect="auto")
-    for i in range(grid.shape[0]):
-        for j in range(grid.shape[1]):
-            if np.isfinite(grid[i, j]):
-                ax.text(
-                    j,
-                    i,
-                    f"{grid[i, j]:.3g}",
-                    ha="center",
-                    va="center",
-                    fontsize=8,
-                    color="white"
-                    if norm and grid[i, j] < np.sqrt(norm.vmin * norm.vmax)
-                    else "black",
-                )
+    low, high = max(float(finite.min()), 1e-3), max(float(finite.max()), 2e-3)
+    norm = LogNorm(vmin=low, vmax=max(high, low * 1.01))
+    image = ax.imshow(np.ma.masked_invalid(grid), cmap="viridis", norm=norm, aspect="auto")
+    for (i, j), value in np.ndenumerate(grid):
+        if np.isfinite(value):
+            dark = value < np.sqrt(norm.vmin * norm.vmax)
+            ax.text(j, i, f"{value:.3g}", ha="center", va="center", fontsize=8,
+                    color="white" if dark else "black")
     ax.set_xticks(range(len(plants)), plants, rotation=25, ha="right")
     ax.set_yticks(range(len(controllers)), controllers)
     fig.colorbar(image, ax=ax, label="mean RMSE (% of full stroke)")
@@ -163,6 +202,40 @@ def _robustness(result: BenchmarkResult, path: Path) -> Path:
         "Same model and settings on other plants: mean RMSE over " + ", ".join(refs), fontsize=9
     )
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    _save(fig, path)
+    return None
+
+
+def _pid_loops(result: BenchmarkResult, path: Path) -> str | None:
+    """Loop gain |L| and sensitivity |S| = |1 / (1 + L)| of every tuned PID loop, with margins."""
+    import control
+    import matplotlib.pyplot as plt
+
+    loops = {
+        name: d for name, d in result.controllers.items() if isinstance(d.get("loop"), dict)
+    }
+    if not loops:
+        return "no PID controller was run (the loop figure shows tuned PID loops)"
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    for name, d in loops.items():
+        loop = control.tf(d["loop"]["num"], d["loop"]["den"], d["loop"]["dt"])
+        freqs = np.geomspace(0.1, 0.4999 / loop.dt, 3000)
+        response = loop(np.exp(2j * np.pi * freqs * loop.dt))
+        label = (
+            f"{name}: GM {d['gain_margin_db']:.1f} dB, PM {d['phase_margin_deg']:.0f} deg, "
+            f"Ms {d['ms']:.2f}, crossover {d['crossover_hz']:.3g} Hz"
+        )
+        top.loglog(freqs, np.abs(response), color=row_color(name), label=label)
+        bottom.loglog(freqs, np.abs(1.0 / (1.0 + response)), color=row_color(name))
+        bottom.axhline(d["ms"], color=row_color(name), lw=0.8, ls=":")
+    top.axhline(1.0, color="k", lw=0.8)
+    top.set_ylabel("|L| (loop gain)")
+    bottom.set_ylabel("|S| = |1 / (1 + L)|")
+    bottom.set_xlabel("frequency (Hz)")
+    for ax in (top, bottom):
+        ax.grid(True, which="both", alpha=0.3)
+    top.legend(fontsize=8)
+    top.set_title(f"Tuned PID loops on the identified {_bender(result)} model (Ms dotted)")
+    fig.tight_layout()
+    _save(fig, path)
+    return None

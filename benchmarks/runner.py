@@ -19,8 +19,10 @@ same for any ``jobs``; only the measured compute times differ from run to run.
 
 from __future__ import annotations
 
+import gc
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,6 +38,7 @@ from benchmarks.plants import (
 )
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
+from piezo_env.checks import require_int
 from piezo_parallel.backends import BACKENDS, run_tasks
 
 __all__ = [
@@ -107,7 +110,13 @@ class BenchmarkConfig:
     draws: int = 10
 
     def __post_init__(self) -> None:
-        self._check_policies()
+        for name in ("controllers", "references", "plants"):
+            if not isinstance(getattr(self, name), tuple):
+                raise ValueError(f"{name} must be a tuple of names, got {getattr(self, name)!r}")
+        if not self.rows:
+            raise ValueError("no controller to run: name at least one (or a policy folder)")
+        if not self.references or not self.plants:
+            raise ValueError("name at least one reference and one plant")
         for name in self.controllers:
             if name.removesuffix("-oracle") not in CONTROLLERS:
                 valid = ", ".join(CONTROLLERS)
@@ -120,17 +129,11 @@ class BenchmarkConfig:
         for name in self.plants:
             if name not in PLANTS:
                 raise ValueError(f"unknown plant {name!r}; valid: {', '.join(PLANTS)}")
-        for name in ("steps", "jobs", "draws"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ("steps", "jobs", "draws", "preview"):
+            require_int(name, getattr(self, name))  # preview >= 1: a_t is scored against r_t+1
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; valid: {', '.join(BACKENDS)}")
-        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 1:
-            raise ValueError(
-                f"preview must be an integer >= 1 (the action a_t is scored against r_t+1), "
-                f"got {self.preview!r}"
-            )
+        self._check_policies()
         self._check_options()
 
     def _check_options(self) -> None:
@@ -154,7 +157,13 @@ class BenchmarkConfig:
         if clash:
             raise ValueError(f"policy folder names {sorted(clash)} clash with controller names")
         for folder in self.policies:
-            load_policy(folder)  # a folder that does not load fails here, before any work
+            policy = load_policy(folder)  # a folder that does not load fails here, before work
+            if policy.observation.preview > self.preview:
+                raise ValueError(
+                    f"policy {folder} was trained with a preview of {policy.observation.preview} "
+                    f"samples but the benchmark shows {self.preview}; raise --preview to at "
+                    f"least {policy.observation.preview} or leave the policy out"
+                )
 
     @property
     def policy_folders(self) -> dict[str, str]:
@@ -232,7 +241,12 @@ def _run_group(
     model_dir: str,
     config: BenchmarkConfig,
 ) -> tuple[list[dict[str, Any]], dict[str, Any], dict[str, dict[str, list[float]]]]:
-    """Run one controller on one plant over its references (in a worker process)."""
+    """Run one controller on one plant over its references (in a worker process).
+
+    The loop does what a real-time Python loop does: one BLAS thread, a warm-up before the
+    timed episodes (a first call may load generated code or fill caches), and no garbage
+    collection inside them (collected and frozen after set-up, re-enabled after the group).
+    """
     from threadpoolctl import threadpool_limits
 
     import controllers as ctl
@@ -242,27 +256,54 @@ def _run_group(
     draws = range(config.draws) if plant == MONTE_CARLO else [None]
     with threadpool_limits(1):
         built = _build(controller, model_dir, env, config)
-        for ref_name, reference in references.items():
-            for draw in draws:
-                episode = ctl.run_episode(
-                    env,
-                    built,
-                    seed=config.seed + (draw or 0),
-                    reference=reference,
-                    stroke_um=NOMINAL_STROKE_UM,
-                )
-                record = {"plant": plant, "controller": controller, "reference": ref_name}
-                if draw is not None:
-                    record["draw"] = draw
-                episodes.append({**record, **episode.metrics})
-            if plant == "nominal" and ref_name in TRACE_REFERENCES:
-                traces[ref_name] = {
-                    "deflection_um": episode.deflection_um.tolist(),
-                    "reference_um": episode.reference_um.tolist(),
-                    "voltage_V": episode.voltage_V.tolist(),
-                }
+        _warm_up(env, built, next(iter(references.values())), config.seed)
+        with _no_collection():
+            for ref_name, reference in references.items():
+                for draw in draws:
+                    episode = ctl.run_episode(
+                        env,
+                        built,
+                        seed=config.seed + (draw or 0),
+                        reference=reference,
+                        stroke_um=NOMINAL_STROKE_UM,
+                    )
+                    record = {"plant": plant, "controller": controller, "reference": ref_name}
+                    if draw is not None:
+                        record["draw"] = draw
+                    episodes.append({**record, **episode.metrics})
+                if plant == "nominal" and ref_name in TRACE_REFERENCES:
+                    traces[ref_name] = {
+                        "deflection_um": episode.deflection_um.tolist(),
+                        "reference_um": episode.reference_um.tolist(),
+                        "voltage_V": episode.voltage_V.tolist(),
+                    }
     env.close()
-    return episodes, built.describe(), traces
+    return episodes, built.describe() if hasattr(built, "describe") else {}, traces
+
+
+def _warm_up(env: Any, controller: Any, reference: np.ndarray, seed: int, steps: int = 25) -> None:
+    """A few untimed steps; the episodes then reset the env and the controller."""
+    obs, _ = env.reset(seed=seed, options={"reference": reference})
+    controller.reset(obs)
+    for _ in range(steps):
+        obs, _, terminated, truncated, _ = env.step(controller.act(obs))
+        if terminated or truncated:
+            break
+
+
+@contextmanager
+def _no_collection() -> Iterator[None]:
+    """Collect and freeze what set-up left, and keep the collector off inside."""
+    gc.collect()
+    gc.freeze()
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+        gc.unfreeze()
 
 
 def run_benchmark(

@@ -171,8 +171,11 @@ def load_policy(folder: str | Path) -> LoadedPolicy:
     Raises
     ------
     ValueError
-        Naming the file and the field when a file is missing, unreadable, tampered with
-        (weights hash) or inconsistent with the architecture.
+        Naming the file and the field when a file is missing, unreadable, corrupted (the
+        weights' SHA-256 differs from the one recorded in policy.json) or inconsistent with the
+        architecture. The hash sits in the same folder as the weights, so it detects damage,
+        not deliberate tampering: load policies from sources you trust (the files are plain
+        JSON and arrays, never unpickled, so a bad file cannot run code).
     """
     folder = Path(folder)
     json_path = folder / POLICY_FILE
@@ -350,14 +353,16 @@ class PolicyController(Controller):
                 f"{where}: field 'observation.preview' = {config.preview} but the env shows only "
                 f"{task.preview} samples ahead; make the env with preview >= {config.preview}"
             )
+        trained_dt = self.policy.metadata.get("task", {}).get("dt_s")
         for field, mine, theirs in (
-            ("stroke_um", config.stroke_um, task.stroke_um),
-            ("u_max", config.u_max, task.u_max),
+            ("observation.stroke_um", config.stroke_um, task.stroke_um),
+            ("observation.u_max", config.u_max, task.u_max),
+            ("task.dt_s", trained_dt, task.dt),
         ):
-            if not np.isclose(mine, theirs, rtol=1e-9, atol=0.0):
+            if mine is not None and not np.isclose(mine, theirs, rtol=1e-9, atol=0.0):
                 raise ValueError(
-                    f"{where}: field 'observation.{field}' = {mine} but the env "
-                    f"has {theirs}; make the env to match (e.g. preview={mine})"
+                    f"{where}: field '{field}' = {mine} (what the policy was trained on) but "
+                    f"the env has {theirs}; make the env to match"
                 )
 
     def _own(self, observation: np.ndarray) -> np.ndarray:

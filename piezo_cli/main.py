@@ -20,6 +20,7 @@ from typing import NoReturn
 from piezo_cli.benchmark import BENCHMARK
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.identify import IDENTIFY
+from piezo_cli.output import missing_folders, remove_if_empty
 from piezo_cli.simulate import SIMULATE
 from piezo_cli.train_rl import TRAIN_RL
 
@@ -135,16 +136,20 @@ def main(argv: list[str] | None = None) -> int:
     """
     args = build_parser().parse_args(argv)
     prefix = f"piezo {args.command}"
+    new_folders = missing_folders(getattr(args, "out", None))
     try:
         return args.subcommand.run(args)
     except (CommandLineError, ValueError) as error:
+        remove_if_empty(new_folders)
         print(f"{prefix}: {_for_terminal(str(error))}", file=sys.stderr)
         return 2
     except OSError as error:
+        remove_if_empty(new_folders)
         where = f" {error.filename}" if error.filename else ""
         print(f"{prefix}: cannot write{where}: {error.strerror or error}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
+        remove_if_empty(new_folders)
         print(f"{prefix}: interrupted", file=sys.stderr)
         return 130
 

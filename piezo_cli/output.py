@@ -12,7 +12,7 @@ from tempfile import mkstemp
 
 from piezo_cli.command import CommandLineError
 
-__all__ = ["prepare_output_dir", "terminal_progress"]
+__all__ = ["missing_folders", "prepare_output_dir", "remove_if_empty", "terminal_progress"]
 
 _REASONS = {
     errno.EACCES: "permission denied",
@@ -65,6 +65,27 @@ def prepare_output_dir(path: str | os.PathLike[str], *, option: str = "--out") -
     except OSError as error:
         raise CommandLineError(_message(text, _reason(folder, error), option)) from None
     return folder
+
+
+def missing_folders(path: str | os.PathLike[str] | None) -> list[Path]:
+    """The folders of ``path`` (itself and its parents) that do not exist yet, deepest first."""
+    if path is None or not os.fspath(path).strip():
+        return []
+    folder = Path(os.fspath(path)).absolute()
+    return [p for p in (folder, *folder.parents) if not p.exists()]
+
+
+def remove_if_empty(folders: list[Path]) -> None:
+    """Remove the folders a failed command created (deepest first) while they are empty.
+
+    A command refused after it created its output folder leaves nothing behind; a folder that
+    holds anything (a model identified before the failure) stays.
+    """
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
 
 
 class _Refused(Exception):
