@@ -409,7 +409,32 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
         "",
         f"Model: {meta['model']}. Time: "
         + ", ".join(f"{k} {v} s" for k, v in meta["timing"].items()),
+        "",
+        native_code_line(result),
     ]
+
+
+def native_code_line(result: BenchmarkResult) -> str:
+    """Which generated functions ran compiled and which fell back, and why (one paragraph)."""
+    builds = {
+        (row, name): build
+        for row, description in result.controllers.items()
+        for name, build in (description.get("native") or {}).items()
+    }
+    if not builds:
+        return "Native code: none of these controllers uses generated code."
+    fell_back = {key: b for key, b in builds.items() if not b["compiled"]}
+    compilers = sorted({b["compiler"] for b in builds.values() if b["compiled"]})
+    if not fell_back:
+        return (
+            f"Native code: every generated function ran compiled ({'; '.join(compilers)}); "
+            "results are bitwise reproducible on this compiler and architecture."
+        )
+    listed = "; ".join(f"`{row}` {name}: {b['reason']}" for (row, name), b in fell_back.items())
+    return (
+        f"**Native code fell back** (the numbers differ from a compiled run by rounding, and the "
+        f"compute times are longer): {listed}. Set PIEZO_NATIVE=require to make this an error."
+    )
 
 
 def _markdown(

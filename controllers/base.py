@@ -112,7 +112,21 @@ class Controller:
 
     def describe(self) -> dict[str, Any]:
         """JSON-safe settings and derived facts (gains, margins, horizon) for reports."""
-        return {"name": self.name}
+        return {"name": self.name, "native": self.native_code()}
+
+    def native_code(self) -> dict[str, dict[str, Any]]:
+        """Function name -> what its native build did (compiled or which fallback, and why).
+
+        Collected from the prediction model's nonlinearity and the NMPC horizon, whichever
+        this controller has; empty for a controller without generated code.
+        """
+        owners = (getattr(getattr(self, "model", None), "nonlinearity", None),
+                  getattr(self, "horizon", None))
+        return {
+            build.function: build.to_dict()
+            for owner in owners
+            for build in getattr(owner, "native", ())
+        }
 
     def _reset(self, observation: np.ndarray) -> None:
         raise NotImplementedError

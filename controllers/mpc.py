@@ -263,4 +263,5 @@ class LinearMPC(Controller):
             "z_bounds": list(self.model.z_bounds),
             "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
             "qp_solver": f"osqp {osqp.__version__}",
+            "native": self.native_code(),
         }

@@ -388,4 +388,5 @@ class NonlinearMPC(Controller):
             "jacobian": f"{type(self.horizon).__name__}: {self.horizon.backend}",
             "solver": solver,
             "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
+            "native": self.native_code(),
         }

@@ -265,6 +265,7 @@ class PIDController(Controller):
             "gains": asdict(self.gains),
             **self.report,
             "loop": self.loop_polynomials(),
+            "native": self.native_code() if self.settings.feedforward else {},
         }
         if self.notch is not None:
             info["notch_hz"] = self.resonance_hz

@@ -73,6 +73,11 @@ class IdentifiedNLS:
         self._network = nls.to_numpy()
         self._inverse = CompiledInverse(nls, self.u_range)
 
+    @property
+    def native(self) -> list[Any]:
+        """The native builds of the inverse (:class:`controllers.native.codegen.NativeBuild`)."""
+        return self._inverse.native
+
     def initial_state(self) -> np.ndarray:
         return self.nls.initial_state()
 

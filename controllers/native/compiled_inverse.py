@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import CompiledFunction, compile_function
+from controllers.native.codegen import CompiledFunction, NativeBuild, compile_function
 from piezo_env.inverse import InverseResult
 
 __all__ = [
@@ -286,13 +286,17 @@ class CompiledInverse:
         self._function: CompiledFunction | None = None
         self._reachable: CompiledFunction | None = None
         self.backend = "numpy NLS.solve_inverse (compilation not requested)"
+        self.native: list[NativeBuild] = []
+        """What each native build did (:class:`controllers.native.codegen.NativeBuild`)."""
         if compiled:
             function = inverse_function(nls, max_iter=max_iter, xtol=xtol)
-            self._function, note = compile_function(function, flags=_FLAGS, cache="inverse")
-            self.backend = note if self._function else f"numpy NLS.solve_inverse: {note}"
+            self._function, build = compile_function(function, flags=_FLAGS, cache="inverse")
+            self.native.append(build)
+            self.backend = str(build) if self._function else f"numpy NLS.solve_inverse: {build}"
         if self._function is not None:
             ends = reachable_function(nls)
-            self._reachable = compile_function(ends, flags=_FLAGS, cache="inverse")[0]
+            self._reachable, build = compile_function(ends, flags=_FLAGS, cache="inverse")
+            self.native.append(build)
         if self._function is not None:
             inputs, outputs = self._function.inputs, self._function.outputs
             self._target, self._state, low, high, self._guess = inputs

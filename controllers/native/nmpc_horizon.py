@@ -43,11 +43,12 @@ horizon (:mod:`controllers.native.codegen`, shared with the compiled NLS inverse
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import CompiledFunction, as_numpy
+from controllers.native.codegen import CompiledFunction, NativeBuild, as_numpy
 from controllers.native.codegen import compile_function as _compile
 
 __all__ = [
@@ -73,18 +74,20 @@ def horizon_function(nonlinearity: Any, horizon: int) -> Any:
     return casadi.Function("nmpc_horizon", [u, state0], [casadi.vertcat(*zs)], ["u", "s"], ["z"])
 
 
-def compile_function(function: Any) -> tuple[CompiledFunction | None, str]:
+def compile_function(function: Any) -> tuple[CompiledFunction | None, NativeBuild]:
     """:func:`controllers.native.codegen.compile_function` (``-O1``, cache folder ``nmpc``).
 
     Returns
     -------
     compiled : CompiledFunction or None
         None when no compiler works (the caller then uses casadi's virtual machine).
-    note : str
+    build : NativeBuild
         What happened (the library, or why compilation failed), for reports.
     """
-    compiled, note = _compile(function)
-    return compiled, note if compiled is not None else f"{note}; using casadi's virtual machine"
+    compiled, build = _compile(function)
+    if compiled is None:
+        build = dataclasses.replace(build, reason=f"{build}; using casadi's virtual machine")
+    return compiled, build
 
 
 class StructuredHorizon:
@@ -117,8 +120,10 @@ class StructuredHorizon:
         )
         self.horizon, self.n_features = horizon, nls.n_features
         compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
+        self.native: list[NativeBuild] = []
         if compiled:
-            compiled_fn, self.backend = compile_function(self.function)
+            compiled_fn, build = compile_function(self.function)
+            self.backend, self.native = str(build), [build]
         self._features = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
         mlp = nls.to_numpy()
         self._w_t = [np.ascontiguousarray(w.T) for w in mlp.weights]
@@ -179,8 +184,10 @@ class GenericHorizon:
             ["z", "dzdu"],
         )
         compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
+        self.native: list[NativeBuild] = []
         if compiled:
-            compiled_fn, self.backend = compile_function(self.function)
+            compiled_fn, build = compile_function(self.function)
+            self.backend, self.native = str(build), [build]
         self._call = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
 
     def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
