@@ -68,13 +68,28 @@ class ControlTask:
     def from_env(cls, env: Any) -> ControlTask:
         """Read the task of a ``PiezoBender-v0`` env (wrapped or not).
 
+        A controller reads the raw observation (um) and acts in volts, so the task comes from
+        the env itself (``env.unwrapped``) and the nominal plant, never from an episode's drawn
+        plant. Wrappers that keep the spaces (``TimeLimit``, ``OrderEnforcing``, ...) are fine;
+        a wrapper that changes the observation or the action (e.g.
+        :class:`piezo_env.wrappers.TrackingObservation`, made for learning agents) is refused,
+        because a controller stepped through it would read scaled numbers as micrometres.
+
         Raises
         ------
         ValueError
-            If the env has no reference in its observation (a tracking controller needs one).
+            If the env has no reference in its observation (a tracking controller needs one),
+            or a wrapper changes its observation or action space.
         """
         base = env.unwrapped
-        shape = env.observation_space.shape
+        if (env.observation_space != base.observation_space
+                or env.action_space != base.action_space):
+            raise ValueError(
+                f"{type(env).__name__} changes the env's observation or action space; a "
+                "controller reads the raw observation (um) and returns volts: pass the env "
+                "without that wrapper (e.g. env.unwrapped)"
+            )
+        shape = base.observation_space.shape
         if shape is None or len(shape) != 1 or shape[0] < 2:
             raise ValueError(
                 "the env's observation holds no reference (made with reference=None?); make it "
@@ -83,10 +98,10 @@ class ControlTask:
         nominal = base.task  # not base.model: with domain randomisation that is this episode's
         return cls(
             dt=float(nominal.model.dt),
-            u_max=float(env.action_space.high[0]),
+            u_max=float(base.action_space.high[0]),
             stroke_um=float(nominal.stroke_um),
             preview=int(shape[0]) - 2,
-            noise_bound_um=float(getattr(base, "noise_bound", 1.0)),
+            noise_bound_um=float(nominal.noise_bound),
         )
 
     @property

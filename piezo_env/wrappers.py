@@ -97,6 +97,9 @@ class ObservationConfig:
     def from_env(cls, env: Any, *, n_inputs: int = 4, n_errors: int = 4) -> ObservationConfig:
         """The config of a ``PiezoBender-v0`` env (single or vector, wrapped or not).
 
+        Read from the env's task, not from its current plant: with domain randomisation the
+        plant of the episode changes at every reset, the scales of the observation do not.
+
         Raises ValueError if the env has no reference in its observation.
         """
         base = env.unwrapped
@@ -107,9 +110,9 @@ class ObservationConfig:
                 "make it with a reference, e.g. gym.make('piezo_env:PiezoBender-v0', preview=10)"
             )
         return cls(
-            stroke_um=float(base.model.stroke_um),
-            u_max=float(base.model.rated_voltage),
-            bound_um=float(base.bound),
+            stroke_um=float(base.task.stroke_um),
+            u_max=float(base.task.model.rated_voltage),
+            bound_um=float(base.task.bound),
             preview=int(space.shape[0]) - 2,
             n_inputs=n_inputs,
             n_errors=n_errors,
