@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 
 from piezo_cli.arguments import add_env_arguments, env_kwargs, seed
 from piezo_cli.command import Subcommand
 from piezo_cli.output import prepare_output_dir
 
-__all__ = ["FEATURES", "IDENTIFY"]
+__all__ = ["FEATURES", "IDENTIFY", "summary"]
 
 FEATURES = ("auto", "play", "past-inputs", "bouc-wen")
 
@@ -39,9 +38,28 @@ def run(args: argparse.Namespace) -> int:
     )
     result = identify(config=config, progress=print)
     paths = write_outputs(result, out)
-    print(json.dumps(result.report["validation"], indent=2))
+    print(summary(result.report))
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
+
+
+def summary(report: dict) -> str:
+    """A few lines a user reads first: the chosen order, the noise bound and the fits."""
+    arx, validation = report["arx"], report["validation"]
+    lines = [
+        f"ARX order {arx['order']} (chosen by held-out free-run fit), static gain "
+        f"{arx['static_gain_um_per_V']:.2f} um/V, estimated noise bound "
+        f"{arx['noise_bound_um']:.2f} um (equation error: model error and sensor noise)",
+        f"validation on {validation['signal']}, free run:",
+    ]
+    for name, label in (("hammerstein", "Hammerstein model"), ("linear_arx", "linear ARX alone")):
+        fit = validation[name]
+        lines.append(
+            f"  {label}: fit {fit['fit_percent']:.2f} %, RMSE {fit['rmse']:.1f} um, "
+            f"max error {fit['max_abs_error']:.1f} um"
+        )
+    lines.append("(the whole report is report.md / report.json in the output folder)")
+    return "\n".join(lines)
 
 
 IDENTIFY = Subcommand(
