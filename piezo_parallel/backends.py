@@ -153,13 +153,19 @@ def _run_pool(
     progress: Progress | None,
 ) -> list[Any]:
     results: list[Any] = [None] * len(tasks)
-    with ProcessPoolExecutor(jobs, mp_context=get_context("spawn")) as pool:
+    pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"))
+    try:
         futures = {pool.submit(function, *task): i for i, task in enumerate(tasks)}
         for done, future in enumerate(as_completed(futures), start=1):
             i = futures[future]
-            results[i] = future.result()
+            results[i] = future.result()  # the first failure raises here, at once
             if progress:
                 progress(done, len(tasks), labels[i])
+    except BaseException:
+        # Cancel what has not started instead of waiting for every task before raising.
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
     return results
 
 

@@ -141,3 +141,22 @@ def test_ray_backend_raises_the_task_error(ray_instance):
     # Workers import the function by its module, which a test file is not: use a builtin.
     with pytest.raises(ZeroDivisionError):
         run_tasks(operator.truediv, [(1, 1), (1, 0), (2, 1)], jobs=2, backend="ray")
+
+
+
+def _fail_first(i: int, folder: str) -> int:
+    import time
+    from pathlib import Path
+
+    (Path(folder) / f"started-{i}").touch()
+    if i == 0:
+        raise ValueError("task 0 broke")
+    time.sleep(0.5)
+    return i
+
+
+def test_the_local_pool_raises_the_first_failure_without_running_the_rest(tmp_path):
+    with pytest.raises(ValueError, match="task 0 broke"):
+        run_tasks(_fail_first, [(i, str(tmp_path)) for i in range(12)], jobs=2)
+    # Raised as soon as task 0 failed: the tasks not yet started are cancelled, not run.
+    assert len(list(tmp_path.iterdir())) <= 4
