@@ -37,6 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--jobs", type=positive_int, default=1, help="worker processes for --seeds")
     parser.add_argument(
+        "--overwrite", action="store_true", help="replace policy folders that exist already"
+    )
+    parser.add_argument(
         "--backend",
         default="local",
         choices=("local", "ray"),
@@ -81,9 +84,11 @@ def run(args: argparse.Namespace) -> int:
     """Refuse a missing extra, check the output folder, then train and write the policy."""
     if importlib.util.find_spec("stable_baselines3") is None:
         raise CommandLineError(MISSING_EXTRA)
-    out = prepare_output_dir(args.out)
-    from piezo_rl.ppo import train_ppo
+    from piezo_rl.ppo import refuse_existing_policies, train_ppo
 
+    if args.seeds is None and not args.overwrite:
+        refuse_existing_policies([args.out])
+    out = prepare_output_dir(args.out)
     start = time.perf_counter()
     if args.seeds is not None:
         return _run_seeds(args, out, start)
@@ -117,6 +122,7 @@ def _run_seeds(args: argparse.Namespace, out, start: float) -> int:
         out,
         jobs=args.jobs,
         backend=args.backend,
+        overwrite=args.overwrite,
         num_envs=args.num_envs,
         preview=args.preview,
         env_kwargs=_kwargs(args),

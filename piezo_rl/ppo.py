@@ -39,6 +39,7 @@ __all__ = [
     "actor_layers",
     "make_ppo",
     "make_training_env",
+    "refuse_existing_policies",
     "train_ppo",
     "train_seeds",
 ]
@@ -395,6 +396,7 @@ def train_seeds(
     backend: str = "local",
     address: str | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    overwrite: bool = False,
     **train_kwargs: Any,
 ) -> list[Path]:
     """Train one policy per seed, each seed a task of :func:`piezo_parallel.backends.run_tasks`.
@@ -417,8 +419,15 @@ def train_seeds(
         As for :func:`piezo_parallel.backends.run_tasks` (``"local"`` or ``"ray"``).
     progress : callable, optional
         ``progress(done, total, label)`` after each run.
+    overwrite : bool
+        Replace policy folders that exist already (else refused before any training).
     **train_kwargs
         Further keyword arguments of :func:`train_ppo` (not ``progress``).
+
+    Raises
+    ------
+    ValueError
+        For repeated seeds, or a policy folder that exists already without ``overwrite``.
 
     Returns
     -------
@@ -430,9 +439,12 @@ def train_seeds(
     seeds = [int(s) for s in seeds]
     if len(set(seeds)) != len(seeds) or not seeds:
         raise ValueError(f"seeds must be distinct and at least one, got {seeds}")
+    folders = [Path(out_root) / f"ppo-seed{seed}" for seed in seeds]
+    if not overwrite:
+        refuse_existing_policies(folders)
     tasks = [
-        (seed, total_steps, str(Path(out_root) / f"ppo-seed{seed}"), train_kwargs)
-        for seed in seeds
+        (seed, total_steps, str(folder), train_kwargs)
+        for seed, folder in zip(seeds, folders, strict=True)
     ]
     return run_tasks(
         _train_task,
@@ -443,3 +455,13 @@ def train_seeds(
         labels=[f"ppo seed {s}" for s in seeds],
         progress=progress,
     )
+
+
+def refuse_existing_policies(folders: Sequence[str | Path]) -> None:
+    """Raise ValueError naming the folders that hold a policy already (nothing is trained)."""
+    taken = [str(f) for f in folders if (Path(f) / "policy.json").exists()]
+    if taken:
+        raise ValueError(
+            f"{', '.join(taken)} hold(s) a trained policy already; choose another --out or pass "
+            "--overwrite to replace it"
+        )

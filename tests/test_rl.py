@@ -253,3 +253,21 @@ def test_seeds_trained_in_worker_processes_equal_train_ppo(trained, tmp_path):
     assert (folders[1] / "weights.npz").read_bytes() != (trained / "weights.npz").read_bytes()
     with pytest.raises(ValueError, match="distinct"):
         train_seeds([1, 1], 256, tmp_path)
+
+
+def test_train_seeds_refuses_to_overwrite_a_policy_before_training(tmp_path, monkeypatch):
+    from piezo_rl.ppo import train_seeds
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("training started")
+
+    monkeypatch.setattr("piezo_parallel.backends.run_tasks", refuse)
+    (tmp_path / "ppo-seed1").mkdir()
+    (tmp_path / "ppo-seed1" / "policy.json").write_text("{}")
+    with pytest.raises(ValueError, match="ppo-seed1 hold"):
+        train_seeds([0, 1], 10, tmp_path)
+    from piezo_cli.main import main
+
+    (tmp_path / "single").mkdir()
+    (tmp_path / "single" / "policy.json").write_text("{}")
+    assert main(["train-rl", "--out", str(tmp_path / "single"), "--steps", "10"]) == 2
