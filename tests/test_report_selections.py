@@ -1,7 +1,7 @@
 """Report and figures over any selection of controllers, references and plants.
 
 A hand-made result (no episodes run) stands in for a benchmark, so that every selection a user
-can ask for is drawn in a second; warnings are errors here (an empty figure warns).
+can ask for is drawn in a second; user warnings are errors here (an empty figure warns).
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ SELECTIONS = {
 def test_every_selection_gets_a_report_and_the_figures_it_can_show(selection, tmp_path):
     result = _result(*SELECTIONS[selection])
     with warnings.catch_warnings():
-        warnings.simplefilter("error")
+        warnings.simplefilter("error", UserWarning)
         paths = write_benchmark(result, tmp_path, META)
     text = (tmp_path / "benchmark.md").read_text()
     assert text.startswith("# Closed-loop benchmark")
