@@ -201,12 +201,16 @@ class LinearMPC(Controller):
         return solver
 
     def _reset(self, observation: np.ndarray | None) -> None:
-        self.observer.reset()
+        """Start from the steady state that holds the first measurement (rest at 0 V within
+        the noise bound: :meth:`PredictionModel.steady_start`)."""
+        y0 = 0.0 if observation is None else float(observation[0])
+        start = self.model.steady_start(y0, self.task.noise_bound_um)
+        self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
         self._solver = self._setup_solver()
-        self._plan = np.zeros(self.settings.horizon)
+        self._plan = np.full(self.settings.horizon, start.z)
         self._duals: np.ndarray | None = None
-        self._z_prev = 0.0
-        self._memory = self.model.nonlinearity.initial_state()
+        self._z_prev = start.z
+        self._memory = start.memory
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))

@@ -200,12 +200,16 @@ class NonlinearMPC(Controller):
     # -- episode ------------------------------------------------------------------------------
 
     def _reset(self, observation: np.ndarray | None) -> None:
+        """Start from the steady state that holds the first measurement (rest at 0 V within
+        the noise bound: :meth:`PredictionModel.steady_start`)."""
         if self.settings.solver == "rti":
             self._setup_qp()  # afresh: no adapted step size or duals carry over episodes
-        self.observer.reset()
-        self._plan = np.zeros(self.settings.horizon)
-        self._u_prev = 0.0
-        self._memory = self.model.nonlinearity.initial_state()
+        y0 = 0.0 if observation is None else float(observation[0])
+        start = self.model.steady_start(y0, self.task.noise_bound_um)
+        self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
+        self._plan = np.full(self.settings.horizon, start.u)
+        self._u_prev = start.u
+        self._memory = start.memory
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))

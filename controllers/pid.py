@@ -156,9 +156,6 @@ class PIDController(Controller):
         self._b0, self._b1, self._b2 = (float(v) for v in num)
         self._a1, self._a2 = float(den[1]), float(den[2])
         self._g_aw = self.settings.antiwindup_gain
-        m = self.model
-        self._steady_state = np.linalg.solve(np.eye(m.n_states) - m.a, m.b[:, 0])  # per unit z
-        self._dc_gain = float(m.c[0] @ self._steady_state)
 
     def _setup_feedforward(self) -> None:
         """Stable (or regularised) one-step inverse of the linear model."""
@@ -175,24 +172,18 @@ class PIDController(Controller):
         self.max_zero_magnitude = float(np.abs(zeros).max()) if zeros.size else 0.0
 
     def _reset(self, observation: np.ndarray) -> None:
-        """Start from rest, or, when the first measurement is beyond the noise bound (an env
-        reset with ``initial_voltage``), from the model's steady state that holds it."""
-        y0 = float(observation[0])
-        if abs(y0) <= self.task.noise_bound_um:
-            y0 = 0.0  # within the noise, rest is the best estimate of the plant's state
-        nonlinearity = self.model.nonlinearity
-        state, u0, z0 = nonlinearity.initial_state(), 0.0, y0 / self._dc_gain
-        if y0:
-            held = nonlinearity.inverse(z0, state)
-            state, u0 = held.state, held.u
+        """Start from the model's steady state that holds the first measurement (rest at 0 V
+        within the noise bound; see :meth:`PredictionModel.steady_start`): a bumpless start
+        after an env reset with ``initial_voltage``."""
+        start = self.model.steady_start(float(observation[0]), self.task.noise_bound_um)
         self._deriv = 0.0
         if self.settings.feedforward:
-            self._x_ff = self._steady_state * z0
-            self._nl_state = state
+            self._x_ff = start.x
+            self._nl_state = start.memory
             self._integral = 0.0
             self._e_prev = float(self.model.c[0] @ self._x_ff) - float(observation[0])
         else:
-            self._integral = u0  # the PID's output is the voltage that holds y0
+            self._integral = start.u  # the PID's output is the voltage that holds y0
             self._e_prev = float(observation[2]) - float(observation[0])
         self._hold_notch(self._integral)
 

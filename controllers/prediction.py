@@ -140,6 +140,28 @@ class PlantHysteresis:
 
 
 @dataclass(frozen=True)
+class SteadyStart:
+    """A steady state of the model (:meth:`PredictionModel.steady_start`).
+
+    Attributes
+    ----------
+    x : numpy.ndarray
+        Linear state (n,).
+    z : float
+        Hidden input holding it (equivalent V).
+    u : float
+        Voltage reaching z (V).
+    memory : numpy.ndarray
+        The nonlinearity's memory state after that voltage.
+    """
+
+    x: np.ndarray
+    z: float
+    u: float
+    memory: np.ndarray
+
+
+@dataclass(frozen=True)
 class PredictionModel:
     """Input nonlinearity in series with a discrete linear state space (z -> um).
 
@@ -194,6 +216,24 @@ class PredictionModel:
         u_max = plant.rated_voltage
         nonlinearity = PlantHysteresis(plant.hysteresis, (-u_max, u_max))
         return cls(a, b, c, plant.dt, nonlinearity, "plant", _z_bounds(nonlinearity))
+
+    def steady_start(self, y0: float, noise_bound_um: float) -> SteadyStart:
+        """The model at rest holding the first measured deflection ``y0`` (um).
+
+        A controller sees only the observation; after an env reset with ``initial_voltage``
+        the first measurement is the only sign that the bender is not at rest at 0 V. Within
+        the sensor noise bound, rest at 0 V is the best estimate; beyond it, the steady state
+        whose output is y0: z0 = y0 / (DC gain), x0 = (I - A)^-1 B z0, and the voltage that
+        reaches z0 from the nonlinearity's initial memory (for rate-independent memory, the
+        state a slow approach to that voltage leaves).
+        """
+        memory = self.nonlinearity.initial_state()
+        if abs(y0) <= noise_bound_um:
+            return SteadyStart(np.zeros(self.n_states), 0.0, 0.0, memory)
+        per_z = np.linalg.solve(np.eye(self.n_states) - self.a, self.b[:, 0])
+        z0 = y0 / float(self.c[0] @ per_z)
+        held = self.nonlinearity.inverse(z0, memory)
+        return SteadyStart(per_z * held.z, held.z, held.u, held.state)
 
     def simulate(self, u: np.ndarray) -> np.ndarray:
         """Deflection (um) after each voltage of ``u`` (V), from rest: y[t] follows u[t]."""
