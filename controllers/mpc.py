@@ -57,7 +57,23 @@ def qp_matrices(model: PredictionModel, settings: MPCSettings) -> tuple[np.ndarr
     if settings.slope_std > 0:  # d_t+k = d_t + k s_t
         columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
     scale = 1.0 / float(np.max(np.diag(hessian)))
+    _check_well_posed(hessian * scale, float(gamma[0, 0]), lam)
     return hessian * scale, scale * np.hstack([*columns, -gamma.T, first])
+
+
+def _check_well_posed(hessian: np.ndarray, cb: float, rate_weight: float) -> None:
+    """Raise ValueError when the QP has no unique minimiser (a singular Hessian).
+
+    That happens when some move reaches no predicted output and nothing else weighs it: a
+    model with C B = 0 (its output lags the input by two samples or more) and rate_weight = 0
+    leaves the last move of the horizon free.
+    """
+    if np.linalg.cond(hessian) < 1e12:
+        return
+    raise ValueError(
+        f"the MPC's QP is singular (rate_weight = {rate_weight:g}, the model's first Markov "
+        f"parameter C B = {cb:.3g}): some moves reach no predicted output; set rate_weight > 0"
+    )
 
 
 def prediction_matrices(

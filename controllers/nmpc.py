@@ -56,7 +56,10 @@ from controllers.prediction import IdentifiedNLS, PredictionModel
 from controllers.settings import USABLE_OSQP_STATUS, check_settings
 from controllers.task import ControlTask
 
-__all__ = ["NMPCSettings", "NonlinearMPC"]
+__all__ = ["KEPT", "NMPCSettings", "NonlinearMPC"]
+
+KEPT = "kept-last-iterate"
+"""Status of a step whose later SQP iteration failed: the previous iterate is applied."""
 
 _SOLVERS = ("rti", "ipopt")
 _OBSERVER = MPCSettings()  # one home for the observer tuning shared with the linear MPC
@@ -290,10 +293,14 @@ class NonlinearMPC(Controller):
     def _solve_rti(
         self, offset: np.ndarray, u_bar: np.ndarray
     ) -> tuple[np.ndarray | None, str, int]:
-        """Gauss-Newton SQP from ``u_bar``: (plan or None on failure, status, QP iterations)."""
+        """Gauss-Newton SQP from ``u_bar``: (plan or None on failure, status, QP iterations).
+
+        A QP that fails after the first iteration leaves the last good iterate as the plan
+        (status ``kept-last-iterate``): it is a real SQP iterate, not a fallback.
+        """
         s = self.settings
         w, total, status = s.tracking_weight, 0, "solved"
-        for _ in range(s.sqp_iterations):
+        for iteration in range(s.sqp_iterations):
             z, jac_z = self.horizon.linearize(u_bar, self._memory)
             jac_y = self._gamma @ jac_z
             constant = offset + self._gamma @ z - jac_y @ u_bar
@@ -303,7 +310,7 @@ class NonlinearMPC(Controller):
             u_new, status, iterations = self._solve_qp(hessian, q, u_bar)
             total += iterations
             if u_new is None:
-                return None, status, total
+                return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
             step = float(np.max(np.abs(u_new - u_bar)))
             u_bar = u_new
             if step <= s.step_tolerance:

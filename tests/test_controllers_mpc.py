@@ -216,3 +216,13 @@ def test_a_reused_controller_equals_a_fresh_one(env, name, model):
     )
     assert sum(reused.stats.status.values()) == 300
     np.testing.assert_array_equal(again.voltage_V, fresh.voltage_V)
+
+
+def test_a_singular_qp_is_refused_with_the_fix():
+    """C B = 0 (two-sample lag) and no rate weight: the last move reaches no output."""
+    a = np.array([[0.5, 0.0], [1.0, 0.0]])
+    b, c = np.array([[1.0], [0.0]]), np.array([[0.0, 1.0]])
+    lagged = PredictionModel(a, b, c, 1e-3, AffineNonlinearity(), "identified", (-59.0, 61.0))
+    with pytest.raises(ValueError, match="set rate_weight > 0"):
+        LinearMPC(lagged, TASK, MPCSettings(rate_weight=0.0))
+    LinearMPC(lagged, TASK, MPCSettings(rate_weight=1e-2))  # well posed with a rate weight

@@ -166,3 +166,32 @@ def test_bad_settings_and_options_are_refused(env):
     controller = controllers.make("nmpc", MODEL_DIR, env, horizon=5)
     with pytest.raises(ValueError, match="observation"):
         controller.reset(np.zeros(3))
+
+
+def test_a_failing_second_sqp_iteration_keeps_the_first_iterate(model, env):
+    from controllers.nmpc import KEPT
+
+    task = ControlTask.from_env(env)
+    settings = NMPCSettings(horizon=5, sqp_iterations=2, step_tolerance=0.0, shortcut=False)
+    controller = NonlinearMPC(model, task, settings)
+    solve = controller._solve_qp
+    calls = {"n": 0, "first": []}
+
+    def second_fails(hessian, q, u_bar):
+        calls["n"] += 1
+        if calls["n"] % 2 == 0:
+            return None, "maximum iterations reached", 1
+        result = solve(hessian, q, u_bar)
+        calls["first"].append(result[0][0])
+        return result
+
+    controller._solve_qp = second_fails
+    steps = 12
+    episode = controllers.run_episode(
+        env, controller, seed=0, reference=sine(steps, 300.0, 10.0), max_steps=steps
+    )
+    assert controller.stats.fallbacks == 0
+    assert controller.stats.status[KEPT] == steps
+    np.testing.assert_allclose(
+        episode.voltage_V, np.float32(np.clip(calls["first"], -30, 30)), rtol=0, atol=1e-5
+    )
