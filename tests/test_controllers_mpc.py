@@ -7,6 +7,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import scipy.optimize
 import scipy.signal
 
 import controllers
@@ -226,3 +227,47 @@ def test_a_singular_qp_is_refused_with_the_fix():
     with pytest.raises(ValueError, match="set rate_weight > 0"):
         LinearMPC(lagged, TASK, MPCSettings(rate_weight=0.0))
     LinearMPC(lagged, TASK, MPCSettings(rate_weight=1e-2))  # well posed with a rate weight
+
+
+class NarrowFirstMove(AffineNonlinearity):
+    """The first move can reach less than the later ones (a memory state near the rail)."""
+
+    def reachable(self, state: np.ndarray) -> tuple[float, float]:
+        return -4.0, 6.0
+
+
+@pytest.mark.parametrize("shortcut", [True, False])
+def test_constrained_plan_equals_bounded_least_squares(shortcut):
+    """Bounds binding, first-move bounds narrower than the rest: OSQP's plan against
+    scipy's bounded-variable least squares (lsq_linear, an independent active-set solver)."""
+    base = synthetic_model()
+    model = PredictionModel(base.a, base.b, base.c, base.dt, NarrowFirstMove(), "identified",
+                            (-59.0, 61.0))
+    horizon, lam = 8, 0.05
+    settings = MPCSettings(horizon=horizon, rate_weight=lam, shortcut=shortcut,
+                           eps_abs=1e-10, eps_rel=1e-10, max_iter=50000)
+    mpc = LinearMPC(model, TASK, settings)
+    rng = np.random.default_rng(7)
+    system = (model.a, model.b, model.c, np.zeros((1, 1)), model.dt)
+    for _ in range(4):
+        x0, d = rng.normal(0.0, 5.0, model.n_states), rng.normal(0.0, 3.0)
+        targets = rng.uniform(150.0, 250.0, horizon)  # far: the unconstrained plan leaves the box
+        mpc._z_prev = z_prev = rng.uniform(-5.0, 5.0)
+        got = mpc._solve(np.r_[x0, d], targets)
+
+        def outputs(z, x0=x0, d=d):
+            return scipy.signal.dlsim(system, np.r_[z, 0.0], x0=x0)[1][1:, 0] + d
+
+        free = outputs(np.zeros(horizon))
+        columns = np.column_stack([outputs(np.eye(horizon)[j]) - free for j in range(horizon)])
+        diff = np.eye(horizon) - np.eye(horizon, k=-1)
+        matrix = np.vstack([columns, np.sqrt(lam) * diff])
+        rhs = np.r_[targets - free, np.sqrt(lam) * z_prev * np.eye(horizon)[0]]
+        low, high = np.full(horizon, -59.0), np.full(horizon, 61.0)
+        low[0], high[0] = -4.0, 6.0
+        expected = scipy.optimize.lsq_linear(matrix, rhs, bounds=(low, high), tol=1e-14).x
+        assert expected[0] == pytest.approx(6.0)  # the first-move bound binds ...
+        assert expected[1] > 6.5  # ... and the later moves use their wider range
+        # Measured: 2.5e-9 on the first move, 5.1e-7 over the plan (OSQP at eps 1e-10).
+        assert got == pytest.approx(expected[0], abs=1e-8)
+        np.testing.assert_allclose(mpc._plan, expected, atol=3e-6)
