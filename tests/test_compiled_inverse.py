@@ -18,7 +18,7 @@ casadi = pytest.importorskip("casadi")
 
 MODEL_DIR = Path(__file__).resolve().parents[1] / "docs" / "identify" / "model"
 U_RANGE = (-30.0, 30.0)
-TOL = 1e-6  # V, the inverse's accuracy target
+TOL = 5e-7  # V: measured differences up to 9e-8 V (shipped model), 1e-6 V the accuracy target
 
 
 @pytest.fixture(scope="module")

@@ -141,7 +141,8 @@ def test_episode_finite_in_range_and_deterministic(name, built, env):
     assert np.isfinite(first.voltage_V).all() and np.isfinite(first.deflection_um).all()
     assert np.abs(first.voltage_V).max() <= u_max
     np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
-    assert first.metrics["rmse_percent"] < 20.0
+    # Measured 16.2 / 0.26 / 0.038 % (pure-I PID, notch, feedforward), limits about 1.5x.
+    assert first.metrics["rmse_percent"] < {"pid": 20.0, "pid-notch": 0.4, "pid-ff": 0.06}[name]
     assert sum(controller.stats.status.values()) == 300
     info = first.controller
     assert {"gains", "ms", "gain_margin_db", "phase_margin_deg", "bandwidth_hz"} <= set(info)
@@ -157,7 +158,7 @@ def test_feedforward_tracks_far_better_than_feedback(built, env):
         for name in PRESETS
     }
     assert rmse["pid-ff"] < rmse["pid-notch"] < rmse["pid"]
-    assert rmse["pid-ff"] < 0.2
+    assert rmse["pid-ff"] < 0.06  # measured 0.037 %
 
 
 @pytest.mark.parametrize(
