@@ -167,9 +167,11 @@ def bouc_wen_jump(h: float, du: float, ak: float, beta: float, gamma: float) -> 
         if d <= d0:
             return s * (g + ak * d)
     else:
-        d0 = math.log(1.0 - lam * g / ak) / lam
+        # log1p and expm1: with beta close to gamma, ak / lam is huge and the textbook form
+        # ak/lam + (g - ak/lam) e^(-lam d) cancels it away (seen: 3e-5 V steps in u_eff).
+        d0 = math.log1p(-lam * g / ak) / lam
         if d <= d0:
-            return s * (ak / lam + (g - ak / lam) * math.exp(-lam * d))
+            return s * (g * math.exp(-lam * d) - ak * math.expm1(-lam * d) / lam)
     return s * (ak / rate) * -math.expm1(-rate * (d - d0))
 
 
@@ -237,10 +239,11 @@ class BoucWenBatch:
         flat = np.abs(lam) < _LINEAR_LAMBDA
         negative = g < 0.0
         with np.errstate(divide="ignore", invalid="ignore"):
-            d0 = np.where(negative, np.log(1.0 - lam * g / ak) / lam, 0.0)
+            d0 = np.where(negative, np.log1p(-lam * g / ak) / lam, 0.0)
             d0 = np.where(flat, np.where(negative, -g / ak, 0.0), d0)
             climb = np.minimum(d, d0)
-            curved = ak / lam + (g - ak / lam) * np.exp(-lam * climb)
+            # The cancellation-free form of ak/lam + (g - ak/lam) e^(-lam climb).
+            curved = g * np.exp(-lam * climb) - ak * np.expm1(-lam * climb) / lam
         g = np.where(negative, np.where(flat, g + ak * climb, curved), g)
         g[negative & (d > d0)] = 0.0
         return g, d - climb
@@ -268,8 +271,9 @@ def bouc_wen_casadi(h: Any, du: Any, ak: float, beta: float, gamma: float) -> An
         climb = casadi.fmin(d, casadi.fmax(-g, 0.0) / ak)
         g1 = g + ak * climb
     else:
-        d0 = casadi.if_else(g < 0, casadi.log(casadi.fmax(1.0 - lam * g / ak, 1.0)) / lam, 0.0)
+        d0 = casadi.if_else(g < 0, casadi.log1p(casadi.fmax(-lam * g / ak, 0.0)) / lam, 0.0)
         climb = casadi.fmin(d, d0)
-        g1 = casadi.if_else(g < 0, ak / lam + (g - ak / lam) * casadi.exp(-lam * climb), g)
+        curved = g * casadi.exp(-lam * climb) - ak * casadi.expm1(-lam * climb) / lam
+        g1 = casadi.if_else(g < 0, curved, g)
     g_inf = ak / rate
     return s * (g_inf + (g1 - g_inf) * casadi.exp(-rate * (d - climb)))
