@@ -1,0 +1,241 @@
+"""The README's numbers, generated from the committed results, never typed by hand.
+
+``python -m benchmarks.readme`` rewrites the parts of README.md between marker comments
+(``<!-- NAME:begin -->`` .. ``<!-- NAME:end -->``):
+
+- ``headline`` from ``docs/benchmark/benchmark.json`` (``python -m benchmarks.tracking``): the
+  nominal RMSE table (winners bold, near ties not), each controller's median step time, and the
+  bad news of the same run (worst cases on random plants and on the robustness plants, what
+  identification costs, the reference checks that were missed);
+- ``identification`` from ``docs/identify/report.json`` (``piezo identify --out docs/identify``).
+
+``--check`` only compares (a test runs it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "BLOCKS",
+    "bad_news",
+    "headline",
+    "headline_table",
+    "identification",
+    "render",
+    "update_readme",
+]
+
+ROOT = Path(__file__).resolve().parents[1]
+TIE = 0.02
+"""Relative RMSE difference called a tie (as in the report)."""
+
+_LABELS = {"mpc": "`mpc` (OSQP)", "nmpc": "`nmpc` (casadi, RTI)"}
+
+
+def _nominal(data: dict[str, Any]) -> dict[tuple[str, str], float]:
+    return {
+        (e["controller"], e["reference"]): e["rmse_percent"]
+        for e in data["results"]["episodes"]
+        if e["plant"] == "nominal"
+    }
+
+
+def _rows(data: dict[str, Any]) -> tuple[list[str], dict[str, list[str]]]:
+    """Row names in order, with the seeds of each trained recipe gathered in one row."""
+    config = data["results"]["config"]
+    recipes: dict[str, list[str]] = {}
+    for folder in config.get("policies", []):
+        label = Path(folder).name
+        recipes.setdefault(re.sub(r"-seed\d+$", "", label), []).append(label)
+    labels = {f"{name.upper()}, {len(m)} seeds": m for name, m in recipes.items()}
+    return list(config["controllers"]) + list(labels), labels
+
+
+def headline_table(data: dict[str, Any]) -> str:
+    """Nominal RMSE (% of the full stroke) per controller and reference, and step medians."""
+    rmse = _nominal(data)
+    refs = list(data["results"]["config"]["references"])
+    rows, members = _rows(data)
+    steps = {}
+    for t in data["timing"]:
+        if t["plant"] == "nominal":
+            steps.setdefault(t["controller"], []).append(t["compute_median_us"])
+
+    def values(row: str, ref: str) -> list[float]:
+        names = members.get(row, [row])
+        return [rmse[(n, ref)] for n in names if (n, ref) in rmse]
+
+    best = {}
+    for ref in refs:
+        single = {r: values(r, ref)[0] for r in rows if r not in members and values(r, ref)
+                  and not r.endswith("-oracle")}
+        if single:
+            low = min(single.values())
+            tied = [r for r, v in single.items() if v <= low * (1 + TIE)]
+            best[ref] = tied[0] if len(tied) == 1 else None
+    head = "| controller | " + " | ".join(refs) + " | step median (us) |"
+    lines = [head, "|---" * (len(refs) + 2) + "|"]
+    for row in rows:
+        cells = []
+        for ref in refs:
+            v = values(row, ref)
+            if not v:
+                cells.append("")
+            elif len(v) > 1:
+                cells.append(f"{np.mean(v):.2f} +- {np.std(v, ddof=1):.2f}")
+            else:
+                text = f"{v[0]:.3f}"
+                cells.append(f"**{text}**" if best.get(ref) == row else text)
+        medians = [m for n in members.get(row, [row]) for m in steps.get(n, [])]
+        step = f"{np.median(medians):.0f}" if medians else ""
+        label = _LABELS.get(row, f"`{row}`" if row not in members else row)
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {step} |")
+    return "\n".join(lines)
+
+
+def bad_news(data: dict[str, Any]) -> list[str]:
+    """What the same run says against the project: one line each, worst first."""
+    episodes = data["results"]["episodes"]
+    news = []
+    random = [e for e in episodes if e["plant"] == "random-plants"]
+    for row in ("mpc", "pid-ff"):
+        worst = max((e for e in random if e["controller"] == row),
+                    key=lambda e: e["rmse_percent"], default=None)
+        if worst is not None and worst["rmse_percent"] > 1.0:
+            n = sum(1 for e in random if e["controller"] == row and e["reference"] ==
+                    worst["reference"])
+            news.append(
+                f"`{row}` on plants drawn from the datasheet tolerances: worst "
+                f"{worst['rmse_percent']:.1f} % on {worst['reference']} (of {n} draws)."
+            )
+    worst: dict[str, dict[str, Any]] = {}
+    for e in episodes:
+        if e["plant"] in ("nominal", "random-plants") or e["rmse_percent"] <= 1.0:
+            continue
+        row = e["controller"]
+        if row in ("pid-notch", "pid-ff", "mpc", "nmpc") and (
+            row not in worst or e["rmse_percent"] > worst[row]["rmse_percent"]
+        ):
+            worst[row] = e
+    if worst:
+        listed = ", ".join(
+            f"`{c}` {e['rmse_percent']:.3g} % ({e['plant']}, {e['reference']})"
+            for c, e in sorted(worst.items(), key=lambda item: -item[1]["rmse_percent"])
+        )
+        news.append(f"Worst case of each controller on the robustness plants: {listed}.")
+    rmse = _nominal(data)
+    ratios = [rmse[("mpc", r)] / rmse[("mpc-oracle", r)] for (c, r) in rmse
+              if c == "mpc" and ("mpc-oracle", r) in rmse and "step" not in r]
+    if ratios:
+        news.append(
+            f"Identification costs {min(ratios):.1f}-{max(ratios):.1f}x the oracle's RMSE on "
+            "smooth references (`mpc` against `mpc-oracle`)."
+        )
+    missed = [c for c in data.get("targets", []) if not c["holds"]]
+    if missed:
+        news.append(
+            f"{len(missed)} of {len(data['targets'])} of the project's own reference checks "
+            "were missed in this run, e.g. "
+            + "; ".join(f"{c['target']}: {c['value']:.3g} (limit {c['limit']:.3g})"
+                        for c in missed[:3])
+            + "."
+        )
+    return news
+
+
+def headline(data: dict[str, Any]) -> str:
+    """The whole generated block: date and machine, table, bad news."""
+    machine = data["meta"]["machine"]
+    lines = [
+        f"Committed run of {machine['date']} on {machine['processor']}, {machine['cores']} "
+        "cores (generated by `python -m benchmarks.readme` from "
+        "[docs/benchmark/benchmark.json](docs/benchmark/benchmark.json)):",
+        "",
+        headline_table(data),
+        "",
+        "The bad news of the same run:",
+        "",
+        *[f"- {line}" for line in bad_news(data)],
+    ]
+    return "\n".join(lines)
+
+
+def identification(report: dict[str, Any]) -> str:
+    """The identification figures of the committed ``piezo identify`` report."""
+    validation, arx, inversion = report["validation"], report["arx"], report["inversion"]
+    rows = [("Hammerstein (identified)", validation["hammerstein"]),
+            ("linear ARX alone", validation["linear_arx"])]
+    table = ["| model | fit % | RMSE (um) | max error (um) |", "|---|---|---|---|"]
+    table += [f"| {name} | {m['fit_percent']:.2f} | {m['rmse']:.1f} | {m['max_abs_error']:.1f} |"
+              for name, m in rows]
+    return "\n".join([
+        f"Default PL140, validation on {validation['signal']}, free run (generated from "
+        "[docs/identify/report.json](docs/identify/report.json)):",
+        "",
+        *table,
+        "",
+        f"ARX order {arx['order']} (chosen by held-out free-run fit). Under white PRBS the ARX "
+        "equation error is dominated by the unmodelled higher bending modes, so the estimated "
+        f"noise bound r_hat ({arx['noise_bound_um']:.2f} um against "
+        f"{report['config']['env_kwargs']['noise_bound']:g} um of sensor noise) measures model "
+        "error more than sensor noise. The hidden signal z_hat of step d) carries that error "
+        f"filtered by 1/B: at most r_hat ||1/B||_1 = {inversion['z_error_bound_V']:.2f} V, RMS "
+        f"r_hat / sqrt(3) ||1/B||_2 = {inversion['z_error_rms_V']:.2f} V for independent "
+        "uniform noise (equivalent V). Identification took "
+        f"{report['timings_s']['total']:.0f} s, most of it the network's training.",
+    ])
+
+
+BLOCKS = {
+    "headline": ("docs/benchmark/benchmark.json", headline),
+    "identification": ("docs/identify/report.json", identification),
+}
+"""Marker name -> (the committed file it is generated from, the function that renders it)."""
+
+
+def render(readme: str, root: Path = ROOT) -> str:
+    """``readme`` with every generated block replaced (ValueError for missing markers)."""
+    for name, (source, make) in BLOCKS.items():
+        begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+        start, stop = readme.find(begin), readme.find(end)
+        if start < 0 or stop < start:
+            raise ValueError(f"README.md needs the markers {begin} and {end}")
+        data = json.loads((root / source).read_text(encoding="utf-8"))
+        readme = readme[: start + len(begin)] + "\n" + make(data) + "\n" + readme[stop:]
+    return readme
+
+
+def update_readme(readme: Path, root: Path = ROOT, *, check: bool = False) -> bool:
+    """Rewrite (or with ``check`` only compare) the README's blocks; True when up to date."""
+    text = readme.read_text(encoding="utf-8")
+    fresh = render(text, root)
+    if fresh == text:
+        return True
+    if not check:
+        readme.write_text(fresh, encoding="utf-8")
+    return False
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.readme", description=__doc__)
+    parser.add_argument("--check", action="store_true", help="only compare; exit 1 if stale")
+    args = parser.parse_args(argv)
+    current = update_readme(ROOT / "README.md", check=args.check)
+    if args.check and not current:
+        print("README.md's generated blocks differ from the committed results; run "
+              "python -m benchmarks.readme", file=sys.stderr)
+        return 1
+    print("README.md is up to date" if current else "README.md: generated blocks rewritten")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
