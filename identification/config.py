@@ -1,0 +1,121 @@
+"""The settings of the identification procedure, each default held once."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from identification.features import FEATURE_SETS
+from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
+from piezo_env.task import TaskConfig
+
+__all__ = ["ORDER_TIE_PERCENT", "IdentificationConfig"]
+
+ORDER_TIE_PERCENT = 0.25
+"""Held-out fits (percentage points) this close to the best count as a tie between orders."""
+
+
+@dataclass(frozen=True)
+class IdentificationConfig:
+    """Settings of :func:`identify` (validated at construction).
+
+    Attributes
+    ----------
+    seed : int
+        Seeds every signal, the environment and the network training.
+    env_kwargs : dict
+        Keyword arguments of PiezoBender-v0 (``reference`` is always None here).
+    prbs_amplitude : float
+        PRBS level C_P (V). The paper's 1 V keeps the ringing first mode well inside the stroke
+        (a white +-30 V PRBS would drive a PL140 to ~11x its rated deflection).
+    prbs_clock : int
+        PRBS clock period (samples).
+    prbs_samples : int
+        Length of the PRBS record; its last quarter scores the candidate orders.
+    orders : tuple of int
+        Candidate ARX orders n (na = nb = n), scored by free-run fit on the last quarter of the
+        PRBS record; near-ties (ORDER_TIE_PERCENT) go to the larger order.
+    rich_signal : str
+        Rich excitation for the NLS: ``"sine"`` (paper), ``"multisine"``, ``"random"``, ...
+    rich_amplitude : float
+        Its amplitude (V).
+    rich_params : dict or None
+        Further parameters of the rich signal (e.g. frequency, Hz); None: 5 Hz for the sine,
+        ``piezo_env.signals.SIGNAL_DEFAULTS`` for the others.
+    rich_samples : int
+        Length of the rich record.
+    features : str
+        NLS memory features: ``"auto"`` (chosen on the selection record), or one of
+        ``"play"``, ``"past-inputs"``, ``"bouc-wen"``.
+    hidden : tuple of int
+        Hidden layer widths of the NLS network (three tanh layers in the paper).
+    max_epochs : int
+        Training epochs at most (early stopping on a validation split).
+    validation_amplitude : float
+        RAND amplitude C_R (V) of the selection and validation records.
+    validation_hold : int
+        RAND hold (samples).
+    validation_samples : int
+        Length of the validation record.
+    """
+
+    seed: int = 0
+    env_kwargs: dict = field(default_factory=dict)
+    prbs_amplitude: float = 1.0
+    prbs_clock: int = 1
+    prbs_samples: int = 8000
+    orders: tuple[int, ...] = (2, 3, 4, 5, 6)
+    rich_signal: str = "sine"
+    rich_amplitude: float = 30.0
+    rich_params: dict | None = None
+    rich_samples: int = 12000
+    features: str = "auto"
+    hidden: tuple[int, ...] = (32, 32, 32)
+    max_epochs: int = 200
+    validation_amplitude: float = 30.0
+    validation_hold: int = 10
+    validation_samples: int = 6000
+
+    def __post_init__(self) -> None:
+        if self.features != "auto" and self.features not in FEATURE_SETS:
+            raise ValueError(
+                f"features must be 'auto' or one of {FEATURE_SETS}, got {self.features!r}"
+            )
+        if not self.orders or not all(isinstance(n, int) and n >= 1 for n in self.orders):
+            raise ValueError(f"orders must be positive integers, got {self.orders!r}")
+        if not self.hidden or not all(isinstance(h, int) and h >= 1 for h in self.hidden):
+            raise ValueError(f"hidden must be positive layer widths, got {self.hidden!r}")
+        for name in ("prbs_samples", "rich_samples", "validation_samples"):
+            if getattr(self, name) < 200:
+                raise ValueError(f"{name} must be at least 200 samples, got {getattr(self, name)}")
+        for name in ("prbs_clock", "validation_hold", "max_epochs"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        for name in ("prbs_amplitude", "rich_amplitude", "validation_amplitude"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number of volts, got {value!r}")
+        if "reference" in self.env_kwargs:
+            raise ValueError("env_kwargs must not set 'reference': identification runs open loop")
+        # Build a few samples of the rich signal now, so that a wrong name or parameter fails
+        # here and not after the PRBS experiment.
+        make_signal(
+            self.rich_signal,
+            16,
+            dt=float(self.env_kwargs.get("dt", TaskConfig().dt)),
+            rng=np.random.default_rng(0),
+            amplitude=self.rich_amplitude,
+            **self.rich_signal_params(),
+        )
+
+    def rich_signal_params(self) -> dict:
+        """Parameters of the rich signal besides its amplitude."""
+        if self.rich_params is not None:
+            return dict(self.rich_params)
+        if self.rich_signal == "sine":
+            return {"frequency": 5.0}
+        return dict(SIGNAL_DEFAULTS.get(self.rich_signal, {}))

@@ -1,0 +1,199 @@
+"""What an identification run returns and writes: the result, its report (JSON-safe) and files.
+
+:func:`write_outputs` writes the model folder, ``report.json``, ``report.md`` and the figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from identification.config import IdentificationConfig
+from identification.hammerstein import HammersteinModel
+from identification.steps import ArxEstimate, HiddenSignal, NlsFit, Validation, sample_time
+
+__all__ = [
+    "IdentificationResult",
+    "build_report",
+    "complex_list",
+    "figure_data",
+    "jsonable",
+    "model_metadata",
+    "write_outputs",
+]
+
+
+@dataclass
+class IdentificationResult:
+    """Output of :func:`identify`.
+
+    Attributes
+    ----------
+    model : HammersteinModel
+        The identified model (z in equivalent volts, y in um).
+    report : dict
+        Settings, estimates, metrics and timings (JSON-safe).
+    data : dict
+        The records (u, y, z_hat, simulations) for figures.
+    """
+
+    model: HammersteinModel
+    report: dict[str, Any]
+    data: dict[str, Any]
+
+
+def model_metadata(
+    env: gym.Env, config: IdentificationConfig, features: str, hidden: HiddenSignal
+) -> dict[str, Any]:
+    """What the model files record about their origin (JSON-safe)."""
+    return {
+        "bender": env.unwrapped.model.name,
+        "dt": sample_time(env),
+        "features": features,
+        "seed": config.seed,
+        "z_error_bound_V": hidden.error["z_error_bound_V"],
+        "z_error_rms_V": hidden.error["z_error_rms_V"],
+    }
+
+
+def build_report(
+    env: gym.Env,
+    config: IdentificationConfig,
+    est: ArxEstimate,
+    hidden: HiddenSignal,
+    nls: NlsFit,
+    val: Validation,
+    timings: dict[str, float],
+) -> dict[str, Any]:
+    """The JSON report of a run (keys read by the CLI, the benchmarks and report.md)."""
+    plant, arx = env.unwrapped.model, est.model
+    return {
+        "config": jsonable(asdict(config)),
+        "environment": {
+            "bender": plant.name,
+            "dt_s": plant.dt,
+            "hysteresis": plant.hysteresis.name,
+            "noise_bound_um": float(env.unwrapped.noise_bound),
+            "stroke_um": plant.stroke_um,
+        },
+        "arx": {
+            "order": est.order,
+            "order_scores_fit_percent": {str(k): v for k, v in est.order_scores.items()},
+            "a": arx.a.tolist(),
+            "b": arx.b.tolist(),
+            "noise_bound_um": arx.noise_bound,
+            "noise_bound_note": (
+                "r_hat bounds the ARX equation error: unmodelled bending modes and the sensor "
+                "noise together, so it measures model error more than sensor noise"
+            ),
+            "static_gain_um_per_V": arx.static_gain(),
+            "poles": complex_list(arx.poles()),
+            "zeros": complex_list(arx.zeros()),
+            "minimum_phase": bool(arx.is_minimum_phase()),
+            "chebyshev": {
+                "theta": est.chebyshev.theta.tolist(),
+                "noise_bound_um": est.chebyshev.noise_bound,
+            },
+            "least_squares": {"theta": est.least_squares.theta.tolist()},
+        },
+        "inversion": {
+            "method": hidden.method,
+            **hidden.error,
+            "error_note": (
+                "z_hat - z is the ARX equation error filtered by 1/B: at most "
+                "r_hat ||1/B||_1 (z_error_bound_V), RMS r_hat/sqrt(3) ||1/B||_2 "
+                "(z_error_rms_V) for independent uniform noise; equivalent V"
+            ),
+        },
+        "nls": {
+            "features": nls.features,
+            "small_signal_gain": nls.small_signal_gain,
+            "selection_fit_percent": nls.selection_scores,
+            "training": jsonable(getattr(nls.model.nls, "training", {})),
+        },
+        "validation": {
+            "signal": f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold}",
+            "samples": len(val.u),
+            **val.metrics,
+            "rmse_ratio_hammerstein_to_arx": (
+                val.metrics["hammerstein"]["rmse"] / val.metrics["linear_arx"]["rmse"]
+            ),
+        },
+        "timings_s": timings,
+    }
+
+
+def figure_data(
+    u_prbs: np.ndarray,
+    y_prbs: np.ndarray,
+    u_rich: np.ndarray,
+    y_rich: np.ndarray,
+    hidden: HiddenSignal,
+    model: HammersteinModel,
+    val: Validation,
+) -> dict[str, Any]:
+    """The records of a run, for the figures (V, equivalent V, um; ``dt`` in s)."""
+    return {
+        "arx_history": model.arx.history,
+        "u_prbs": u_prbs,
+        "y_prbs": y_prbs,
+        "u_rich": u_rich,
+        "y_rich": y_rich,
+        "z_hat": hidden.z_rich,
+        "z_model": model.nls_output(u_rich),
+        "u_val": val.u,
+        "y_val": val.y,
+        "y_sim": val.y_sim,
+        "y_lin": val.y_lin,
+        "dt": model.dt,
+        "noise_bound": model.arx.noise_bound,
+        "z_error_bound": hidden.error["z_error_bound_V"],
+        "prediction_val": val.y_pred,
+    }
+
+
+def complex_list(values: np.ndarray) -> list[list[float]]:
+    return [[float(v.real), float(v.imag)] for v in np.asarray(values, dtype=complex)]
+
+
+def jsonable(obj: Any) -> Any:
+    """Plain JSON types (numpy scalars and arrays converted, non-finite floats as None)."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        value = float(obj)
+        return value if math.isfinite(value) else None
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.bool_,)):
+        return bool(obj)
+    return obj
+
+
+def write_outputs(result: IdentificationResult, out: str | Path) -> list[Path]:
+    """Write the model files, report.json, report.md and the figures into ``out``."""
+    from identification.figures import write_figures
+    from identification.report import markdown_report
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [result.model.save(out / "model")]
+    report_json = out / "report.json"
+    report_json.write_text(json.dumps(result.report, indent=2), encoding="utf-8")
+    figures = write_figures(result, out)
+    report_md = out / "report.md"
+    report_md.write_text(
+        markdown_report(result.report, [p.name for p in figures]), encoding="utf-8"
+    )
+    return [*paths, report_json, report_md, *figures]

@@ -1,0 +1,354 @@
+"""The steps a-f of the paper's procedure (section 3.4), one function each, and their results.
+
+:func:`collect` drives the environment open loop; its ``y[t]`` is the deflection before
+``u[t]`` is applied (the alignment of :meth:`HammersteinModel.simulate`). Every record comes
+from the environment through its Gymnasium interface, as from a real bender: the measured
+(noisy) deflection is all the identification sees.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+from numpy.typing import ArrayLike
+
+import piezo_env  # noqa: F401  (registers PiezoBender-v0)
+from identification.arx import ARXModel
+from identification.config import ORDER_TIE_PERCENT, IdentificationConfig
+from identification.estimation import fit_arx
+from identification.features import FEATURE_SETS
+from identification.hammerstein import HammersteinModel
+from identification.inversion import inverse_arx, inverse_error_bounds
+from identification.metrics import fit_metrics
+from identification.nls import fit_nls
+from piezo_env.signals import make_signal
+
+__all__ = [
+    "ArxEstimate",
+    "HiddenSignal",
+    "NlsFit",
+    "Validation",
+    "collect",
+    "estimate_arx",
+    "estimate_hidden_signal",
+    "excite_prbs",
+    "excite_rich",
+    "fit_nonlinearity",
+    "identification_env",
+    "rand_signal",
+    "sample_time",
+    "step_seeds",
+    "validate",
+]
+
+
+def collect(
+    env: gym.Env, u: ArrayLike, *, seed: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Drive ``env`` open loop with the voltage sequence ``u`` from rest; return ``(u, y)``.
+
+    Alignment: ``y[t]`` is the measured deflection *before* ``u[t]`` is applied, i.e. the
+    observation returned by ``reset`` (t = 0) or by the ``step`` that applied ``u[t-1]``. So
+    ``y[t]`` depends on ``u[t-1], u[t-2], ...`` (the ARX convention, and the convention of
+    :meth:`HammersteinModel.simulate`): compare ``model.simulate(u)`` with this ``y``. If you step
+    the env yourself with ``u`` and collect the observations *returned by step*, you get
+    ``y[1:]`` plus one more sample: a one-sample shift, which on white input costs almost all of
+    the fit. ``u[-1]`` is never applied (no output of the record would see it).
+
+    Parameters
+    ----------
+    env : gymnasium.Env
+        A ``PiezoBender-v0`` environment (or wrapper) with deflection in um as ``obs[0]``; its
+        ``reference`` should be None. Truncation flags are ignored (a record may be longer than
+        an episode).
+    u : array_like, shape (T,)
+        Drive voltage, V.
+    seed : int, optional
+        Seed of ``env.reset`` (sensor noise and initial state draws).
+
+    Returns
+    -------
+    u : numpy.ndarray, shape (T,)
+        The voltage the env applied, V: ``u`` clipped to the action space, as the amplifier
+        saturates.
+    y : numpy.ndarray, shape (T,)
+        Measured tip deflection, um, ``y[t]`` before ``u[t]``.
+
+    Raises
+    ------
+    ValueError
+        If ``u`` is not a finite 1-D sequence of at least 2 samples, or the env terminates
+        (deflection limit).
+    """
+    u = np.asarray(u, dtype=float)
+    if u.ndim != 1 or u.size < 2 or not np.all(np.isfinite(u)):
+        raise ValueError(f"u must be a finite 1-D voltage sequence of >= 2 samples; got {u!r}")
+    obs, _ = env.reset(seed=seed)
+    y = np.empty(len(u))
+    y[0] = obs[0]
+    for t in range(len(u) - 1):
+        obs, _, terminated, _, _ = env.step(np.array([u[t]], dtype=np.float32))
+        if terminated:
+            raise ValueError(
+                f"the env terminated at sample {t + 1} (deflection limit); identify on an env "
+                "without deflection_limit or with a smaller excitation"
+            )
+        y[t + 1] = obs[0]
+    return np.clip(u, env.action_space.low[0], env.action_space.high[0]), y
+
+
+# -- the steps of section 3.4 -----------------------------------------------------------------
+
+
+@dataclass
+class ArxEstimate:
+    """Result of step b.
+
+    Attributes
+    ----------
+    model : ARXModel
+        The bayes-uniform estimate on the whole PRBS record (z in V, y in um).
+    order : int
+        Chosen order n (na = nb = n).
+    order_scores : dict
+        Held-out PRBS free-run fit (%) of every candidate order.
+    chebyshev, least_squares : ARXModel
+        The exact MAP and least-squares estimates of the same order (cross-checks).
+    """
+
+    model: ARXModel
+    order: int
+    order_scores: dict[int, float]
+    chebyshev: ARXModel
+    least_squares: ARXModel
+
+
+@dataclass
+class HiddenSignal:
+    """Result of step d.
+
+    Attributes
+    ----------
+    z_rich, z_prbs : numpy.ndarray
+        Hidden signal z_hat (equivalent V) of the rich and of the PRBS record.
+    method : str
+        ``"eq25"`` or ``"regularized-deconvolution"``.
+    error : dict
+        :func:`inverse_error_bounds` of the ARX model: ``z_error_bound_V``,
+        ``z_error_rms_V`` (equivalent V), ``inverse_gain_l1``, ``inverse_gain_l2`` (V/um).
+    """
+
+    z_rich: np.ndarray
+    z_prbs: np.ndarray
+    method: str
+    error: dict[str, float | None]
+
+
+@dataclass
+class NlsFit:
+    """Result of step e.
+
+    Attributes
+    ----------
+    model : HammersteinModel
+        The selected NLS in series with the ARX model.
+    features : str
+        Its feature set.
+    selection_scores : dict
+        Free-run fit (%) on the selection record of every candidate feature set.
+    small_signal_gain : float
+        Slope of z against u on the PRBS record (1 by the scale convention).
+    """
+
+    model: HammersteinModel
+    features: str
+    selection_scores: dict[str, float]
+    small_signal_gain: float
+
+
+@dataclass
+class Validation:
+    """Result of step f: free-run simulation on fresh RAND data.
+
+    Attributes
+    ----------
+    u, y : numpy.ndarray
+        Validation record (V, um), aligned as by :func:`collect`.
+    y_sim, y_lin, y_pred : numpy.ndarray
+        Hammerstein free run, linear ARX free run, Hammerstein one step ahead (um).
+    metrics : dict
+        ``hammerstein``, ``linear_arx``, ``hammerstein_one_step``: :func:`fit_metrics` dicts.
+    """
+
+    u: np.ndarray
+    y: np.ndarray
+    y_sim: np.ndarray
+    y_lin: np.ndarray
+    y_pred: np.ndarray
+    metrics: dict[str, dict[str, float]]
+
+
+def excite_prbs(
+    env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step a: drive the bender with a PRBS of level ``config.prbs_amplitude`` (V); (u, y)."""
+    u = make_signal(
+        "prbs",
+        config.prbs_samples,
+        dt=sample_time(env),
+        rng=np.random.default_rng(seeds["prbs"]),
+        amplitude=config.prbs_amplitude,
+        clock_period=config.prbs_clock,
+    )
+    return collect(env, u, seed=seeds["env"])
+
+
+def estimate_arx(
+    u: np.ndarray, y: np.ndarray, config: IdentificationConfig, *, dt: float
+) -> ArxEstimate:
+    """Step b: the ARX part by the uniform-noise Bayesian estimator, order by held-out fit.
+
+    Every order of ``config.orders`` is fitted to the first three quarters of the PRBS record
+    and scored by free-run fit (%) on the last quarter; near-ties (ORDER_TIE_PERCENT) go to the
+    larger order: the higher bending modes it captures barely show in a PRBS free run, but they
+    shrink the equation-error bound r and so the error of z_hat. The chosen order is then
+    refitted on the whole record (with the Chebyshev and least-squares cross-checks).
+    """
+    split = (3 * len(u)) // 4
+    scores = {}
+    for n in config.orders:
+        candidate = fit_arx(
+            u[:split], y[:split], na=n, nb=n, dt=dt, method="bayes-uniform", record_history=False
+        )
+        sim = candidate.simulate(u)
+        stable = candidate.is_stable() and np.all(np.isfinite(sim))
+        scores[n] = (
+            float(fit_metrics(y[split:], sim[split:])["fit_percent"]) if stable else -math.inf
+        )
+    best_fit = max(scores.values())
+    order = max(n for n, fit in scores.items() if fit >= best_fit - ORDER_TIE_PERCENT)
+    fits = {
+        method: fit_arx(u, y, na=order, nb=order, dt=dt, method=method)
+        for method in ("bayes-uniform", "chebyshev", "least-squares")
+    }
+    return ArxEstimate(
+        fits["bayes-uniform"], order, scores, fits["chebyshev"], fits["least-squares"]
+    )
+
+
+def excite_rich(
+    env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Step c: drive the bender with the rich signal of ``config`` (V); (u, y)."""
+    u = make_signal(
+        config.rich_signal,
+        config.rich_samples,
+        dt=sample_time(env),
+        rng=np.random.default_rng(seeds["rich"]),
+        amplitude=config.rich_amplitude,
+        **config.rich_signal_params(),
+    )
+    return collect(env, u, seed=seeds["env"] + 1)
+
+
+def estimate_hidden_signal(arx: ARXModel, y_rich: np.ndarray, y_prbs: np.ndarray) -> HiddenSignal:
+    """Step d: z_hat by the inverse ARX model (eq. 25) on the rich and the PRBS records.
+
+    On the PRBS record z = u by the scale convention; training the NLS on both records pins its
+    small-signal gain. The error of z_hat is the equation error filtered by 1/B, bounded by
+    ``r ||1/B||_1`` (see :func:`identification.inversion.inverse_error_bounds`).
+    """
+    z_rich, method = inverse_arx(arx, y_rich)
+    z_prbs, _ = inverse_arx(arx, y_prbs)
+    return HiddenSignal(z_rich, z_prbs, method, inverse_error_bounds(arx))
+
+
+def fit_nonlinearity(
+    env: gym.Env,
+    arx: ARXModel,
+    u_train: np.ndarray,
+    z_train: np.ndarray,
+    config: IdentificationConfig,
+    seeds: dict[str, int],
+    *,
+    say: Callable[[str], None] = lambda _msg: None,
+) -> NlsFit:
+    """Step e: fit the NLS to (u, z_hat); choose its features on a fresh RAND selection record.
+
+    Every feature set of ``config.features`` ("auto": all of them) is trained and the Hammerstein
+    model it makes with ``arx`` scored by free-run fit (%) on the selection record.
+    """
+    u_max = float(env.action_space.high[0])
+    n = config.validation_samples // 2
+    record = rand_signal(config, n, sample_time(env), seeds["selection"])
+    u_sel, y_sel = collect(env, record, seed=seeds["env"] + 2)
+    candidates = FEATURE_SETS if config.features == "auto" else (config.features,)
+    fitted, scores = {}, {}
+    for features in candidates:
+        fitted[features] = fit_nls(
+            u_train,
+            z_train,
+            features=features,
+            hidden=config.hidden,
+            seed=seeds["nls"] % 2**31,
+            max_epochs=config.max_epochs,
+            u_range=(-u_max, u_max),
+        )
+        y_hat = HammersteinModel(fitted[features], arx).simulate(u_sel)
+        scores[features] = float(fit_metrics(y_sel, y_hat)["fit_percent"])
+        say(f"e) NLS with {features} features: selection fit {scores[features]:.2f} %")
+    best = max(scores, key=scores.get)
+    model = HammersteinModel(fitted[best], arx)
+    n_prbs = config.prbs_samples
+    gain = float(np.polyfit(u_train[:n_prbs], model.nls_output(u_train[:n_prbs]), 1)[0])
+    return NlsFit(model, best, scores, gain)
+
+
+def validate(
+    env: gym.Env, model: HammersteinModel, config: IdentificationConfig, seeds: dict[str, int]
+) -> Validation:
+    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data."""
+    record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
+    u, y = collect(env, record, seed=seeds["env"] + 3)
+    y_sim, y_lin, y_pred = model.simulate(u), model.arx.simulate(u), model.predict(u, y)
+    stroke = env.unwrapped.model.stroke_um
+    metrics = {
+        "hammerstein": fit_metrics(y, y_sim, stroke=stroke),
+        "linear_arx": fit_metrics(y, y_lin, stroke=stroke),
+        "hammerstein_one_step": fit_metrics(y, y_pred, stroke=stroke),
+    }
+    return Validation(u, y, y_sim, y_lin, y_pred, metrics)
+
+
+# -- the procedure ----------------------------------------------------------------------------
+
+
+def identification_env(config: IdentificationConfig) -> gym.Env:
+    return gym.make(
+        "piezo_env:PiezoBender-v0", reference=None, max_episode_steps=-1, **config.env_kwargs
+    )
+
+
+def sample_time(env: gym.Env) -> float:
+    return float(env.unwrapped.model.dt)
+
+
+def step_seeds(seed: int) -> dict[str, int]:
+    names = ("prbs", "rich", "selection", "validation", "env", "nls")
+    children = np.random.SeedSequence(seed).spawn(len(names))
+    return {name: int(c.generate_state(1)[0]) for name, c in zip(names, children, strict=True)}
+
+
+def rand_signal(config: IdentificationConfig, n: int, dt: float, seed: int) -> np.ndarray:
+    return make_signal(
+        "random",
+        n,
+        dt=dt,
+        rng=np.random.default_rng(seed),
+        amplitude=config.validation_amplitude,
+        hold=config.validation_hold,
+    )
