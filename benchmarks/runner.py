@@ -138,14 +138,14 @@ class BenchmarkConfig:
 
     def _check_options(self) -> None:
         """Every controller option is a valid setting of that controller."""
-        from controllers.registry import settings_for
+        from controllers.registry import resolve_controller
 
         for controller, options in self.controller_options.items():
             if controller not in self.controllers:
                 raise ValueError(
                     f"controller_options given for {controller!r}, which is not benchmarked"
                 )
-            settings_for(controller.removesuffix("-oracle"), options)
+            resolve_controller(controller.removesuffix("-oracle"), options)
 
     def _check_policies(self) -> None:
         from controllers.policy import load_policy

@@ -51,14 +51,14 @@ def qp_matrices(model: PredictionModel, settings: MPCSettings) -> tuple[np.ndarr
     phi, gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
     diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
     hessian = gamma.T @ gamma + lam * diff.T @ diff
-    first = np.zeros((n_hor, 1))
-    first[0, 0] = -lam
+    previous_move = np.zeros((n_hor, 1))  # the rate penalty's link to z_t-1
+    previous_move[0, 0] = -lam
     columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
     if settings.slope_std > 0:  # d_t+k = d_t + k s_t
         columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
     scale = 1.0 / float(np.max(np.diag(hessian)))
     _check_well_posed(hessian * scale, float(gamma[0, 0]), lam)
-    return hessian * scale, scale * np.hstack([*columns, -gamma.T, first])
+    return hessian * scale, scale * np.hstack([*columns, -gamma.T, previous_move])
 
 
 def _check_well_posed(hessian: np.ndarray, cb: float, rate_weight: float) -> None:
@@ -244,21 +244,21 @@ class LinearMPC(Controller):
     def _solve(self, estimate: np.ndarray, targets: np.ndarray) -> float:
         """First move z_t (equivalent V) of the QP for the estimate [x; d] and targets (um)."""
         n = estimate.size
-        v = self._vector
-        v[:n] = estimate
-        v[n:-1] = targets
-        v[-1] = self._z_prev
+        stacked = self._vector  # [x; d; r_t+1 .. r_t+N; z_t-1]: q = G stacked
+        stacked[:n] = estimate
+        stacked[n:-1] = targets
+        stacked[-1] = self._z_prev
         low, high = self.model.nonlinearity.reachable(self._memory)
         self._lower[0], self._upper[0] = low, high
         if self.settings.shortcut:
-            plan = self._unconstrained @ v
+            plan = self._unconstrained @ stacked
             if np.all(plan >= self._lower) and np.all(plan <= self._upper):
                 self.stats.status["unconstrained"] += 1
                 self.stats.iterations.append(0)
                 self._plan = plan
                 self._duals = None  # no bound is active: the optimal multipliers are zero
                 return float(plan[0])
-        self._solver.update(q=self._q_matrix @ v, l=self._lower, u=self._upper)
+        self._solver.update(q=self._q_matrix @ stacked, l=self._lower, u=self._upper)
         shifted = np.r_[self._plan[1:], self._plan[-1]]
         duals = np.zeros(self.settings.horizon) if self._duals is None else self._duals
         self._solver.warm_start(x=np.clip(shifted, self._lower, self._upper), y=duals)

@@ -62,7 +62,7 @@ KEPT = "kept-last-iterate"
 """Status of a step whose later SQP iteration failed: the previous iterate is applied."""
 
 _SOLVERS = ("rti", "ipopt")
-_OBSERVER = MPCSettings()  # one home for the observer tuning shared with the linear MPC
+_LINEAR_MPC_DEFAULTS = MPCSettings()  # the observer tuning is the linear MPC's, held there once
 _JACOBIANS = ("auto", "structured", "structured-vm", "generic", "generic-vm")
 
 
@@ -117,9 +117,9 @@ class NMPCSettings:
     step_tolerance: float = 1e-3
     tracking_weight: float = 1.0
     rate_weight: float = 1e-2
-    measurement_std: float | None = _OBSERVER.measurement_std
-    disturbance_std: float = _OBSERVER.disturbance_std
-    process_std: float = _OBSERVER.process_std
+    measurement_std: float | None = _LINEAR_MPC_DEFAULTS.measurement_std
+    disturbance_std: float = _LINEAR_MPC_DEFAULTS.disturbance_std
+    process_std: float = _LINEAR_MPC_DEFAULTS.process_std
     jacobian: str = "auto"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6

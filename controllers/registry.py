@@ -10,7 +10,7 @@ from typing import Any
 from controllers.prediction import PredictionModel
 from controllers.task import ControlTask
 
-__all__ = ["CONTROLLERS", "make", "prediction_model", "settings_for"]
+__all__ = ["CONTROLLERS", "make", "prediction_model", "resolve_controller"]
 
 CONTROLLERS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "pid": ("controllers.pid", "PIDController", {"notch": False, "feedforward": False}),
@@ -76,14 +76,14 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     ValueError
         For an unknown name or option (the message lists the valid ones) or a bad value.
     """
-    cls, settings = settings_for(name, options)
+    cls, settings = resolve_controller(name, options)
     task = ControlTask.from_env(env)
     if name != "policy":  # a policy's model is its folder; it has no prediction model
         model = prediction_model(model, env)
     return cls(model, task, settings, name=name)
 
 
-def settings_for(name: str, options: dict[str, Any]) -> tuple[type, Any]:
+def resolve_controller(name: str, options: dict[str, Any]) -> tuple[type, Any]:
     """The controller class of ``name`` and its validated ``Settings`` for ``options``.
 
     Raises
