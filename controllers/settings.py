@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 from controllers.task import ControlTask
+from piezo_env.checks import require_int
 
 __all__ = ["USABLE_OSQP_STATUS", "check_settings", "measurement_std", "number_at_least"]
 
@@ -35,9 +36,7 @@ def check_settings(
     finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um).
     """
     for name in integers:
-        value = getattr(settings, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        require_int(name, getattr(settings, name))
     for name in non_negative:
         value = getattr(settings, name)
         if not number_at_least(value, 0.0):

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from piezo_env.checks import require_int
+
 __all__ = ["ControlTask"]
 
 
@@ -47,12 +49,14 @@ class ControlTask:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {value!r}")
-        if isinstance(self.preview, bool) or not isinstance(self.preview, int) or self.preview < 1:
+        try:
+            require_int("preview", self.preview)
+        except ValueError as error:
             raise ValueError(
-                f"preview must be an integer >= 1, got {self.preview!r}: the action a_t is scored "
-                "against r_t+1, which the observation shows from preview=1 on; make the env with "
-                "preview >= 1, e.g. gym.make('piezo_env:PiezoBender-v0', preview=20)"
-            )
+                f"{error}: the action a_t is scored against r_t+1, which the observation shows "
+                "from preview=1 on; make the env with preview >= 1, e.g. "
+                "gym.make('piezo_env:PiezoBender-v0', preview=20)"
+            ) from None
         noise = self.noise_bound_um
         if (
             not (

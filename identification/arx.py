@@ -24,6 +24,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import scipy.signal
 
+from piezo_env.checks import require_int
+
 if TYPE_CHECKING:
     import control
 
@@ -94,8 +96,7 @@ def regressors(u: Any, y: Any, na: int, nb: int) -> tuple[np.ndarray, np.ndarray
 
 def _check_orders(na: int, nb: int) -> tuple[int, int]:
     for name, value in (("na", na), ("nb", nb)):
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-            raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
+        require_int(name, value, minimum=0)
     if na + nb == 0:
         raise ValueError("an ARX model needs na + nb >= 1")
     return int(na), int(nb)

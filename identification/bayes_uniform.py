@@ -87,6 +87,7 @@ import scipy.sparse
 import threadpoolctl
 
 from identification.arx import ARXModel, check_io
+from piezo_env.checks import require_int
 
 __all__ = ["BayesUniformEstimator", "slab_upper_bound"]
 
@@ -197,8 +198,7 @@ class BayesUniformEstimator:
         self.na, self.nb = int(na), int(nb)
         self.n = self.na + self.nb + 1
         for name, value in (("window", window), ("reorient_every", reorient_every)):
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            require_int(name, value)
         self.window = int(window)
         self.reorient_every = int(reorient_every)
         self.n_init = max(4 * self.n, self.window) if n_init is None else int(n_init)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from piezo_env.checks import require_int
 from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.discrete import Creep
 from piezo_env.fem import DEFAULT_ELEMENTS, check_damping_ratio
@@ -211,8 +212,7 @@ def _check_noise_bound(noise_bound: object) -> None:
 def _check_preview(preview: object, reference: object) -> int:
     if preview is None:
         return 0 if reference is None else 1
-    if isinstance(preview, bool) or not isinstance(preview, (int, np.integer)) or preview < 0:
-        raise ValueError(f"preview must be an integer >= 0 (samples), got {preview!r}")
+    require_int("preview", preview, minimum=0)
     if reference is None and preview > 0:
         raise ValueError(
             f"preview={preview} needs a reference: reference=None means regulation to zero "

@@ -36,6 +36,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import scipy.signal
 
+from piezo_env.checks import require_int
+
 __all__ = [
     "SIGNALS",
     "SIGNAL_DEFAULTS",
@@ -63,9 +65,7 @@ def _check_n(n: int) -> int:
 
 
 def _check_positive_int(name: str, value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be a positive integer number of samples, got {value!r}")
-    return int(value)
+    return require_int(f"{name} (samples)", value)
 
 
 def _check_finite(name: str, value: float, *, minimum: float | None = None) -> float:

@@ -44,6 +44,8 @@ from gymnasium import spaces
 from gymnasium.vector import VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
+from piezo_env.checks import require_int
+
 __all__ = [
     "ObservationConfig",
     "ObservationHistory",
@@ -89,9 +91,7 @@ class ObservationConfig:
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
         for name in ("preview", "n_inputs", "n_errors"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+            require_int(name, getattr(self, name), minimum=0)
 
     @classmethod
     def from_env(cls, env: Any, *, n_inputs: int = 4, n_errors: int = 4) -> ObservationConfig:

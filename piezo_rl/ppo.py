@@ -30,6 +30,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
+from piezo_env.checks import require_int
 from piezo_env.wrappers import TrackingObservationVector
 
 __all__ = [
@@ -108,9 +109,7 @@ class PPOConfig:
 
     def __post_init__(self) -> None:
         for name in ("n_steps", "batch_size", "n_epochs", "torch_threads"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            require_int(name, getattr(self, name))
         for name in ("learning_rate", "clip_range", "max_grad_norm"):
             if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -320,8 +319,7 @@ def train_ppo(
         The policy folder.
     """
     config = config or PPOConfig()
-    if isinstance(total_steps, bool) or not isinstance(total_steps, int) or total_steps < 1:
-        raise ValueError(f"total_steps must be a positive integer, got {total_steps!r}")
+    require_int("total_steps", total_steps)
     env = make_training_env(
         num_envs, preview=preview, n_inputs=n_inputs, n_errors=n_errors, env_kwargs=env_kwargs
     )
