@@ -30,9 +30,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import osqp
-import scipy.sparse
 
 from controllers.base import Controller
+from controllers.box_qp import setup_box_qp
 from controllers.observer import DisturbanceObserver
 from controllers.prediction import PredictionModel
 from controllers.settings import USABLE_OSQP_STATUS, check_settings
@@ -198,23 +198,15 @@ class LinearMPC(Controller):
 
     def _setup_solver(self) -> osqp.OSQP:
         """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
-        n_hor, s = self.settings.horizon, self.settings
-        solver = osqp.OSQP()
-        solver.setup(
-            P=scipy.sparse.csc_matrix(np.triu(self._hessian)),
-            q=np.zeros(n_hor),
-            A=scipy.sparse.identity(n_hor, format="csc"),
-            l=self._lower,
-            u=self._upper,
-            verbose=False,
+        s = self.settings
+        return setup_box_qp(
+            self._hessian,
+            self._lower,
+            self._upper,
             eps_abs=s.eps_abs,
             eps_rel=s.eps_rel,
             max_iter=s.max_iter,
-            check_termination=5,
-            polishing=False,
-            warm_starting=True,
         )
-        return solver
 
     def _reset(self, observation: np.ndarray | None) -> None:
         """Start from the steady state that holds the first measurement (rest at 0 V within

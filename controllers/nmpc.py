@@ -49,6 +49,7 @@ import osqp
 import scipy.sparse
 
 from controllers.base import Controller
+from controllers.box_qp import setup_box_qp
 from controllers.mpc import MPCSettings, prediction_matrices
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.observer import DisturbanceObserver
@@ -274,20 +275,13 @@ class NonlinearMPC(Controller):
         pattern = scipy.sparse.csc_matrix(
             (np.ones(rows.size) + (rows == cols), (rows, cols)), shape=(n_hor, n_hor)
         )
-        self._qp = osqp.OSQP()
-        self._qp.setup(
-            P=pattern,
-            q=np.zeros(n_hor),
-            A=scipy.sparse.identity(n_hor, format="csc"),
-            l=np.full(n_hor, -self._u_max),
-            u=np.full(n_hor, self._u_max),
-            verbose=False,
+        self._qp = setup_box_qp(
+            pattern,
+            np.full(n_hor, -self._u_max),
+            np.full(n_hor, self._u_max),
             eps_abs=s.eps_abs,
             eps_rel=s.eps_rel,
             max_iter=s.max_qp_iterations,
-            check_termination=5,
-            polishing=False,
-            warm_starting=True,
         )
 
     def _solve_rti(
