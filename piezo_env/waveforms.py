@@ -47,6 +47,20 @@ def triangle_wave(cycles: np.ndarray) -> np.ndarray:
     return cycles
 
 
+def _periodic(
+    n: int, dt: float, amplitude: float, frequency: float, phase: float
+) -> tuple[int, float, float, float, float]:
+    """The checked arguments of a periodic wave (see :func:`sine` for their units)."""
+    dt = check_dt(dt)
+    return (
+        check_n(n),
+        dt,
+        check_finite("amplitude", amplitude, minimum=0.0),
+        check_frequency("frequency", frequency, dt),
+        check_finite("phase", phase),
+    )
+
+
 def sine(
     n: int, *, dt: float, amplitude: float, frequency: float, phase: float = 0.0
 ) -> np.ndarray:
@@ -70,11 +84,7 @@ def sine(
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    dt = check_dt(dt)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
-    frequency = check_frequency("frequency", frequency, dt)
-    phase = check_finite("phase", phase)
+    n, dt, amplitude, frequency, phase = _periodic(n, dt, amplitude, frequency, phase)
     w = 2.0 * np.pi * frequency * dt
     return amplitude * sums_of_sines(np.array([[w]]), np.array([[phase]]), n)[0]
 
@@ -84,29 +94,9 @@ def triangle(
 ) -> np.ndarray:
     """Symmetric triangle wave in phase with :func:`sine` (0 and rising at t = 0, phase 0).
 
-    Parameters
-    ----------
-    n
-        Number of samples.
-    dt
-        Sampling period, s.
-    amplitude
-        Peak value (signal unit).
-    frequency
-        Frequency, Hz (at most the Nyquist frequency).
-    phase
-        Phase at t = 0, rad (a phase of pi/2 starts at the peak, as a cosine would).
-
-    Returns
-    -------
-    numpy.ndarray
-        float64 array of length ``n``.
+    The parameters are :func:`sine`'s; a phase of pi/2 starts at the peak, as a cosine would.
     """
-    n = check_n(n)
-    dt = check_dt(dt)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
-    frequency = check_frequency("frequency", frequency, dt)
-    phase = check_finite("phase", phase)
+    n, dt, amplitude, frequency, phase = _periodic(n, dt, amplitude, frequency, phase)
     cycles = frequency * sample_times(n, dt) + phase / (2.0 * np.pi)
     return amplitude * triangle_wave(cycles)
 
