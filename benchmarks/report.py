@@ -265,8 +265,11 @@ def verdict(result: BenchmarkResult) -> list[str]:
             continue
         best_value, best = ranked[0]
         tied = winners(index, "nominal", rows, ref)
+        rest = [(v, r) for v, r in ranked if r not in tied]
         if len(tied) > 1:
             head = f"tie between {', '.join(f'`{t}`' for t in tied)} ({best_value:.3f} %)"
+            if rest:
+                head += f", {rest[0][0] / best_value:.1f}x better than `{rest[0][1]}`"
         elif len(ranked) > 1:
             lead = ranked[1][0] / best_value
             head = f"**`{best}`** ({best_value:.3f} %), {lead:.1f}x better than `{ranked[1][1]}`"

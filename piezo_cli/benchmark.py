@@ -30,7 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="folder of an identified model (model.json + weights.npz); default: identify the "
-        "default PL140 first (about 40 s) and save it in OUT/model",
+        "default PL140 first (its duration is in the report's time line; about 15 s on 2 cores) "
+        "and save it in OUT/model",
     )
     parser.add_argument(
         "--controllers",
@@ -207,6 +208,7 @@ def run(args: argparse.Namespace) -> int:
         "dt": task.dt,
         "noise_bound_um": task.noise_bound,
         "stroke_um": PiezoBenderModel(task.bender).stroke_um,
+        "jobs": config.jobs,
         "machine": machine(),
         "timing": timing,
     }
