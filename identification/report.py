@@ -28,13 +28,30 @@ def _inversion_error(inversion: dict[str, Any], r: float) -> str:
 
 def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
     """Render the report as Markdown, with the figure files linked."""
-    env, arx, nls, val = report["environment"], report["arx"], report["nls"], report["validation"]
+    env = report["environment"]
     lines = [
         f"# Hammerstein identification of {env['bender']}",
         "",
         f"dt = {env['dt_s'] * 1e3:g} ms, plant hysteresis {env['hysteresis']}, sensor noise "
         f"+-{env['noise_bound_um']:g} um, stroke {env['stroke_um']:g} um.",
         "",
+        *_validation_section(report["validation"]),
+        *_arx_section(report["arx"], report["inversion"]),
+        *_nls_section(report["nls"]),
+        "## Timings (s)",
+        "",
+        ", ".join(f"{k}: {v}" for k, v in report["timings_s"].items()),
+        "",
+        "## Figures",
+        "",
+        *[f"![{name}]({name})" for name in figures],
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _validation_section(val: dict[str, Any]) -> list[str]:
+    lines = [
         "## Validation (free run on fresh data)",
         "",
         f"Signal: {val['signal']}, {val['samples']} samples.",
@@ -48,21 +65,18 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         ("Hammerstein (one step ahead)", "hammerstein_one_step"),
     ):
         m = val[key]
-        lines.append(
-            _row(
-                [
-                    name,
-                    f"{m['fit_percent']:.2f}",
-                    f"{m['rmse']:.2f}",
-                    f"{m['rmse_percent_stroke']:.2f}",
-                    f"{m['max_abs_error']:.1f}",
-                ]
-            )
-        )
-    lines += [
+        lines.append(_row([name, f"{m['fit_percent']:.2f}", f"{m['rmse']:.2f}",
+                           f"{m['rmse_percent_stroke']:.2f}", f"{m['max_abs_error']:.1f}"]))
+    return [
+        *lines,
         "",
         f"RMSE ratio Hammerstein / linear ARX: {val['rmse_ratio_hammerstein_to_arx']:.3f}.",
         "",
+    ]
+
+
+def _arx_section(arx: dict[str, Any], inversion: dict[str, Any]) -> list[str]:
+    lines = [
         "## ARX part",
         "",
         f"Order ARX({arx['order']},{arx['order']}), chosen by held-out PRBS free-run fit: "
@@ -73,37 +87,26 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         _row(["---"] * 4),
     ]
     theta = arx["a"] + arx["b"]
-    names = [f"a{i + 1}" for i in range(len(arx["a"]))] + [
-        f"b{i + 1}" for i in range(len(arx["b"]))
-    ]
+    names = [f"a{i + 1}" for i in range(len(arx["a"]))]
+    names += [f"b{i + 1}" for i in range(len(arx["b"]))]
     for i, name in enumerate(names):
-        lines.append(
-            _row(
-                [
-                    name,
-                    f"{theta[i]:.6g}",
-                    f"{arx['chebyshev']['theta'][i]:.6g}",
-                    f"{arx['least_squares']['theta'][i]:.6g}",
-                ]
-            )
-        )
-    lines.append(
-        _row(
-            [
-                "r (um)",
-                f"{arx['noise_bound_um']:.4g}",
-                f"{arx['chebyshev']['noise_bound_um']:.4g}",
-                "",
-            ]
-        )
-    )
-    lines += [
+        lines.append(_row([name, f"{theta[i]:.6g}", f"{arx['chebyshev']['theta'][i]:.6g}",
+                           f"{arx['least_squares']['theta'][i]:.6g}"]))
+    lines.append(_row(["r (um)", f"{arx['noise_bound_um']:.4g}",
+                       f"{arx['chebyshev']['noise_bound_um']:.4g}", ""]))
+    return [
+        *lines,
         "",
         f"{arx['noise_bound_note']}. Minimum-phase B: {arx['minimum_phase']}; hidden signal by "
-        f"{report['inversion']['method']}.",
+        f"{inversion['method']}.",
         "",
-        _inversion_error(report["inversion"], arx["noise_bound_um"]),
+        _inversion_error(inversion, arx["noise_bound_um"]),
         "",
+    ]
+
+
+def _nls_section(nls: dict[str, Any]) -> list[str]:
+    return [
         "## NLS",
         "",
         f"Features: {nls['features']} (selection fits: "
@@ -115,13 +118,4 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         "features, so those features can represent it closely; on other plants the selection "
         "record decides (see benchmarks/results/identification_accuracy.md).",
         "",
-        "## Timings (s)",
-        "",
-        ", ".join(f"{k}: {v}" for k, v in report["timings_s"].items()),
-        "",
-        "## Figures",
-        "",
-        *[f"![{name}]({name})" for name in figures],
-        "",
     ]
-    return "\n".join(lines)
