@@ -30,6 +30,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from piezo_env.checks import require_int
 from piezo_env.randomization import RowHysteresis, padded_layout, single_blas_thread
 from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
 from piezo_env.task import (
@@ -102,12 +103,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         render_mode: str | None = None,
         **settings: Any,
     ) -> None:
-        if (
-            isinstance(num_envs, bool)
-            or not isinstance(num_envs, (int, np.integer))
-            or num_envs < 1
-        ):
-            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        require_int("num_envs", num_envs)
         if render_mode is not None:
             raise ValueError("the vector env does not render; make single envs to render")
         self.num_envs = int(num_envs)
@@ -129,6 +125,11 @@ class PiezoBenderVectorEnv(VectorEnv):
         # Rows per matrix product; a test may set it small to cross the split.
         self._row_block = _ROW_BLOCK
 
+        self._setup_physics()
+        self._setup_buffers()
+
+    def _setup_physics(self) -> None:
+        """Step matrices and state arrays of the N benders (per-env ones with randomisation)."""
         n = self.num_envs
         # The output columns come out scaled: deflection in um, Gamma theta_tip in uC.
         self._q_per_rad = self.model.params.piezo_moment * 1e6
@@ -153,6 +154,10 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._hyst = np.zeros((n, self.model.hysteresis.state_size), order="F")
         self._y = np.zeros(n)  # true tip deflection (um)
         self._q_rot = np.zeros(n)  # rotation part of the charge, Gamma theta_tip (uC)
+
+    def _setup_buffers(self) -> None:
+        """Generators, reference and noise buffers, step counters, lockstep bookkeeping."""
+        n = self.num_envs
         self._rngs = [seeding.np_random(None)[0] for _ in range(n)]
         # References and noise are stored sample-major, (time, env): in lockstep one step reads
         # one contiguous row. Without a time limit the reference buffer grows when needed.
