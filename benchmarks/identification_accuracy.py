@@ -112,12 +112,35 @@ def cell(metrics: dict | None) -> str:
 
 
 def main() -> None:
+    """Identify, score on held-out records and other benders, write the report."""
     script_start = time.perf_counter()
     base = IdentificationConfig(seed=SEED)
     env = make_env(base.env_kwargs)
+    runs = _identify_every_way(base)
+    models = {f"Hammerstein {f}": runs["by_features"][f].model for f in FEATURE_SETS}
+    models["linear ARX"] = runs["auto"].model.arx
+    records = identification_records(runs["auto"])
+    narx = _narx_baselines(records)
+    models.update(narx)
+    tests = test_records(env)
     stroke = env.unwrapped.model.stroke_um
+    scores = {
+        label: {name: score(y, model.simulate(u), stroke) for name, model in models.items()}
+        for label, (u, y) in tests.items()
+    }
+    lines = [
+        *header("Identification benchmark", "identification_accuracy.py"),
+        *_setup_lines(runs["auto"], base, stroke),
+        *_timing_section(runs, tests),
+        *_held_out_section(runs, models, tests, scores, narx, records),
+        *_other_benders_section(base),
+        f"Whole script: {time.perf_counter() - script_start:.0f} s.",
+    ]
+    write_result("identification_accuracy", lines)
 
-    # 1. Identification: the default path once (timed), then each feature set.
+
+def _identify_every_way(base: IdentificationConfig) -> dict:
+    """The default path once (timed, with its files written), then each feature set."""
     start = time.perf_counter()
     auto = identify(config=base, progress=print)
     identify_time = time.perf_counter() - start
@@ -125,72 +148,97 @@ def main() -> None:
         start = time.perf_counter()
         n_files = len(write_outputs(auto, out))
         write_time = time.perf_counter() - start
-    selected = auto.report["nls"]["features"]
-    results = {}
+    by_features = {}
     for features in FEATURE_SETS:
         print(f"-- identify with features={features}")
-        results[features] = identify(config=replace(base, features=features))
-    models = {f"Hammerstein {f}": results[f].model for f in FEATURE_SETS}
-    models["linear ARX"] = auto.model.arx
+        by_features[features] = identify(config=replace(base, features=features))
+    return {
+        "auto": auto,
+        "by_features": by_features,
+        "identify_s": identify_time,
+        "write_s": write_time,
+        "n_files": n_files,
+    }
 
-    # 2. NARX baselines on the pipeline's PRBS and rich records.
-    records = identification_records(auto)
+
+def _narx_baselines(records) -> dict:
+    """NARX networks on the pipeline's PRBS and rich records, with and without a skip."""
     narx = {}
     for label, skip in (("NARX (skip)", True), ("NARX (plain)", False)):
         print(f"-- train {label}")
         narx[label] = NARXNetwork(ny=NARX_LAGS, nu=NARX_LAGS, seed=SEED, skip=skip).fit(records)
-        models[label] = narx[label]
+    return narx
 
-    # 3. Held-out test records.
-    tests = test_records(env)
-    scores = {
-        label: {name: score(y, model.simulate(u), stroke) for name, model in models.items()}
-        for label, (u, y) in tests.items()
-    }
+
+def _setup_lines(auto, base: IdentificationConfig, stroke: float) -> list[str]:
+    environment = auto.report["environment"]
+    return [
+        f"Default bender: {environment['bender']}, dt = {environment['dt_s'] * 1e3:g} ms, "
+        f"{environment['hysteresis']} hysteresis, +-{environment['noise_bound_um']:g} um sensor "
+        f"noise, stroke {stroke:.0f} um; drive +-30 V. Identification seed {SEED} (pipeline "
+        f"defaults: PRBS +-{base.prbs_amplitude:g} V x {base.prbs_samples}, rich SINE "
+        f"{base.rich_signal_params().get('frequency', '-')} Hz {base.rich_amplitude:g} V x "
+        f"{base.rich_samples}).",
+        "",
+    ]
+
+
+def _timing_section(runs: dict, tests: dict) -> list[str]:
+    auto, by_features = runs["auto"], runs["by_features"]
+    selected = auto.report["nls"]["features"]
+    timings, arx = auto.report["timings_s"], auto.report["arx"]
     u_check = tests["RAND +-30 V, hold 10"][0]
-    same_as_selected = float(
-        np.max(np.abs(auto.model.simulate(u_check) - results[selected].model.simulate(u_check)))
-    )
+    same = float(np.max(np.abs(
+        auto.model.simulate(u_check) - by_features[selected].model.simulate(u_check)
+    )))
+    nls_rows = [
+        [
+            f,
+            f"{auto.report['nls']['selection_fit_percent'][f]:.2f}",
+            f"{by_features[f].report['validation']['hammerstein']['fit_percent']:.2f}",
+            f"{by_features[f].report['timings_s']['e_nls_training']:.1f}",
+            f"{by_features[f].report['nls']['training']['epochs']}",
+        ]
+        for f in FEATURE_SETS
+    ]
+    total = runs["identify_s"] + runs["write_s"]
+    return [
+        '## End-to-end time of `identify` (features="auto", the `piezo identify` path)',
+        "",
+        f"`identify`: **{runs['identify_s']:.1f} s** wall time, of which "
+        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items() if k != "total")
+        + f"; writing the model files, reports and figures (`write_outputs`, {runs['n_files']} "
+        f"files): {runs['write_s']:.1f} s; together **{total:.1f} s** (target for "
+        "`piezo identify`: under 120 s). Selected ARX order "
+        f"{arx['order']} (held-out PRBS fit "
+        + ", ".join(f"n={k}: {v:.1f} %" for k, v in arx["order_scores_fit_percent"].items())
+        + f"), r_hat = {arx['noise_bound_um']:.2f} um, B minimum-phase: "
+        f"{arx['minimum_phase']}; selected NLS features: **{selected}**.",
+        "",
+        markdown_table(
+            ["NLS features", "selection fit %", "pipeline validation fit %", "NLS fit s", "epochs"],
+            nls_rows,
+        ),
+        "",
+        "Selection: RAND +-30 V hold 10 record of the pipeline; validation: its fresh RAND record.",
+        f"The auto model equals the {selected} model (max |difference| of the free runs "
+        f"{same:.1e} um).",
+        "",
+    ]
 
-    # 4. Other benders and hysteresis models.
-    general_rows = []
-    for label, env_kwargs in GENERALISATION:
-        print(f"-- identify {label}")
-        config = replace(base, env_kwargs=env_kwargs)
-        t0 = time.perf_counter()
-        other = identify(config=config)
-        elapsed = time.perf_counter() - t0
-        other_env = make_env(env_kwargs)
-        u, y = test_records(other_env, [TEST_SIGNALS[1]])[TEST_SIGNALS[1][0]]
-        other_stroke = other_env.unwrapped.model.stroke_um
-        ham = score(y, other.model.simulate(u), other_stroke)
-        lin = score(y, other.model.arx.simulate(u), other_stroke)
-        sel = other.report["nls"]["selection_fit_percent"]
-        general_rows.append(
-            [
-                label,
-                f"{other_stroke:.0f}",
-                f"ARX({other.report['arx']['order']},{other.report['arx']['order']})",
-                other.report["nls"]["features"],
-                ", ".join(f"{k} {v:.1f}" for k, v in sel.items()),
-                cell(ham),
-                cell(lin),
-                f"{ham['rmse'] / lin['rmse']:.3f}" if ham and lin else "-",
-                f"{elapsed:.1f}",
-            ]
-        )
 
-    # Report.
+def _held_out_section(runs, models, tests, scores, narx, records) -> list[str]:
+    selected = runs["auto"].report["nls"]["features"]
     names = list(models)
     head = [
         "test signal",
+        "peak abs(y) um",
         *[
             n.replace("Hammerstein ", "H ")
             + (" (selected)" if n == f"Hammerstein {selected}" else "")
             for n in names
         ],
     ]
-    head.insert(1, "peak abs(y) um")
     rows = [
         [label, f"{np.abs(tests[label][1]).max():.0f}", *[cell(scores[label][n]) for n in names]]
         for label in tests
@@ -206,18 +254,6 @@ def main() -> None:
     rows.append(["**worst fit %**", "", *worst])
     rand10 = scores["RAND +-30 V, hold 10"]
     h_sel, h_lin = rand10[f"Hammerstein {selected}"], rand10["linear ARX"]
-    timings = auto.report["timings_s"]
-    arx_report = auto.report["arx"]
-    nls_rows = [
-        [
-            f,
-            f"{auto.report['nls']['selection_fit_percent'][f]:.2f}",
-            f"{results[f].report['validation']['hammerstein']['fit_percent']:.2f}",
-            f"{results[f].report['timings_s']['e_nls_training']:.1f}",
-            f"{results[f].report['nls']['training']['epochs']}",
-        ]
-        for f in FEATURE_SETS
-    ]
     narx_rows = [
         [
             label,
@@ -228,39 +264,7 @@ def main() -> None:
         ]
         for label, m in narx.items()
     ]
-
-    lines = [
-        *header("Identification benchmark", "identification_accuracy.py"),
-        f"Default bender: {auto.report['environment']['bender']}, dt = "
-        f"{auto.report['environment']['dt_s'] * 1e3:g} ms, "
-        f"{auto.report['environment']['hysteresis']} hysteresis, "
-        f"+-{auto.report['environment']['noise_bound_um']:g} um sensor noise, stroke "
-        f"{stroke:.0f} um; drive +-30 V. Identification seed {SEED} (pipeline defaults: PRBS "
-        f"+-{base.prbs_amplitude:g} V x {base.prbs_samples}, rich SINE "
-        f"{base.rich_signal_params().get('frequency', '-')} Hz {base.rich_amplitude:g} V x "
-        f"{base.rich_samples}).",
-        "",
-        '## End-to-end time of `identify` (features="auto", the `piezo identify` path)',
-        "",
-        f"`identify`: **{identify_time:.1f} s** wall time, of which "
-        + ", ".join(f"{k} {v:.1f} s" for k, v in timings.items() if k != "total")
-        + f"; writing the model files, reports and figures (`write_outputs`, {n_files} files): "
-        f"{write_time:.1f} s; together **{identify_time + write_time:.1f} s** (target for "
-        "`piezo identify`: under 120 s). Selected ARX order "
-        f"{arx_report['order']} (held-out PRBS fit "
-        + ", ".join(f"n={k}: {v:.1f} %" for k, v in arx_report["order_scores_fit_percent"].items())
-        + f"), r_hat = {arx_report['noise_bound_um']:.2f} um, B minimum-phase: "
-        f"{arx_report['minimum_phase']}; selected NLS features: **{selected}**.",
-        "",
-        markdown_table(
-            ["NLS features", "selection fit %", "pipeline validation fit %", "NLS fit s", "epochs"],
-            nls_rows,
-        ),
-        "",
-        "Selection: RAND +-30 V hold 10 record of the pipeline; validation: its fresh RAND record.",
-        f"The auto model equals the {selected} model (max |difference| of the free runs "
-        f"{same_as_selected:.1e} um).",
-        "",
+    return [
         "## Free-run fit on held-out test records: fit % / RMSE um",
         "",
         f"Each record: {TEST_SAMPLES} samples from rest, signal and noise seeds disjoint from "
@@ -284,28 +288,55 @@ def main() -> None:
         f"NARX training data: {sum(len(u) for u, _ in records)} samples: the pipeline's PRBS and "
         "rich records.",
         "",
+    ]
+
+
+def _other_bender_row(label: str, env_kwargs: dict, base: IdentificationConfig) -> list[str]:
+    print(f"-- identify {label}")
+    t0 = time.perf_counter()
+    other = identify(config=replace(base, env_kwargs=env_kwargs))
+    elapsed = time.perf_counter() - t0
+    other_env = make_env(env_kwargs)
+    u, y = test_records(other_env, [TEST_SIGNALS[1]])[TEST_SIGNALS[1][0]]
+    other_stroke = other_env.unwrapped.model.stroke_um
+    ham = score(y, other.model.simulate(u), other_stroke)
+    lin = score(y, other.model.arx.simulate(u), other_stroke)
+    sel = other.report["nls"]["selection_fit_percent"]
+    order = other.report["arx"]["order"]
+    return [
+        label,
+        f"{other_stroke:.0f}",
+        f"ARX({order},{order})",
+        other.report["nls"]["features"],
+        ", ".join(f"{k} {v:.1f}" for k, v in sel.items()),
+        cell(ham),
+        cell(lin),
+        f"{ham['rmse'] / lin['rmse']:.3f}" if ham and lin else "-",
+        f"{elapsed:.1f}",
+    ]
+
+
+def _other_benders_section(base: IdentificationConfig) -> list[str]:
+    rows = [_other_bender_row(label, env_kwargs, base) for label, env_kwargs in GENERALISATION]
+    head = [
+        "env",
+        "stroke um",
+        "ARX order",
+        "selected",
+        "selection fit % per feature set",
+        "Hammerstein",
+        "linear ARX",
+        "RMSE ratio",
+        "identify s",
+    ]
+    return [
         '## Other benders and hysteresis models (features="auto")',
         "",
         "Held-out RAND +-30 V hold 10, free run, fit % / RMSE um.",
         "",
-        markdown_table(
-            [
-                "env",
-                "stroke um",
-                "ARX order",
-                "selected",
-                "selection fit % per feature set",
-                "Hammerstein",
-                "linear ARX",
-                "RMSE ratio",
-                "identify s",
-            ],
-            general_rows,
-        ),
+        markdown_table(head, rows),
         "",
-        f"Whole script: {time.perf_counter() - script_start:.0f} s.",
     ]
-    write_result("identification_accuracy", lines)
 
 
 if __name__ == "__main__":
