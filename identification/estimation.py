@@ -151,6 +151,22 @@ def fit_arx(
         fit = fit_chebyshev if method == "chebyshev" else fit_least_squares
         return fit(u, y, na=na, nb=nb, dt=dt)
 
+    point_estimate, steady_fraction = _bayes_options(options)
+    if point_estimate == "mean":
+        options["record_history"] = True
+    u, y = _check_data(u, y, na, nb)
+    estimator = BayesUniformEstimator(na, nb, dt=dt, **options)
+    estimator.update_many(u, y)
+    if not estimator.initialized:
+        raise ValueError(
+            "the data never bounded the noise-bound support (not persistently exciting)"
+        )
+    model = estimator.model()
+    return _steady_mean(model, steady_fraction) if point_estimate == "mean" else model
+
+
+def _bayes_options(options: dict[str, Any]) -> tuple[str, float]:
+    """Pop and check ``point_estimate`` and ``steady_fraction``; refuse unknown options."""
     point_estimate = options.pop("point_estimate", "final")
     steady_fraction = float(options.pop("steady_fraction", 0.5))
     unknown = sorted(set(options) - set(_BAYES_OPTIONS))
@@ -163,27 +179,19 @@ def fit_arx(
         raise ValueError(f"point_estimate must be 'final' or 'mean', got {point_estimate!r}")
     if not 0.0 < steady_fraction <= 1.0:
         raise ValueError(f"steady_fraction must be in (0, 1], got {steady_fraction}")
-    if point_estimate == "mean":
-        options["record_history"] = True
-    u, y = _check_data(u, y, na, nb)
-    estimator = BayesUniformEstimator(na, nb, dt=dt, **options)
-    estimator.update_many(u, y)
-    if not estimator.initialized:
-        raise ValueError(
-            "the data never bounded the noise-bound support (not persistently exciting)"
-        )
-    model = estimator.model()
-    if point_estimate == "mean":
-        history = model.history
-        start = int(len(history["t"]) * (1.0 - steady_fraction))
-        theta = history["theta"][start:].mean(axis=0)
-        bound = float(history["noise_bound"][start:].mean())
-        model = ARXModel(
-            theta[:na],
-            theta[na:],
-            noise_bound=bound,
-            dt=dt,
-            history=history,
-            method="bayes-uniform",
-        )
-    return model
+    return point_estimate, steady_fraction
+
+
+def _steady_mean(model: ARXModel, steady_fraction: float) -> ARXModel:
+    """The mean of the recorded estimates over the trailing ``steady_fraction`` of the run."""
+    history = model.history
+    start = int(len(history["t"]) * (1.0 - steady_fraction))
+    theta = history["theta"][start:].mean(axis=0)
+    return ARXModel(
+        theta[: model.na],
+        theta[model.na :],
+        noise_bound=float(history["noise_bound"][start:].mean()),
+        dt=model.dt,
+        history=history,
+        method="bayes-uniform",
+    )
