@@ -108,17 +108,24 @@ def _validation(data: dict, report: dict, path: Path) -> Path:
     fig, axes = plt.subplots(
         4, 1, figsize=(10, 11), dpi=110, gridspec_kw={"height_ratios": [1, 1, 1.3, 0.8]}
     )
+    _error_panels(axes[:2], t, models, errors, val, noise, (lo, hi), dt)
+    _zoom_panels(axes[2], axes[3], t, y, models, errors, val, noise, (lo, hi, centre))
+    fig.suptitle(f"Validation on fresh {val['signal']}, {val['samples']} samples, free run")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def _error_panels(axes, t, models, errors, val, noise, window, dt) -> None:
+    """Both models' error over the whole record, its moving RMS and the zoom window."""
+    lo, hi = window
     n_rms = max(1, round(RMS_WINDOW_S / dt))
-    for ax, (name, key, _, colour, _) in zip(axes[:2], models, strict=True):
+    for ax, (name, key, _, colour, _) in zip(axes, models, strict=True):
         m, err = val[key], errors[key]
         ax.plot(t, err, color=colour, lw=0.5, alpha=0.45, label="error")
-        ax.plot(
-            t,
-            _moving_rms(err, n_rms),
-            color="k",
-            lw=1.2,
-            label=f"moving RMS ({RMS_WINDOW_S * 1e3:.0f} ms)",
-        )
+        ax.plot(t, _moving_rms(err, n_rms), color="k", lw=1.2,
+                label=f"moving RMS ({RMS_WINDOW_S * 1e3:.0f} ms)")
         ax.axvspan(t[lo], t[hi - 1], color="gold", alpha=0.3, lw=0, label="zoom window")
         ax.set_ylabel("error (um)")
         ax.set_title(
@@ -129,28 +136,21 @@ def _validation(data: dict, report: dict, path: Path) -> Path:
         ax.set_xlim(t[0], t[-1])
         ax.grid(alpha=0.3)
     for sign in (-1, 1):  # what a perfect model would leave: the sensor noise
-        axes[1].axhline(
-            sign * noise,
-            color="k",
-            ls=":",
-            lw=1.2,
-            label=f"sensor noise bound +-{noise:g} um" if sign > 0 else None,
-        )
-    for ax in axes[:2]:
+        axes[1].axhline(sign * noise, color="k", ls=":", lw=1.2,
+                        label=f"sensor noise bound +-{noise:g} um" if sign > 0 else None)
+    for ax in axes:
         ax.legend(loc="upper right", fontsize=8, ncol=4)
     axes[1].set_xlabel("time (s)")
-    zoom, zoom_err = axes[2], axes[3]
+
+
+def _zoom_panels(zoom, zoom_err, t, y, models, errors, val, noise, window) -> None:
+    """The measured and simulated deflections around the largest error, and that error."""
+    lo, hi, centre = window
     tz = (t[lo:hi] - t[lo]) * 1e3
     zoom.plot(tz, y[lo:hi], color="k", lw=2.4, label="measured")
     for name, key, y_hat, colour, style in models:
-        zoom.plot(
-            tz,
-            y_hat[lo:hi],
-            color=colour,
-            lw=1.2,
-            ls=style,
-            label=f"{name} ({val[key]['fit_percent']:.1f} %)",
-        )
+        zoom.plot(tz, y_hat[lo:hi], color=colour, lw=1.2, ls=style,
+                  label=f"{name} ({val[key]['fit_percent']:.1f} %)")
     zoom_err.plot(tz, errors["hammerstein"][lo:hi], color="tab:red", lw=1.2, label="Hammerstein")
     zoom_err.axhspan(-noise, noise, color="0.6", alpha=0.5, lw=0, label=f"+-{noise:g} um noise")
     zoom.set_ylabel("tip deflection (um)")
@@ -166,11 +166,6 @@ def _validation(data: dict, report: dict, path: Path) -> Path:
         ax.grid(alpha=0.3)
     zoom.legend(loc="upper center", bbox_to_anchor=(0.5, -0.04), fontsize=8, ncol=3)
     zoom_err.legend(loc="upper right", fontsize=8, ncol=2)
-    fig.suptitle(f"Validation on fresh {val['signal']}, {val['samples']} samples, free run")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
 
 
 def _residuals(data: dict, path: Path) -> Path:
