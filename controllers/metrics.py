@@ -53,23 +53,7 @@ def tracking_metrics(
         ``rise_time_ms``, ``overshoot_percent``, ``settling_time_ms``, ``steps_settled``
         (None on a reference without steps).
     """
-    arrays = {
-        "deflection_um": np.asarray(deflection_um, float),
-        "reference_um": np.asarray(reference_um, float),
-        "voltage_v": np.asarray(voltage_v, float),
-        "saturated": np.asarray(saturated, bool),
-    }
-    steps = arrays["deflection_um"].shape
-    for name, values in arrays.items():
-        if values.ndim != 1 or values.shape != steps or values.size == 0:
-            raise ValueError(
-                f"{name} must be a non-empty 1-D array as long as deflection_um {steps}, "
-                f"got shape {values.shape}"
-            )
-        if not np.isfinite(values).all():
-            raise ValueError(f"{name} holds non-finite values")
-    if not (np.isfinite(stroke_um) and stroke_um > 0):
-        raise ValueError(f"stroke_um must be a positive number (um), got {stroke_um!r}")
+    arrays = _checked_arrays(deflection_um, reference_um, voltage_v, saturated, stroke_um)
     error = arrays["deflection_um"] - arrays["reference_um"]
     voltage = arrays["voltage_v"]
     saturated = arrays["saturated"]
@@ -97,6 +81,30 @@ def tracking_metrics(
         "fallbacks": int(fallbacks),
         **extra,
     }
+
+
+def _checked_arrays(
+    deflection_um: Any, reference_um: Any, voltage_v: Any, saturated: Any, stroke_um: float
+) -> dict[str, np.ndarray]:
+    """The episode's columns as arrays, or ValueError naming the one that is wrong."""
+    arrays = {
+        "deflection_um": np.asarray(deflection_um, float),
+        "reference_um": np.asarray(reference_um, float),
+        "voltage_v": np.asarray(voltage_v, float),
+        "saturated": np.asarray(saturated, bool),
+    }
+    steps = arrays["deflection_um"].shape
+    for name, values in arrays.items():
+        if values.ndim != 1 or values.shape != steps or values.size == 0:
+            raise ValueError(
+                f"{name} must be a non-empty 1-D array as long as deflection_um {steps}, "
+                f"got shape {values.shape}"
+            )
+        if not np.isfinite(values).all():
+            raise ValueError(f"{name} holds non-finite values")
+    if not (np.isfinite(stroke_um) and stroke_um > 0):
+        raise ValueError(f"stroke_um must be a positive number (um), got {stroke_um!r}")
+    return arrays
 
 
 def step_metrics(

@@ -230,6 +230,37 @@ def discretize(
     kept = np.arange(len(blocks)) if not reduce else np.flatnonzero(radius >= tolerance)
     fast = np.setdiff1d(np.arange(len(blocks)), kept)
 
+    a, b, c = _assemble(blocks, kept, fast, nc, tip_w, tip_theta)
+    n_s = a.shape[0]
+    step = np.zeros((n_s + 2, n_s + 1))
+    step[:n_s, :n_s] = a
+    step[:n_s, n_s] = b
+    step[n_s:, :n_s] = c @ a
+    step[n_s:, n_s] = c @ b
+
+    nodal = np.zeros((beam.n_elements + 1, n_s))
+    for i, k in enumerate(kept):
+        nodal[1:, nc + 2 * i] = beam.modes[0::2, k]
+    return DiscreteBender(
+        dt=float(dt),
+        step_matrix=step,
+        output_matrix=c,
+        kept_modes=kept,
+        nodal_matrix=nodal,
+        n_creep=nc,
+    )
+
+
+def _assemble(
+    blocks: list,
+    kept: np.ndarray,
+    fast: np.ndarray,
+    nc: int,
+    tip_w: np.ndarray,
+    tip_theta: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A, b and C of the reduced model: creep states, the kept modes' (q, q') pairs, and two
+    output states carrying the fast modes' one-step contribution to [w_tip, theta_tip]."""
     n_s = nc + 2 * len(kept) + 2
     a = np.zeros((n_s, n_s))
     b = np.zeros(n_s)
@@ -255,21 +286,4 @@ def discretize(
         b[fast_rows] += gain * bd[nc]
     c[0, n_s - 2] = 1.0
     c[1, n_s - 1] = 1.0
-
-    step = np.zeros((n_s + 2, n_s + 1))
-    step[:n_s, :n_s] = a
-    step[:n_s, n_s] = b
-    step[n_s:, :n_s] = c @ a
-    step[n_s:, n_s] = c @ b
-
-    nodal = np.zeros((beam.n_elements + 1, n_s))
-    for i, k in enumerate(kept):
-        nodal[1:, nc + 2 * i] = beam.modes[0::2, k]
-    return DiscreteBender(
-        dt=float(dt),
-        step_matrix=step,
-        output_matrix=c,
-        kept_modes=kept,
-        nodal_matrix=nodal,
-        n_creep=nc,
-    )
+    return a, b, c
