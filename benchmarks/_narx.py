@@ -28,6 +28,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -100,101 +101,113 @@ class NARXNetwork:
 
         start = time.perf_counter()
         splits = [round((1.0 - self.validation_fraction) * len(y)) for _, y in records]
-        x_tr = np.concatenate(
-            [
-                _regressors(u, y, self.ny, self.nu)[:s]
-                for (u, y), s in zip(records, splits, strict=True)
-            ]
-        )
-        t_tr = np.concatenate([y[:s] for (_, y), s in zip(records, splits, strict=True)])
-        self.y_mean = float(t_tr.mean())
-        self.y_scale = float(t_tr.std())
-        u_all = np.concatenate([u[:s] for (u, _), s in zip(records, splits, strict=True)])
-        self.u_scale = float(u_all.std())
-        self.x_mean = np.r_[np.full(self.ny, self.y_mean), np.zeros(self.nu)]
-        self.x_scale = np.r_[np.full(self.ny, self.y_scale), np.full(self.nu, self.u_scale)]
-        xn = (x_tr - self.x_mean) / self.x_scale
-        tn = (t_tr - self.y_mean) / self.y_scale
-        skip = np.linalg.lstsq(np.c_[xn, np.ones(len(xn))], tn, rcond=None)[0]
-
+        xn, tn, skip = self._normalised(records, splits)
         previous_threads = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
             gen = torch.Generator().manual_seed(self.seed)
-            widths = [self.ny + self.nu, *self.hidden]
-            layers = [
-                torch.nn.Linear(a, b, dtype=torch.float64) for a, b in itertools.pairwise(widths)
-            ]
-            out = torch.nn.Linear(widths[-1], 1, dtype=torch.float64)
-            lin = torch.nn.Linear(widths[0], 1, dtype=torch.float64)
-            with torch.no_grad():
-                for layer in layers:
-                    bound = math.sqrt(6.0 / (layer.in_features + layer.out_features))
-                    layer.weight.uniform_(-bound, bound, generator=gen)
-                    layer.bias.zero_()
-                out.weight.zero_()
-                out.bias.zero_()
-                if self.skip:
-                    lin.weight.copy_(torch.from_numpy(skip[:-1][None, :]))
-                    lin.bias.fill_(float(skip[-1]))
-                else:
-                    lin.weight.zero_()
-                    lin.bias.zero_()
-                    out.weight.uniform_(-0.1, 0.1, generator=gen)
-            if not self.skip:
-                lin.weight.requires_grad_(False)
-                lin.bias.requires_grad_(False)
-            modules = torch.nn.ModuleList([*layers, out, lin])
-
-            def forward(x: torch.Tensor) -> torch.Tensor:
-                h = x
-                for layer in layers:
-                    h = torch.tanh(layer(h))
-                return (out(h) + lin(x))[:, 0]
-
-            x = torch.from_numpy(xn)
-            t = torch.from_numpy(tn)
-            optimizer = torch.optim.Adam(
-                [p for p in modules.parameters() if p.requires_grad], lr=self.learning_rate
+            layers, out, lin = self._initial_modules(skip, gen)
+            epochs, best_epoch, best_fit = self._train(
+                layers, out, lin, torch.from_numpy(xn), torch.from_numpy(tn), gen,
+                records, splits,
             )
-            schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, self.max_epochs)
-            self._store(layers, out, lin)
-            best_fit = self._validation_fit(records, splits)
-            best_state = {k: v.clone() for k, v in modules.state_dict().items()}
-            best_epoch, stale, epochs = 0, 0, 0
-            for epoch in range(1, self.max_epochs + 1):
-                epochs = epoch
-                order = torch.randperm(len(x), generator=gen)
-                for i in range(0, len(x), self.batch_size):
-                    idx = order[i : i + self.batch_size]
-                    optimizer.zero_grad()
-                    loss = torch.mean((forward(x[idx]) - t[idx]) ** 2)
-                    loss.backward()
-                    optimizer.step()
-                schedule.step()
-                if epoch % self.check_every:
-                    continue
-                self._store(layers, out, lin)
-                current = self._validation_fit(records, splits)
-                if current > best_fit:
-                    best_fit, best_epoch, stale = current, epoch, 0
-                    best_state = {k: v.clone() for k, v in modules.state_dict().items()}
-                else:
-                    stale += 1
-                    if stale >= self.patience:
-                        break
-            modules.load_state_dict(best_state)
-            self._store(layers, out, lin)
         finally:
             torch.set_num_threads(previous_threads)
         self.training = {
             "epochs": epochs,
             "best_epoch": best_epoch,
             "validation_free_run_fit_percent": best_fit,
-            "training_samples": len(x_tr),
+            "training_samples": len(xn),
             "wall_time_s": time.perf_counter() - start,
         }
         return self
+
+    def _normalised(self, records, splits) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Training regressors and targets, normalised; the least-squares affine skip."""
+        pairs = list(zip(records, splits, strict=True))
+        x_tr = np.concatenate([_regressors(u, y, self.ny, self.nu)[:s] for (u, y), s in pairs])
+        t_tr = np.concatenate([y[:s] for (_, y), s in pairs])
+        self.y_mean = float(t_tr.mean())
+        self.y_scale = float(t_tr.std())
+        self.u_scale = float(np.concatenate([u[:s] for (u, _), s in pairs]).std())
+        self.x_mean = np.r_[np.full(self.ny, self.y_mean), np.zeros(self.nu)]
+        self.x_scale = np.r_[np.full(self.ny, self.y_scale), np.full(self.nu, self.u_scale)]
+        xn = (x_tr - self.x_mean) / self.x_scale
+        tn = (t_tr - self.y_mean) / self.y_scale
+        skip = np.linalg.lstsq(np.c_[xn, np.ones(len(xn))], tn, rcond=None)[0]
+        return xn, tn, skip
+
+    def _initial_modules(self, skip: np.ndarray, gen: Any) -> tuple[list, Any, Any]:
+        """Hidden layers (Glorot-uniform), a zero output layer and the affine skip (or none)."""
+        import torch
+
+        widths = [self.ny + self.nu, *self.hidden]
+        layers = [torch.nn.Linear(a, b, dtype=torch.float64) for a, b in itertools.pairwise(widths)]
+        out = torch.nn.Linear(widths[-1], 1, dtype=torch.float64)
+        lin = torch.nn.Linear(widths[0], 1, dtype=torch.float64)
+        with torch.no_grad():
+            for layer in layers:
+                bound = math.sqrt(6.0 / (layer.in_features + layer.out_features))
+                layer.weight.uniform_(-bound, bound, generator=gen)
+                layer.bias.zero_()
+            out.weight.zero_()
+            out.bias.zero_()
+            if self.skip:
+                lin.weight.copy_(torch.from_numpy(skip[:-1][None, :]))
+                lin.bias.fill_(float(skip[-1]))
+            else:
+                lin.weight.zero_()
+                lin.bias.zero_()
+                out.weight.uniform_(-0.1, 0.1, generator=gen)
+        if not self.skip:
+            lin.weight.requires_grad_(False)
+            lin.bias.requires_grad_(False)
+        return layers, out, lin
+
+    def _train(self, layers, out, lin, x, t, gen, records, splits) -> tuple[int, int, float]:
+        """Adam with a cosine schedule, early-stopped on the free-run fit; best weights kept."""
+        import torch
+
+        modules = torch.nn.ModuleList([*layers, out, lin])
+
+        def forward(inputs: torch.Tensor) -> torch.Tensor:
+            h = inputs
+            for layer in layers:
+                h = torch.tanh(layer(h))
+            return (out(h) + lin(inputs))[:, 0]
+
+        optimizer = torch.optim.Adam(
+            [p for p in modules.parameters() if p.requires_grad], lr=self.learning_rate
+        )
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, self.max_epochs)
+        self._store(layers, out, lin)
+        best_fit = self._validation_fit(records, splits)
+        best_state = {k: v.clone() for k, v in modules.state_dict().items()}
+        best_epoch, stale, epochs = 0, 0, 0
+        for epoch in range(1, self.max_epochs + 1):
+            epochs = epoch
+            order = torch.randperm(len(x), generator=gen)
+            for i in range(0, len(x), self.batch_size):
+                idx = order[i : i + self.batch_size]
+                optimizer.zero_grad()
+                loss = torch.mean((forward(x[idx]) - t[idx]) ** 2)
+                loss.backward()
+                optimizer.step()
+            schedule.step()
+            if epoch % self.check_every:
+                continue
+            self._store(layers, out, lin)
+            current = self._validation_fit(records, splits)
+            if current > best_fit:
+                best_fit, best_epoch, stale = current, epoch, 0
+                best_state = {k: v.clone() for k, v in modules.state_dict().items()}
+            else:
+                stale += 1
+                if stale >= self.patience:
+                    break
+        modules.load_state_dict(best_state)
+        self._store(layers, out, lin)
+        return epochs, best_epoch, best_fit
 
     def _store(self, layers: list, out: object, lin: object) -> None:
         """Copy the torch weights into numpy arrays for the free-run loop."""
