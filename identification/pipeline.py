@@ -113,19 +113,13 @@ def identify(
     seeds, dt, lap = step_seeds(config.seed), sample_time(env), _Stopwatch()
 
     u_prbs, y_prbs = excite_prbs(env, config, seeds)
-    say(
-        f"a) PRBS +-{config.prbs_amplitude:g} V, {len(u_prbs)} samples: peak |y| = "
-        f"{np.abs(y_prbs).max():.1f} um"
-    )
+    say(f"a) PRBS +-{config.prbs_amplitude:g} V, {len(u_prbs)} samples: peak |y| = "
+        f"{np.abs(y_prbs).max():.1f} um")
     lap("a_prbs_experiment")
 
     est = estimate_arx(u_prbs, y_prbs, config, dt=dt)
     arx = est.model
-    say(
-        f"b) ARX({est.order},{est.order}) by bayes-uniform (held-out PRBS fit "
-        + ", ".join(f"n={k}: {v:.1f} %" for k, v in est.order_scores.items())
-        + f"); r_hat = {arx.noise_bound:.2f} um, minimum-phase B: {arx.is_minimum_phase()}"
-    )
+    say(_arx_line(est))
     lap("b_arx_estimation")
 
     u_rich, y_rich = excite_rich(env, config, seeds)
@@ -133,35 +127,44 @@ def identify(
     lap("c_rich_experiment")
 
     hidden = estimate_hidden_signal(arx, y_rich, y_prbs)
-    say(
-        f"d) z_hat by {hidden.method}; error from r_hat: worst case "
-        f"{_volts(hidden.error['z_error_bound_V'])}, RMS {_volts(hidden.error['z_error_rms_V'])}"
-    )
+    say(f"d) z_hat by {hidden.method}; error from r_hat: worst case "
+        f"{_volts(hidden.error['z_error_bound_V'])}, RMS {_volts(hidden.error['z_error_rms_V'])}")
     lap("d_inverse_arx")
 
     u_train, z_train = np.r_[u_prbs, u_rich], np.r_[hidden.z_prbs, hidden.z_rich]
     nls = fit_nonlinearity(env, arx, u_train, z_train, config, seeds, say=say)
     model = nls.model
     model.metadata.update(model_metadata(env, config, nls.features, hidden))
-    say(
-        f"   NLS small-signal gain on the PRBS record: {nls.small_signal_gain:.3f} "
-        "(1 by construction)"
-    )
+    say(f"   NLS small-signal gain on the PRBS record: {nls.small_signal_gain:.3f} "
+        "(1 by construction)")
     lap("e_nls_training")
 
     val = validate(env, model, config, seeds)
-    hammer, linear = val.metrics["hammerstein"], val.metrics["linear_arx"]
-    say(
-        f"f) validation on RAND +-{config.validation_amplitude:g} V "
-        f"(hold {config.validation_hold}): Hammerstein fit {hammer['fit_percent']:.2f} %, "
-        f"RMSE {hammer['rmse']:.2f} um; linear ARX fit {linear['fit_percent']:.2f} %, "
-        f"RMSE {linear['rmse']:.2f} um"
-    )
+    say(_validation_line(config, val))
     lap("f_validation")
 
     report = build_report(env, config, est, hidden, nls, val, lap.timings())
     data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, model, val)
     return IdentificationResult(model=model, report=jsonable(report), data=data)
+
+
+def _arx_line(est: ArxEstimate) -> str:
+    arx = est.model
+    return (
+        f"b) ARX({est.order},{est.order}) by bayes-uniform (held-out PRBS fit "
+        + ", ".join(f"n={k}: {v:.1f} %" for k, v in est.order_scores.items())
+        + f"); r_hat = {arx.noise_bound:.2f} um, minimum-phase B: {arx.is_minimum_phase()}"
+    )
+
+
+def _validation_line(config: IdentificationConfig, val: Validation) -> str:
+    hammer, linear = val.metrics["hammerstein"], val.metrics["linear_arx"]
+    return (
+        f"f) validation on RAND +-{config.validation_amplitude:g} V "
+        f"(hold {config.validation_hold}): Hammerstein fit {hammer['fit_percent']:.2f} %, "
+        f"RMSE {hammer['rmse']:.2f} um; linear ARX fit {linear['fit_percent']:.2f} %, "
+        f"RMSE {linear['rmse']:.2f} um"
+    )
 
 
 def _volts(value: float | None) -> str:
