@@ -145,41 +145,9 @@ def solve_increasing(
         else:
             b, zb = g, z_guess
     u = _initial_point(nodes, zl, j, a, za, b, zb, target)
-    for _ in range(max_iter):
-        zu, zd = evaluate(np.array((u, u + delta))).tolist()
-        if not za <= zu <= zb:
-            return _all_roots(evaluate, target, grid, zg, u_ref)
-        slope = (zd - zu) / delta
-        if zu == target:
-            return _Solution(u, zu, "ok")
-        step = (target - zu) / slope if slope > 0.0 else math.inf
-        if not extrapolate and abs(step) <= xtol:
-            return _Solution(u, zu, "ok")
-        if extrapolate and abs(step) < 0.5 * (b - a) and (u - g) * (u + step - g) > 0.0:
-            # Error of the final Newton step u + step: |z''| step^2 / (2 z'), with z''/2 from the
-            # secants to both bracket ends (a kink there only overestimates it). Never
-            # across the warm start: memory maps kink where the input reverses.
-            half_curvature = max(
-                abs((za - zu) / (a - u) - slope) / (u - a) if u > a else 0.0,
-                abs((zb - zu) / (b - u) - slope) / (b - u) if u < b else 0.0,
-            )
-            if half_curvature * step * step <= xtol * slope:
-                return _Solution(u + step, zu + slope * step, "ok")
-        if zu < target:
-            a, za = u, zu
-        else:
-            b, zb = u, zu
-        if b - a <= 1e-13 * (1.0 + abs(a)):  # bracketed to rounding (a root at a kink)
-            return _Solution(a, za, "ok") if target - za <= zb - target else _Solution(b, zb, "ok")
-        u_new = u + step
-        if not a < u_new < b:
-            u_new = a + (target - za) * (b - a) / (zb - za)
-            if not a < u_new < b:
-                u_new = 0.5 * (a + b)
-        u = u_new
-    u = scipy.optimize.brentq(lambda x: float(evaluate(np.array((x,)))[0]) - target, a, b)
-    return _Solution(u, float(evaluate(np.array((u,)))[0]), "ok")
-
+    newton = _Newton(evaluate, target, g, delta, xtol, extrapolate)
+    solution = newton.solve(u, (a, za, b, zb), max_iter)
+    return solution if solution is not None else _all_roots(evaluate, target, grid, zg, u_ref)
 
 def _initial_point(
     grid: list[float], zg: list[float], j: int, a: float, za: float, b: float, zb: float, t: float
@@ -224,3 +192,65 @@ def _all_roots(
     u = min(roots, key=lambda root: abs(root - u_ref))
     status = "non-monotone" if len(roots) > 1 or (np.diff(zg) <= 0).any() else "ok"
     return _Solution(u, fun(u) + target, status)
+
+class _Newton:
+    """Safeguarded Newton in a bracket [a, b] of an increasing map (see :func:`solve_increasing`).
+
+    :meth:`solve` returns the solution, or None when an iterate leaves its bracket's values
+    (the map is not increasing there): the caller then looks at every root.
+    """
+
+    def __init__(
+        self,
+        evaluate: Callable[[np.ndarray], np.ndarray],
+        target: float,
+        g: float,
+        delta: float,
+        xtol: float,
+        extrapolate: bool,
+    ) -> None:
+        self.evaluate, self.target, self.g = evaluate, target, g
+        self.delta, self.xtol, self.extrapolate = delta, xtol, extrapolate
+
+    def solve(
+        self, u: float, bracket: tuple[float, float, float, float], max_iter: int
+    ) -> _Solution | None:
+        """From ``u`` inside ``bracket = (a, z(a), b, z(b))``; Brent after ``max_iter`` steps."""
+        a, za, b, zb = bracket
+        target, g = self.target, self.g
+        for _ in range(max_iter):
+            zu, zd = self.evaluate(np.array((u, u + self.delta))).tolist()
+            if not za <= zu <= zb:
+                return None
+            slope = (zd - zu) / self.delta
+            if zu == target:
+                return _Solution(u, zu, "ok")
+            step = (target - zu) / slope if slope > 0.0 else math.inf
+            if not self.extrapolate and abs(step) <= self.xtol:
+                return _Solution(u, zu, "ok")
+            inside = abs(step) < 0.5 * (b - a) and (u - g) * (u + step - g) > 0.0
+            if self.extrapolate and inside:
+                # Error of the final Newton step u + step: |z''| step^2 / (2 z'), with z''/2
+                # from the secants to both bracket ends (a kink there only overestimates it).
+                # Never across the warm start: memory maps kink where the input reverses.
+                half_curvature = max(
+                    abs((za - zu) / (a - u) - slope) / (u - a) if u > a else 0.0,
+                    abs((zb - zu) / (b - u) - slope) / (b - u) if u < b else 0.0,
+                )
+                if half_curvature * step * step <= self.xtol * slope:
+                    return _Solution(u + step, zu + slope * step, "ok")
+            if zu < target:
+                a, za = u, zu
+            else:
+                b, zb = u, zu
+            if b - a <= 1e-13 * (1.0 + abs(a)):  # bracketed to rounding (a root at a kink)
+                closer_a = target - za <= zb - target
+                return _Solution(a, za, "ok") if closer_a else _Solution(b, zb, "ok")
+            u_new = u + step
+            if not a < u_new < b:
+                u_new = a + (target - za) * (b - a) / (zb - za)
+                if not a < u_new < b:
+                    u_new = 0.5 * (a + b)
+            u = u_new
+        u = scipy.optimize.brentq(lambda x: float(self.evaluate(np.array((x,)))[0]) - target, a, b)
+        return _Solution(u, float(self.evaluate(np.array((u,)))[0]), "ok")
