@@ -70,7 +70,10 @@ class BenchmarkConfig:
     Attributes
     ----------
     controllers : tuple of str
-        Registry names (:data:`controllers.CONTROLLERS`), optionally suffixed ``-oracle``.
+        Registry names (:data:`controllers.CONTROLLERS`), optionally suffixed ``-oracle``, and
+        a user's controllers as entry points ``package.module:Factory`` (row named
+        ``Factory``) or ``label=package.module:Factory`` (see :mod:`controllers.protocol`);
+        they run on the nominal and the robustness plants.
     references : tuple of str
         Names in :data:`benchmarks.references.REFERENCES`.
     plants : tuple of str
@@ -89,7 +92,8 @@ class BenchmarkConfig:
         Where the workers run (:data:`piezo_parallel.backends.BACKENDS`); results do not depend
         on it.
     controller_options : dict
-        Per controller name, options passed to :func:`controllers.make`.
+        Per controller row, options passed to :func:`controllers.make` (a user's factory gets
+        them as keywords).
     policies : tuple of str
         Folders of trained policies (:func:`controllers.policy.save_policy`), each run as a
         controller named after its folder (``ppo-seed0`` ...), on every plant.
@@ -117,12 +121,7 @@ class BenchmarkConfig:
             raise ValueError("no controller to run: name at least one (or a policy folder)")
         if not self.references or not self.plants:
             raise ValueError("name at least one reference and one plant")
-        for name in self.controllers:
-            if name.removesuffix("-oracle") not in CONTROLLERS:
-                valid = ", ".join(CONTROLLERS)
-                raise ValueError(
-                    f"unknown controller {name!r}; valid: {valid} (each also as NAME-oracle)"
-                )
+        self._check_controllers()
         for name in self.references:
             if name not in REFERENCES:
                 raise ValueError(f"unknown reference {name!r}; valid: {', '.join(REFERENCES)}")
@@ -136,16 +135,62 @@ class BenchmarkConfig:
         self._check_policies()
         self._check_options()
 
+    def _check_controllers(self) -> None:
+        """Built-in names (also as NAME-oracle) and entry points that import; unique rows."""
+        from controllers.protocol import is_entry_point, load_entry_point
+
+        for entry in self.controllers:
+            if is_entry_point(entry.rpartition("=")[2]):
+                continue
+            if "=" in entry:
+                raise ValueError(
+                    f"{entry!r}: label=... names a row of your own controller, as "
+                    "label=package.module:Factory"
+                )
+            if entry.removesuffix("-oracle") not in CONTROLLERS:
+                raise ValueError(
+                    f"unknown controller {entry!r}; valid: {', '.join(CONTROLLERS)} (each also "
+                    "as NAME-oracle), or your own as package.module:Factory (or "
+                    "label=package.module:Factory)"
+                )
+        for label, spec in self.entry_points.items():
+            load_entry_point(spec)  # a module that does not import is refused here
+            if label in CONTROLLERS or label.endswith("-oracle"):
+                raise ValueError(f"controller row name {label!r} is taken; name it label=...")
+        labels = [*self.controller_rows, *self.policy_folders]
+        if len(set(labels)) != len(labels):
+            raise ValueError(f"controller rows must have distinct names, got {labels}")
+
+    @property
+    def entry_points(self) -> dict[str, str]:
+        """Row name -> entry point of the user's controllers (``label=module:attr`` names a row;
+        by default the row is named after the attribute)."""
+        from controllers.protocol import is_entry_point
+
+        return {
+            _row_name(entry): entry.rpartition("=")[2]
+            for entry in self.controllers
+            if is_entry_point(entry.rpartition("=")[2])
+        }
+
+    @property
+    def controller_rows(self) -> tuple[str, ...]:
+        """The named controllers' rows: built-in names, and entry points by their row name."""
+        return tuple(_row_name(entry) for entry in self.controllers)
+
     def _check_options(self) -> None:
-        """Every controller option is a valid setting of that controller."""
+        """Every controller option is a valid setting of that controller (a user's factory
+        checks its own when it is built, before any episode: :func:`run_benchmark`)."""
         from controllers.registry import resolve_controller
 
         for controller, options in self.controller_options.items():
-            if controller not in self.controllers:
+            if controller not in self.controller_rows:
                 raise ValueError(
-                    f"controller_options given for {controller!r}, which is not benchmarked"
+                    f"options given for {controller!r}, which is not benchmarked (rows: "
+                    f"{', '.join(self.controller_rows)})"
                 )
-            resolve_controller(controller.removesuffix("-oracle"), options)
+            if controller not in self.entry_points:
+                resolve_controller(controller.removesuffix("-oracle"), options)
 
     def _check_policies(self) -> None:
         from controllers.policy import load_policy
@@ -173,7 +218,7 @@ class BenchmarkConfig:
     @property
     def rows(self) -> tuple[str, ...]:
         """Every controller row: the named controllers, then the policies."""
-        return (*self.controllers, *self.policy_folders)
+        return (*self.controller_rows, *self.policy_folders)
 
     def groups(self) -> list[tuple[str, str, tuple[str, ...]]]:
         """(plant, controller, references) of every group, in report order."""
@@ -182,13 +227,23 @@ class BenchmarkConfig:
             nominal = plant == "nominal"
             chosen = MONTE_CARLO_REFERENCES if plant == MONTE_CARLO else ROBUSTNESS_REFERENCES
             refs = self.references if nominal else tuple(r for r in self.references if r in chosen)
-            robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders)
+            robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders, *self.entry_points)
             for controller in self.rows:
                 # An oracle's model is one plant: it has no meaning over random plants.
                 oracle_on_random = plant == MONTE_CARLO and controller.endswith("-oracle")
                 if refs and (nominal or controller in robust) and not oracle_on_random:
                     out.append((plant, controller, refs))
         return out
+
+
+def _row_name(entry: str) -> str:
+    """``label=module:attr`` -> label; ``module:attr`` -> attr; a built-in name as it is."""
+    from controllers.protocol import entry_point_label, is_entry_point
+
+    label, _, spec = entry.rpartition("=")
+    if label:
+        return label
+    return entry_point_label(spec) if is_entry_point(spec) else spec
 
 
 @dataclass
@@ -223,7 +278,9 @@ def _build(controller: str, model_dir: str, plant_env: Any, config: BenchmarkCon
 
     name = controller.removesuffix("-oracle")
     nominal = _make_env(config, "nominal")
-    if controller in config.policy_folders:
+    if controller in config.entry_points:
+        name, model = config.entry_points[controller], model_dir
+    elif controller in config.policy_folders:
         name, model = "policy", config.policy_folders[controller]
     elif controller.endswith("-oracle"):
         model = ctl.PredictionModel.from_plant(plant_env.unwrapped.model)
@@ -340,6 +397,10 @@ def run_benchmark(
         name: make_reference(name, config.steps + config.preview + 1, dt=DT, seed=config.seed)
         for name in config.references
     }
+    for label in config.entry_points:  # built once here: a broken one stops before episodes
+        nominal = _make_env(config, "nominal")
+        _build(label, str(model_dir), nominal, config)
+        nominal.close()
     outputs = run_tasks(
         _run_group,
         [(p, c, {r: arrays[r] for r in refs}, str(model_dir), config) for p, c, refs in groups],

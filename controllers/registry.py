@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from controllers.prediction import PredictionModel
+from controllers.protocol import check_protocol, is_entry_point, load_entry_point
 from controllers.task import ControlTask
 
 __all__ = ["CONTROLLERS", "make", "prediction_model", "resolve_controller"]
@@ -62,20 +63,25 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     ----------
     name : str
         One of :data:`CONTROLLERS`: ``"pid"``, ``"pid-notch"``, ``"pid-ff"``, ``"mpc"``,
-        ``"nmpc"``, ``"nmpc-ipopt"``, ``"policy"``.
+        ``"nmpc"``, ``"nmpc-ipopt"``, ``"policy"``; or a user's factory as an entry point,
+        ``"package.module:Name"``, called as ``Name(prediction_model, env, **options)`` and
+        checked against the protocol (:mod:`controllers.protocol`).
     model : HammersteinModel, str, pathlib.Path, PredictionModel or "plant"
         See :func:`prediction_model`; for ``"policy"``, the folder of a trained policy
         (:func:`controllers.policy.save_policy`).
     env : gymnasium.Env
         The env it will run on; read once for dt, drive range, stroke and preview.
     **options
-        Fields of the controller's ``Settings`` dataclass.
+        Fields of the controller's ``Settings`` dataclass (a factory's own keywords).
 
     Raises
     ------
     ValueError
         For an unknown name or option (the message lists the valid ones) or a bad value.
     """
+    if is_entry_point(name):  # a user's factory, named as gymnasium names envs
+        factory = load_entry_point(name)
+        return check_protocol(factory(prediction_model(model, env), env, **options), name)
     cls, settings = resolve_controller(name, options)
     task = ControlTask.from_env(env)
     if name != "policy":  # a policy's model is its folder; it has no prediction model

@@ -18,6 +18,25 @@ def _names(text: str) -> tuple[str, ...]:
     return tuple(part.strip() for part in text.split(",") if part.strip())
 
 
+def _option(text: str) -> tuple[str, str, object]:
+    """``ROW.KEY=VALUE`` as (row, key, value) (argparse type)."""
+    target, sep, raw = text.partition("=")
+    row, dot, key = target.rpartition(".")
+    if not sep or not dot or not row or not key.isidentifier():
+        raise argparse.ArgumentTypeError(
+            f"expected ROW.KEY=VALUE such as mpc.horizon=10, got {text!r}"
+        )
+    words = {"true": True, "false": False, "none": None}
+    if raw.strip().lower() in words:
+        return row, key, words[raw.strip().lower()]
+    for kind in (int, float):
+        try:
+            return row, key, kind(raw)
+        except ValueError:
+            pass
+    return row, key, raw
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo benchmark``."""
     from benchmarks.references import REFERENCES
@@ -38,8 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_names,
         default=DEFAULT_CONTROLLERS,
         metavar="A,B",
-        help="comma-separated controllers (NAME-oracle runs NAME on the true plant's model); "
-        "also available: nmpc-ipopt (20-60 ms per step)",
+        help="comma-separated controllers (NAME-oracle runs NAME on the true plant's model; "
+        "also available: nmpc-ipopt, 20-60 ms per step); your own as package.module:Factory or "
+        "label=package.module:Factory (see examples/feedforward_pi.py)",
     )
     parser.add_argument(
         "--references",
@@ -82,6 +102,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "comma-separated folders; 'none' for none (the default finds the committed PPO "
         "policies when run from the project folder)",
     )
+    parser.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        type=_option,
+        metavar="ROW.KEY=VALUE",
+        help="an option of one controller row, e.g. mpc.horizon=10 or MyController.gain=2 "
+        "(repeatable; numbers, true/false and none are read as such, anything else as text)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument(
         "--strict",
@@ -105,9 +134,18 @@ def _config(args: argparse.Namespace):
             jobs=args.jobs,
             backend=args.backend,
             policies=_policies(args.policies),
+            controller_options=_options(args.option),
         )
     except ValueError as error:
         raise CommandLineError(str(error)) from None
+
+
+def _options(options: list[tuple[str, str, object]]) -> dict[str, dict[str, object]]:
+    """``--option`` values grouped by row."""
+    grouped: dict[str, dict[str, object]] = {}
+    for row, key, value in options:
+        grouped.setdefault(row, {})[key] = value
+    return grouped
 
 
 def _policies(text: str) -> tuple[str, ...]:

@@ -253,12 +253,16 @@ def connect_ray(address: str | None = None, *, jobs: int = 1) -> bool:
     saved = os.environ.get("RAY_USAGE_STATS_ENABLED")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     try:
+        # The workers import what this process imports: the current folder first, as here
+        # (a user's controller module next to the command is then found by its entry point).
+        path = os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p)
         ray.init(
             address="local",
             num_cpus=jobs,
             include_dashboard=False,
             log_to_driver=False,
             configure_logging=False,
+            runtime_env={"env_vars": {"PYTHONPATH": path}},
         )
     finally:
         if saved is None:

@@ -1,0 +1,1 @@
+"""Runnable examples of the testbed's public interfaces (not part of the installed package)."""

@@ -1,0 +1,136 @@
+"""A controller of the user's own: the protocol, entry points, and the benchmark's rows."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import controllers
+from benchmarks.runner import BenchmarkConfig
+from piezo_cli.main import main
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL_DIR = str(ROOT / "docs" / "identify" / "model")
+EXAMPLE = "examples.feedforward_pi:FeedforwardPI"
+
+
+class Bare:
+    """The protocol and nothing else: no stats, no describe."""
+
+    def __init__(self, model, env, *, gain: float = 0.02) -> None:
+        self.gain = gain
+
+    def reset(self, observation):
+        pass
+
+    def act(self, observation):
+        return np.array([self.gain * float(observation[2])], dtype=np.float32)
+
+
+class NoAct:
+    def __init__(self, model, env) -> None:
+        pass
+
+    def reset(self, observation):
+        pass
+
+
+@pytest.fixture(scope="module")
+def env():
+    return gym.make("piezo_env:PiezoBender-v0", preview=20)
+
+
+@pytest.fixture(autouse=True)
+def _project_folder(monkeypatch):
+    monkeypatch.chdir(ROOT)  # entry points import from the current folder, as python -m does
+
+
+def test_a_bare_protocol_object_runs_an_episode(env):
+    controller = controllers.make("test_protocol:Bare", MODEL_DIR, env, gain=0.03)
+    t = np.arange(1, 402) * 1e-3
+    episode = controllers.run_episode(
+        env, controller, seed=0, reference=300 * np.sin(2 * np.pi * 5 * t), max_steps=400
+    )
+    assert controller.gain == 0.03
+    assert episode.compute_s.size == 400 and np.all(episode.compute_s > 0)
+    assert episode.metrics["fallbacks"] == 0 and episode.metrics["deadline_misses"] == 0
+    assert np.isfinite(episode.metrics["rmse_percent"])
+
+
+def test_the_example_controller_runs_through_make(env):
+    controller = controllers.make(EXAMPLE, MODEL_DIR, env)
+    assert controller.describe()["dc_gain_um_per_V"] == pytest.approx(28.27, rel=1e-3)
+
+
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("no_such_module:Thing", "module 'no_such_module' does not import"),
+        ("examples.feedforward_pi:Nope", "has no attribute 'Nope'"),
+        ("test_protocol:NoAct", "breaks the controller protocol: no callable act"),
+        ("examples.feedforward_pi", "unknown controller"),
+        ("a:b:c", "must read 'package.module:factory'"),
+    ],
+)
+def test_broken_entry_points_are_refused_in_one_line(name, message, env):
+    with pytest.raises(ValueError, match=message) as raised:
+        controllers.make(name, MODEL_DIR, env)
+    assert "\n" not in str(raised.value)
+
+
+def test_rows_are_named_after_the_attribute_or_the_label():
+    config = BenchmarkConfig(
+        controllers=("mpc", EXAMPLE, f"mine={EXAMPLE}"),
+        references=("sine-10Hz",),
+        plants=("nominal", "damping-0.01"),
+        controller_options={"mine": {"ki": 0.3}},
+    )
+    assert config.rows == ("mpc", "FeedforwardPI", "mine")
+    assert config.entry_points == {"FeedforwardPI": EXAMPLE, "mine": EXAMPLE}
+    # A user's controller gets the robustness plants too.
+    assert ("damping-0.01", "mine", ("sine-10Hz",)) in config.groups()
+    with pytest.raises(ValueError, match="distinct names"):
+        BenchmarkConfig(controllers=(EXAMPLE, EXAMPLE))
+    with pytest.raises(ValueError, match=r"label=package\.module:Factory"):
+        BenchmarkConfig(controllers=("mine=mpc",))
+
+
+def _run(tmp_path, backend: str, jobs: int) -> dict:
+    out = tmp_path / f"{backend}-{jobs}"
+    argv = [
+        "benchmark", "--model", MODEL_DIR, "--policies", "none", "--quiet",
+        "--controllers", f"pid,{EXAMPLE},slow={EXAMPLE}", "--option", "slow.ki=0.2",
+        "--references", "sine-10Hz", "--plants", "nominal,damping-0.04", "--steps", "150",
+        "--backend", backend, "--jobs", str(jobs), "--out", str(out),
+    ]
+    assert main(argv) == 0
+    return json.loads((out / "benchmark.json").read_text())
+
+
+def test_the_example_runs_through_piezo_benchmark_on_both_backends(tmp_path):
+    runs = [_run(tmp_path, "local", 1), _run(tmp_path, "local", 2), _run(tmp_path, "ray", 2)]
+    rows = {e["controller"] for e in runs[0]["results"]["episodes"]}
+    assert rows == {"pid", "FeedforwardPI", "slow"}
+    assert runs[0]["controllers"]["slow"]["ki"] == 0.2
+    for other in runs[1:]:
+        assert other["results"]["episodes"] == runs[0]["results"]["episodes"]
+
+
+def test_a_broken_entry_point_stops_the_benchmark_before_any_work(tmp_path, monkeypatch, capsys):
+    def refuse(*args, **kwargs):
+        raise AssertionError("work started before the controllers were checked")
+
+    monkeypatch.setattr("identification.pipeline.identify", refuse)
+    monkeypatch.setattr("piezo_parallel.backends.run_tasks", refuse)
+    argv = ["benchmark", "--controllers", "mpc,no_such_module:Thing", "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "does not import" in err and len(err.splitlines()) == 1
+    argv = ["benchmark", "--model", MODEL_DIR, "--policies", "none",
+            "--controllers", "mpc,test_protocol:NoAct", "--out", str(tmp_path / "p")]
+    assert main(argv) == 2
+    assert "breaks the controller protocol" in capsys.readouterr().err
