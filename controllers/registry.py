@@ -11,7 +11,7 @@ from controllers.prediction import PredictionModel
 from controllers.protocol import check_protocol, is_entry_point, load_entry_point
 from controllers.task import ControlTask
 
-__all__ = ["CONTROLLERS", "make", "prediction_model", "resolve_controller"]
+__all__ = ["CONTROLLERS", "check_model_fits_env", "make", "prediction_model", "resolve_controller"]
 
 CONTROLLERS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "pid": ("controllers.pid", "PIDController", {"notch": False, "feedforward": False}),
@@ -47,13 +47,46 @@ def prediction_model(model: Any, env: Any) -> PredictionModel:
                 f"model {str(model)!r} is not a folder holding a saved model (model.json + "
                 "weights.npz); pass a HammersteinModel, a model folder or 'plant'"
             )
-        return PredictionModel.from_hammerstein(model, u_max)
+        from identification.hammerstein import HammersteinModel
+
+        model = HammersteinModel.load(model)
     if hasattr(model, "arx") and hasattr(model, "nls"):
+        check_model_fits_env(getattr(model, "metadata", {}), env)
         return PredictionModel.from_hammerstein(model, u_max)
     raise ValueError(
         f"model must be a HammersteinModel, a model folder, a PredictionModel or 'plant'; "
         f"got {type(model).__name__}"
     )
+
+
+def check_model_fits_env(metadata: dict[str, Any], env: Any) -> None:
+    """Refuse a model identified on another bender or task than ``env``'s (ValueError, one line).
+
+    Compares what the model files record (the bender's datasheet, else its name, and the
+    sample time) with the env's nominal plant. A model on another bender would run, and fail
+    quietly: the message says which differs and how to get the right model.
+    """
+    base = env.unwrapped
+    plant, task = base.task.model, metadata.get("task", {})
+    sheet = metadata.get("datasheet")
+    mine = dataclasses.asdict(plant.params.datasheet)
+    if sheet is not None:
+        same_bender = sheet == mine
+    else:  # model files written before the datasheet was recorded: the name
+        same_bender = metadata.get("bender") in (None, plant.name)
+    if not same_bender:
+        raise ValueError(
+            f"the model was identified on {metadata.get('bender', 'another bender')} but the env "
+            f"is a {plant.name}; identify this bender first (piezo identify --bender "
+            f"{plant.name.split('.')[0]}) or make the env with bender="
+            f"{str(metadata.get('bender', '?')).split('.')[0]!r}"
+        )
+    dt = task.get("dt_s", metadata.get("dt"))
+    if dt is not None and abs(float(dt) - float(plant.dt)) > 1e-12 * float(plant.dt):
+        raise ValueError(
+            f"the model was identified at dt = {dt} s but the env steps at dt = {plant.dt} s; "
+            "identify at the env's sample time"
+        )
 
 
 def make(name: str, model: Any, env: Any, **options: Any) -> Any:

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import asdict, dataclass
@@ -52,9 +53,17 @@ class IdentificationResult:
 def model_metadata(
     env: gym.Env, config: IdentificationConfig, features: str, hidden: HiddenSignal
 ) -> dict[str, Any]:
-    """What the model files record about their origin (JSON-safe)."""
+    """What the model files record about their origin (JSON-safe): the bender (its datasheet
+    values) and the task it was identified on, so that a controller can refuse another one."""
+    plant = env.unwrapped.model
     return {
-        "bender": env.unwrapped.model.name,
+        "bender": plant.name,
+        "datasheet": dataclasses.asdict(plant.params.datasheet),
+        "task": {
+            "dt_s": sample_time(env),
+            "u_max_V": float(plant.rated_voltage),
+            "noise_bound_um": float(env.unwrapped.noise_bound),
+        },
         "dt": sample_time(env),
         "features": features,
         "seed": config.seed,

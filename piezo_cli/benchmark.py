@@ -191,17 +191,33 @@ def _check_backend(args: argparse.Namespace) -> None:
         ) from None
 
 
+def _check_model_bender(folder: str, model) -> None:
+    """Refuse, before any work, a model identified on another bender or sample time."""
+    import gymnasium as gym
+
+    from controllers.registry import check_model_fits_env
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=1)
+    try:
+        check_model_fits_env(model.metadata, env)
+    except ValueError as error:
+        raise CommandLineError(f"--model {folder}: {error}") from None
+    finally:
+        env.close()
+
+
 def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
     """The model folder to benchmark (loaded once to check it), identifying one if needed."""
     from identification.hammerstein import HammersteinModel
 
     if args.model is not None:
         try:
-            HammersteinModel.load(args.model)
+            model = HammersteinModel.load(args.model)
         except (OSError, ValueError) as error:
             raise CommandLineError(
                 f"--model {args.model}: cannot load the model: {error}"
             ) from None
+        _check_model_bender(args.model, model)
         return str(args.model), {}
     from identification.pipeline import IdentificationConfig, identify
 

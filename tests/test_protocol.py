@@ -134,3 +134,33 @@ def test_a_broken_entry_point_stops_the_benchmark_before_any_work(tmp_path, monk
             "--controllers", "mpc,test_protocol:NoAct", "--out", str(tmp_path / "p")]
     assert main(argv) == 2
     assert "breaks the controller protocol" in capsys.readouterr().err
+
+
+def _model_of(tmp_path, bender: str) -> str:
+    """The shipped model's files, relabelled as identified on ``bender``."""
+    import dataclasses
+    import shutil
+
+    from piezo_env import get_datasheet
+
+    folder = tmp_path / f"model-{bender}"
+    shutil.copytree(MODEL_DIR, folder)
+    document = json.loads((folder / "model.json").read_text())
+    sheet = get_datasheet(bender)
+    document.setdefault("metadata", {}).update(
+        bender=sheet.name, datasheet=dataclasses.asdict(sheet)
+    )
+    (folder / "model.json").write_text(json.dumps(document))
+    return str(folder)
+
+
+def test_a_model_of_another_bender_is_refused(tmp_path, env, capsys):
+    pl127 = _model_of(tmp_path, "PL127")
+    with pytest.raises(ValueError, match=r"identified on PL127\.10 but the env is a PL140\.10"):
+        controllers.make("mpc", pl127, env)
+    controllers.make("mpc", _model_of(tmp_path, "PL140"), env)  # its own bender is fine
+    argv = ["benchmark", "--model", pl127, "--policies", "none", "--out", str(tmp_path / "o")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "identified on PL127.10" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
