@@ -64,6 +64,11 @@ KD_RANGE = 5.0
 """Search range of kd, in units of dt / (DC gain)."""
 _GRID_KP = 41
 _GRID_KD = 21
+_STABLE_WANTED = 3
+"""Refined, stable candidates compared (best grid points first) before the best is taken."""
+_MAX_CANDIDATES = 60
+"""Grid points tried at most: a lightly damped mode near Nyquist can make the best ones
+unstable between grid points, so the search goes on down the ranking (pure I is on it)."""
 
 
 class TuningError(ValueError):
@@ -304,20 +309,64 @@ def tune_pid(
         ki = _largest_ki(np.array([x[0] * scale[0]]), x[1] * scale[2], loop, integral, deriv, rho)
         return min(float(ki[0]) / scale[1], KI_RANGE)
 
-    candidates = _grid_candidates(loop, integral, deriv, rho, scale, use_derivative)
-    best = None
-    for start in candidates:
+    def stable(rows: np.ndarray) -> np.ndarray:
+        return _closed_loop_radius(model, notch, rows * scale, a) < 1.0 - 1e-9
+
+    candidates = _grid_candidates(loop, integral, deriv, rho, scale, use_derivative, stable)
+    best, stable_found = None, 0
+    for start in candidates[:_MAX_CANDIDATES]:
         x, ki = _refine(ki_star, start, use_derivative)
         gains = PIDGains(
             float(x[0] * scale[0]), float(ki * scale[1]), float(x[1] * scale[2]),
             derivative_filter_s,
         )
-        if ki > 0.0 and (best is None or ki > best[0]) and _closed_loop_stable(model, gains, notch):
-            best = (ki, gains)
+        if ki > 0.0 and _closed_loop_stable(model, gains, notch):
+            stable_found += 1
+            if best is None or ki > best[0]:
+                best = (ki, gains)
+            if stable_found == _STABLE_WANTED:
+                break
     if best is None:
         raise TuningError(f"ms_max: no stabilising PID found with Ms <= {ms_max}")
     _check_not_degenerate(best[0], model, best[1], notch, ms_max)
     return best[1]
+
+
+def _closed_loop_radius(
+    model: PredictionModel,
+    notch: tuple[np.ndarray, np.ndarray] | None,
+    gains: np.ndarray,
+    a: float,
+) -> np.ndarray:
+    """Spectral radius of the unity-feedback loop C N P for each row (kp, ki, kd) of ``gains``.
+
+    The closed loop's state matrix is affine in the gains (the PID as an integrator state and a
+    derivative-filter state), so all of them are built at once and their eigenvalues computed
+    in one batched call.
+    """
+    import scipy.signal
+
+    dt = model.dt
+    kp, ki, kd = (gains[:, i] for i in range(3))
+    kdd = kd * (1.0 - a) / dt
+    c_pid = np.stack([ki * dt, kdd * (a - 1.0)], axis=1)  # (G, 2)
+    d_pid = kp + ki * dt + kdd  # (G,)
+    num, den = notch if notch is not None else (np.array([1.0]), np.array([1.0]))
+    an, bn, cn, dn = scipy.signal.tf2ss(num, den)
+    n_p, n_n, g = model.n_states, an.shape[0], gains.shape[0]
+    n = n_p + 2 + n_n
+    big = np.zeros((g, n, n))
+    b_p, c_p = model.b[:, :1], model.c[:1, :]
+    # Controller output u = dn (c_pid x_c + d_pid e) + cn x_n, with e = -y = -C x_p.
+    big[:, :n_p, :n_p] = model.a - (dn[0, 0] * d_pid)[:, None, None] * (b_p @ c_p)
+    big[:, :n_p, n_p : n_p + 2] = dn[0, 0] * b_p[None, :, :] * c_pid[:, None, :]
+    big[:, :n_p, n_p + 2 :] = b_p @ cn
+    big[:, n_p : n_p + 2, :n_p] = -np.ones((2, 1)) @ c_p
+    big[:, n_p, n_p], big[:, n_p + 1, n_p + 1] = 1.0, a
+    big[:, n_p + 2 :, :n_p] = -(d_pid[:, None, None] * (bn @ c_p))
+    big[:, n_p + 2 :, n_p : n_p + 2] = bn[None, :, :] * c_pid[:, None, :]
+    big[:, n_p + 2 :, n_p + 2 :] = an
+    return np.abs(np.linalg.eigvals(big)).max(axis=1)
 
 
 def _grid_candidates(
@@ -327,13 +376,14 @@ def _grid_candidates(
     rho: float,
     scale: np.ndarray,
     use_derivative: bool,
-    keep: int = 5,
+    stable: Any,
 ) -> list[np.ndarray]:
-    """The ``keep`` best scaled (kp, kd) of a grid, best first (ties: the smaller gains).
+    """Scaled (kp, kd) of a grid, best first (ties: the smaller gains).
 
-    Only grid points connected to (0, 0) through points with ki* > 0 count: there the loop
-    has the stability of small gains. Beyond a band where even ki = 0+ breaks the bound (a
-    proportional gain past the gain margin), ki* can be large again on an unstable loop.
+    Only grid points connected to (0, 0) through points with ki* > 0 count, and of those only
+    the ones whose closed loop at their ki* is stable (``stable`` maps scaled (kp, ki, kd) rows
+    to booleans): a lightly damped mode near the Nyquist frequency can make a grid neighbour
+    unstable without the sampled bound showing it.
     """
     import scipy.ndimage
 
@@ -347,7 +397,14 @@ def _grid_candidates(
     )
     labels, _ = scipy.ndimage.label(table > 0.0)
     table = np.where(labels == labels[0, 0], table, 0.0) if labels[0, 0] else 0.0 * table
-    order = np.argsort(-table, axis=None, kind="stable")[:keep]
+    kd_mesh, kp_mesh = np.meshgrid(kd_grid, kp_grid, indexing="ij")
+    ki_scaled = np.minimum(table / scale[1], KI_RANGE)
+    rows = np.stack([kp_mesh.ravel(), ki_scaled.ravel(), kd_mesh.ravel()], axis=1)
+    positive = table.ravel() > 0.0
+    ok = np.zeros(rows.shape[0], dtype=bool)
+    ok[positive] = stable(rows[positive])
+    table = np.where(ok.reshape(table.shape), table, 0.0)
+    order = np.argsort(-table, axis=None, kind="stable")
     rows, cols = np.unravel_index(order, table.shape)
     return [
         np.array([kp_grid[c], kd_grid[r]])

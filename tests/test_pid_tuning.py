@@ -132,3 +132,38 @@ def test_an_unreachable_bound_is_refused():
     model = PredictionModel(a, b, c, dt, None, "plant")
     with pytest.raises(TuningError):
         tune_pid(model, notch=None, ms_max=1.2, derivative_filter_s=1e-3)
+
+
+@pytest.mark.parametrize("bender", ["PL112", "PL122", "PL127", "PL128", "PL140"])
+def test_every_preset_tunes_on_every_bender(bender):
+    """Resonances near or above Nyquist (PL112, PL122 alias at 1 kHz) included."""
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
+    for name in ("pid", "pid-notch", "pid-ff"):
+        controller = controllers.make(name, "plant", env)
+        ms, stable = _sensitivity_peak(controller.model, controller.gains, controller.notch)
+        assert stable and ms <= MS_MAX * 1.01, (bender, name, ms)
+
+
+def test_the_batched_closed_loop_radius_equals_python_control(model):
+    from controllers.pid_tuning import _closed_loop_radius
+
+    notch = notch_filter(resonance(model.a, model.dt)[2], model.dt, 0.7)
+    gains = np.array([[0.0, 30.0, 3e-5], [0.01, 0.7, 0.0], [0.05, 100.0, 1e-4]])
+    for with_notch in (None, notch):
+        radius = _closed_loop_radius(model, with_notch, gains, np.exp(-1.0))
+        for row, r in zip(gains, radius, strict=True):
+            g = PIDGains(*row, 1e-3)
+            loop = _pid_loop(model, g, with_notch)
+            assert r == pytest.approx(np.abs(control.feedback(loop, 1).poles()).max(), rel=1e-9)
+
+
+def _pid_loop(model, gains, notch):
+    dt = model.dt
+    a = np.exp(-dt / gains.tf)
+    pid = (
+        control.tf([gains.kp], [1.0], dt)
+        + control.tf([gains.ki * dt, 0.0], [1.0, -1.0], dt)
+        + control.tf(gains.kd * (1 - a) / dt * np.array([1.0, -1.0]), [1.0, -a], dt)
+    )
+    loop = pid * control.ss2tf(model.to_control())
+    return loop * control.tf(*notch, dt) if notch is not None else loop
