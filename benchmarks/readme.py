@@ -197,8 +197,25 @@ def identification(report: dict[str, Any]) -> str:
     ])
 
 
+def other_bender(data: dict[str, Any]) -> str:
+    """The headline of another bender's committed run: its table and its bad news."""
+    bender = data["meta"].get("bender", "?")
+    stroke = data["meta"]["stroke_um"]
+    return "\n".join([
+        f"{bender} (stroke 2 x {stroke:g} um; references at the same fractions of it as on the "
+        f"PL140), committed run of {data['meta']['machine']['date']} (generated from "
+        f"[docs/benchmark-{bender.split('.')[0]}/benchmark.json]"
+        f"(docs/benchmark-{bender.split('.')[0]}/benchmark.json)):",
+        "",
+        headline_table(data),
+        "",
+        *[f"- {line}" for line in bad_news(data)],
+    ])
+
+
 BLOCKS = {
     "headline": ("docs/benchmark/benchmark.json", headline),
+    "headline-PL127": ("docs/benchmark-PL127/benchmark.json", other_bender),
     "identification": ("docs/identify/report.json", identification),
 }
 """Marker name -> (the committed file it is generated from, the function that renders it)."""

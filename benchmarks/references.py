@@ -119,8 +119,13 @@ def register_reference(reference: Reference) -> None:
     REFERENCES[reference.name] = reference
 
 
-def make_reference(name: str, n: int, *, dt: float, seed: int) -> np.ndarray:
+def make_reference(
+    name: str, n: int, *, dt: float, seed: int, stroke_um: float = 1000.0
+) -> np.ndarray:
     """Samples 0 .. n-1 (um) of the named reference for this seed.
+
+    The amplitudes in the descriptions are the PL140's (one-sided stroke 1000 um); another
+    bender's references are the same fractions of its own stroke ``stroke_um`` (um).
 
     Raises
     ------
@@ -130,4 +135,5 @@ def make_reference(name: str, n: int, *, dt: float, seed: int) -> np.ndarray:
     if name not in REFERENCES:
         raise ValueError(f"unknown reference {name!r}; valid: {', '.join(REFERENCES)}")
     rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
-    return np.asarray(REFERENCES[name].build(n, dt, rng), dtype=float)
+    reference = np.asarray(REFERENCES[name].build(n, dt, rng), dtype=float)
+    return reference if stroke_um == 1000.0 else reference * (stroke_um / 1000.0)

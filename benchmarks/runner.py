@@ -30,10 +30,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks.plants import (
+    DEFAULT_BENDER,
     DT,
     MONTE_CARLO,
     MONTE_CARLO_REFERENCES,
-    NOMINAL_STROKE_UM,
     PLANTS,
 )
 from benchmarks.references import REFERENCES, make_reference
@@ -99,6 +99,10 @@ class BenchmarkConfig:
         controller named after its folder (``ppo-seed0`` ...), on every plant.
     draws : int
         Random plants of the Monte Carlo table (``random-plants``), seeds seed .. seed+draws-1.
+    bender : str
+        Catalogue name of the nominal bender (``"PL140"``, ``"PL112"``, ``"PL122"``,
+        ``"PL127"``, ``"PL128"``): its references are scaled to its stroke and its robustness
+        plants derived from its datasheet.
     """
 
     controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
@@ -112,6 +116,7 @@ class BenchmarkConfig:
     controller_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     policies: tuple[str, ...] = ()
     draws: int = 10
+    bender: str = DEFAULT_BENDER
 
     def __post_init__(self) -> None:
         for name in ("controllers", "references", "plants"):
@@ -128,6 +133,9 @@ class BenchmarkConfig:
         for name in self.plants:
             if name not in PLANTS:
                 raise ValueError(f"unknown plant {name!r}; valid: {', '.join(PLANTS)}")
+        from piezo_env import get_datasheet
+
+        get_datasheet(self.bender)  # an unknown bender is refused with the catalogue's names
         for name in ("steps", "jobs", "draws", "preview"):
             require_int(name, getattr(self, name))  # preview >= 1: a_t is scored against r_t+1
         if self.backend not in BACKENDS:
@@ -211,6 +219,13 @@ class BenchmarkConfig:
                 )
 
     @property
+    def stroke_um(self) -> float:
+        """One-sided stroke of the nominal bender (um): the percentages' scale."""
+        from piezo_env import get_datasheet
+
+        return get_datasheet(self.bender).free_deflection * 1e6
+
+    @property
     def policy_folders(self) -> dict[str, str]:
         """Policy label -> folder."""
         return {Path(folder).name: str(folder) for folder in self.policies}
@@ -264,7 +279,7 @@ def _make_env(config: BenchmarkConfig, plant: str) -> Any:
         "piezo_env:PiezoBender-v0",
         preview=config.preview,
         max_episode_steps=config.steps,
-        **PLANTS[plant](),
+        **PLANTS[plant](config.bender),
     )
 
 
@@ -322,7 +337,7 @@ def _run_group(
                         built,
                         seed=config.seed + (draw or 0),
                         reference=reference,
-                        stroke_um=NOMINAL_STROKE_UM,
+                        stroke_um=config.stroke_um,
                     )
                     record = {"plant": plant, "controller": controller, "reference": ref_name}
                     if draw is not None:
@@ -394,7 +409,10 @@ def run_benchmark(
     start = time.perf_counter()
     # Built here, not in the workers, so references registered in this process run anywhere.
     arrays = {
-        name: make_reference(name, config.steps + config.preview + 1, dt=DT, seed=config.seed)
+        name: make_reference(
+            name, config.steps + config.preview + 1, dt=DT, seed=config.seed,
+            stroke_um=config.stroke_um,
+        )
         for name in config.references
     }
     for label in config.entry_points:  # built once here: a broken one stops before episodes

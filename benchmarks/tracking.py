@@ -5,7 +5,9 @@ are free of waits for a core), every default controller on every reference and
 robustness plant, writes the full report and figures to ``docs/benchmark/`` and the tables, with
 the machine and the date, to ``benchmarks/results/tracking.md``.
 
-Run: ``python -m benchmarks.tracking`` (a few minutes on 2 cores).
+Run: ``python -m benchmarks.tracking`` (a few minutes on 2 cores); ``python -m benchmarks.tracking
+--bender PL127`` commits the PL127's run to ``docs/benchmark-PL127/`` and
+``benchmarks/results/tracking-PL127.md``.
 """
 
 from __future__ import annotations
@@ -22,18 +24,23 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> int:
+    """Run the committed benchmark; ``--bender NAME`` commits another bender's run beside it."""
     os.chdir(ROOT)  # relative paths in the committed report; finds docs/policies
-    out = Path("docs") / "benchmark"
+    args = sys.argv[1:]
+    bender = args[args.index("--bender") + 1].upper() if "--bender" in args else "PL140"
+    suffix = "" if bender.startswith("PL140") else f"-{bender.split('.')[0]}"
+    out = Path("docs") / f"benchmark{suffix}"
     # One worker on two cores: the compute times are the controllers', not waits for a core.
     command = [
         sys.executable, "-m", "piezo_cli.main", "benchmark", "--out", str(out), "--quiet",
         "--jobs", "1",
     ]
-    status = subprocess.run([*command, *sys.argv[1:]], check=False).returncode
+    status = subprocess.run([*command, *args], check=False).returncode
     if status == 0:
         RESULTS.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(out / "benchmark.md", RESULTS / "tracking.md")
-        print(f"copied the report to {RESULTS / 'tracking.md'}")
+        target = RESULTS / f"tracking{suffix}.md"
+        shutil.copyfile(out / "benchmark.md", target)
+        print(f"copied the report to {target}")
     return status
 
 

@@ -17,6 +17,7 @@ __all__ = [
     "BENDER_CHOICES",
     "HYSTERESIS_CHOICES",
     "add_env_arguments",
+    "bender_name",
     "env_kwargs",
     "finite_float",
     "non_negative_float",
@@ -97,7 +98,8 @@ def positive_int(text: str) -> int:
     return whole_number(text, 1)
 
 
-def _bender(text: str) -> str:
+def bender_name(text: str) -> str:
+    """A catalogue bender name, with or without the .10 suffix (argparse type)."""
     name = text.strip().upper()
     if name not in BENDER_CHOICES:
         raise argparse.ArgumentTypeError(
@@ -127,7 +129,7 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     env = parser.add_argument_group("simulated bender")
     env.add_argument(
         "--bender",
-        type=_bender,
+        type=bender_name,
         default=task.bender,
         choices=BENDER_CHOICES,
         metavar="NAME",

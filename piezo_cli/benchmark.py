@@ -7,11 +7,13 @@ import dataclasses
 import os
 import time
 
-from piezo_cli.arguments import positive_int, seed
+from piezo_cli.arguments import bender_name, positive_int, seed
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
 
 __all__ = ["BENCHMARK"]
+
+_DEFAULT_POLICIES = "docs/policies/*"
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -44,6 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from piezo_parallel.backends import default_jobs
 
     parser.add_argument("--out", default="out/benchmark", metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--bender",
+        type=bender_name,
+        default="PL140",
+        help="the PICMA bender: PL112, PL122, PL127, PL128 or PL140 (references scale with its "
+        "stroke, robustness plants come from its datasheet)",
+    )
     parser.add_argument(
         "--model",
         default=None,
@@ -96,7 +105,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--policies",
-        default="docs/policies/*",
+        default=_DEFAULT_POLICIES,
         metavar="GLOB",
         help="folders of trained policies (piezo train-rl) to run as controllers, a glob or "
         "comma-separated folders; 'none' for none (the default finds the committed PPO "
@@ -133,8 +142,9 @@ def _config(args: argparse.Namespace):
             preview=args.preview,
             jobs=args.jobs,
             backend=args.backend,
-            policies=_policies(args.policies),
+            policies=_policies(args.policies, args.bender),
             controller_options=_options(args.option),
+            bender=args.bender,
         )
     except ValueError as error:
         raise CommandLineError(str(error)) from None
@@ -148,11 +158,17 @@ def _options(options: list[tuple[str, str, object]]) -> dict[str, dict[str, obje
     return grouped
 
 
-def _policies(text: str) -> tuple[str, ...]:
-    """Policy folders from ``--policies``: 'none', a glob, or comma-separated folders."""
+def _policies(text: str, bender: str) -> tuple[str, ...]:
+    """Policy folders from ``--policies``: 'none', a glob, or comma-separated folders.
+
+    The default glob finds the committed PPO policies, trained on the PL140: for another
+    bender it finds none (a named folder is still checked, and refused if it does not fit).
+    """
     import glob
 
     if text.strip().lower() == "none":
+        return ()
+    if text == _DEFAULT_POLICIES and bender.split(".")[0] != "PL140":
         return ()
     folders: list[str] = []
     for part in _names(text):
@@ -191,13 +207,13 @@ def _check_backend(args: argparse.Namespace) -> None:
         ) from None
 
 
-def _check_model_bender(folder: str, model) -> None:
+def _check_model_bender(folder: str, model, bender: str) -> None:
     """Refuse, before any work, a model identified on another bender or sample time."""
     import gymnasium as gym
 
     from controllers.registry import check_model_fits_env
 
-    env = gym.make("piezo_env:PiezoBender-v0", preview=1)
+    env = gym.make("piezo_env:PiezoBender-v0", preview=1, bender=bender)
     try:
         check_model_fits_env(model.metadata, env)
     except ValueError as error:
@@ -217,12 +233,13 @@ def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
             raise CommandLineError(
                 f"--model {args.model}: cannot load the model: {error}"
             ) from None
-        _check_model_bender(args.model, model)
+        _check_model_bender(args.model, model, args.bender)
         return str(args.model), {}
     from identification.pipeline import IdentificationConfig, identify
 
     start = time.perf_counter()
-    result = identify(config=IdentificationConfig(seed=args.seed), progress=print)
+    config = IdentificationConfig(seed=args.seed, env_kwargs={"bender": args.bender})
+    result = identify(config=config, progress=print)
     model_dir = out / "model"
     result.model.save(model_dir)
     fit = result.report["validation"]["hammerstein"]["fit_percent"]
@@ -245,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from benchmarks.runner import run_benchmark
     from piezo_cli.output import terminal_progress
-    from piezo_env import PiezoBenderModel, TaskConfig
+    from piezo_env import TaskConfig
 
     model_dir, timing = _model(args, out)
     start = time.perf_counter()
@@ -261,7 +278,8 @@ def run(args: argparse.Namespace) -> int:
         "model": model_dir,
         "dt": task.dt,
         "noise_bound_um": task.noise_bound,
-        "stroke_um": PiezoBenderModel(task.bender).stroke_um,
+        "stroke_um": config.stroke_um,
+        "bender": config.bender,
         "jobs": config.jobs,
         "machine": machine(),
         "timing": timing,
@@ -273,10 +291,11 @@ def run(args: argparse.Namespace) -> int:
     print(tracking_tables(result, plants=("nominal",), max_errors=False).replace("**", ""))
     checks = check_targets(result)
     missed = missed_checks(checks)
-    print(
-        f"reference checks (the project's expectations of this run, see the report): "
-        f"{len(checks) - len(missed)} of {len(checks)} met"
-    )
+    if checks:
+        print(
+            f"reference checks (the project's expectations of this run, see the report): "
+            f"{len(checks) - len(missed)} of {len(checks)} met"
+        )
     print("time: " + ", ".join(f"{k} {v} s" for k, v in timing.items()))
     print("wrote " + ", ".join(str(p) for p in paths))
     if args.strict and missed:
