@@ -182,3 +182,24 @@ def test_monte_carlo_plants_differ_per_draw_and_leave_oracles_out():
     assert expected in monte_carlo_table(result)
     assert "2nd worst / worst of 3" in monte_carlo_table(result)
     assert tracking_tables(result) == ""  # the draws are not a plant table
+
+
+def test_another_bender_scales_references_and_plants_to_its_datasheet(tmp_path):
+    from benchmarks.plants import PLANTS
+
+    config = BenchmarkConfig(
+        bender="PL127", controllers=("pid-ff", "mpc"), references=("sine-10Hz",),
+        plants=("nominal", "stiffness+20%"), steps=120,
+    )
+    assert config.stroke_um == pytest.approx(450.0)
+    pl140 = make_reference("sine-10Hz", 200, dt=1e-3, seed=0)
+    np.testing.assert_allclose(
+        make_reference("sine-10Hz", 200, dt=1e-3, seed=0, stroke_um=450.0), 0.45 * pl140
+    )
+    assert PLANTS["stiffness+20%"]("PL127")["bender"].name.startswith("PL127")
+    model = str(Path(MODEL_DIR).parents[1] / "benchmark-PL127" / "model")
+    result = run_benchmark(config, model)
+    assert {e["plant"] for e in result.episodes} == {"nominal", "stiffness+20%"}
+    assert all(e["rmse_percent"] < 1.0 for e in result.episodes if e["plant"] == "nominal")
+    with pytest.raises(ValueError, match="unknown bender"):
+        BenchmarkConfig(bender="PL999")
