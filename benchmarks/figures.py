@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.cells import aggregate
 from benchmarks.references import REFERENCES
 from benchmarks.rows import row_color, seed_groups
 from benchmarks.runner import DT, MONTE_CARLO, BenchmarkResult
@@ -64,9 +65,9 @@ def _shown_rows(result: BenchmarkResult, refs: list[str]) -> tuple[list[str], li
     """Rows worth a curve, and the rows left out: one seed per trained recipe, and no row whose
     RMSE is within 1 % of a row already shown on every reference drawn (nmpc beside mpc)."""
     rmse = {
-        (e["controller"], e["reference"]): e["rmse_percent"]
-        for e in result.episodes
-        if e["plant"] == "nominal"
+        (c["controller"], c["reference"]): c["rmse_percent"]
+        for c in aggregate(result.episodes)
+        if c["plant"] == "nominal"
     }
     rows = [c for c in result.config.rows if all(c in result.traces[r] for r in refs)]
     later_seeds = {m for members in seed_groups(rows).values() for m in members[1:]}
@@ -127,7 +128,9 @@ def _summary(result: BenchmarkResult, path: Path) -> str | None:
 
     cfg = result.config
     nominal = {
-        (e["controller"], e["reference"]): e for e in result.episodes if e["plant"] == "nominal"
+        (c["controller"], c["reference"]): c
+        for c in aggregate(result.episodes)
+        if c["plant"] == "nominal"
     }
     controllers = [c for c in cfg.rows if any(k[0] == c for k in nominal)]
     refs = [r for r in cfg.references if any(k[1] == r for k in nominal)]
@@ -158,9 +161,9 @@ def _robustness_grid(result: BenchmarkResult) -> tuple[np.ndarray, list[str], li
     """Mean RMSE over the smooth references: controllers x plants (NaN where not run)."""
     cfg = result.config
     index = {
-        (e["plant"], e["controller"], e["reference"]): e["rmse_percent"]
-        for e in result.episodes
-        if e["plant"] != MONTE_CARLO
+        (c["plant"], c["controller"], c["reference"]): c["rmse_percent"]
+        for c in aggregate(result.episodes)
+        if c["plant"] != MONTE_CARLO
     }
     plants = [p for p in cfg.plants if p != MONTE_CARLO]
     controllers = [c for c in cfg.rows if any(k[1] == c and k[0] != "nominal" for k in index)]

@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.cells import aggregate, different
+
 __all__ = [
     "BLOCKS",
     "bad_news",
@@ -34,17 +36,14 @@ __all__ = [
 ]
 
 ROOT = Path(__file__).resolve().parents[1]
-TIE = 0.02
-"""Relative RMSE difference called a tie (as in the report)."""
-
 _LABELS = {"mpc": "`mpc` (OSQP)", "nmpc": "`nmpc` (casadi, RTI)"}
 
 
 def _nominal(data: dict[str, Any]) -> dict[tuple[str, str], float]:
     return {
-        (e["controller"], e["reference"]): e["rmse_percent"]
-        for e in data["results"]["episodes"]
-        if e["plant"] == "nominal"
+        (c["controller"], c["reference"]): c["rmse_percent"]
+        for c in aggregate(data["results"]["episodes"])
+        if c["plant"] == "nominal"
     }
 
 
@@ -73,13 +72,18 @@ def headline_table(data: dict[str, Any]) -> str:
         names = members.get(row, [row])
         return [rmse[(n, ref)] for n in names if (n, ref) in rmse]
 
+    cells = {
+        (c["controller"], c["reference"]): c
+        for c in aggregate(data["results"]["episodes"])
+        if c["plant"] == "nominal"
+    }
     best = {}
     for ref in refs:
-        single = {r: values(r, ref)[0] for r in rows if r not in members and values(r, ref)
-                  and not r.endswith("-oracle")}
+        single = {r: cells[(r, ref)] for r in rows if (r, ref) in cells
+                  and r not in members and not r.endswith("-oracle")}
         if single:
-            low = min(single.values())
-            tied = [r for r, v in single.items() if v <= low * (1 + TIE)]
+            low = min(single.values(), key=lambda c: c["rmse_percent"])
+            tied = [r for r, c in single.items() if c is low or not different(c, low)]
             best[ref] = tied[0] if len(tied) == 1 else None
     head = "| controller | " + " | ".join(refs) + " | step median (us) |"
     lines = [head, "|---" * (len(refs) + 2) + "|"]
@@ -103,7 +107,7 @@ def headline_table(data: dict[str, Any]) -> str:
 
 def bad_news(data: dict[str, Any]) -> list[str]:
     """What the same run says against the project: one line each, worst first."""
-    episodes = data["results"]["episodes"]
+    episodes = aggregate(data["results"]["episodes"])
     news = []
     random = [e for e in episodes if e["plant"] == "random-plants"]
     for row in ("mpc", "pid-ff"):

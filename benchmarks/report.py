@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.cells import TIE, aggregate, different
 from benchmarks.figures import draw_figures
 from benchmarks.references import REFERENCES
 from benchmarks.rows import seed_groups
@@ -35,11 +36,12 @@ _TIMING_KEYS = ("compute_median_us", "compute_p99_us", "compute_max_us", "deadli
 
 
 def _lookup(result: BenchmarkResult) -> dict[tuple[str, str, str], dict[str, Any]]:
-    """Episodes by (plant, controller, reference); the Monte Carlo draws are left out."""
+    """Cells (means over the noise seeds) by (plant, controller, reference); the Monte Carlo
+    draws are left out."""
     return {
-        (e["plant"], e["controller"], e["reference"]): e
-        for e in result.episodes
-        if e["plant"] != MONTE_CARLO
+        (c["plant"], c["controller"], c["reference"]): c
+        for c in aggregate(result.episodes)
+        if c["plant"] != MONTE_CARLO
     }
 
 
@@ -49,7 +51,7 @@ def monte_carlo_table(result: BenchmarkResult) -> str:
     With n draws an empirical 90th percentile is not one (with 10 draws it is the 2nd worst,
     give or take): the table names what it shows, the median, the 2nd worst and the worst of n.
     """
-    draws = [e for e in result.episodes if e["plant"] == MONTE_CARLO]
+    draws = [c for c in aggregate(result.episodes) if c["plant"] == MONTE_CARLO]
     if not draws:
         return ""
     cfg = result.config
@@ -80,21 +82,18 @@ def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
     return "\n".join(lines)
 
 
-TIE = 0.02
-"""Relative RMSE difference under which two rows are called a tie (one noise seed per cell)."""
-
-
 def winners(index: dict, plant: str, rows: list[str], ref: str) -> list[str]:
-    """Rows with the best RMSE on ``ref`` (oracles aside): one, or several within :data:`TIE`."""
-    values = {
-        r: index[(plant, r, ref)]["rmse_percent"]
+    """Rows with the best RMSE on ``ref`` (oracles aside): one, or those the best cannot be
+    told apart from (:func:`benchmarks.cells.different`)."""
+    cells = {
+        r: index[(plant, r, ref)]
         for r in rows
         if (plant, r, ref) in index and not r.endswith("-oracle")
     }
-    if not values:
+    if not cells:
         return []
-    best = min(values.values())
-    return [r for r, v in values.items() if v <= best * (1.0 + TIE)]
+    best = min(cells.values(), key=lambda c: c["rmse_percent"])
+    return [r for r, c in cells.items() if c is best or not different(c, best)]
 
 
 def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]):
@@ -123,7 +122,10 @@ def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]
                 return ""
             return f"{np.mean(values):.{digits}f} +- {np.std(values, ddof=1):.{digits}f}"
         e = index.get((plant, row, ref))
-        return "" if e is None else f"{e[key]:.{digits}f}"
+        if e is None:
+            return ""
+        ci = e.get("rmse_ci95_percent") if key == "rmse_percent" else None
+        return f"{e[key]:.{digits}f}" + (f" +- {ci:.{digits}f}" if ci is not None else "")
 
     return cell
 
@@ -307,9 +309,9 @@ def _why(index: dict, row: str, ref: str) -> str:
 def _step_table(result: BenchmarkResult) -> str:
     """Rise time, overshoot and settling time on the nominal step references."""
     episodes = [
-        e
-        for e in result.episodes
-        if e["plant"] == "nominal" and e.get("steps_settled") is not None
+        c
+        for c in aggregate(result.episodes)
+        if c["plant"] == "nominal" and c.get("steps_settled") is not None
     ]
     if not episodes:
         return ""
@@ -388,6 +390,20 @@ def reference_checks_section(checks: list[dict[str, Any]]) -> list[str]:
     return lines
 
 
+def _seeds_sentence(cfg: Any) -> str:
+    seeds = getattr(cfg, "seeds", 1)
+    if seeds == 1:
+        return (
+            f"Seed {cfg.seed}, one noise seed per cell (differences under {100 * TIE:g} % are "
+            "called ties; --seeds N gives intervals);"
+        )
+    return (
+        f"Noise seeds {cfg.seed} .. {cfg.seed + seeds - 1}: every cell is the mean over {seeds} "
+        "seeds +- the half-width of its 95 % interval (Student's t); differences within the "
+        "intervals are called ties and not bolded;"
+    )
+
+
 def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
     cfg = result.config
     m = meta["machine"]
@@ -398,8 +414,8 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
         f"{m['python']}; one BLAS thread in the control loop; "
         + ", ".join(f"{k} {v}" for k, v in m["packages"].items() if v),
         "",
-        f"Seed {cfg.seed} (one noise seed per cell: differences under {100 * TIE:g} % are "
-        f"called ties); {cfg.steps} steps of {meta['dt'] * 1e3:g} ms per episode; every "
+        _seeds_sentence(cfg)
+        + f" {cfg.steps} steps of {meta['dt'] * 1e3:g} ms per episode; every "
         f"controller observes the measured deflection (sensor noise +-{noise:g} um) and a "
         f"preview of {cfg.preview} reference samples; the same noise and references for all. "
         "RMSE and max error: true deflection against the reference sample each action is "

@@ -99,6 +99,9 @@ class BenchmarkConfig:
         controller named after its folder (``ppo-seed0`` ...), on every plant.
     draws : int
         Random plants of the Monte Carlo table (``random-plants``), seeds seed .. seed+draws-1.
+    seeds : int
+        Noise seeds per cell (seed .. seed+seeds-1): the tables give the mean and its 95 %
+        interval. The random plants keep one seed per draw (the draws are their spread).
     bender : str
         Catalogue name of the nominal bender (``"PL140"``, ``"PL112"``, ``"PL122"``,
         ``"PL127"``, ``"PL128"``): its references are scaled to its stroke and its robustness
@@ -117,6 +120,7 @@ class BenchmarkConfig:
     policies: tuple[str, ...] = ()
     draws: int = 10
     bender: str = DEFAULT_BENDER
+    seeds: int = 1
 
     def __post_init__(self) -> None:
         for name in ("controllers", "references", "plants"):
@@ -136,7 +140,7 @@ class BenchmarkConfig:
         from piezo_env import get_datasheet
 
         get_datasheet(self.bender)  # an unknown bender is refused with the catalogue's names
-        for name in ("steps", "jobs", "draws", "preview"):
+        for name in ("steps", "jobs", "draws", "preview", "seeds"):
             require_int(name, getattr(self, name))  # preview >= 1: a_t is scored against r_t+1
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; valid: {', '.join(BACKENDS)}")
@@ -330,24 +334,30 @@ def _run_group(
         built = _build(controller, model_dir, env, config)
         _warm_up(env, built, next(iter(references.values())), config.seed)
         with _no_collection():
+            seeds = [0] if plant == MONTE_CARLO else range(config.seeds)
             for ref_name, reference in references.items():
                 for draw in draws:
-                    episode = ctl.run_episode(
-                        env,
-                        built,
-                        seed=config.seed + (draw or 0),
-                        reference=reference,
-                        stroke_um=config.stroke_um,
-                    )
-                    record = {"plant": plant, "controller": controller, "reference": ref_name}
-                    if draw is not None:
-                        record["draw"] = draw
-                    episodes.append({**record, **episode.metrics})
+                    for seed_index in seeds:
+                        episode = ctl.run_episode(
+                            env,
+                            built,
+                            seed=config.seed + (draw or 0) + seed_index,
+                            reference=reference,
+                            stroke_um=config.stroke_um,
+                        )
+                        record = {"plant": plant, "controller": controller, "reference": ref_name}
+                        if draw is not None:
+                            record["draw"] = draw
+                        if config.seeds > 1:
+                            record["seed_index"] = seed_index
+                        episodes.append({**record, **episode.metrics})
+                        if seed_index == 0:
+                            traced = episode  # the figures draw the first seed
                 if plant == "nominal" and ref_name in TRACE_REFERENCES:
                     traces[ref_name] = {
-                        "deflection_um": episode.deflection_um.tolist(),
-                        "reference_um": episode.reference_um.tolist(),
-                        "voltage_V": episode.voltage_V.tolist(),
+                        "deflection_um": traced.deflection_um.tolist(),
+                        "reference_um": traced.reference_um.tolist(),
+                        "voltage_V": traced.voltage_V.tolist(),
                     }
     env.close()
     return episodes, built.describe() if hasattr(built, "describe") else {}, traces

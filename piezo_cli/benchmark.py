@@ -81,6 +81,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--plants", type=_names, default=tuple(PLANTS), metavar="A,B", help="comma-separated plants"
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of the noise and references")
+    parser.add_argument(
+        "--seeds",
+        type=positive_int,
+        default=1,
+        help="noise seeds per cell (from --seed on): the tables give means with 95 %% intervals "
+        "and call differences within them ties",
+    )
     parser.add_argument("--steps", type=positive_int, default=2000, help="steps per episode")
     parser.add_argument(
         "--preview", type=int, default=20, help="reference samples every controller sees ahead"
@@ -145,6 +152,7 @@ def _config(args: argparse.Namespace):
             policies=_policies(args.policies, args.bender),
             controller_options=_options(args.option),
             bender=args.bender,
+            seeds=args.seeds,
         )
     except ValueError as error:
         raise CommandLineError(str(error)) from None

@@ -203,3 +203,28 @@ def test_another_bender_scales_references_and_plants_to_its_datasheet(tmp_path):
     assert all(e["rmse_percent"] < 1.0 for e in result.episodes if e["plant"] == "nominal")
     with pytest.raises(ValueError, match="unknown bender"):
         BenchmarkConfig(bender="PL999")
+
+
+def test_several_noise_seeds_give_means_with_intervals_and_honest_ties(tmp_path):
+    from benchmarks.cells import aggregate, different
+
+    config = BenchmarkConfig(
+        controllers=("mpc", "nmpc"), references=("sine-10Hz",), plants=("nominal",),
+        steps=150, seeds=4,
+    )
+    result = run_benchmark(config, MODEL_DIR)
+    assert len(result.episodes) == 2 * 4
+    cells = {c["controller"]: c for c in aggregate(result.episodes)}
+    mpc = cells["mpc"]
+    runs = [e["rmse_percent"] for e in result.episodes if e["controller"] == "mpc"]
+    assert mpc["seeds"] == 4 and mpc["rmse_percent"] == pytest.approx(np.mean(runs))
+    # t(0.975, 3) = 3.182: the interval of the mean of four seeds.
+    expected = 3.182446305 * np.std(runs, ddof=1) / 2.0
+    assert mpc["rmse_ci95_percent"] == pytest.approx(expected, rel=1e-6)
+    assert not different(mpc, cells["nmpc"])  # nmpc equals mpc within the noise: a tie
+    meta = {"model": MODEL_DIR, "dt": 1e-3, "noise_bound_um": 1.0, "stroke_um": 1000.0,
+            "machine": machine()}
+    write_benchmark(result, tmp_path, meta, figures=False)
+    text = (tmp_path / "benchmark.md").read_text()
+    assert "mean over 4 seeds" in text and "tie between `mpc`, `nmpc`" in text
+    assert f"{mpc['rmse_percent']:.3f} +- {mpc['rmse_ci95_percent']:.3f}" in text

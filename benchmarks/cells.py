@@ -1,0 +1,61 @@
+"""Table cells from episodes: every metric averaged over the noise seeds, with a 95 % interval.
+
+One cell is one (plant, controller, reference) and, on the random plants, one draw. With N
+noise seeds (``piezo benchmark --seeds N``) each cell holds the mean of every numeric metric
+and ``rmse_ci95_percent``, the half-width of the 95 % confidence interval of the mean RMSE
+(Student's t with N - 1 degrees of freedom); with one seed there is no interval (None).
+
+Two cells are told apart only when their difference exceeds the combined half-widths (with
+one seed: more than :data:`TIE` relative); otherwise they are a tie, and nothing is bolded.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+__all__ = ["KEYS", "TIE", "aggregate", "different"]
+
+KEYS = ("plant", "controller", "reference", "draw")
+"""What names a cell (``draw`` only on the random plants)."""
+
+TIE = 0.02
+"""Relative RMSE difference under which two single-seed cells are called a tie."""
+
+
+def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One cell per (plant, controller, reference, draw), in the order first seen."""
+    import scipy.stats
+
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for e in episodes:
+        groups.setdefault(tuple(e.get(k) for k in KEYS), []).append(e)
+    cells = []
+    for members in groups.values():
+        cell = {k: members[0][k] for k in KEYS if k in members[0]}
+        for key, value in members[0].items():
+            if key in KEYS or key == "seed_index":
+                continue
+            numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+            values = [m[key] for m in members if m.get(key) is not None] if numeric else []
+            cell[key] = float(np.mean(values)) if numeric and values else value
+        n = len(members)
+        cell["seeds"] = n
+        cell["rmse_ci95_percent"] = None
+        if n > 1:
+            spread = float(np.std([m["rmse_percent"] for m in members], ddof=1))
+            t_975 = float(scipy.stats.t.ppf(0.975, n - 1))
+            cell["rmse_ci95_percent"] = t_975 * spread / math.sqrt(n)
+        cells.append(cell)
+    return cells
+
+
+def different(a: dict[str, Any], b: dict[str, Any]) -> bool:
+    """Whether two cells' RMSE differ beyond the run-to-run noise (see the module docstring)."""
+    ci_a, ci_b = a.get("rmse_ci95_percent"), b.get("rmse_ci95_percent")
+    gap = abs(a["rmse_percent"] - b["rmse_percent"])
+    if ci_a is not None and ci_b is not None:
+        return gap > math.hypot(ci_a, ci_b)
+    return gap > TIE * min(a["rmse_percent"], b["rmse_percent"])
