@@ -1,9 +1,8 @@
 """Closed-loop tracking benchmark: ``piezo benchmark`` run as committed with the code.
-
-Identifies the default PL140 (seed 0), runs, in one worker process (so the compute times
-are free of waits for a core) and over five noise seeds, every default controller on every reference and
-robustness plant, writes the full report and figures to ``docs/benchmark/`` and the tables, with
-the machine and the date, to ``benchmarks/results/tracking.md``.
+Identifies the default PL140 (seed 0), runs, in one worker process (so the compute times are
+free of waits for a core) and over five noise seeds, every default controller on every
+reference and robustness plant, writes the full report and figures to ``docs/benchmark/`` and
+the tables, with the machine and the date, to ``benchmarks/results/tracking.md``.
 
 Run: ``python -m benchmarks.tracking`` (a few minutes on 2 cores); ``python -m benchmarks.tracking
 --bender PL127`` commits the PL127's run to ``docs/benchmark-PL127/`` and
