@@ -1,4 +1,5 @@
 """Closed-loop tracking benchmark: ``piezo benchmark`` run as committed with the code.
+
 Identifies the default PL140 (seed 0), runs, in one worker process (so the compute times are
 free of waits for a core) and over five noise seeds, every default controller on every
 reference and robustness plant, writes the full report and figures to ``docs/benchmark/`` and
