@@ -31,6 +31,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import socket
+import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
@@ -253,9 +254,10 @@ def connect_ray(address: str | None = None, *, jobs: int = 1) -> bool:
     saved = os.environ.get("RAY_USAGE_STATS_ENABLED")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
     try:
-        # The workers import what this process imports: the current folder first, as here
-        # (a user's controller module next to the command is then found by its entry point).
-        path = os.pathsep.join(p for p in (os.getcwd(), os.environ.get("PYTHONPATH")) if p)
+        # The workers import what this process can import, as spawned local workers do: its
+        # sys.path (the current folder first), so a user's module is found by its entry point.
+        folders = [os.getcwd(), *(p for p in sys.path if p and os.path.isdir(p))]
+        path = os.pathsep.join(dict.fromkeys(folders))
         ray.init(
             address="local",
             num_cpus=jobs,

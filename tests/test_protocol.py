@@ -103,7 +103,8 @@ def _run(tmp_path, backend: str, jobs: int) -> dict:
     out = tmp_path / f"{backend}-{jobs}"
     argv = [
         "benchmark", "--model", MODEL_DIR, "--policies", "none", "--quiet",
-        "--controllers", f"pid,{EXAMPLE},slow={EXAMPLE}", "--option", "slow.ki=0.2",
+        "--controllers", f"pid,{EXAMPLE},slow={EXAMPLE},test_protocol:Bare",
+        "--option", "slow.ki=0.2", "--option", "Bare.gain=0.025",
         "--references", "sine-10Hz", "--plants", "nominal,damping-0.04", "--steps", "150",
         "--backend", backend, "--jobs", str(jobs), "--out", str(out),
     ]
@@ -114,7 +115,7 @@ def _run(tmp_path, backend: str, jobs: int) -> dict:
 def test_the_example_runs_through_piezo_benchmark_on_both_backends(tmp_path):
     runs = [_run(tmp_path, "local", 1), _run(tmp_path, "local", 2), _run(tmp_path, "ray", 2)]
     rows = {e["controller"] for e in runs[0]["results"]["episodes"]}
-    assert rows == {"pid", "FeedforwardPI", "slow"}
+    assert rows == {"pid", "FeedforwardPI", "slow", "Bare"}  # Bare: defined in this module
     assert runs[0]["controllers"]["slow"]["ki"] == 0.2
     for other in runs[1:]:
         assert other["results"]["episodes"] == runs[0]["results"]["episodes"]
