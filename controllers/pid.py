@@ -16,7 +16,9 @@ part (z -> um; the identified nonlinearity has unit small-signal gain, so z is v
 signals), solved in closed form per (kp, kd) so that the gains do not depend on rounding.
 
 **Notch**: the model's lightly damped resonance is the complex pole pair of ``model.a`` with the
-smallest damping ratio. The notch puts its zeros on those poles and its poles at the same
+smallest damping ratio. On a bender whose first resonance lies above the Nyquist frequency (the
+PL112's 1800 Hz and the PL122's 600 Hz at 1 kHz sampling) that is the aliased mode the samples
+see (about 200 and 400 Hz), and the notch sits there: it is the peak the sampled loop has. The notch puts its zeros on those poles and its poles at the same
 natural frequency with damping ``notch_damping`` (pole-zero placement, unit DC gain), so the
 loop sees a well damped mode instead of a 26 dB peak, and the PID is re-tuned on ``N P``.
 
