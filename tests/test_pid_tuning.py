@@ -89,15 +89,7 @@ def test_gains_do_not_depend_on_the_blas_thread_count():
 def _sensitivity_peak(model: PredictionModel, gains: PIDGains, notch) -> tuple[float, bool]:
     """Ms and stability from python-control, on its own dense linear grid."""
     dt = model.dt
-    a = np.exp(-dt / gains.tf)
-    pid = (
-        control.tf([gains.kp], [1.0], dt)
-        + control.tf([gains.ki * dt, 0.0], [1.0, -1.0], dt)
-        + control.tf(gains.kd * (1 - a) / dt * np.array([1.0, -1.0]), [1.0, -a], dt)
-    )
-    loop = pid * control.ss2tf(model.to_control())
-    if notch is not None:
-        loop = loop * control.tf(*notch, dt)
+    loop = _pid_loop(model, gains, notch)
     freqs = np.linspace(0.05, 0.4999 / dt, 60001)
     response = loop(np.exp(2j * np.pi * freqs * dt))
     stable = bool(np.abs(control.feedback(loop, 1).poles()).max() < 1.0)
