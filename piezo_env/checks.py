@@ -42,6 +42,7 @@ def require_number(
     low: float | None = None,
     high: float | None = None,
     low_open: bool = False,
+    high_open: bool = False,
 ) -> float:
     """``value`` as a ``float``, if it is a finite real number (not a bool) in range.
 
@@ -52,9 +53,11 @@ def require_number(
     value : object
         What the caller passed.
     low, high : float or None
-        Bounds (inclusive unless ``low_open``); None: unbounded on that side.
+        Bounds (inclusive unless ``low_open`` or ``high_open``); None: unbounded on that side.
     low_open : bool
         Exclude ``low`` itself (``> low`` instead of ``>= low``).
+    high_open : bool
+        Exclude ``high`` itself (``< high`` instead of ``<= high``).
 
     Raises
     ------
@@ -69,13 +72,13 @@ def require_number(
     if ok and low is not None:
         ok = float(value) > low if low_open else float(value) >= low
     if ok and high is not None:
-        ok = float(value) <= high
+        ok = float(value) < high if high_open else float(value) <= high
     if not ok:
         parts = []
         if low is not None:
             parts.append(f"{'>' if low_open else '>='} {low:g}")
         if high is not None:
-            parts.append(f"<= {high:g}")
+            parts.append(f"{'<' if high_open else '<='} {high:g}")
         bound = f" {' and '.join(parts)}" if parts else ""
         raise ValueError(f"{name} must be a finite number{bound}, got {value!r}")
     return float(value)

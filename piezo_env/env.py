@@ -19,7 +19,7 @@ from piezo_env.model import BenderSimulator
 from piezo_env.reference import ReferenceStream
 from piezo_env.task import (
     NOISE_BLOCK,
-    BenderTask,
+    TaskAttributes,
     TaskConfig,
     check_reset_options,
     episode_reference,
@@ -30,7 +30,7 @@ __all__ = ["PiezoBenderEnv"]
 _TRACE = 500
 
 
-class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
+class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     """Piezoelectric bender tracking task: drive voltage in, tip deflection out.
 
     ## Description
@@ -134,17 +134,9 @@ class PiezoBenderEnv(gym.Env[np.ndarray, np.ndarray]):
                 f"render_mode must be one of {self.metadata['render_modes']} or None, "
                 f"got {render_mode!r}"
             )
-        self.config = TaskConfig.from_kwargs(config, **settings)
-        self.task = BenderTask(self.config)
-        self.model = self.task.model
-        self.noise_bound = self.task.noise_bound
-        self.preview = self.task.preview
-        self.deflection_limit = self.task.deflection_limit
-        self.bound = self.task.bound
+        self._adopt_task(config, settings)
         self.render_mode = render_mode
-        self._reference_spec = self.config.reference
-        self._stroke = self.model.stroke_um
-        self._u_max = self.model.rated_voltage
+        self._stroke = self.task.stroke_um
         self.observation_space = self.task.observation_space()
         self.action_space = self.task.action_space()
         self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / self.config.dt)}

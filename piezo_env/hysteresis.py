@@ -49,6 +49,7 @@ __all__ = [
     "InverseResult",
     "NoHysteresis",
     "PrandtlIshlinskii",
+    "bouc_wen_rows",
     "make_hysteresis",
 ]
 
@@ -231,14 +232,7 @@ class BoucWen(Hysteresis):
                 float(state[1]), float(u) - float(state[0]), self._ak, self.beta, self.gamma
             )
             return np.array([u, h]), self.k * u - h
-        u = np.asarray(u, dtype=float)
-        h = self._batch(state[:, 1], u - state[:, 0])
-        new_state = np.empty_like(state)
-        new_state[:, 0] = u
-        new_state[:, 1] = h
-        u_eff = self.k * u
-        u_eff -= h
-        return new_state, u_eff
+        return bouc_wen_rows(self._batch, self.k, state, np.asarray(u, dtype=float))
 
     def step_scalar(self, u_prev: float, h: float, u: float) -> tuple[float, float]:
         """Scalar fast path: returns (h_new, u_eff) for the jump u_prev -> u (V)."""
@@ -250,6 +244,23 @@ class BoucWen(Hysteresis):
 
         h = bouc_wen_casadi(state[1], u - state[0], self._ak, self.beta, self.gamma)
         return self.k * u - h, casadi.vertcat(u, h)
+
+
+def bouc_wen_rows(
+    batch: BoucWenBatch, k: float | np.ndarray, state: np.ndarray, u: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bouc-Wen states of many rows over their jumps to ``u`` (V): (new states, u_eff in V).
+
+    ``state`` has shape (N, 2), rows [previous u (V), h (V)]; ``batch`` holds the rows'
+    A = alpha k, beta and gamma, and the linear gain ``k`` is one number or one per row.
+    """
+    h = batch(state[:, 1], u - state[:, 0])
+    new_state = np.empty_like(state)
+    new_state[:, 0] = u
+    new_state[:, 1] = h
+    u_eff = k * u
+    u_eff -= h
+    return new_state, u_eff
 
 
 @dataclass(frozen=True)

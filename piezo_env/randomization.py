@@ -18,58 +18,29 @@ call ``rng.uniform(low, high)`` in this order (:data:`DRAW_ORDER`):
 The drawn datasheet gives the beam (:func:`piezo_env.parameters.bender_parameters`), and the
 plant is rebuilt (FE, modes, one matrix exponential per mode: about 1-5 ms).
 
-**Observation bound over the whole range** (:func:`randomized_deflection_bound_um`). Each
-plant's proven bound is ||h||_1 max|u_eff|, with h the sampled impulse response of the exact
-zero-order-hold model. Its samples are integrals of the continuous impulse response g over
-one sample, h_k = int_{(k-1)dt}^{k dt} g, so ||h||_1 <= ||g||_1 (the reduced model and the
-numerical L1 sum agree with the exact one to ~1e-9, covered by a 1e-6 margin). The beam's
-transfer function is (d_free / U_r) H(s / omega_1; zeta_1): Gamma / EI = 3 d_free / (2 L^2 U_r)
-does not depend on F_b, the density only moves every frequency by the same factor, and Rayleigh
-damping gives zeta_k = zeta_1 omega_k / omega_1. By the triangle inequality over modes and
-int_0^inf e^(-a t) |sin b t| dt = b / (a^2 + b^2) coth(pi a / (2 b)),
-
-    ||g||_1 <= (d_free / d_nom) sum_k |s_k| coth(pi zeta_k / (2 sqrt(1 - zeta_k^2)))
-
-(coth -> 1 for an overdamped mode, zeta_k >= 1), with s_k the static tip gain of mode k of the
-nominal beam: linear in d_free, independent of F_b and f_1, decreasing in zeta_1. Creep
-multiplies it by at most 1 + sum c_i (its impulse response is positive). The effective voltage
-of a drawn Bouc-Wen map is c (k U_r + s_h h_nom) with |h| <= s_h h_nom on the major loop, so
-E(s_h) >= k U_r - s_h h_nom and max|u_eff| <= E_nom (k U_r + s_h h_nom) / (k U_r - s_h h_nom),
-increasing in s_h; a drawn Prandtl-Ishlinskii map peaks at E_nom exactly. The bound is the
-product at the worst corner (largest d_free and s_h, smallest zeta_1).
+The observation bound over the whole range is proven in :mod:`piezo_env.randomized_bound`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
-import numbers
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
 
+from piezo_env.checks import require_number
 from piezo_env.datasheet import BenderDatasheet
 from piezo_env.fem import check_damping_ratio
 from piezo_env.hysteresis import BoucWen, Hysteresis, NoHysteresis, PrandtlIshlinskii
-from piezo_env.operators import BoucWenBatch, play
-
-if TYPE_CHECKING:
-    from piezo_env.discrete import DiscreteBender
-    from piezo_env.model import PiezoBenderModel
 
 __all__ = [
     "DRAW_ORDER",
+    "PLANT_INFO_KEYS",
     "DomainRandomization",
     "PlantDraw",
-    "RowHysteresis",
     "major_loop_peak",
-    "padded_layout",
-    "randomized_deflection_bound_um",
     "scale_hysteresis",
-    "single_blas_thread",
 ]
 
 DRAW_ORDER = (
@@ -81,8 +52,15 @@ DRAW_ORDER = (
 )
 """The numbers drawn at each reset, in the order they are taken from the generator."""
 
-_BOUND_MARGIN = 1e-6
-"""Relative margin of the range bound over the per-plant bounds (rounding of both)."""
+PLANT_INFO_KEYS = (
+    "free_deflection_um",
+    "blocking_force_N",
+    "stiffness_N_per_m",
+    "resonance_Hz",
+    "damping_ratio",
+    "hysteresis_scale",
+)
+"""Keys of ``info["plant"]`` (:meth:`PlantDraw.info`), in its order: each carries its unit."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -114,15 +92,14 @@ class DomainRandomization:
 
     def __post_init__(self) -> None:
         for name in ("free_deflection", "blocking_force", "resonance", "hysteresis_strength"):
-            value = getattr(self, name)
-            if not (
-                isinstance(value, numbers.Real)
-                and not isinstance(value, bool)
-                and 0.0 <= value < 1.0
-            ):
-                raise ValueError(
-                    f"DomainRandomization.{name} is a relative half-width in [0, 1), got {value!r}"
-                )
+            # At a half-width of 1 a draw could give a zero deflection, force or resonance.
+            require_number(
+                f"DomainRandomization.{name} (a relative half-width)",
+                getattr(self, name),
+                low=0.0,
+                high=1.0,
+                high_open=True,
+            )
         try:
             low, high = (float(v) for v in self.damping_ratio)
         except (TypeError, ValueError):
@@ -188,14 +165,15 @@ class PlantDraw:
 
     def info(self) -> dict[str, float]:
         """``info["plant"]``: the drawn values with their units in the keys."""
-        return {
-            "free_deflection_um": self.free_deflection * 1e6,
-            "blocking_force_N": self.blocking_force,
-            "stiffness_N_per_m": self.blocking_force / self.free_deflection,
-            "resonance_Hz": self.resonance,
-            "damping_ratio": self.damping_ratio,
-            "hysteresis_scale": self.hysteresis_scale,
-        }
+        values = (
+            self.free_deflection * 1e6,
+            self.blocking_force,
+            self.blocking_force / self.free_deflection,
+            self.resonance,
+            self.damping_ratio,
+            self.hysteresis_scale,
+        )
+        return dict(zip(PLANT_INFO_KEYS, values, strict=True))
 
 
 def major_loop_peak(hysteresis: Hysteresis, u_max: float) -> float:
@@ -237,123 +215,3 @@ def scale_hysteresis(hysteresis: Hysteresis, scale: float, u_max: float) -> Hyst
         f"domain randomisation scales Bouc-Wen, Prandtl-Ishlinskii or no hysteresis, got "
         f"{type(hysteresis).__name__}; pass randomize=None or hysteresis_strength=0"
     )
-
-
-def single_blas_thread() -> Any:
-    """Context manager: one BLAS thread inside (for building tiny models, see drawn_plant)."""
-    return _blas_controller().limit(limits=1)
-
-
-@functools.cache
-def _blas_controller() -> ThreadpoolController:
-    """One controller per process (creating one scans the loaded libraries, ~1 ms)."""
-    return ThreadpoolController()
-
-
-def _effective_voltage_sup(hysteresis: Hysteresis, strongest: float, u_max: float) -> float:
-    """Upper bound (V) of max|u_eff| over every drawn map with scale <= ``strongest``."""
-    if isinstance(hysteresis, NoHysteresis):
-        return u_max
-    scale_hysteresis(hysteresis, strongest, u_max)  # raises outside the accepted domain
-    peak = major_loop_peak(hysteresis, u_max)
-    if isinstance(hysteresis, PrandtlIshlinskii):
-        return peak
-    linear = hysteresis.k * u_max
-    loop = strongest * hysteresis.h_max
-    if not loop < linear:
-        raise ValueError(
-            f"hysteresis_strength up to x{strongest:g} gives a Bouc-Wen loop h_max = {loop:.4g} V "
-            f"not below k U_r = {linear:.4g} V: no finite bound; narrow the spread"
-        )
-    return peak * (linear + loop) / (linear - loop)
-
-
-def _beam_l1_factor(model: PiezoBenderModel, zeta_1: float) -> float:
-    """sum_k |s_k| coth(pi zeta_k / (2 sqrt(1 - zeta_k^2))) (m/V) at first-mode ratio zeta_1."""
-    beam = model.beam
-    omega = 2.0 * np.pi * beam.frequencies
-    static = beam.modes[-2, :] * (beam.modes.T @ beam.piezo_input) / omega**2
-    zeta = zeta_1 * omega / omega[0]
-    under = zeta < 1.0
-    kappa = np.ones_like(zeta)
-    z = zeta[under]
-    kappa[under] = 1.0 / np.tanh(np.pi * z / (2.0 * np.sqrt(1.0 - z * z)))
-    return float(np.abs(static) @ kappa)
-
-
-def randomized_deflection_bound_um(nominal: PiezoBenderModel, spread: DomainRandomization) -> float:
-    """Proven bound (um) of |tip deflection| of every plant ``spread`` can draw (module doc).
-
-    Each drawn plant's own ``deflection_bound_um()`` is below it. Raises ValueError when the
-    hysteresis cannot be randomised as asked.
-    """
-    low, high = spread.limits(nominal.params.datasheet)
-    u_max = nominal.rated_voltage
-    gain = high[0] / nominal.params.datasheet.free_deflection
-    creep = 1.0 if nominal.creep is None else 1.0 + sum(nominal.creep.weights)
-    u_eff = _effective_voltage_sup(nominal.hysteresis, float(high[4]), u_max)
-    beam = _beam_l1_factor(nominal, float(low[3]))
-    return gain * beam * creep * u_eff * 1e6 * (1.0 + _BOUND_MARGIN)
-
-
-def padded_layout(discrete: DiscreteBender, n_modes: int) -> np.ndarray:
-    """Where each index of a plant's square step vector goes in the common padded layout.
-
-    The common layout holds every FE mode (``n_modes``), so plants that keep different modes
-    share one state size ``n_creep + 2 n_modes + 2``: [creep, (eta_m, eta_m') for m = 0 ..
-    n_modes - 1, fast deflection, fast rotation], then u_eff / y and theta. A mode a plant
-    drops keeps zeros in its slots.
-    """
-    nc = discrete.n_creep
-    size = nc + 2 * n_modes + 2
-    kept = np.asarray(discrete.kept_modes, dtype=np.int64)
-    modes = (nc + 2 * kept[:, None] + np.arange(2)).ravel()
-    return np.r_[np.arange(nc), modes, size - 2, size - 1, size, size + 1]
-
-
-class RowHysteresis:
-    """The hysteresis of N sub-envs, each with its own drawn parameters, stepped at once.
-
-    All rows are scaled copies of one nominal model (:func:`scale_hysteresis`): Bouc-Wen rows
-    differ in k and alpha, Prandtl-Ishlinskii rows in their weights. ``step(state, u)`` has the
-    batched signature of :meth:`piezo_env.hysteresis.Hysteresis.step` (state (N, size)).
-    """
-
-    def __init__(self, nominal: Hysteresis, num_envs: int) -> None:
-        self.nominal = nominal
-        self.state_size = nominal.state_size
-        if isinstance(nominal, BoucWen):
-            self._k = np.full(num_envs, nominal.k)
-            self._ak = np.full(num_envs, nominal.alpha * nominal.k)
-        elif isinstance(nominal, PrandtlIshlinskii):
-            self._k = np.full(num_envs, nominal.linear_weight)
-            self._w = np.tile(np.asarray(nominal.weights, dtype=float), (num_envs, 1))
-            self._r = np.asarray(nominal.radii, dtype=float)
-        self._batch: BoucWenBatch | None = None
-
-    def set_row(self, i: int, hysteresis: Hysteresis) -> None:
-        """Give row ``i`` the parameters of ``hysteresis`` (a scaled copy of the nominal)."""
-        if isinstance(hysteresis, BoucWen):
-            self._k[i] = hysteresis.k
-            self._ak[i] = hysteresis.alpha * hysteresis.k
-            self._batch = None
-        elif isinstance(hysteresis, PrandtlIshlinskii):
-            self._k[i] = hysteresis.linear_weight
-            self._w[i] = hysteresis.weights
-
-    def step(self, state: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Advance every row over its jump to ``u`` (V); returns (new state, u_eff in V)."""
-        nominal = self.nominal
-        if isinstance(nominal, BoucWen):
-            if self._batch is None:
-                self._batch = BoucWenBatch(self._ak, nominal.beta, nominal.gamma)
-            h = self._batch(state[:, 1], u - state[:, 0])
-            new_state = np.empty_like(state)
-            new_state[:, 0] = u
-            new_state[:, 1] = h
-            return new_state, self._k * u - h
-        if isinstance(nominal, PrandtlIshlinskii):
-            plays = play(state[:, 1:], u[:, None], self._r)
-            new_state = np.concatenate([u[:, None], plays], axis=1)
-            return new_state, self._k * u + np.einsum("ij,ij->i", plays, self._w)
-        return nominal.step(state, u)

@@ -9,25 +9,25 @@ randomisation it also builds each episode's plant (:func:`drawn_plant`).
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 
+from piezo_env.blas import single_blas_thread
+from piezo_env.checks import require_int, require_number
 from piezo_env.config import DEFAULT_HORIZON, NOISE_BLOCK, TaskConfig
 from piezo_env.model import PiezoBenderModel
-from piezo_env.randomization import (
-    PlantDraw,
-    randomized_deflection_bound_um,
-    scale_hysteresis,
-    single_blas_thread,
-)
+from piezo_env.randomization import PlantDraw, scale_hysteresis
+from piezo_env.randomized_bound import randomized_deflection_bound_um
 from piezo_env.reference import ReferenceStream
 
 __all__ = [
     "DEFAULT_HORIZON",
     "NOISE_BLOCK",
     "BenderTask",
+    "TaskAttributes",
     "TaskConfig",
     "check_max_episode_steps",
     "check_reset_options",
@@ -35,7 +35,6 @@ __all__ = [
     "episode_reference",
     "observation_bound",
 ]
-
 
 
 class BenderTask:
@@ -112,27 +111,43 @@ class BenderTask:
         )
 
 
+class TaskAttributes:
+    """The attributes the single and the vector env read from their task (a mixin).
+
+    :meth:`_adopt_task` sets ``config`` (:class:`TaskConfig`), ``task`` (:class:`BenderTask`),
+    ``model`` (the nominal plant; the single env replaces it by each episode's drawn plant
+    under randomisation), ``noise_bound`` (um), ``preview``, ``deflection_limit`` (um or None)
+    and ``bound`` (um, the observation bound).
+    """
+
+    def _adopt_task(self, config: TaskConfig | None, settings: dict[str, Any]) -> None:
+        """Build the task of ``config`` with keyword ``settings`` on top; copy its attributes."""
+        self.config = TaskConfig.from_kwargs(config, **settings)
+        self.task = BenderTask(self.config)
+        self.model = self.task.model
+        self.noise_bound = self.task.noise_bound
+        self.preview = self.task.preview
+        self.deflection_limit = self.task.deflection_limit
+        self.bound = self.task.bound
+        self._reference_spec = self.config.reference
+        self._u_max = self.model.rated_voltage
+
+
 def check_max_episode_steps(max_episode_steps: object) -> int | None:
     """Episode limit as ``gym.make`` reads it: a positive int, or None / -1 for no limit.
 
     Returns the limit (steps) or None; raises ValueError for anything else.
     """
     if max_episode_steps is None or (
-        isinstance(max_episode_steps, (int, np.integer))
-        and not isinstance(max_episode_steps, bool)
-        and max_episode_steps == -1
+        isinstance(max_episode_steps, numbers.Integral) and max_episode_steps == -1
     ):
         return None
-    if (
-        isinstance(max_episode_steps, bool)
-        or not isinstance(max_episode_steps, (int, np.integer))
-        or max_episode_steps < 1
-    ):
+    try:
+        return require_int("max_episode_steps (steps)", max_episode_steps)
+    except ValueError as error:
         raise ValueError(
-            "max_episode_steps must be a positive integer (steps), or None or -1 for no time "
-            f"limit (as in gymnasium.make), got {max_episode_steps!r}"
-        )
-    return int(max_episode_steps)
+            f"{error}; pass None or -1 for no time limit (as in gymnasium.make)"
+        ) from None
 
 
 def observation_bound(model: PiezoBenderModel, noise_bound: float) -> float:
@@ -171,18 +186,16 @@ def check_reset_options(options: dict[str, Any], u_max: float) -> float:
             f"unknown reset options {sorted(unknown)}; "
             "valid: 'reference' (array, um) and 'initial_voltage' (V)"
         )
-    voltage = float(options.get("initial_voltage", 0.0))
-    if not (math.isfinite(voltage) and abs(voltage) <= u_max):
-        raise ValueError(f"initial_voltage must be within [-{u_max}, {u_max}] V, got {voltage}")
-    return voltage
+    return require_number(
+        "initial_voltage (V)", options.get("initial_voltage", 0.0), low=-u_max, high=u_max
+    )
 
 
 def drawn_plant(nominal: PiezoBenderModel, draw: PlantDraw) -> PiezoBenderModel:
     """The plant of ``draw``: the nominal model's elements, dt and creep, drawn parameters.
 
-    Built with one BLAS thread: the eigen-decomposition and the per-mode matrix exponentials
-    are tiny, and multi-threaded OpenBLAS stalls on them (measured on 2 cores: median 9.7 ms,
-    p90 220 ms per plant, against 1.4 ms and 9.6 ms single-threaded).
+    Built with one BLAS thread (:mod:`piezo_env.blas`): the eigen-decomposition and the
+    per-mode matrix exponentials are tiny, and multi-threaded OpenBLAS stalls on them.
     """
     hysteresis = scale_hysteresis(nominal.hysteresis, draw.hysteresis_scale, nominal.rated_voltage)
     with single_blas_thread():

@@ -16,7 +16,7 @@ resets, from its own generator and in the single env's order (plant, reference, 
 sub-environment i still reproduces the single env seeded seed + i. Plants of different damping
 and resonance keep different modes (the reduction is exact per plant), so every plant's step
 matrix is placed in one common layout that has a slot for every FE mode (zeros where a plant
-drops a mode; :func:`piezo_env.randomization.padded_layout`), and the step is one stacked
+drops a mode; :mod:`piezo_env.plant_rows`), and the step is one stacked
 (N, 1, k) x (N, k, k) product. The default path (no randomisation) is unchanged: one shared
 matrix, reduced to the nominal plant's modes.
 """
@@ -30,13 +30,15 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from piezo_env.blas import single_blas_thread
 from piezo_env.checks import require_int
-from piezo_env.randomization import RowHysteresis, padded_layout, single_blas_thread
+from piezo_env.plant_rows import RowHysteresis, padded_layout, scaled_step_matrix_t
+from piezo_env.randomization import PLANT_INFO_KEYS
 from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
 from piezo_env.task import (
     DEFAULT_HORIZON,
     NOISE_BLOCK,
-    BenderTask,
+    TaskAttributes,
     TaskConfig,
     check_max_episode_steps,
     check_reset_options,
@@ -46,15 +48,6 @@ from piezo_env.task import (
 __all__ = ["PiezoBenderVectorEnv"]
 
 _ROW_BLOCK = 1024
-_PLANT_KEYS = (
-    "free_deflection_um",
-    "blocking_force_N",
-    "stiffness_N_per_m",
-    "resonance_Hz",
-    "damping_ratio",
-    "hysteresis_scale",
-)
-"""Keys of ``info["plant"]`` (:meth:`piezo_env.randomization.PlantDraw.info`), in its order."""
 _INFO_KEYS = (
     "deflection_um",
     "voltage_V",
@@ -65,7 +58,7 @@ _INFO_KEYS = (
 )
 
 
-class PiezoBenderVectorEnv(VectorEnv):
+class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
     """``num_envs`` PiezoBender-v0 environments in one batched model.
 
     Spaces, reward, timing and info keys are those of :class:`piezo_env.env.PiezoBenderEnv`,
@@ -108,16 +101,8 @@ class PiezoBenderVectorEnv(VectorEnv):
             raise ValueError("the vector env does not render; make single envs to render")
         self.num_envs = int(num_envs)
         self.max_episode_steps = check_max_episode_steps(max_episode_steps)
-        self.config = TaskConfig.from_kwargs(config, **settings)
-        self.task = BenderTask(self.config)
-        self.model = self.task.model
-        self.noise_bound = self.task.noise_bound
-        self.preview = self.task.preview
-        self.deflection_limit = self.task.deflection_limit
-        self.bound = self.task.bound
+        self._adopt_task(config, settings)
         self.render_mode = None
-        self._reference_spec = self.config.reference
-        self._u_max = self.model.rated_voltage
         self.single_observation_space = self.task.observation_space()
         self.single_action_space = self.task.action_space()
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
@@ -138,15 +123,15 @@ class PiezoBenderVectorEnv(VectorEnv):
         self._steps_t: np.ndarray | None = None  # per-env step matrices (randomisation only)
         if self._randomization is None:
             k = self.model.discrete.n_states
-            self._step_t = _scaled_step_t(self.model, np.arange(k + 2), k)
+            self._step_t = scaled_step_matrix_t(self.model, np.arange(k + 2), k)
         else:
             k = self.model.discrete.n_creep + 2 * self.model.beam.n_dofs + 2
             layout = padded_layout(self.model.discrete, self.model.beam.n_dofs)
-            self._step_t = _scaled_step_t(self.model, layout, k)
+            self._step_t = scaled_step_matrix_t(self.model, layout, k)
             self._steps_t = np.repeat(self._step_t[None], n, axis=0)
             self._row_hyst = RowHysteresis(self.model.hysteresis, n)
         self.plant_draws: list[Any] = [None] * n
-        self._plant_values = np.zeros((len(_PLANT_KEYS), n))
+        self._plant_values = np.zeros((len(PLANT_INFO_KEYS), n))
         self._k = k
         self._x = np.zeros((n, k + 2))
         self._out = np.zeros((n, k + 2))
@@ -215,33 +200,9 @@ class PiezoBenderVectorEnv(VectorEnv):
     def step(
         self, actions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        a = np.asarray(actions)
-        if a.dtype.kind not in "fiu" or a.shape not in ((self.num_envs, 1), (self.num_envs,)):
-            raise ValueError(
-                f"actions must be a numeric array of shape ({self.num_envs}, 1) (one voltage in "
-                f"V per env), got {type(actions).__name__} of dtype {a.dtype} and shape {a.shape}"
-            )
-        a = a.astype(np.float64, copy=False).reshape(self.num_envs)
-        finite = np.isfinite(a)
-        if not finite.all():
-            raise ValueError(f"actions must be finite voltages in V, got {a[~finite][0]!r}")
-        voltage = np.clip(a, -self._u_max, self._u_max)
-        saturated = voltage != a
-
+        voltage, saturated = self._drive_voltages(actions)
         self._hyst, u_eff = (self._row_hyst or self.model.hysteresis).step(self._hyst, voltage)
-        k, x, out = self._k, self._x, self._out
-        x[:, k] = u_eff
-        if self._steps_t is None:
-            block = self._row_block
-            for start in range(0, self.num_envs, block):
-                rows = slice(start, start + block)
-                np.matmul(x[rows], self._step_t, out=out[rows])
-        else:  # one small matrix-vector product per env, looped in C
-            np.matmul(x[:, None, :], self._steps_t, out=out[:, None, :])
-        self._y = out[:, k].copy()  # a new array each step: the info returned keeps its own
-        self._q_rot = out[:, k + 1].copy()
-        self._x, self._out = out, x
-        self._t += 1
+        self._advance(u_eff)
 
         done = self._prev_done
         any_done = bool(done.any())
@@ -254,14 +215,7 @@ class PiezoBenderVectorEnv(VectorEnv):
         reward = np.subtract(deflection, reference)
         reward *= reward
         reward *= -1.0 / self.model.stroke_um**2
-        if self.deflection_limit is not None:
-            terminated = np.abs(deflection) > self.deflection_limit
-        else:
-            terminated = np.zeros(self.num_envs, dtype=bool)
-        if self.max_episode_steps is None:
-            truncated = np.zeros(self.num_envs, dtype=bool)
-        else:
-            truncated = self._t >= self.max_episode_steps
+        terminated, truncated = self._episode_ends(deflection)
         if any_done:  # the reset's outcome, as SyncVectorEnv returns it
             reward[done] = 0.0
             terminated[done] = False
@@ -279,16 +233,54 @@ class PiezoBenderVectorEnv(VectorEnv):
 
     # -- helpers -------------------------------------------------------------------------------
 
+    def _drive_voltages(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Validated, clipped voltages (V) and which were clipped (the amplifier saturates)."""
+        a = np.asarray(actions)
+        if a.dtype.kind not in "fiu" or a.shape not in ((self.num_envs, 1), (self.num_envs,)):
+            raise ValueError(
+                f"actions must be a numeric array of shape ({self.num_envs}, 1) (one voltage in "
+                f"V per env), got {type(actions).__name__} of dtype {a.dtype} and shape {a.shape}"
+            )
+        a = a.astype(np.float64, copy=False).reshape(self.num_envs)
+        finite = np.isfinite(a)
+        if not finite.all():
+            raise ValueError(f"actions must be finite voltages in V, got {a[~finite][0]!r}")
+        voltage = np.clip(a, -self._u_max, self._u_max)
+        return voltage, voltage != a
+
+    def _advance(self, u_eff: np.ndarray) -> None:
+        """One sample of every bender under its effective voltage (V): state, y (um), charge."""
+        k, x, out = self._k, self._x, self._out
+        x[:, k] = u_eff
+        if self._steps_t is None:
+            block = self._row_block
+            for start in range(0, self.num_envs, block):
+                rows = slice(start, start + block)
+                np.matmul(x[rows], self._step_t, out=out[rows])
+        else:  # one small matrix-vector product per env, looped in C
+            np.matmul(x[:, None, :], self._steps_t, out=out[:, None, :])
+        self._y = out[:, k].copy()  # a new array each step: the info returned keeps its own
+        self._q_rot = out[:, k + 1].copy()
+        self._x, self._out = out, x
+        self._t += 1
+
+    def _episode_ends(self, deflection: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(terminated, truncated) of every env after this step."""
+        if self.deflection_limit is not None:
+            terminated = np.abs(deflection) > self.deflection_limit
+        else:
+            terminated = np.zeros(self.num_envs, dtype=bool)
+        if self.max_episode_steps is None:
+            truncated = np.zeros(self.num_envs, dtype=bool)
+        else:
+            truncated = self._t >= self.max_episode_steps
+        return terminated, truncated
+
     def _reset_rows(self, rows: np.ndarray, options: dict[str, Any]) -> None:
+        """Start a new episode in each env of ``rows``: plant at rest, reference, noise."""
         voltage = check_reset_options(options, self._u_max)
         if self._randomization is None:
-            state, hyst, u_eff = self._rest_state(voltage)
-            self._x[rows, : self._k] = state
-            self._x[rows, self._k :] = 0.0
-            self._hyst[rows] = hyst
-            self._reset_u_eff[rows] = u_eff
-            self._y[rows] = self.model.discrete.output_matrix[0] @ state * 1e6
-            self._q_rot[rows] = self.model.discrete.output_matrix[1] @ state * self._q_per_rad
+            self._rest_rows(rows, voltage)
         else:
             self._draw_plants(rows, voltage)
         self._t[rows] = 0
@@ -296,43 +288,59 @@ class PiezoBenderVectorEnv(VectorEnv):
             self._lockstep and bool(np.all(self._t == 0))
         )
         spec = episode_reference(options, self._reference_spec)
+        # Each env's generator in the single env's order: reference, then noise.
+        draws = self._draw_references(rows, spec)
         r = self.noise_bound
-        model = self.model
-        named = isinstance(spec, str)
-        draws, noise = [], []
-        for i in rows:  # every draw in the single env's order: reference, then noise
-            rng = self._rngs[i]
-            if named:
-                draws.append(
-                    draw_reference(
-                        spec,
-                        SEGMENT,
-                        dt=model.dt,
-                        stroke_um=model.stroke_um,
-                        rng=rng,
-                        band=self.task.reference_band,
-                    )
-                )
-            if r > 0:
-                noise.append(rng.uniform(-r, r, NOISE_BLOCK))
-        if spec is not None:
-            if named:
-                first = render_references(draws, SEGMENT, dt=model.dt).astype(np.float32)
-                streams = [
-                    self.task.reference_stream(spec, self._rngs[i], first=row)
-                    for i, row in zip(rows, first, strict=True)
-                ]
-            else:
-                streams = [self.task.reference_stream(spec, None) for _ in rows]
-            for i, stream in zip(rows, streams, strict=True):
-                self._streams[i] = stream
-            values = np.array([stream.ensure(SEGMENT)[: self._ref_len] for stream in streams])
-            self._write_columns(self._ref, rows, values, values.shape[1])
-            self._ref_filled[rows] = values.shape[1]
-            self._ref_filled_min = int(self._ref_filled.min())
-        if noise:
-            self._write_columns(self._noise, rows, np.array(noise), NOISE_BLOCK)
+        if r > 0:
+            noise = np.array([self._rngs[i].uniform(-r, r, NOISE_BLOCK) for i in rows])
+            self._write_columns(self._noise, rows, noise, NOISE_BLOCK)
         self._noise_index[rows] = 0
+        if spec is not None:
+            self._start_references(rows, spec, draws)
+
+    def _rest_rows(self, rows: np.ndarray, voltage: float) -> None:
+        """Put the nominal plant of each env in ``rows`` at rest under ``voltage`` (V)."""
+        state, hyst, u_eff = self._rest_state(voltage)
+        self._x[rows, : self._k] = state
+        self._x[rows, self._k :] = 0.0
+        self._hyst[rows] = hyst
+        self._reset_u_eff[rows] = u_eff
+        self._y[rows] = self.model.discrete.output_matrix[0] @ state * 1e6
+        self._q_rot[rows] = self.model.discrete.output_matrix[1] @ state * self._q_per_rad
+
+    def _draw_references(self, rows: np.ndarray, spec: object) -> list[Any]:
+        """The drawn parameters of each env's named reference (none for an array or None)."""
+        if not isinstance(spec, str):
+            return []
+        model = self.model
+        return [
+            draw_reference(
+                spec,
+                SEGMENT,
+                dt=model.dt,
+                stroke_um=model.stroke_um,
+                rng=self._rngs[i],
+                band=self.task.reference_band,
+            )
+            for i in rows
+        ]
+
+    def _start_references(self, rows: np.ndarray, spec: object, draws: list[Any]) -> None:
+        """The reference streams of ``rows`` and their first samples in the buffer."""
+        if draws:  # rendered together: one batch, the same samples as one at a time
+            first = render_references(draws, SEGMENT, dt=self.model.dt).astype(np.float32)
+            streams = [
+                self.task.reference_stream(spec, self._rngs[i], first=row)
+                for i, row in zip(rows, first, strict=True)
+            ]
+        else:
+            streams = [self.task.reference_stream(spec, None) for _ in rows]
+        for i, stream in zip(rows, streams, strict=True):
+            self._streams[i] = stream
+        values = np.array([stream.ensure(SEGMENT)[: self._ref_len] for stream in streams])
+        self._write_columns(self._ref, rows, values, values.shape[1])
+        self._ref_filled[rows] = values.shape[1]
+        self._ref_filled_min = int(self._ref_filled.min())
 
     def _draw_plants(self, rows: np.ndarray, voltage: float) -> None:
         """Draw the plant of each env in ``rows`` (first draw of its reset) and put it at rest.
@@ -345,7 +353,7 @@ class PiezoBenderVectorEnv(VectorEnv):
             for i in rows:
                 model, draw = self.task.draw_plant(self._rngs[i])
                 layout = padded_layout(model.discrete, n_modes)
-                self._steps_t[i] = _scaled_step_t(model, layout, k)
+                self._steps_t[i] = scaled_step_matrix_t(model, layout, k)
                 state, hyst = model.static_state(voltage)
                 self._x[i] = 0.0
                 self._x[i, layout[: len(state)]] = state
@@ -357,12 +365,12 @@ class PiezoBenderVectorEnv(VectorEnv):
                 self._q_rot[i] = out[1] * model.params.piezo_moment * 1e6
                 self.plant_draws[i] = draw
                 values = draw.info()
-                self._plant_values[:, i] = [values[key] for key in _PLANT_KEYS]
+                self._plant_values[:, i] = [values[key] for key in PLANT_INFO_KEYS]
 
     def _add_plant_info(self, info: dict[str, Any], mask: np.ndarray) -> None:
         """``info["plant"]``: the plants drawn by the envs in ``mask``, nested as SyncVectorEnv."""
         plant: dict[str, Any] = {}
-        for key, values in zip(_PLANT_KEYS, self._plant_values, strict=True):
+        for key, values in zip(PLANT_INFO_KEYS, self._plant_values, strict=True):
             plant[key] = np.where(mask, values, 0.0)
             plant["_" + key] = mask.copy()
         info["plant"] = plant
@@ -464,18 +472,6 @@ class PiezoBenderVectorEnv(VectorEnv):
             info[key] = value
             info["_" + key] = self._all_true.copy()
         return info
-
-
-def _scaled_step_t(model: Any, layout: np.ndarray, k: int) -> np.ndarray:
-    """Transposed square step matrix of ``model`` placed at ``layout`` in a (k + 2)-square.
-
-    The output columns come out scaled: deflection in um, Gamma theta_tip in uC.
-    """
-    step_t = np.zeros((k + 2, k + 2))
-    step_t[np.ix_(layout, layout)] = model.discrete.square_step_matrix().T
-    step_t[:, k] *= 1e6
-    step_t[:, k + 1] *= model.params.piezo_moment * 1e6
-    return step_t
 
 
 def _segments(n: int) -> int:

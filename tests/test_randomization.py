@@ -16,24 +16,12 @@ from piezo_env import DomainRandomization, TaskConfig
 from piezo_env.env import PiezoBenderEnv
 from piezo_env.hysteresis import BoucWen, PrandtlIshlinskii
 from piezo_env.parameters import cantilever_frequencies
-from piezo_env.randomization import (
-    DRAW_ORDER,
-    PlantDraw,
-    major_loop_peak,
-    randomized_deflection_bound_um,
-)
+from piezo_env.randomization import DRAW_ORDER, PLANT_INFO_KEYS, PlantDraw, major_loop_peak
+from piezo_env.randomized_bound import randomized_deflection_bound_um
 from piezo_env.task import BenderTask, drawn_plant
 from piezo_env.vector_env import PiezoBenderVectorEnv
 
 ENV_ID = "piezo_env:PiezoBender-v0"
-PLANT_KEYS = {
-    "free_deflection_um",
-    "blocking_force_N",
-    "stiffness_N_per_m",
-    "resonance_Hz",
-    "damping_ratio",
-    "hysteresis_scale",
-}
 
 
 def test_option_values_and_validation():
@@ -64,7 +52,8 @@ def test_same_seed_same_plant_and_a_new_plant_each_reset():
     _, again = env.reset(seed=7)
     assert again["plant"] == first["plant"]
     assert np.array_equal(env.unwrapped.model.discrete.step_matrix, matrix)
-    assert set(first["plant"]) == PLANT_KEYS
+    assert tuple(first["plant"]) == PLANT_INFO_KEYS
+    assert all(f"``{key}``" in PiezoBenderEnv.__doc__ for key in PLANT_INFO_KEYS)  # documented
     assert env.unwrapped.task.model is not env.unwrapped.model  # the nominal stays in the task
     # the default env draws nothing and reports no plant
     assert "plant" not in PiezoBenderEnv().reset(seed=7)[1]

@@ -163,7 +163,7 @@ def test_vector_env_without_a_time_limit_runs_past_its_buffers(no_limit):
 
 @pytest.mark.parametrize("bad", [0, -2, 2.5, "100", True])
 def test_vector_env_rejects_a_bad_episode_limit(bad):
-    with pytest.raises(ValueError, match="max_episode_steps must be a positive integer"):
+    with pytest.raises(ValueError, match=r"max_episode_steps \(steps\) must be an integer >= 1"):
         PiezoBenderVectorEnv(2, max_episode_steps=bad)
 
 
