@@ -8,13 +8,12 @@ last previewed sample when the horizon reaches past the preview).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from piezo_env.checks import require_int
+from piezo_env.checks import require_int, require_number
 
 __all__ = ["ControlTask"]
 
@@ -46,9 +45,7 @@ class ControlTask:
 
     def __post_init__(self) -> None:
         for name in ("dt", "u_max", "stroke_um"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number, got {value!r}")
+            require_number(name, getattr(self, name), low=0.0, low_open=True)
         try:
             require_int("preview", self.preview)
         except ValueError as error:
@@ -57,27 +54,23 @@ class ControlTask:
                 "from preview=1 on; make the env with preview >= 1, e.g. "
                 "gym.make('piezo_env:PiezoBender-v0', preview=20)"
             ) from None
-        noise = self.noise_bound_um
-        if (
-            not (
-                isinstance(noise, (int, float))
-                and not isinstance(noise, bool)
-                and math.isfinite(noise)
-            )
-            or noise < 0
-        ):
-            raise ValueError(f"noise_bound_um must be a finite number >= 0, got {noise!r}")
+        require_number("noise_bound_um", self.noise_bound_um, low=0.0)
 
     @classmethod
     def from_env(cls, env: Any) -> ControlTask:
         """Read the task of a ``PiezoBender-v0`` env (wrapped or not).
 
-        A controller reads the raw observation (um) and acts in volts, so the task comes from
-        the env itself (``env.unwrapped``) and the nominal plant, never from an episode's drawn
-        plant. Wrappers that keep the spaces (``TimeLimit``, ``OrderEnforcing``, ...) are fine;
-        a wrapper that changes the observation or the action (e.g.
-        :class:`piezo_env.wrappers.TrackingObservation`, made for learning agents) is refused,
-        because a controller stepped through it would read scaled numbers as micrometres.
+        A controller reads the raw observation (um, ``[y_t, r_t, r_t+1 .. r_t+P]``) and acts
+        in volts, so the task comes from the env itself (``env.unwrapped``: its spaces and its
+        task, the nominal plant), never from an episode's drawn plant nor from a wrapper.
+        Wrappers that keep the spaces (``TimeLimit``, ``OrderEnforcing``, the env checker, ...)
+        are fine: the controller runs through them. A wrapper that changes the observation or
+        the action space (e.g. :class:`piezo_env.wrappers.TrackingObservation`, made for
+        learning agents, or ``RescaleAction``) is refused: a controller stepped through it
+        would read scaled numbers as micrometres and send volts to a wrapper expecting
+        [-1, 1]. Pass the unwrapped env, or a wrapper that keeps the spaces. A wrapper that
+        keeps the spaces but changes the values inside them cannot be told apart and is the
+        caller's to avoid.
 
         Raises
         ------
@@ -86,12 +79,11 @@ class ControlTask:
             or a wrapper changes its observation or action space.
         """
         base = env.unwrapped
-        if (env.observation_space != base.observation_space
-                or env.action_space != base.action_space):
+        if env.observation_space != base.observation_space or env.action_space != base.action_space:
             raise ValueError(
                 f"{type(env).__name__} changes the env's observation or action space; a "
                 "controller reads the raw observation (um) and returns volts: pass the env "
-                "without that wrapper (e.g. env.unwrapped)"
+                "without that wrapper (e.g. env.unwrapped) or a wrapper that keeps the spaces"
             )
         shape = base.observation_space.shape
         if shape is None or len(shape) != 1 or shape[0] < 2:

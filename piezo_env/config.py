@@ -8,14 +8,12 @@
 from __future__ import annotations
 
 import dataclasses
-import math
-import numbers
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from piezo_env.checks import require_int
+from piezo_env.checks import require_int, require_number
 from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.discrete import Creep
 from piezo_env.fem import DEFAULT_ELEMENTS, check_damping_ratio
@@ -106,14 +104,8 @@ class TaskConfig:
 
     def __post_init__(self) -> None:
         get_datasheet(self.bender)
-        if (
-            isinstance(self.n_elements, bool)
-            or not isinstance(self.n_elements, (int, np.integer))
-            or self.n_elements < 1
-        ):
-            raise ValueError(f"n_elements must be a positive integer, got {self.n_elements!r}")
-        if not (isinstance(self.dt, numbers.Real) and math.isfinite(self.dt) and self.dt > 0):
-            raise ValueError(f"dt must be a positive number of seconds, got {self.dt!r}")
+        require_int("n_elements", self.n_elements)
+        require_number("dt (s)", self.dt, low=0.0, low_open=True)
         if not (self.hysteresis is None or isinstance(self.hysteresis, (str, Hysteresis))):
             raise ValueError(
                 "hysteresis must be 'bouc-wen', 'prandtl-ishlinskii', None or a Hysteresis, "
@@ -123,7 +115,7 @@ class TaskConfig:
             make_hysteresis(self.hysteresis, get_datasheet(self.bender).rated_voltage)
         if not isinstance(self.creep, (bool, Creep)):
             raise ValueError(f"creep must be a bool or a Creep, got {self.creep!r}")
-        _check_noise_bound(self.noise_bound)
+        require_number("noise_bound (um)", self.noise_bound, low=0.0)
         reference = _check_reference(self.reference)
         object.__setattr__(self, "reference", reference)
         object.__setattr__(
@@ -131,11 +123,10 @@ class TaskConfig:
         )
         preview = _check_preview(self.preview, reference)
         object.__setattr__(self, "preview", preview)
-        limit = self.deflection_limit
-        if limit is not None and not (
-            isinstance(limit, numbers.Real) and not isinstance(limit, bool) and limit > 0
-        ):
-            raise ValueError(f"deflection_limit must be > 0 um or None, got {limit!r}")
+        if self.deflection_limit is not None:
+            require_number(
+                "deflection_limit (um, or None)", self.deflection_limit, low=0.0, low_open=True
+            )
         check_damping_ratio(self.damping_ratio)
         object.__setattr__(self, "randomize", _check_randomize(self.randomize))
 
@@ -197,16 +188,6 @@ def _check_reference(reference: object) -> str | np.ndarray | None:
             )
         return reference
     return check_reference_array(reference)
-
-
-def _check_noise_bound(noise_bound: object) -> None:
-    if not (
-        isinstance(noise_bound, numbers.Real)
-        and not isinstance(noise_bound, bool)
-        and math.isfinite(noise_bound)
-        and noise_bound >= 0
-    ):
-        raise ValueError(f"noise_bound must be a finite number >= 0 (um), got {noise_bound!r}")
 
 
 def _check_preview(preview: object, reference: object) -> int:

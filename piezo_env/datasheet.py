@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+from piezo_env.checks import require_number
+
 __all__ = ["CATALOGUE", "BenderDatasheet", "get_datasheet"]
 
 
@@ -55,13 +57,9 @@ class BenderDatasheet:
         for field in fields(self):
             if field.name == "name":
                 continue
-            value = getattr(self, field.name)
-            if isinstance(value, bool) or not (
-                isinstance(value, (int, float)) and 0 < value < float("inf")
-            ):
-                raise ValueError(
-                    f"BenderDatasheet.{field.name} must be a positive finite number, got {value!r}"
-                )
+            require_number(
+                f"BenderDatasheet.{field.name}", getattr(self, field.name), low=0.0, low_open=True
+            )
         if self.free_length > self.length:
             raise ValueError(
                 f"free_length {self.free_length} m exceeds the ceramic length {self.length} m"

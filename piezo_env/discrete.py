@@ -21,12 +21,12 @@ which gives the logarithmic creep (1-2 % per decade) of piezo ceramics.
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
 
+from piezo_env.checks import require_number
 from piezo_env.fem import BeamFE
 
 __all__ = ["Creep", "DiscreteBender", "discretize"]
@@ -214,8 +214,7 @@ def discretize(
     -------
     DiscreteBender
     """
-    if not (isinstance(dt, numbers.Real) and np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+    require_number("dt (s)", dt, low=0.0, low_open=True)
     nc = 0 if creep is None else creep.size
     omega = 2.0 * np.pi * beam.frequencies
     phi_b = beam.modes.T @ beam.piezo_input

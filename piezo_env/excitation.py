@@ -12,12 +12,12 @@ import numpy as np
 import scipy.signal
 
 from piezo_env.signal_checks import (
-    check_dt,
     check_finite,
     check_frequency,
-    check_n,
+    check_held,
     check_positive_int,
     check_rng,
+    check_sampled,
     sample_times,
 )
 from piezo_env.waveforms import sums_of_sines
@@ -67,10 +67,7 @@ def prbs(
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
-    clock_period = check_positive_int("clock_period", clock_period)
-    rng = check_rng(rng)
+    n, amplitude, clock_period, rng = check_held(n, amplitude, "clock_period", clock_period, rng)
     n_clocks = -(-n // clock_period)
     if kind == "telegraph":
         bits = rng.integers(0, 2, size=n_clocks)
@@ -86,9 +83,7 @@ def prbs(
     return hold_values(levels, clock_period, n)
 
 
-def random_hold(
-    n: int, *, amplitude: float, hold: int = 1, rng: np.random.Generator
-) -> np.ndarray:
+def random_hold(n: int, *, amplitude: float, hold: int = 1, rng: np.random.Generator) -> np.ndarray:
     """Uniformly distributed random signal held piecewise constant (the paper's RAND).
 
     Parameters
@@ -107,10 +102,7 @@ def random_hold(
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
-    hold = check_positive_int("hold", hold)
-    rng = check_rng(rng)
+    n, amplitude, hold, rng = check_held(n, amplitude, "hold", hold, rng)
     values = rng.uniform(-amplitude, amplitude, size=-(-n // hold))
     return hold_values(values, hold, n)
 
@@ -147,9 +139,7 @@ def multisine(
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    dt = check_dt(dt)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
+    n, dt, amplitude = check_sampled(n, dt, amplitude)
     f_min = check_frequency("f_min", f_min, dt)
     f_max = check_frequency("f_max", f_max, dt)
     if f_max < f_min:
@@ -195,9 +185,7 @@ def decaying_multisine(
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    dt = check_dt(dt)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
+    n, dt, amplitude = check_sampled(n, dt, amplitude)
     frequencies = np.atleast_1d(np.asarray(frequencies, dtype=np.float64))
     if frequencies.ndim != 1 or frequencies.size == 0:
         raise ValueError("frequencies must be a non-empty sequence of frequencies in Hz")

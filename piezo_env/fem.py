@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 import scipy.linalg
 
+from piezo_env.checks import require_int, require_number
 from piezo_env.parameters import BenderParameters
 
 __all__ = [
@@ -136,15 +137,13 @@ def check_damping_ratio(damping_ratio: object) -> None:
     Below 1e-4 the bender is (nearly) undamped: its peak-to-peak gain, and so the proven
     deflection bound, grows without limit. At 1 and above the first mode is not underdamped.
     """
-    if not (
-        isinstance(damping_ratio, (int, float, np.integer, np.floating))
-        and not isinstance(damping_ratio, bool)
-        and 1e-4 <= damping_ratio < 1.0
-    ):
-        raise ValueError(
-            "damping_ratio must be a first-mode damping ratio in [1e-4, 1) (an underdamped "
-            f"bender), got {damping_ratio!r}"
-        )
+    require_number(
+        "damping_ratio (first mode, of an underdamped bender)",
+        damping_ratio,
+        low=1e-4,
+        high=1.0,
+        high_open=True,
+    )
 
 
 def assemble_beam(
@@ -172,36 +171,13 @@ def assemble_beam(
     -------
     BeamFE
     """
-    if (
-        not isinstance(n_elements, (int, np.integer))
-        or isinstance(n_elements, bool)
-        or n_elements < 1
-    ):
-        raise ValueError(f"n_elements must be a positive integer, got {n_elements!r}")
+    n = require_int("n_elements", n_elements)
     check_damping_ratio(damping_ratio)
     if damping not in ("rayleigh", "modal"):
         raise ValueError(f"damping must be 'rayleigh' or 'modal', got {damping!r}")
-
-    n = int(n_elements)
-    le = params.length / n
-    ke = element_stiffness(params.bending_stiffness, le)
-    me = element_mass(params.linear_density, le)
-    be = params.piezo_moment * np.array([0.0, -1.0, 0.0, 1.0])
-
-    size = 2 * (n + 1)
-    k_full = np.zeros((size, size))
-    m_full = np.zeros((size, size))
-    b_full = np.zeros(size)
-    for e in range(n):
-        dofs = slice(2 * e, 2 * e + 4)
-        k_full[dofs, dofs] += ke
-        m_full[dofs, dofs] += me
-        b_full[dofs] += be
-    free = slice(2, size)
-    stiffness, mass, piezo = k_full[free, free], m_full[free, free], b_full[free]
+    stiffness, mass, piezo = _assembled_matrices(params, n)
     tip_force = np.zeros(2 * n)
     tip_force[-2] = 1.0
-
     omega_sq, modes = scipy.linalg.eigh(stiffness, mass)
     omega = np.sqrt(omega_sq)
     if damping == "rayleigh":
@@ -224,3 +200,24 @@ def assemble_beam(
         modes=modes,
         damping_ratios=zetas,
     )
+
+
+def _assembled_matrices(
+    params: BenderParameters, n: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Stiffness K, mass M and piezo input b of ``n`` elements, the root node clamped (SI)."""
+    le = params.length / n
+    ke = element_stiffness(params.bending_stiffness, le)
+    me = element_mass(params.linear_density, le)
+    be = params.piezo_moment * np.array([0.0, -1.0, 0.0, 1.0])
+    size = 2 * (n + 1)
+    k_full = np.zeros((size, size))
+    m_full = np.zeros((size, size))
+    b_full = np.zeros(size)
+    for e in range(n):
+        dofs = slice(2 * e, 2 * e + 4)
+        k_full[dofs, dofs] += ke
+        m_full[dofs, dofs] += me
+        b_full[dofs] += be
+    free = slice(2, size)
+    return k_full[free, free], m_full[free, free], b_full[free]

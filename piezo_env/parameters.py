@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from piezo_env.checks import require_number
 from piezo_env.datasheet import BenderDatasheet, get_datasheet
 
 __all__ = [
@@ -158,13 +159,11 @@ def bender_parameters(
         source = "calibrated to datasheet resonance"
     elif density == "nominal":
         rho, source = NOMINAL_PZT_DENSITY, "nominal PZT"
-    elif isinstance(density, (int, float)) and math.isfinite(density) and density > 0:
-        rho, source = float(density), "given"
+    elif isinstance(density, str):
+        raise ValueError(f"density must be 'calibrated', 'nominal' or a number, got {density!r}")
     else:
-        raise ValueError(
-            "density must be 'calibrated', 'nominal' or a positive number (kg/m^3), "
-            f"got {density!r}"
-        )
+        rho = require_number("density (kg/m^3)", density, low=0.0, low_open=True)
+        source = "given"
     return BenderParameters(
         datasheet=sheet,
         length=length,

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from piezo_env import signals
+from piezo_env.waveforms import sums_of_sines, triangle_wave
 
 __all__ = [
     "DEFAULT_BAND",
@@ -170,15 +170,15 @@ def render_references(draws: list[ReferenceDraw], n: int, *, dt: float) -> np.nd
             # Fraction of the period, shifted so that phase 0 starts at 0 and rising.
             cycles = frequency * t
             cycles += phase / (2.0 * np.pi)
-            out[index] = amplitude * signals.triangle_wave(cycles)
+            out[index] = amplitude * triangle_wave(cycles)
         elif shape == "sine":
             w = 2.0 * np.pi * dt * np.array([d.frequency for d in group])[:, None]
             phase = np.array([d.phase for d in group])[:, None]
-            out[index] = amplitude * signals.sums_of_sines(w, phase, n)
+            out[index] = amplitude * sums_of_sines(w, phase, n)
         else:  # multisine: _TONES tones spread over the draw's band
             tones = np.array([np.linspace(d.low_frequency, d.frequency, _TONES) for d in group])
             phase = np.array([d.tone_phases for d in group])
-            x = signals.sums_of_sines(2.0 * np.pi * dt * tones, phase, n)
+            x = sums_of_sines(2.0 * np.pi * dt * tones, phase, n)
             out[index] = x * (amplitude / np.abs(x).max(axis=1, keepdims=True))
     return out
 

@@ -1,59 +1,50 @@
 """Argument checks and the time axis shared by the signal generators (:mod:`piezo_env.signals`).
 
-Each check returns the value as a plain Python number or raises ValueError naming the argument.
+Each check returns the value as a plain Python number (or the generator itself) or raises
+ValueError naming the argument, built on :mod:`piezo_env.checks`.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from piezo_env.checks import require_int
+from piezo_env.checks import require_int, require_number
 
 __all__ = [
     "check_dt",
     "check_finite",
     "check_frequency",
+    "check_held",
     "check_n",
     "check_positive_int",
     "check_rng",
+    "check_sampled",
     "sample_times",
 ]
 
 
 def check_n(n: int) -> int:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)):
-        raise ValueError(f"n must be a positive integer number of samples, got {n!r}")
-    if n < 1:
-        raise ValueError(f"n must be a positive integer number of samples, got {n}")
-    return int(n)
+    """Number of samples: an integer >= 1."""
+    return require_int("n (samples)", n)
 
 
 def check_positive_int(name: str, value: int) -> int:
+    """A count of samples (a hold or clock period, a number of tones): an integer >= 1."""
     return require_int(f"{name} (samples)", value)
 
 
 def check_finite(name: str, value: float, *, minimum: float | None = None) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value}")
-    if minimum is not None and value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    return value
+    """A finite real number, >= ``minimum`` if given."""
+    return require_number(name, value, low=minimum)
 
 
 def check_dt(dt: float) -> float:
-    dt = check_finite("dt", dt)
-    if dt <= 0.0:
-        raise ValueError(f"dt (sampling period, s) must be positive, got {dt}")
-    return dt
+    """Sampling period (s): a finite number > 0."""
+    return require_number("dt (sampling period, s)", dt, low=0.0, low_open=True)
 
 
 def check_frequency(name: str, frequency: float, dt: float) -> float:
+    """A frequency (Hz) from 0 up to the Nyquist frequency 1 / (2 dt) of the checked ``dt``."""
     frequency = check_finite(name, frequency, minimum=0.0)
     nyquist = 0.5 / dt
     if frequency > nyquist:
@@ -64,6 +55,7 @@ def check_frequency(name: str, frequency: float, dt: float) -> float:
 
 
 def check_rng(rng: np.random.Generator) -> np.random.Generator:
+    """The only source of randomness: a :class:`numpy.random.Generator` (TypeError otherwise)."""
     if not isinstance(rng, np.random.Generator):
         raise TypeError(
             f"rng must be a numpy.random.Generator (e.g. numpy.random.default_rng(seed)), "
@@ -72,5 +64,23 @@ def check_rng(rng: np.random.Generator) -> np.random.Generator:
     return rng
 
 
+def check_sampled(n: int, dt: float, amplitude: float) -> tuple[int, float, float]:
+    """(n, dt, amplitude) of a sampled signal: samples >= 1, period (s) > 0, peak >= 0."""
+    return check_n(n), check_dt(dt), check_finite("amplitude", amplitude, minimum=0.0)
+
+
+def check_held(
+    n: int, amplitude: float, name: str, period: int, rng: np.random.Generator
+) -> tuple[int, float, int, np.random.Generator]:
+    """(n, amplitude, period, rng) of a random signal held for ``period`` samples (``name``)."""
+    return (
+        check_n(n),
+        check_finite("amplitude", amplitude, minimum=0.0),
+        check_positive_int(name, period),
+        check_rng(rng),
+    )
+
+
 def sample_times(n: int, dt: float) -> np.ndarray:
+    """Times k dt (s) of the samples k = 0 .. n - 1."""
     return np.arange(n, dtype=np.float64) * dt

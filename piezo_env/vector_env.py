@@ -170,29 +170,19 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        if seed is None:
-            seeds: list[int | None] = [None] * self.num_envs
-        elif isinstance(seed, (int, np.integer)):
-            seeds = [int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise ValueError(
-                    f"seed list must have num_envs = {self.num_envs} entries, got {len(seeds)}"
-                )
+        seeds = self._seeds(seed)
         options = dict(options or {})
-        check_reset_options(options, self._u_max)
+        initial = check_reset_options(options, self._u_max)  # before anything changes
         if seed is not None:
             self._rngs = [seeding.np_random(s)[0] for s in seeds]
         self._prev_done[:] = False
         self._reset_rows(self._rows, options)
-        zeros = np.zeros(self.num_envs)
         deflection = self._y.copy()
         reference = self._reference_now()
         measured = deflection + self._take_noise()
-        voltage = np.full(self.num_envs, float(options.get("initial_voltage", 0.0)))
+        voltage = np.full(self.num_envs, initial)
         _, u_eff = (self._row_hyst or self.model.hysteresis).step(self._hyst, voltage)
-        info = self._info(deflection, reference, voltage, u_eff, zeros.astype(bool))
+        info = self._info(deflection, reference, voltage, u_eff, np.zeros(self.num_envs, bool))
         if self._randomization is not None:
             self._add_plant_info(info, self._all_true)
         return self._observe(measured), info
@@ -232,6 +222,19 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         return self._observe(measured), reward, terminated, truncated, info
 
     # -- helpers -------------------------------------------------------------------------------
+
+    def _seeds(self, seed: int | list[int | None] | None) -> list[int | None]:
+        """Each env's seed: ``seed + i`` for an int (as SyncVectorEnv), or one per env."""
+        if seed is None:
+            return [None] * self.num_envs
+        if isinstance(seed, (int, np.integer)):
+            return [int(seed) + i for i in range(self.num_envs)]
+        seeds = list(seed)
+        if len(seeds) != self.num_envs:
+            raise ValueError(
+                f"seed list must have num_envs = {self.num_envs} entries, got {len(seeds)}"
+            )
+        return seeds
 
     def _drive_voltages(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Validated, clipped voltages (V) and which were clipped (the amplifier saturates)."""

@@ -7,7 +7,14 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
-from piezo_env.signal_checks import check_dt, check_finite, check_frequency, check_n, sample_times
+from piezo_env.checks import require_int
+from piezo_env.signal_checks import (
+    check_finite,
+    check_frequency,
+    check_n,
+    check_sampled,
+    sample_times,
+)
 
 __all__ = ["chirp", "sine", "square", "step", "sums_of_sines", "triangle", "triangle_wave"]
 
@@ -51,11 +58,11 @@ def _periodic(
     n: int, dt: float, amplitude: float, frequency: float, phase: float
 ) -> tuple[int, float, float, float, float]:
     """The checked arguments of a periodic wave (see :func:`sine` for their units)."""
-    dt = check_dt(dt)
+    n, dt, amplitude = check_sampled(n, dt, amplitude)
     return (
-        check_n(n),
+        n,
         dt,
-        check_finite("amplitude", amplitude, minimum=0.0),
+        amplitude,
         check_frequency("frequency", frequency, dt),
         check_finite("phase", phase),
     )
@@ -120,9 +127,7 @@ def square(n: int, *, dt: float, amplitude: float, frequency: float) -> np.ndarr
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    dt = check_dt(dt)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
+    n, dt, amplitude = check_sampled(n, dt, amplitude)
     frequency = check_frequency("frequency", frequency, dt)
     return amplitude * scipy.signal.square(2.0 * np.pi * frequency * sample_times(n, dt))
 
@@ -146,10 +151,11 @@ def step(n: int, *, amplitude: float, start: int = 0) -> np.ndarray:
     """
     n = check_n(n)
     amplitude = check_finite("amplitude", amplitude)
-    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or not 0 <= start <= n:
-        raise ValueError(f"start must be an integer sample index in [0, n={n}], got {start!r}")
+    start = require_int("start (sample index)", start, minimum=0)
+    if start > n:
+        raise ValueError(f"start must be a sample index in [0, n={n}], got {start}")
     x = np.zeros(n, dtype=np.float64)
-    x[int(start) :] = amplitude
+    x[start:] = amplitude
     return x
 
 
@@ -177,9 +183,7 @@ def chirp(
     numpy.ndarray
         float64 array of length ``n``.
     """
-    n = check_n(n)
-    dt = check_dt(dt)
-    amplitude = check_finite("amplitude", amplitude, minimum=0.0)
+    n, dt, amplitude = check_sampled(n, dt, amplitude)
     f0 = check_frequency("f0", f0, dt)
     f1 = check_frequency("f1", f1, dt)
     t = sample_times(n, dt)

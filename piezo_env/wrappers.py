@@ -44,7 +44,7 @@ from gymnasium import spaces
 from gymnasium.vector import VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-from piezo_env.checks import require_int
+from piezo_env.checks import require_int, require_number
 
 __all__ = [
     "ObservationConfig",
@@ -87,9 +87,7 @@ class ObservationConfig:
 
     def __post_init__(self) -> None:
         for name in ("stroke_um", "u_max", "bound_um"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+            require_number(name, getattr(self, name), low=0.0, low_open=True)
         for name in ("preview", "n_inputs", "n_errors"):
             require_int(name, getattr(self, name), minimum=0)
 

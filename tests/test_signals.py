@@ -97,7 +97,7 @@ def test_make_signal_names_valid_signals_and_parameters():
 @pytest.mark.parametrize(
     ("call", "match"),
     [
-        (lambda: signals.sine(0, dt=DT, amplitude=1.0, frequency=1.0), "n must be"),
+        (lambda: signals.sine(0, dt=DT, amplitude=1.0, frequency=1.0), r"n \(samples\) must be"),
         (lambda: signals.sine(10, dt=-1.0, amplitude=1.0, frequency=1.0), "dt"),
         (lambda: signals.sine(10, dt=DT, amplitude=np.nan, frequency=1.0), "amplitude"),
         (lambda: signals.sine(10, dt=DT, amplitude=1.0, frequency=600.0), "Nyquist"),

@@ -185,26 +185,3 @@ def test_bad_actions_and_envs_raise():
         TrackingObservation(gym.make(ENV_ID, reference=None))
     with pytest.raises(ValueError, match="n_inputs"):
         TrackingObservation(gym.make(ENV_ID), n_inputs=-1)
-
-
-def test_a_wrapper_made_after_a_randomised_reset_scales_by_the_task():
-    """The drawn plant's stroke changes every reset (e.g. 1054.78 um); the scale must not."""
-    env = gym.make(ENV_ID, preview=4, randomize=True)
-    env.reset(seed=5)
-    assert env.unwrapped.model.stroke_um != 1000.0  # this episode's plant is another one
-    assert TrackingObservation(env).config.stroke_um == 1000.0
-    vec = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode="vector_entry_point",
-                       preview=4, randomize=True)
-    vec.reset(seed=5)
-    assert TrackingObservationVector(vec).config.stroke_um == 1000.0
-    assert TrackingObservationVector(vec).config.u_max == 30.0
-
-
-def test_a_controller_refuses_a_wrapper_that_changes_the_spaces():
-    from controllers import ControlTask
-
-    plain = gym.make(ENV_ID, preview=10)
-    task = ControlTask.from_env(plain)
-    assert (task.u_max, task.preview, task.stroke_um) == (30.0, 10, 1000.0)
-    with pytest.raises(ValueError, match="changes the env's observation or action space"):
-        ControlTask.from_env(TrackingObservation(plain))
