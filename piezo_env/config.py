@@ -85,8 +85,9 @@ class TaskConfig:
         the plant at every reset with the default :class:`~piezo_env.randomization.
         DomainRandomization` (free deflection, blocking force and resonance +-20 %, damping
         ratio 0.01-0.04, hysteresis strength +-30 %); a DomainRandomization sets the spread.
-        Stored as a DomainRandomization or None. The draw order and the proof of the
-        observation bound over the whole range are in :mod:`piezo_env.randomization`.
+        Stored as a DomainRandomization or None. The draw order is in
+        :mod:`piezo_env.randomization`, the proof of the observation bound over the whole
+        range in :mod:`piezo_env.randomized_bound`.
     """
 
     bender: str | BenderDatasheet = "PL140"

@@ -98,9 +98,9 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     and rebuilds the model (about 1-5 ms per reset). ``env.unwrapped.model`` is then the plant
     of the current episode; the nominal one is ``env.unwrapped.task.model``. References and
     the reward keep the nominal stroke, and the observation bound covers every plant the
-    spread can draw (proven, see that module). ``info["plant"]`` at reset reports the draw:
-    ``free_deflection_um``, ``blocking_force_N``, ``stiffness_N_per_m``, ``resonance_Hz``,
-    ``damping_ratio``, ``hysteresis_scale``.
+    spread can draw (proven in :mod:`piezo_env.randomized_bound`). ``info["plant"]`` at reset
+    reports the draw: ``free_deflection_um``, ``blocking_force_N``, ``stiffness_N_per_m``,
+    ``resonance_Hz``, ``damping_ratio``, ``hysteresis_scale``.
 
     ## Reset options
     ``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this

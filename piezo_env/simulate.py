@@ -14,6 +14,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from piezo_env.checks import require_number
 from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 
 __all__ = ["OpenLoopRecord", "plot_record", "run_open_loop", "write_csv"]
@@ -71,8 +72,7 @@ def run_open_loop(
     """
     if signal not in SIGNAL_DEFAULTS:
         raise ValueError(f"unknown signal {signal!r}; choose one of {sorted(SIGNAL_DEFAULTS)}")
-    if not duration > 0:
-        raise ValueError(f"duration must be > 0 s, got {duration!r}")
+    require_number("duration (s)", duration, low=0.0, low_open=True)
     env_kwargs.setdefault("reference", None)
     env = gym.make("piezo_env:PiezoBender-v0", max_episode_steps=-1, **env_kwargs)
     dt = env.unwrapped.model.dt
