@@ -149,6 +149,7 @@ def solve_increasing(
     solution = newton.solve(u, (a, za, b, zb), max_iter)
     return solution if solution is not None else _all_roots(evaluate, target, grid, zg, u_ref)
 
+
 def _initial_point(
     grid: list[float], zg: list[float], j: int, a: float, za: float, b: float, zb: float, t: float
 ) -> float:
@@ -192,6 +193,7 @@ def _all_roots(
     u = min(roots, key=lambda root: abs(root - u_ref))
     status = "non-monotone" if len(roots) > 1 or (np.diff(zg) <= 0).any() else "ok"
     return _Solution(u, fun(u) + target, status)
+
 
 class _Newton:
     """Safeguarded Newton in a bracket [a, b] of an increasing map (see :func:`solve_increasing`).
