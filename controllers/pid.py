@@ -18,9 +18,10 @@ signals), solved in closed form per (kp, kd) so that the gains do not depend on 
 **Notch**: the model's lightly damped resonance is the complex pole pair of ``model.a`` with the
 smallest damping ratio. On a bender whose first resonance lies above the Nyquist frequency (the
 PL112's 1800 Hz and the PL122's 600 Hz at 1 kHz sampling) that is the aliased mode the samples
-see (about 200 and 400 Hz), and the notch sits there: it is the peak the sampled loop has. The notch puts its zeros on those poles and its poles at the same
-natural frequency with damping ``notch_damping`` (pole-zero placement, unit DC gain), so the
-loop sees a well damped mode instead of a 26 dB peak, and the PID is re-tuned on ``N P``.
+see (about 200 and 400 Hz), and the notch sits there: it is the peak the sampled loop has. The
+notch puts its zeros on those poles and its poles at the same natural frequency with damping
+``notch_damping`` (pole-zero placement, unit DC gain), so the loop sees a well damped mode
+instead of a 26 dB peak, and the PID is re-tuned on ``N P``.
 
 **Feedforward** (``feedforward=True``): stable inversion of the linear model on the reference
 preview. A feedforward copy of the model ``x_f`` is driven by::
