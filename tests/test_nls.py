@@ -16,7 +16,7 @@ from identification.features import (
     play_operators,
 )
 from identification.metrics import fit_percent
-from identification.nls import NLS, NLSInverseWarning, fit_nls
+from identification.nls import NLS, NLSInverseWarning, TrainingSettings, fit_nls
 
 torch = pytest.importorskip("torch")
 casadi = pytest.importorskip("casadi")
@@ -277,6 +277,27 @@ def test_same_seed_same_model_bitwise(name):
     assert any(not np.array_equal(v, c.arrays()[k]) for k, v in a.arrays().items())
 
 
+def test_settings_object_and_keywords_train_the_same_model():
+    u = rich_input(1500, seed=2)
+    z = pi_hysteresis(u)
+    kwargs = {"features": "bouc-wen", "hidden": (8, 8), "max_epochs": 3, "seed": 5}
+    by_keywords = fit_nls(u, z, **kwargs)
+    by_settings = fit_nls(u, z, settings=TrainingSettings(**kwargs))
+    for key, value in by_keywords.arrays().items():
+        np.testing.assert_array_equal(value, by_settings.arrays()[key])
+    assert _record_without_time(by_keywords) == _record_without_time(by_settings)
+    with pytest.raises(ValueError, match="either settings or keyword overrides"):
+        fit_nls(u, z, settings=TrainingSettings(), max_epochs=3)
+    with pytest.raises(TypeError, match="no_such_setting"):
+        fit_nls(u, z, no_such_setting=1)
+
+
+def test_settings_resolve_the_ridge_default_per_feature_set():
+    assert TrainingSettings(features="past-inputs").skip_ridge == 1.0
+    assert TrainingSettings(features="play").skip_ridge == 1e-3
+    assert TrainingSettings(features="play", skip_ridge=0.5).skip_ridge == 0.5
+
+
 def test_early_stopping_keeps_the_best_validating_weights():
     u = rich_input(2000, seed=2)
     z = pi_hysteresis(u)
@@ -360,6 +381,11 @@ def test_z_weights_validation_and_effect():
         ({"validation_fraction": 0.95}, "validation_fraction"),
         ({"max_epochs": -1}, "max_epochs"),
         ({"learning_rate": 0.0}, "learning_rate"),
+        ({"batch_size": True}, "batch_size"),
+        ({"patience": 2.0}, "patience"),
+        ({"weight_decay": float("nan")}, "weight_decay"),
+        ({"skip_ridge": -1.0}, "skip_ridge"),
+        ({"u_range": (1.0, -1.0)}, "u_range"),
     ],
 )
 def test_fit_rejects_bad_configuration(kwargs, match):

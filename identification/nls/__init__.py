@@ -11,8 +11,11 @@ Three feature sets are defined in :mod:`identification.features`: ``"play"``
 ``"bouc-wen"`` (normalized Bouc-Wen operators).
 
 The package is split by job: :mod:`~identification.nls.network` (the numpy network and the
-:class:`NLS` class), :mod:`~identification.nls.training` (:func:`fit_nls`, the only part that
-imports torch, lazily), :mod:`~identification.nls.inverse` (voltage for a target z),
+:class:`NLS` class), :mod:`~identification.nls.training` (:func:`fit_nls`, with its settings in
+:mod:`~identification.nls.training_settings`, its data in :mod:`~identification.nls.training_data`
+and its torch optimisation in :mod:`~identification.nls.optimisation`, the only part that imports
+torch, lazily), :mod:`~identification.nls.torch_module` (the network as a torch module, for
+training and export), :mod:`~identification.nls.inverse` (voltage for a target z),
 :mod:`~identification.nls.export` (numpy, casadi and torch evaluators) and
 :mod:`~identification.nls.files` (plain dict and arrays for the model files). Importing this
 package, loading a model and evaluating it do not import torch.
@@ -22,6 +25,7 @@ from identification.nls.files import NLS_FORMAT, NLS_FORMAT_VERSION
 from identification.nls.inverse import NLSInverse, NLSInverseWarning
 from identification.nls.network import NLS, NumpyMLP
 from identification.nls.training import fit_nls
+from identification.nls.training_settings import TrainingSettings
 
 __all__ = [
     "NLS",
@@ -30,5 +34,6 @@ __all__ = [
     "NLSInverse",
     "NLSInverseWarning",
     "NumpyMLP",
+    "TrainingSettings",
     "fit_nls",
 ]

@@ -1,5 +1,8 @@
-"""Steps e-g of :func:`identification.nls.fit_nls`: the torch network at its affine start, Adam
-on mini-batches with early stopping on the validation block, optional full-batch L-BFGS."""
+"""The torch part of :func:`identification.nls.fit_nls`: the network at its affine start, Adam
+on mini-batches with early stopping on the validation block, optional full-batch L-BFGS.
+
+:func:`train_network` runs them in that order and returns the plain parameter arrays.
+"""
 
 from __future__ import annotations
 
@@ -15,8 +18,16 @@ from identification.nls.torch_module import TorchNLS, load_torch
 from identification.nls.training_data import Normalised
 from identification.nls.training_settings import TrainingSettings
 
-__all__ = ["AdamResult", "Objective", "initial_network", "refine_lbfgs", "torch_threads",
-           "train_adam"]
+__all__ = [
+    "AdamResult",
+    "Objective",
+    "TrainedNetwork",
+    "initial_network",
+    "refine_lbfgs",
+    "torch_threads",
+    "train_adam",
+    "train_network",
+]
 
 
 @contextmanager
@@ -60,24 +71,25 @@ def initial_network(
 class Objective:
     """Weighted mean squared error of ``net`` in normalized units, on the two blocks.
 
-    ``train`` and ``validation`` hold the ``(x, t, w)`` tensors of the training and validation
-    blocks (views of the numpy arrays). The validation loss is the training loss when there is
-    no validation block. The L2 penalty covers the MLP weights only, never the affine skip.
+    ``train`` and ``validation`` hold the ``(x, t, w)`` tensors of the training block (the
+    first ``n_train`` samples) and of the validation block (the rest), views of the numpy arrays.
+    The validation loss is the training loss when there is no validation block. The L2 penalty
+    (``weight_decay``) covers the MLP weights only, never the affine skip.
     """
 
     def __init__(
-        self, net: Any, data: Normalised, weights: np.ndarray, settings: TrainingSettings
+        self, net: Any, data: Normalised, weights: np.ndarray, n_train: int, weight_decay: float
     ) -> None:
         torch = load_torch()
         x = torch.from_numpy(data.x)
         t = torch.from_numpy(data.t)
         w = torch.from_numpy(weights)
-        n_train = settings.n_train
         self.net = net
+        self.n_train = n_train
         self.train = (x[:n_train], t[:n_train], w[:n_train])
         self.validation = (x[n_train:], t[n_train:], w[n_train:])
-        self.has_validation = settings.n_validation > 0
-        self.weight_decay = settings.weight_decay
+        self.has_validation = n_train < len(data.t)
+        self.weight_decay = weight_decay
         self.mlp_params = [p for m in (*net.layers, net.out) for p in m.parameters()]
 
     def data_loss(self, xb: Any, tb: Any, wb: Any) -> Any:
@@ -107,7 +119,7 @@ class Objective:
 
 @dataclass(frozen=True, eq=False)
 class AdamResult:
-    """Outcome of :func:`_train_adam`; losses in normalized units.
+    """Outcome of :func:`train_adam`; losses in normalized units.
 
     Attributes
     ----------
@@ -148,13 +160,13 @@ def train_adam(
     epochs_run = 0
     for epoch in range(1, settings.max_epochs + 1):
         epochs_run = epoch
-        order = torch.randperm(settings.n_train, generator=generator)
+        order = torch.randperm(objective.n_train, generator=generator)
         adam_epoch(optimizer, objective, order, settings.batch_size)
         current = objective.validation_loss()
         if current < best_loss:
             best_loss, best_epoch = current, epoch
             best_state = state_copy(net)
-        elif settings.n_validation > 0 and epoch - best_epoch >= settings.patience:
+        elif objective.has_validation and epoch - best_epoch >= settings.patience:
             break
     net.load_state_dict(best_state)
     return AdamResult(initial_loss, best_loss, best_epoch, epochs_run, best_state)
@@ -210,3 +222,51 @@ def refine_lbfgs(
         return current, True
     net.load_state_dict(adam.best_state)
     return adam.best_loss, False
+
+
+@dataclass(frozen=True, eq=False)
+class TrainedNetwork:
+    """Outcome of :func:`train_network`; losses in normalized units.
+
+    Attributes
+    ----------
+    params : dict of numpy.ndarray
+        The kept network as plain float64 arrays (:meth:`TorchNLS.to_params`).
+    adam : AdamResult
+        The Adam phase.
+    validation_loss : float
+        Validation loss of the kept network.
+    lbfgs_improved : bool
+        Whether L-BFGS ran and was kept.
+    train_loss : float
+        Training-block loss of the kept network.
+    """
+
+    params: dict[str, np.ndarray]
+    adam: AdamResult
+    validation_loss: float
+    lbfgs_improved: bool
+    train_loss: float
+
+
+def train_network(
+    data: Normalised,
+    weights: np.ndarray,
+    coef: np.ndarray,
+    settings: TrainingSettings,
+    n_train: int,
+) -> TrainedNetwork:
+    """Train the network from the affine start ``coef`` on the first ``n_train`` samples.
+
+    Runs with ``settings.num_threads`` torch threads; one generator seeded with
+    ``settings.seed`` draws the hidden-layer initialisation first, then the batch orders.
+    """
+    torch = load_torch()
+    with torch_threads(settings.num_threads):
+        generator = torch.Generator().manual_seed(int(settings.seed))
+        net = initial_network(data.x.shape[1], settings.hidden, data, coef, generator)
+        objective = Objective(net, data, weights, n_train, settings.weight_decay)
+        adam = train_adam(net, objective, settings, generator)
+        validation_loss, improved = refine_lbfgs(net, objective, settings, adam)
+        params = TorchNLS.to_params(net)
+        return TrainedNetwork(params, adam, validation_loss, improved, objective.training_loss())

@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
 
 from identification.features import (
     BoucWenFeatures,
@@ -16,31 +15,25 @@ from identification.features import (
     default_bouc_wen_levels,
     default_play_radii,
 )
+from identification.nls.training_settings import TrainingSettings
 
 __all__ = ["Normalised", "feature_map_for", "normalisation", "ridge_skip"]
 
 
-def feature_map_for(
-    features: str,
-    u_range: tuple[float, float],
-    *,
-    n_play: int,
-    radii: ArrayLike | None,
-    n_past: int,
-    n_bouc_wen: int,
-    levels: ArrayLike | None,
-    initial_input: float,
-) -> FeatureMap:
-    """The memory feature map named by ``features`` (parameters as in :func:`fit_nls`)."""
-    if features == "play":
-        r = default_play_radii(u_range, n_play) if radii is None else np.asarray(radii, float)
-        return PlayFeatures(radii=tuple(np.sort(r)), initial_input=initial_input)
-    if features == "bouc-wen":
-        lv = default_bouc_wen_levels(u_range, n_bouc_wen) if levels is None else levels
-        return BoucWenFeatures(
-            levels=tuple(np.sort(np.asarray(lv, float))), initial_input=initial_input
-        )
-    return PastInputFeatures(n_past=n_past, initial_input=initial_input)
+def feature_map_for(settings: TrainingSettings, u_range: tuple[float, float]) -> FeatureMap:
+    """The memory feature map of ``settings`` over the input range ``u_range`` (V)."""
+    rest = settings.initial_input
+    if settings.features == "play":
+        radii = settings.radii
+        if radii is None:
+            radii = default_play_radii(u_range, settings.n_play)
+        return PlayFeatures(radii=tuple(np.sort(np.asarray(radii, float))), initial_input=rest)
+    if settings.features == "bouc-wen":
+        levels = settings.levels
+        if levels is None:
+            levels = default_bouc_wen_levels(u_range, settings.n_bouc_wen)
+        return BoucWenFeatures(levels=tuple(np.sort(np.asarray(levels, float))), initial_input=rest)
+    return PastInputFeatures(n_past=settings.n_past, initial_input=rest)
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,4 +1,4 @@
-"""Step a of :func:`identification.nls.fit_nls`: the training settings and data, checked."""
+"""The settings of :func:`identification.nls.fit_nls`, and its data, checked."""
 
 from __future__ import annotations
 
@@ -8,34 +8,47 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from identification.features import (
-    FEATURE_SETS,
-    _as_range,
-    _as_scalar,
-    _as_signal,
-)
+from identification.features import FEATURE_SETS, _as_range, _as_signal
+from piezo_env.checks import require_int, require_number
 
 __all__ = [
     "TrainingSettings",
     "check_signals",
-    "check_training_args",
     "input_range",
     "loss_weights",
-    "positive_int",
     "split_record",
 ]
 
 
 @dataclass(frozen=True)
 class TrainingSettings:
-    """Validated training settings of one :func:`fit_nls` run (units as in its parameters).
+    """Settings of one :func:`~identification.nls.fit_nls` run, validated at construction.
 
     Attributes
     ----------
-    features : str
+    features : {"play", "past-inputs", "bouc-wen"}
         Memory feature set, one of :data:`~identification.features.FEATURE_SETS`.
+    n_play : int
+        Number of play operators (``features="play"``), radii by
+        :func:`~identification.features.default_play_radii`.
+    radii : sequence of float, optional
+        Explicit play radii, V (overrides ``n_play``).
+    n_past : int
+        Number of past inputs (``features="past-inputs"``).
+    n_bouc_wen : int
+        Number of Bouc-Wen operators (``features="bouc-wen"``), levels by
+        :func:`~identification.features.default_bouc_wen_levels`.
+    levels : sequence of float, optional
+        Explicit Bouc-Wen saturation levels, V (overrides ``n_bouc_wen``).
     hidden : tuple of int
-        Hidden-layer widths, at least one.
+        Hidden-layer widths, at least one (three tanh layers in the paper).
+    u_range : (float, float), optional
+        Input range, V, for the play radii and as the inverse's default search range.
+        Default: ``(min(u), max(u))`` of the training record.
+    initial_input : float
+        Rest input, V: the memory state before ``u[0]``.
+    seed : int
+        Seed of the torch generator (initialization and batch order).
     max_epochs : int
         Maximum number of Adam epochs (>= 0).
     batch_size : int
@@ -43,39 +56,77 @@ class TrainingSettings:
     learning_rate : float
         Adam learning rate (> 0).
     weight_decay : float
-        L2 penalty on the MLP weights (>= 0).
+        L2 penalty on the MLP weights (not on the affine skip), added to the loss (>= 0).
+    validation_fraction : float
+        Fraction of samples held out at the end, in [0, 0.9]; 0 trains ``max_epochs`` epochs
+        without early stopping.
     patience : int
         Epochs without validation improvement before stopping.
     lbfgs_iterations : int
         Full-batch L-BFGS iterations after Adam (0: none).
-    skip_ridge : float
-        Ridge penalty of the memory features in the initial affine skip (default resolved).
+    skip_ridge : float, optional
+        Ridge penalty (relative, on normalized features) of the memory features' weights in the
+        initial affine skip; the weight of ``u`` itself is not penalized, so the identity stays
+        exact. It keeps nearly collinear features (past inputs of a slow signal) from getting
+        large cancelling weights that extrapolate wildly on faster inputs. Default (None,
+        resolved at construction): 1e-3 for play and Bouc-Wen features (rate-independent, safe
+        to extrapolate in rate), 1.0 for past inputs (their spread grows with the input's rate,
+        so they get a strong prior towards ``u``).
     num_threads : int
-        Torch threads during training.
-    n_train : int
-        Samples in the training block, the first ``n_train`` of the record.
-    n_validation : int
-        Samples in the validation block, the last ``n_validation`` (0: no early stopping).
+        Torch threads used during training (the previous setting is restored after).
     """
 
-    features: str
-    hidden: tuple[int, ...]
-    max_epochs: int
-    batch_size: int
-    learning_rate: float
-    weight_decay: float
-    patience: int
-    lbfgs_iterations: int
-    skip_ridge: float
-    num_threads: int
-    n_train: int
-    n_validation: int
+    features: str = "play"
+    n_play: int = 10
+    radii: Sequence[float] | None = None
+    n_past: int = 5
+    n_bouc_wen: int = 8
+    levels: Sequence[float] | None = None
+    hidden: Sequence[int] = (32, 32, 32)
+    u_range: Sequence[float] | None = None
+    initial_input: float = 0.0
+    seed: int = 0
+    max_epochs: int = 200
+    batch_size: int = 1024
+    learning_rate: float = 1e-2
+    weight_decay: float = 0.0
+    validation_fraction: float = 0.2
+    patience: int = 25
+    lbfgs_iterations: int = 0
+    skip_ridge: float | None = None
+    num_threads: int = 1
 
+    def __post_init__(self) -> None:
+        if self.features not in FEATURE_SETS:
+            raise ValueError(f"features must be one of {FEATURE_SETS}; got {self.features!r}")
+        hidden = tuple(require_int("hidden width", h) for h in self.hidden)
+        if not hidden:
+            raise ValueError("hidden must list at least one layer width")
+        object.__setattr__(self, "hidden", hidden)
+        for name, minimum in (
+            ("max_epochs", 0),
+            ("batch_size", 1),
+            ("patience", 1),
+            ("lbfgs_iterations", 0),
+            ("num_threads", 1),
+        ):
+            object.__setattr__(self, name, require_int(name, getattr(self, name), minimum=minimum))
+        self._check_numbers()
+        if self.u_range is not None:
+            object.__setattr__(self, "u_range", _as_range("u_range", self.u_range))
 
-def positive_int(name: str, value: int, minimum: int = 1) -> int:
-    if isinstance(value, bool) or int(value) != value or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}")
-    return int(value)
+    def _check_numbers(self) -> None:
+        """Check the real-valued settings, resolving the default ``skip_ridge``."""
+        if self.skip_ridge is None:
+            object.__setattr__(self, "skip_ridge", 1.0 if self.features == "past-inputs" else 1e-3)
+        for name, low, high, low_open in (
+            ("learning_rate", 0.0, None, True),
+            ("weight_decay", 0.0, None, False),
+            ("skip_ridge", 0.0, None, False),
+            ("validation_fraction", 0.0, 0.9, False),
+        ):
+            value = require_number(name, getattr(self, name), low=low, high=high, low_open=low_open)
+            object.__setattr__(self, name, value)
 
 
 def check_signals(u: ArrayLike, z: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -87,69 +138,8 @@ def check_signals(u: ArrayLike, z: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     return u_arr, z_arr
 
 
-def check_training_args(
-    n_samples: int,
-    *,
-    features: str,
-    hidden: Sequence[int],
-    max_epochs: int,
-    batch_size: int,
-    learning_rate: float,
-    weight_decay: float,
-    validation_fraction: float,
-    patience: int,
-    lbfgs_iterations: int,
-    skip_ridge: float | None,
-    num_threads: int,
-) -> TrainingSettings:
-    """Validate the training settings of :func:`fit_nls` (same meanings) for ``n_samples``.
-
-    Raises
-    ------
-    ValueError
-        Naming the first invalid setting, in the order of :func:`fit_nls`'s parameters.
-    """
-    if features not in FEATURE_SETS:
-        raise ValueError(f"features must be one of {FEATURE_SETS}; got {features!r}")
-    hidden_t = tuple(positive_int("hidden width", h) for h in hidden)
-    if not hidden_t:
-        raise ValueError("hidden must list at least one layer width")
-    max_epochs = positive_int("max_epochs", max_epochs, 0)
-    batch_size = positive_int("batch_size", batch_size)
-    patience = positive_int("patience", patience)
-    lbfgs_iterations = positive_int("lbfgs_iterations", lbfgs_iterations, 0)
-    num_threads = positive_int("num_threads", num_threads)
-    learning_rate = _as_scalar("learning_rate", learning_rate)
-    weight_decay = _as_scalar("weight_decay", weight_decay)
-    if skip_ridge is None:
-        skip_ridge = 1.0 if features == "past-inputs" else 1e-3
-    skip_ridge = _as_scalar("skip_ridge", skip_ridge)
-    if skip_ridge < 0.0:
-        raise ValueError(f"skip_ridge must be >= 0; got {skip_ridge}")
-    if learning_rate <= 0.0 or weight_decay < 0.0:
-        raise ValueError("learning_rate must be > 0 and weight_decay >= 0")
-    n_train, n_validation = split_record(n_samples, validation_fraction)
-    return TrainingSettings(
-        features=features,
-        hidden=hidden_t,
-        max_epochs=max_epochs,
-        batch_size=batch_size,
-        learning_rate=learning_rate,
-        weight_decay=weight_decay,
-        patience=patience,
-        lbfgs_iterations=lbfgs_iterations,
-        skip_ridge=skip_ridge,
-        num_threads=num_threads,
-        n_train=n_train,
-        n_validation=n_validation,
-    )
-
-
 def split_record(n_samples: int, validation_fraction: float) -> tuple[int, int]:
     """Sizes ``(n_train, n_validation)`` of the contiguous training and validation blocks."""
-    validation_fraction = _as_scalar("validation_fraction", validation_fraction)
-    if not 0.0 <= validation_fraction <= 0.9:
-        raise ValueError(f"validation_fraction must be in [0, 0.9]; got {validation_fraction}")
     n_validation = round(validation_fraction * n_samples)
     n_train = n_samples - n_validation
     if n_train < 8 or (validation_fraction > 0.0 and n_validation < 2):
@@ -172,10 +162,10 @@ def loss_weights(z_weights: ArrayLike | None, u: np.ndarray, n_train: int) -> np
     return weights / weights[:n_train].mean()
 
 
-def input_range(u_range: Sequence[float] | None, u: np.ndarray) -> tuple[float, float]:
-    """The input range, V: ``u_range`` checked, or ``(min(u), max(u))`` if it is None."""
-    if u_range is None:
-        if np.ptp(u) == 0.0:
-            raise ValueError("u is constant; give u_range or an input that varies")
-        u_range = (float(u.min()), float(u.max()))
-    return _as_range("u_range", u_range)
+def input_range(u_range: tuple[float, float] | None, u: np.ndarray) -> tuple[float, float]:
+    """The input range, V: ``u_range`` (already checked), or ``(min(u), max(u))`` if None."""
+    if u_range is not None:
+        return u_range
+    if np.ptp(u) == 0.0:
+        raise ValueError("u is constant; give u_range or an input that varies")
+    return float(u.min()), float(u.max())
