@@ -111,17 +111,20 @@ class Controller:
         return action
 
     def describe(self) -> dict[str, Any]:
-        """JSON-safe settings and derived facts (gains, margins, horizon) for reports."""
+        """JSON-safe settings and derived facts (gains, margins, horizon) for reports; under
+        ``"native"``, what runs each generated function (:meth:`native_code`)."""
         return {"name": self.name, "native": self.native_code()}
 
     def native_code(self) -> dict[str, dict[str, Any]]:
-        """Function name -> what its native build did (compiled or which fallback, and why).
+        """Generated function name -> the record of its native build (JSON-safe).
 
-        Collected from the prediction model's nonlinearity and the NMPC horizon, whichever
-        this controller has; empty for a controller without generated code.
+        Collected from the prediction model (``self.model``: the NLS inverse) and the NMPC
+        horizon (``self.horizon``), whichever this controller holds; each record says whether
+        generated C or a fallback (numpy, casadi's virtual machine) runs, and why (see
+        :class:`controllers.native.codegen.NativeBuild`). Empty for a controller without
+        generated code.
         """
-        owners = (getattr(getattr(self, "model", None), "nonlinearity", None),
-                  getattr(self, "horizon", None))
+        owners = (getattr(self, "model", None), getattr(self, "horizon", None))
         return {
             build.function: build.to_dict()
             for owner in owners

@@ -192,6 +192,12 @@ class PredictionModel:
         """Length of the linear state."""
         return int(self.a.shape[0])
 
+    @property
+    def native(self) -> list[Any]:
+        """The nonlinearity's native builds (:class:`controllers.native.codegen.NativeBuild`;
+        empty for the plant's own hysteresis, which runs in numpy)."""
+        return list(getattr(self.nonlinearity, "native", ()))
+
     def to_control(self) -> Any:
         """The linear part as a python-control state space with ``dt``."""
         import control

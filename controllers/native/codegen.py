@@ -5,45 +5,73 @@ with the machine's compiler (``$CC`` or ``cc``) into a shared library cached on 
 it as a :class:`CompiledFunction`: preallocated float64 buffers and one ctypes call per
 evaluation. Compilation takes a few seconds and happens once per function and machine.
 
-**Nothing falls back silently.** Every build returns a :class:`NativeBuild` record (compiled or
-not, the compiler, the library and its digest, and when it fell back, why, with the compiler's
-message); the controllers report them in ``describe()["native"]`` and the benchmark report
-shows them. ``PIEZO_NATIVE`` sets the policy: ``auto`` (the default: compile, and fall back to
-casadi's virtual machine or numpy, recorded, when compilation is impossible), ``off`` (never
-compile) or ``require`` (raise :class:`NativeCodeError` instead of falling back).
+**Nothing falls back silently.** Every build returns a :class:`NativeBuild` record: what was
+built, which path evaluates it (``compiled``, or the caller's fallback, ``numpy`` or
+``casadi-vm``), why, the compiler's identity and stderr, the cache key, the library loaded and
+its SHA-256. The objects that use native code keep theirs in a ``native`` list
+(:class:`controllers.native.compiled_inverse.CompiledInverse`, the NMPC horizons), and
+:meth:`controllers.base.Controller.native_code` collects them into ``describe()["native"]``,
+which the benchmark report shows. The environment variable ``PIEZO_NATIVE`` sets the policy:
 
-**Results are bitwise reproducible** for a given native path, compiler, flags and
-architecture: the generated C and numpy evaluate the same mathematics in a different order,
-so a run that compiled and one that fell back differ by rounding (the MPC's voltages by up to
-about 1e-5 V). The cache key holds the generated source, the flags, the compiler's identity,
-the architecture and the casadi version, so a library is never reused across them.
+- ``auto`` (the default): compile, and fall back (recorded) when compilation is impossible:
+  no compiler, a compiler error, an unusable cache folder (e.g. ``PIEZO_CACHE=/dev/null/x``);
+- ``off``: never compile (numpy or casadi's virtual machine, recorded as switched off);
+- ``require``: raise :class:`NativeCodeError`, with the compiler's message, instead of
+  falling back.
 
-**What is loaded is verified.** The cache (``$PIEZO_CACHE`` or ``~/.cache/piezo-testbed``)
-must be a folder owned by the current user, not a symlink, and writable by no one else (it is
-created with mode 0700; a folder that fails these checks is refused and the build falls back,
-recorded). Each library is written under a temporary name and renamed into place (concurrent
-builders never see half a file), with its SHA-256 in a file beside it; the digest is checked
-before every load and a library that does not match is rebuilt, never loaded. The digest
-catches corruption and stale or foreign files; the folder's permissions are what keep other
-users out (anyone who can write your cache can replace both files, as with any cache of
-executable code). Temporary folders left by crashed builds and libraries unused for
-:data:`STALE_DAYS` days are removed when the cache is opened.
+**When results are bitwise equal.** Runs are bitwise equal, for any number of jobs and any
+backend, when every process takes the same native path (all ``compiled`` or all fallen back)
+with the same compiler, flags and architecture; the benchmark report says which path each
+function took. The paths differ: the compiled NLS inverse is a Newton iteration that agrees
+with the numpy inverse to about 1e-7 V, not to the bit, and the closed loop carries that on.
+Measured on ``docs/identify/model`` with the PL140 (preview 20, seed 0, the first 500 steps of
+a 500 um 10 Hz sine, one BLAS thread, x86-64, gcc 12), compiled against ``PIEZO_NATIVE=off``:
+MPC 469 of 500 voltages differ, by up to 1.9e-5 V (median step 44 against 126 us); ``pid-ff``
+91, by up to 9.5e-7 V; NMPC none (its horizon's feature recursion in C and in casadi's virtual
+machine round alike without fused multiply-adds, see :data:`DEFAULT_FLAGS`; 220 against 740
+us). An unusable cache (``PIEZO_CACHE=/dev/null/x``) gives exactly the ``off`` results. The
+cache key (:func:`cache_key`) holds the generated source, the flags, the compiler's resolved
+path and ``--version``, the architecture and OS, the casadi version and the Python ABI, so a
+library is never reused across any of them.
+
+**What is loaded is verified.** The cache (a sub-folder of ``$PIEZO_CACHE`` or
+``~/.cache/piezo-testbed`` per kind of function) must be a plain folder owned by the current
+user and writable by no one else (it is created with mode 0700 and tightened to it; its parent
+must be this user's or root's and not writable by others unless sticky). A folder that fails
+these checks is refused and the build falls back, recorded. Builds and loads take the folder's
+lock (``flock``), so concurrent cold builders compile once and the others load that library. A
+library is compiled under a temporary name, its SHA-256 is written beside it, and both are
+renamed into place (atomic: no reader sees half a file, and a crash leaves a mismatch, never a
+library trusted under an old digest). Before every load the library must be this user's regular
+file matching its recorded digest; one that does not is rebuilt, never loaded.
+
+What the digest protects against: truncated or corrupted files (a crashed or interrupted
+write, disk errors, a copy from elsewhere under the same name), libraries left by older
+builds or versions. What it does not: someone who can
+write your cache folder can replace the library and its digest together (that is why the
+folder must be private), and someone with your user's rights can run code anyway. Staging
+folders left by crashed builds (after an hour), libraries without a digest, and libraries of
+other keys unused for :data:`STALE_DAYS` days are removed when a build takes the lock.
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import dataclasses
+import fcntl
 import functools
 import hashlib
 import os
 import platform
+import shlex
 import shutil
 import stat
 import subprocess
+import sys
 import tempfile
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,17 +79,23 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "CASADI_VM",
+    "COMPILED",
+    "NUMPY",
     "CompiledFunction",
     "NativeBuild",
     "NativeCodeError",
     "as_numpy",
     "cache_dir",
+    "cache_key",
     "compile_function",
     "native_policy",
 ]
 
-DEFAULT_FLAGS = ("-O1", "-shared", "-fPIC")
-"""Compiler flags of :func:`compile_function` unless the caller passes others."""
+DEFAULT_FLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off")
+"""Compiler flags of :func:`compile_function` unless the caller passes others. No fused
+multiply-adds: where the compiler would fuse them by default (e.g. aarch64), the generated C
+would round differently from casadi's virtual machine."""
 
 
 class CompiledFunction:
@@ -127,6 +161,10 @@ class NativeCodeError(RuntimeError):
     """Compilation was required (``PIEZO_NATIVE=require``) and failed."""
 
 
+COMPILED, NUMPY, CASADI_VM = "compiled", "numpy", "casadi-vm"
+"""Values of :attr:`NativeBuild.path`: what evaluates the function."""
+
+
 @dataclass(frozen=True)
 class NativeBuild:
     """What one native build did: the record a report shows.
@@ -134,40 +172,57 @@ class NativeBuild:
     Attributes
     ----------
     function : str
-        Name of the casadi Function.
-    compiled : bool
-        True: generated C is used; False: the caller's fallback (casadi VM or numpy) is.
+        Name of the casadi Function built.
+    path : str
+        What evaluates it: :data:`COMPILED` (the generated C), or the caller's fallback,
+        :data:`NUMPY` or :data:`CASADI_VM` (casadi's virtual machine).
     reason : str
-        The library used, or why there is none.
+        Whether the library was built now or found in the cache, or why there is none.
     compiler : str
-        The compiler's identity (its ``--version`` first line), or "" when none was found.
+        The compiler's resolved path and the first line of its ``--version`` ("" when none
+        was found).
+    flags : str
+        Compiler flags, space-separated.
+    key : str
+        Cache key: SHA-256 of the generated source, flags, compiler, architecture, casadi
+        version and Python ABI ("" when not reached).
     library : str
-        Path of the loaded library ("" when not compiled).
+        Path the library was loaded from ("" when not compiled).
     sha256 : str
-        Digest of the loaded library ("" when not compiled).
+        Digest of the loaded library, verified before loading ("" when not compiled).
     compiler_output : str
-        The compiler's stderr when it failed (trimmed), else "".
+        The compiler's stderr (its last 2000 characters) when it ran: the error when it
+        failed, warnings when it built; "" for a library found in the cache.
     """
 
     function: str
-    compiled: bool
+    path: str
     reason: str
     compiler: str = ""
+    flags: str = ""
+    key: str = ""
     library: str = ""
     sha256: str = ""
     compiler_output: str = ""
 
+    @property
+    def compiled(self) -> bool:
+        """Whether the generated C evaluates the function."""
+        return self.path == COMPILED
+
     def __str__(self) -> str:
-        return self.reason
+        return f"{self.path} ({self.reason})"
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-safe fields."""
-        return dataclasses.asdict(self)
+        """JSON-safe fields, and ``compiled``."""
+        return {**dataclasses.asdict(self), "compiled": self.compiled}
 
 
 NATIVE_POLICIES = ("auto", "off", "require")
 STALE_DAYS = 30
-"""Libraries not used for this many days are removed from the cache."""
+"""Libraries of other keys not used for this many days are removed from the cache."""
+_CRASH_AGE_S = 3600.0  # staging folders older than this belong to builds that died
+_OUTPUT_CHARS = 2000
 
 
 def native_policy() -> str:
@@ -187,89 +242,196 @@ def cache_dir(name: str = "nmpc") -> Path:
 
 
 def _private_folder(folder: Path) -> Path:
-    """Create ``folder`` (mode 0700) and check that it is this user's own, or raise OSError."""
+    """Create ``folder`` (mode 0700) and check that only this user can write it, or raise.
+
+    The folder must be a plain folder (not a symlink) owned by this user and writable by no
+    one else; one that others may only read is tightened to 0700. Its parent (the cache root)
+    must be owned by this user or root and writable by no one else unless sticky (like
+    /tmp), so that nobody can swap the folder for another.
+    """
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    for path in (folder, folder.parent):
+    uid = os.getuid()
+    for path, owners, sticky_ok in ((folder, {uid}, False), (folder.parent, {uid, 0}, True)):
         info = path.lstat()
         if stat.S_ISLNK(info.st_mode) or not stat.S_ISDIR(info.st_mode):
-            raise OSError(f"{path} is not a plain folder")
-        if info.st_uid != os.getuid():
-            raise OSError(f"{path} belongs to another user")
-        if info.st_mode & 0o022:
-            raise OSError(f"{path} is writable by other users (chmod go-w it, or set PIEZO_CACHE)")
+            raise OSError(f"{path} is not a plain folder (a symlink or a file)")
+        if info.st_uid not in owners:
+            raise OSError(f"{path} belongs to another user (uid {info.st_uid})")
+        sticky = sticky_ok and info.st_mode & stat.S_ISVTX
+        if info.st_mode & 0o022 and not sticky:
+            raise OSError(f"{path} is writable by other users (set PIEZO_CACHE elsewhere)")
+    if folder.lstat().st_mode & 0o077:
+        folder.chmod(0o700)
     return folder
 
 
+@contextlib.contextmanager
+def _locked(folder: Path) -> Iterator[None]:
+    """Hold the folder's build lock: one process at a time verifies, builds or cleans up."""
+    handle = os.open(folder / ".lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(handle)  # closing releases the lock
+
+
 def _remove_stale(folder: Path, keep: Path) -> None:
-    """Drop temporary folders of crashed builds and libraries unused for STALE_DAYS days."""
+    """Drop staging folders of crashed builds, libraries without a digest (never loadable)
+    and libraries of other keys unused for :data:`STALE_DAYS` days (call under the lock)."""
     now = time.time()
     for path in folder.iterdir():
         try:
-            age = now - path.lstat().st_atime
-            if path.is_dir() and path.name.startswith("tmp") and age > 3600:
-                shutil.rmtree(path, ignore_errors=True)
-            elif path.suffix in (".so", ".sha256") and path.stem != keep.stem:
-                if age > STALE_DAYS * 86400:
-                    path.unlink(missing_ok=True)
+            age = now - path.lstat().st_mtime
+            if path.name.startswith("tmp") and path.is_dir():
+                if age > _CRASH_AGE_S:
+                    shutil.rmtree(path, ignore_errors=True)
+            elif path.suffix == ".so" and path.stem != keep.stem:
+                if age > STALE_DAYS * 86400 or not path.with_suffix(".sha256").exists():
+                    path.unlink()
+                    path.with_suffix(".sha256").unlink(missing_ok=True)
+            elif path.suffix == ".sha256" and not path.with_suffix(".so").exists():
+                path.unlink()
         except OSError:
             continue
 
 
 @functools.lru_cache(maxsize=4)
-def compiler_identity(compiler: str) -> str:
-    """First line of ``compiler --version`` (part of the cache key and of the record)."""
+def compiler_identity(command: tuple[str, ...]) -> str:
+    """Resolved path and first line of ``--version`` of a compiler command (cache key, record)."""
+    resolved = " ".join((os.path.realpath(command[0]), *command[1:]))
     try:
         done = subprocess.run(
-            [compiler, "--version"], capture_output=True, text=True, timeout=30, check=False
+            [*command, "--version"], capture_output=True, text=True, timeout=30, check=False
         )
     except (OSError, subprocess.SubprocessError):
-        return compiler
+        return resolved
     lines = (done.stdout or done.stderr).strip().splitlines()
-    return f"{compiler}: {lines[0]}" if lines else compiler
+    return f"{resolved}: {lines[0]}" if lines else resolved
+
+
+def cache_key(source: bytes, flags: Sequence[str], compiler: str) -> str:
+    """SHA-256 (hex) naming a library: what else would change the bytes it holds.
+
+    Parameters
+    ----------
+    source : bytes
+        The generated C.
+    flags : sequence of str
+        Compiler flags.
+    compiler : str
+        :func:`compiler_identity` of the compiler.
+    """
+    import casadi
+
+    key = hashlib.sha256(source)
+    parts = (*flags, compiler, platform.machine(), sys.platform, casadi.__version__)
+    for part in (*parts, sys.implementation.cache_tag or ""):
+        key.update(b"\0" + part.encode())
+    return key.hexdigest()
 
 
 def _digest(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def _verified(library: Path) -> str | None:
-    """The library's digest when it matches the one recorded beside it, else None."""
-    recorded = library.with_suffix(".sha256")
+def _verified(library: Path) -> tuple[str | None, str]:
+    """(digest, "") when the library is this user's regular file and matches the digest
+    recorded beside it, else (None, what is wrong)."""
     try:
-        expected = recorded.read_text(encoding="ascii").strip()
-        actual = _digest(library)
+        info = library.lstat()
+    except FileNotFoundError:
+        return None, "not in the cache"
+    if not stat.S_ISREG(info.st_mode) or info.st_uid != os.getuid():
+        return None, "the cached library was not this user's regular file"
+    try:
+        expected = library.with_suffix(".sha256").read_text(encoding="ascii").strip()
     except OSError:
-        return None
-    return actual if actual == expected else None
+        return None, "the cached library had no digest"
+    actual = _digest(library)
+    if actual != expected:
+        return None, "the cached library did not match its digest"
+    return actual, ""
 
 
-def _build(compiler: str, flags: Sequence[str], source: Path, library: Path, tmp: Path) -> str:
-    """Compile ``source`` into ``library`` (atomically, digest beside it); the digest."""
-    staged = tmp / library.name
-    subprocess.run(
-        [compiler, *flags, "-o", str(staged), str(source), "-lm"],
+def _build(
+    command: Sequence[str], flags: Sequence[str], source: Path, library: Path
+) -> tuple[str, str]:
+    """Compile ``source`` into ``library`` and its digest beside it, each written under a
+    temporary name and renamed into place; (digest, compiler's stderr)."""
+    staged = source.parent / library.name
+    done = subprocess.run(
+        [*command, *flags, "-o", str(staged), str(source), "-lm"],
         check=True,
         capture_output=True,
         text=True,
         timeout=300,
     )
     digest = _digest(staged)
-    digest_file = tmp / (library.stem + ".sha256")
+    digest_file = staged.with_suffix(".sha256")
     digest_file.write_text(digest + "\n", encoding="ascii")
-    os.replace(staged, library)  # atomic: concurrent builders never see half a file
+    os.chmod(staged, 0o700)
+    # Renames are atomic: a reader sees the old file or the new one, never half of one. The
+    # digest goes first so that a crash in between leaves a mismatch (rebuilt), never a
+    # library trusted under an old digest.
     os.replace(digest_file, library.with_suffix(".sha256"))
-    return digest
+    os.replace(staged, library)
+    return digest, done.stderr[-_OUTPUT_CHARS:]
 
 
-def _fallback(name: str, reason: str, compiler: str = "", output: str = "") -> NativeBuild:
+def _generate(function: Any, folder: Path) -> Path:
+    """Write the C of a casadi Function into ``folder``; the source file."""
+    import casadi
+
+    generator = casadi.CodeGenerator(f"{function.name()}.c", {"with_header": False})
+    generator.add(function)
+    generator.generate(f"{folder}/")
+    return folder / f"{function.name()}.c"
+
+
+def _load(
+    function: Any, command: Sequence[str], identity: str, flags: Sequence[str], folder: Path
+) -> tuple[CompiledFunction, NativeBuild]:
+    """Generate, then under the folder's lock find a verified library or build one, and
+    load it (raises OSError, subprocess and casadi errors for the caller to record)."""
+    name = function.name()
+    with tempfile.TemporaryDirectory(dir=folder) as staging:
+        source = _generate(function, Path(staging))
+        key = cache_key(source.read_bytes(), flags, identity)
+        library = folder / f"{name}_{key[:16]}.so"
+        with _locked(folder):
+            digest, problem = _verified(library)
+            output = ""
+            if digest is None:
+                digest, output = _build(command, flags, source, library)
+                reason = f"built {library.name} ({problem})"
+            else:
+                reason = f"cached {library.name}, digest verified"
+            loaded = CompiledFunction(library, function)
+            os.utime(library)  # last use, for the stale-build clean-up
+            _remove_stale(folder, keep=library)
+    build = NativeBuild(
+        name, COMPILED, reason, identity, " ".join(flags), key, str(library), digest, output
+    )
+    return loaded, build
+
+
+def _fallback(
+    name: str, path: str, reason: str, compiler: str = "", flags: str = "", output: str = ""
+) -> NativeBuild:
+    """The record of a build that fell back to ``path``; NativeCodeError under require."""
     if native_policy() == "require":
         detail = f": {output.strip()[-500:]}" if output.strip() else ""
         raise NativeCodeError(f"{name}: {reason} (PIEZO_NATIVE=require){detail}")
-    return NativeBuild(name, False, reason, compiler, compiler_output=output[-2000:])
+    return NativeBuild(name, path, reason, compiler, flags, compiler_output=output[-_OUTPUT_CHARS:])
 
 
 def compile_function(
-    function: Any, *, flags: Sequence[str] = DEFAULT_FLAGS, cache: str = "nmpc"
+    function: Any,
+    *,
+    flags: Sequence[str] = DEFAULT_FLAGS,
+    cache: str = "nmpc",
+    fallback: str = NUMPY,
 ) -> tuple[CompiledFunction | None, NativeBuild]:
     """Generate C for a casadi Function, compile it (cached, verified) and load it.
 
@@ -281,6 +443,9 @@ def compile_function(
         Compiler flags; they are part of the cache key.
     cache : str
         Sub-folder of the cache (see :func:`cache_dir`).
+    fallback : str
+        What the caller runs without native code (:data:`NUMPY` or :data:`CASADI_VM`), for
+        the record.
 
     Returns
     -------
@@ -294,37 +459,25 @@ def compile_function(
     NativeCodeError
         Under ``PIEZO_NATIVE=require``, instead of returning None.
     """
-    import casadi
-
-    name = function.name()
+    name, flag_text = function.name(), " ".join(flags)
     if native_policy() == "off":
-        return None, _fallback(name, "native code switched off (PIEZO_NATIVE=off)")
-    compiler = shutil.which(os.environ.get("CC", "cc"))
-    if compiler is None:
-        return None, _fallback(name, "no C compiler found (set CC)")
-    identity = compiler_identity(compiler)
+        return None, _fallback(name, fallback, "native code switched off (PIEZO_NATIVE=off)")
+    command = shlex.split(os.environ.get("CC") or "cc")
+    found = shutil.which(command[0]) if command else None
+    if found is None:
+        reason = f"no C compiler found (CC={os.environ.get('CC', 'cc')!r}; set CC)"
+        return None, _fallback(name, fallback, reason, flags=flag_text)
+    command[0] = found
+    identity = compiler_identity(tuple(command))
     try:
         folder = _private_folder(cache_dir(cache))
-        with tempfile.TemporaryDirectory(dir=folder) as tmp:
-            generator = casadi.CodeGenerator(f"{name}.c", {"with_header": False})
-            generator.add(function)
-            generator.generate(f"{tmp}/")
-            source = Path(tmp) / f"{name}.c"
-            key = hashlib.sha256(source.read_bytes())
-            for part in (*flags, identity, platform.machine(), casadi.__version__):
-                key.update(b"\0" + part.encode())
-            library = folder / f"{name}_{key.hexdigest()[:16]}.so"
-            digest = _verified(library) if library.exists() else None
-            if digest is None:  # missing, corrupt or foreign: build it afresh
-                digest = _build(compiler, flags, source, library, Path(tmp))
-            _remove_stale(folder, keep=library)
-        loaded = CompiledFunction(library, function)
+        return _load(function, command, identity, flags, folder)
     except subprocess.CalledProcessError as exc:
-        return None, _fallback(name, "compilation failed", identity, exc.stderr or "")
+        reason = f"the compiler failed (exit status {exc.returncode})"
+        return None, _fallback(name, fallback, reason, identity, flag_text, exc.stderr or "")
     except (OSError, subprocess.SubprocessError, RuntimeError, AttributeError) as exc:
-        return None, _fallback(name, f"compilation failed ({type(exc).__name__}: {exc})", identity)
-    build = NativeBuild(name, True, f"generated C, {library.name}", identity, str(library), digest)
-    return loaded, build
+        reason = f"compilation failed ({type(exc).__name__}: {exc})"
+        return None, _fallback(name, fallback, reason, identity, flag_text)
 
 
 def as_numpy(outputs: Any) -> list[np.ndarray]:

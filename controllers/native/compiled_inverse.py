@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import CompiledFunction, NativeBuild, compile_function
+from controllers.native.codegen import NUMPY, CompiledFunction, NativeBuild, compile_function
 from piezo_env.inverse import InverseResult
 
 __all__ = [
@@ -66,7 +66,7 @@ __all__ = [
 OK, OUT_OF_RANGE, FALLBACK = 0, 1, 2
 """Status codes of :func:`inverse_function` (FALLBACK: run the numpy inverse instead)."""
 STATUS_NAMES = ("ok", "out-of-range")
-_FLAGS = ("-O2", "-shared", "-fPIC")
+_FLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off")  # see codegen.DEFAULT_FLAGS
 # Iteration vector: bracket (a, z(a), b, z(b)), iterate u, previous step, result, flags.
 _A, _ZA, _B, _ZB, _U, _STEP, _U_OUT, _Z_OUT, _STATUS, _DONE, _PASSES = range(11)
 _N_X = 11
@@ -285,17 +285,21 @@ class CompiledInverse:
         self.fallbacks = 0
         self._function: CompiledFunction | None = None
         self._reachable: CompiledFunction | None = None
-        self.backend = "numpy NLS.solve_inverse (compilation not requested)"
+        self.backend = "numpy (compilation not requested)"
         self.native: list[NativeBuild] = []
         """What each native build did (:class:`controllers.native.codegen.NativeBuild`)."""
         if compiled:
             function = inverse_function(nls, max_iter=max_iter, xtol=xtol)
-            self._function, build = compile_function(function, flags=_FLAGS, cache="inverse")
+            self._function, build = compile_function(
+                function, flags=_FLAGS, cache="inverse", fallback=NUMPY
+            )
             self.native.append(build)
-            self.backend = str(build) if self._function else f"numpy NLS.solve_inverse: {build}"
+            self.backend = str(build)
         if self._function is not None:
             ends = reachable_function(nls)
-            self._reachable, build = compile_function(ends, flags=_FLAGS, cache="inverse")
+            self._reachable, build = compile_function(
+                ends, flags=_FLAGS, cache="inverse", fallback=NUMPY
+            )
             self.native.append(build)
         if self._function is not None:
             inputs, outputs = self._function.inputs, self._function.outputs

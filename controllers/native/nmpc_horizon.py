@@ -37,25 +37,24 @@ they stay single-threaded without a thread limit). So the fast path is: feature 
 generated C called through ctypes (about 7 us), network in numpy.
 
 The compiled library is cached on disk (``$PIEZO_CACHE`` or ``~/.cache/piezo-testbed``), keyed
-by the hash of the generated source, so compilation (a few seconds) happens once per model and
-horizon (:mod:`controllers.native.codegen`, shared with the compiled NLS inverse).
+by the hash of the generated source, compiler and platform, so compilation (a few seconds)
+happens once per model and horizon (:mod:`controllers.native.codegen`, shared with the compiled
+NLS inverse). Each horizon object keeps the record of its build in ``native``
+(:class:`controllers.native.codegen.NativeBuild`): compiled, or casadi's virtual machine and
+why.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import CompiledFunction, NativeBuild, as_numpy
-from controllers.native.codegen import compile_function as _compile
+from controllers.native.codegen import CASADI_VM, NativeBuild, as_numpy, compile_function
 
 __all__ = [
-    "CompiledFunction",
     "GenericHorizon",
     "StructuredHorizon",
-    "compile_function",
     "horizon_function",
 ]
 
@@ -72,22 +71,6 @@ def horizon_function(nonlinearity: Any, horizon: int) -> Any:
         z, state = step(u[k], state)
         zs.append(z)
     return casadi.Function("nmpc_horizon", [u, state0], [casadi.vertcat(*zs)], ["u", "s"], ["z"])
-
-
-def compile_function(function: Any) -> tuple[CompiledFunction | None, NativeBuild]:
-    """:func:`controllers.native.codegen.compile_function` (``-O1``, cache folder ``nmpc``).
-
-    Returns
-    -------
-    compiled : CompiledFunction or None
-        None when no compiler works (the caller then uses casadi's virtual machine).
-    build : NativeBuild
-        What happened (the library, or why compilation failed), for reports.
-    """
-    compiled, build = _compile(function)
-    if compiled is None:
-        build = dataclasses.replace(build, reason=f"{build}; using casadi's virtual machine")
-    return compiled, build
 
 
 class StructuredHorizon:
@@ -122,7 +105,7 @@ class StructuredHorizon:
         compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
         self.native: list[NativeBuild] = []
         if compiled:
-            compiled_fn, build = compile_function(self.function)
+            compiled_fn, build = compile_function(self.function, fallback=CASADI_VM)
             self.backend, self.native = str(build), [build]
         self._features = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
         mlp = nls.to_numpy()
@@ -186,7 +169,7 @@ class GenericHorizon:
         compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
         self.native: list[NativeBuild] = []
         if compiled:
-            compiled_fn, build = compile_function(self.function)
+            compiled_fn, build = compile_function(self.function, fallback=CASADI_VM)
             self.backend, self.native = str(build), [build]
         self._call = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
 
