@@ -125,6 +125,7 @@ def test_without_a_compiler_the_numpy_inverse_runs(name, request, monkeypatch, t
     inverse = CompiledInverse(nls, U_RANGE)
     assert not inverse.compiled
     assert "no C compiler" in inverse.backend
+    assert [build.path for build in inverse.native] == ["numpy"]
     rng = np.random.default_rng(6)
     for state in reached_states(nls, 5, seed=5):
         for target in targets_for(nls, state, rng):

@@ -111,6 +111,8 @@ def test_an_unusable_cache_falls_back_visibly(monkeypatch):
     assert native["nls_inverse"]["path"] == "numpy"
     assert "compilation failed" in native["nls_inverse"]["reason"]
     assert json.loads(json.dumps(native)) == native
+    native = controllers.make("nmpc", MODEL_DIR, env).describe()["native"]
+    assert native["nmpc_features"]["path"] == "casadi-vm"
 
 
 @pytest.mark.parametrize("code", [errno.EROFS, errno.EACCES])
