@@ -59,7 +59,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import dataclasses
-import fcntl
 import functools
 import hashlib
 import os
@@ -268,6 +267,8 @@ def _private_folder(folder: Path) -> Path:
 @contextlib.contextmanager
 def _locked(folder: Path) -> Iterator[None]:
     """Hold the folder's build lock: one process at a time verifies, builds or cleans up."""
+    import fcntl  # POSIX only: elsewhere the folder checks (os.getuid) already refused
+
     handle = os.open(folder / ".lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     try:
         fcntl.flock(handle, fcntl.LOCK_EX)

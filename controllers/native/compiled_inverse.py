@@ -37,10 +37,11 @@ whenever the map is monotone. Not stopping within ``max_iter`` iterations also r
 The function is generated as C, compiled once (cached on disk, see
 :mod:`controllers.native.codegen`) and called through ctypes on preallocated buffers by
 :class:`CompiledInverse`; without a working compiler :class:`CompiledInverse` runs the numpy
-inverse instead. Measured on the shipped model (``benchmarks/inverse_speed.py``, one thread):
-14.8 us median, 18.8 us p99 per call including the Python wrapper, against 65 us for the numpy
-inverse; passes cost about 1.5 us (z) and 2.9 us (z and dz/du) each, most of it the 96 tanh and
-the scalar products.
+inverse instead, and says so in its ``native`` records
+(:class:`controllers.native.codegen.NativeBuild`). Measured on the shipped model
+(``benchmarks/inverse_speed.py``, one thread): 14.8 us median, 18.8 us p99 per call including
+the Python wrapper, against 65 us for the numpy inverse; passes cost about 1.5 us (z) and 2.9
+us (z and dz/du) each, most of it the 96 tanh and the scalar products.
 """
 
 from __future__ import annotations
