@@ -5,12 +5,17 @@
   estimator (``"bayes-uniform"``), the exact MAP (``"chebyshev"``) and least squares.
 - :mod:`identification.nls`: the neural static nonlinearity with memory features.
 - :mod:`identification.hammerstein`: the model object the controllers use, saved as plain files.
-- :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment, and
-  ``collect``, which drives the environment open loop.
+- :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment, one
+  function per step (:mod:`identification.steps`), with its settings
+  (:mod:`identification.config`, ``IdentificationConfig``), its experiments
+  (:mod:`identification.experiment`: ``collect`` drives the environment open loop), the inverse
+  ARX model (:mod:`identification.inversion`), and its result, report and files
+  (:mod:`identification.outputs`: ``IdentificationResult``, ``write_outputs``; the report's
+  Markdown in :mod:`identification.report`, the figures in :mod:`identification.figures`).
 - :mod:`identification.metrics`: fit %, RMSE, max error.
 
 Importing the package is light: only the ARX model and the metrics load with it; every other name
-is imported on first use (PEP 562). The pipeline (gymnasium and the environment) loads only when
+is imported on first use (PEP 562). The pipeline (the environment model) loads only when
 ``identify`` or ``collect`` is used, torch only when an NLS is trained.
 """
 
@@ -24,16 +29,14 @@ from identification.metrics import fit_metrics, fit_percent, max_abs_error, rmse
 
 if TYPE_CHECKING:
     from identification.bayes_uniform import BayesUniformEstimator
+    from identification.config import IdentificationConfig
     from identification.estimation import METHODS, fit_arx, fit_chebyshev, fit_least_squares
+    from identification.experiment import collect
     from identification.features import FEATURE_SETS
     from identification.hammerstein import HammersteinModel
     from identification.nls import NLS, fit_nls
-    from identification.pipeline import (
-        IdentificationConfig,
-        IdentificationResult,
-        collect,
-        identify,
-    )
+    from identification.outputs import IdentificationResult, write_outputs
+    from identification.pipeline import identify
 
 _LAZY = {
     "BayesUniformEstimator": "identification.bayes_uniform",
@@ -45,10 +48,11 @@ _LAZY = {
     "HammersteinModel": "identification.hammerstein",
     "NLS": "identification.nls",
     "fit_nls": "identification.nls",
-    "IdentificationConfig": "identification.pipeline",
-    "IdentificationResult": "identification.pipeline",
-    "collect": "identification.pipeline",
+    "IdentificationConfig": "identification.config",
+    "IdentificationResult": "identification.outputs",
+    "collect": "identification.experiment",
     "identify": "identification.pipeline",
+    "write_outputs": "identification.outputs",
 }
 
 __all__ = [
@@ -71,6 +75,7 @@ __all__ = [
     "max_abs_error",
     "regressors",
     "rmse",
+    "write_outputs",
 ]
 
 

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from identification.features import FEATURE_SETS
+from piezo_env.checks import require_int, require_number
 from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 from piezo_env.task import TaskConfig
 
@@ -84,21 +83,18 @@ class IdentificationConfig:
             raise ValueError(
                 f"features must be 'auto' or one of {FEATURE_SETS}, got {self.features!r}"
             )
-        if not self.orders or not all(isinstance(n, int) and n >= 1 for n in self.orders):
-            raise ValueError(f"orders must be positive integers, got {self.orders!r}")
-        if not self.hidden or not all(isinstance(h, int) and h >= 1 for h in self.hidden):
-            raise ValueError(f"hidden must be positive layer widths, got {self.hidden!r}")
+        if not self.orders or not self.hidden:
+            raise ValueError("orders and hidden must each list at least one value")
+        for n in self.orders:
+            require_int("ARX order", n)
+        for width in self.hidden:
+            require_int("hidden width", width)
         for name in ("prbs_samples", "rich_samples", "validation_samples"):
-            if getattr(self, name) < 200:
-                raise ValueError(f"{name} must be at least 200 samples, got {getattr(self, name)}")
+            require_int(name, getattr(self, name), minimum=200)
         for name in ("prbs_clock", "validation_hold", "max_epochs"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and value >= 1):
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+            require_int(name, getattr(self, name))
         for name in ("prbs_amplitude", "rich_amplitude", "validation_amplitude"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number of volts, got {value!r}")
+            require_number(name, getattr(self, name), low=0.0, low_open=True)
         if "reference" in self.env_kwargs:
             raise ValueError("env_kwargs must not set 'reference': identification runs open loop")
         # Build a few samples of the rich signal now, so that a wrong name or parameter fails

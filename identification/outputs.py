@@ -15,10 +15,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from identification.config import IdentificationConfig
+from identification.experiment import sample_time
 from identification.hammerstein import HammersteinModel
-from identification.steps import ArxEstimate, HiddenSignal, NlsFit, Validation, sample_time
+from identification.steps import ArxEstimate, HiddenSignal, NlsFit, Validation
 
 __all__ = [
     "IdentificationResult",
@@ -82,36 +82,10 @@ def build_report(
     timings: dict[str, float],
 ) -> dict[str, Any]:
     """The JSON report of a run (keys read by the CLI, the benchmarks and report.md)."""
-    plant, arx = env.unwrapped.model, est.model
     return {
         "config": jsonable(asdict(config)),
-        "environment": {
-            "bender": plant.name,
-            "dt_s": plant.dt,
-            "hysteresis": plant.hysteresis.name,
-            "noise_bound_um": float(env.unwrapped.noise_bound),
-            "stroke_um": plant.stroke_um,
-        },
-        "arx": {
-            "order": est.order,
-            "order_scores_fit_percent": {str(k): v for k, v in est.order_scores.items()},
-            "a": arx.a.tolist(),
-            "b": arx.b.tolist(),
-            "noise_bound_um": arx.noise_bound,
-            "noise_bound_note": (
-                "r_hat bounds the ARX equation error: unmodelled bending modes and the sensor "
-                "noise together, so it measures model error more than sensor noise"
-            ),
-            "static_gain_um_per_V": arx.static_gain(),
-            "poles": complex_list(arx.poles()),
-            "zeros": complex_list(arx.zeros()),
-            "minimum_phase": bool(arx.is_minimum_phase()),
-            "chebyshev": {
-                "theta": est.chebyshev.theta.tolist(),
-                "noise_bound_um": est.chebyshev.noise_bound,
-            },
-            "least_squares": {"theta": est.least_squares.theta.tolist()},
-        },
+        "environment": _environment_section(env),
+        "arx": _arx_section(est),
         "inversion": {
             "method": hidden.method,
             **hidden.error,
@@ -127,15 +101,54 @@ def build_report(
             "selection_fit_percent": nls.selection_scores,
             "training": jsonable(getattr(nls.model.nls, "training", {})),
         },
-        "validation": {
-            "signal": f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold}",
-            "samples": len(val.u),
-            **val.metrics,
-            "rmse_ratio_hammerstein_to_arx": (
-                val.metrics["hammerstein"]["rmse"] / val.metrics["linear_arx"]["rmse"]
-            ),
-        },
+        "validation": _validation_section(config, val),
         "timings_s": timings,
+    }
+
+
+def _environment_section(env: gym.Env) -> dict[str, Any]:
+    plant = env.unwrapped.model
+    return {
+        "bender": plant.name,
+        "dt_s": plant.dt,
+        "hysteresis": plant.hysteresis.name,
+        "noise_bound_um": float(env.unwrapped.noise_bound),
+        "stroke_um": plant.stroke_um,
+    }
+
+
+def _arx_section(est: ArxEstimate) -> dict[str, Any]:
+    arx = est.model
+    return {
+        "order": est.order,
+        "order_scores_fit_percent": {str(k): v for k, v in est.order_scores.items()},
+        "a": arx.a.tolist(),
+        "b": arx.b.tolist(),
+        "noise_bound_um": arx.noise_bound,
+        "noise_bound_note": (
+            "r_hat bounds the ARX equation error: unmodelled bending modes and the sensor "
+            "noise together, so it measures model error more than sensor noise"
+        ),
+        "static_gain_um_per_V": arx.static_gain(),
+        "poles": complex_list(arx.poles()),
+        "zeros": complex_list(arx.zeros()),
+        "minimum_phase": bool(arx.is_minimum_phase()),
+        "chebyshev": {
+            "theta": est.chebyshev.theta.tolist(),
+            "noise_bound_um": est.chebyshev.noise_bound,
+        },
+        "least_squares": {"theta": est.least_squares.theta.tolist()},
+    }
+
+
+def _validation_section(config: IdentificationConfig, val: Validation) -> dict[str, Any]:
+    return {
+        "signal": f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold}",
+        "samples": len(val.u),
+        **val.metrics,
+        "rmse_ratio_hammerstein_to_arx": (
+            val.metrics["hammerstein"]["rmse"] / val.metrics["linear_arx"]["rmse"]
+        ),
     }
 
 

@@ -13,8 +13,9 @@ e) :func:`fit_nonlinearity`: fit the neural NLS to (u_t, z_hat_t), choosing its 
    on a separate selection record;
 f) :func:`validate`: validate the Hammerstein model by free-run simulation on fresh RAND data.
 
-:func:`collect` drives the environment open loop; its ``y[t]`` is the deflection before
-``u[t]`` is applied (the alignment of :meth:`HammersteinModel.simulate`).
+The steps and their results live in :mod:`identification.steps`, the experiments on the
+environment in :mod:`identification.experiment` (:func:`collect`), the settings in
+:mod:`identification.config`, the report and files in :mod:`identification.outputs`.
 
 Scale (Bai 2004). Under a two-level input a rate-independent nonlinearity is affine, so the
 ARX part fitted to (u, y) of the PRBS run is the linear part up to a gain; taking it as is fixes
@@ -33,9 +34,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from identification.config import IdentificationConfig
-from identification.inversion import inverse_arx
+from identification.experiment import collect, identification_env, sample_time
 from identification.outputs import (
     IdentificationResult,
     build_report,
@@ -49,36 +49,18 @@ from identification.steps import (
     HiddenSignal,
     NlsFit,
     Validation,
-    collect,
     estimate_arx,
     estimate_hidden_signal,
     excite_prbs,
     excite_rich,
     fit_nonlinearity,
-    identification_env,
-    sample_time,
     step_seeds,
     validate,
 )
 
-__all__ = [
-    "ArxEstimate",
-    "HiddenSignal",
-    "IdentificationConfig",
-    "IdentificationResult",
-    "NlsFit",
-    "Validation",
-    "collect",
-    "estimate_arx",
-    "estimate_hidden_signal",
-    "excite_prbs",
-    "excite_rich",
-    "fit_nonlinearity",
-    "identify",
-    "inverse_arx",
-    "validate",
-    "write_outputs",
-]
+# collect, IdentificationConfig and write_outputs: the public names of their own modules,
+# importable from here as well (the command line and the benchmarks do)
+__all__ = ["IdentificationConfig", "IdentificationResult", "collect", "identify", "write_outputs"]
 
 
 def identify(
@@ -108,44 +90,34 @@ def identify(
         config = IdentificationConfig(**overrides)
     elif overrides:
         raise ValueError("pass either config or keyword overrides, not both")
-    say = progress or (lambda _msg: None)
     env = env if env is not None else identification_env(config)
-    seeds, dt, lap = step_seeds(config.seed), sample_time(env), _Stopwatch()
+    seeds, dt, log = step_seeds(config.seed), sample_time(env), _StepLog(progress)
 
     u_prbs, y_prbs = excite_prbs(env, config, seeds)
-    say(f"a) PRBS +-{config.prbs_amplitude:g} V, {len(u_prbs)} samples: peak |y| = "
-        f"{np.abs(y_prbs).max():.1f} um")
-    lap("a_prbs_experiment")
-
+    log("a_prbs_experiment", _prbs_line(config, y_prbs))
     est = estimate_arx(u_prbs, y_prbs, config, dt=dt)
-    arx = est.model
-    say(_arx_line(est))
-    lap("b_arx_estimation")
-
+    log("b_arx_estimation", _arx_line(est))
     u_rich, y_rich = excite_rich(env, config, seeds)
-    say(f"c) {config.rich_signal} {config.rich_amplitude:g} V, {len(u_rich)} samples")
-    lap("c_rich_experiment")
-
-    hidden = estimate_hidden_signal(arx, y_rich, y_prbs)
-    say(f"d) z_hat by {hidden.method}; error from r_hat: worst case "
-        f"{_volts(hidden.error['z_error_bound_V'])}, RMS {_volts(hidden.error['z_error_rms_V'])}")
-    lap("d_inverse_arx")
-
+    log("c_rich_experiment", _rich_line(config, u_rich))
+    hidden = estimate_hidden_signal(est.model, y_rich, y_prbs)
+    log("d_inverse_arx", _hidden_line(hidden))
     u_train, z_train = np.r_[u_prbs, u_rich], np.r_[hidden.z_prbs, hidden.z_rich]
-    nls = fit_nonlinearity(env, arx, u_train, z_train, config, seeds, say=say)
-    model = nls.model
-    model.metadata.update(model_metadata(env, config, nls.features, hidden))
-    say(f"   NLS small-signal gain on the PRBS record: {nls.small_signal_gain:.3f} "
-        "(1 by construction)")
-    lap("e_nls_training")
+    nls = fit_nonlinearity(env, est.model, u_train, z_train, config, seeds, say=log.say)
+    nls.model.metadata.update(model_metadata(env, config, nls.features, hidden))
+    log("e_nls_training", _gain_line(nls))
+    val = validate(env, nls.model, config, seeds)
+    log("f_validation", _validation_line(config, val))
 
-    val = validate(env, model, config, seeds)
-    say(_validation_line(config, val))
-    lap("f_validation")
+    report = build_report(env, config, est, hidden, nls, val, log.timings())
+    data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, nls.model, val)
+    return IdentificationResult(model=nls.model, report=jsonable(report), data=data)
 
-    report = build_report(env, config, est, hidden, nls, val, lap.timings())
-    data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, model, val)
-    return IdentificationResult(model=model, report=jsonable(report), data=data)
+
+def _prbs_line(config: IdentificationConfig, y_prbs: np.ndarray) -> str:
+    return (
+        f"a) PRBS +-{config.prbs_amplitude:g} V, {len(y_prbs)} samples: peak |y| = "
+        f"{np.abs(y_prbs).max():.1f} um"
+    )
 
 
 def _arx_line(est: ArxEstimate) -> str:
@@ -154,6 +126,25 @@ def _arx_line(est: ArxEstimate) -> str:
         f"b) ARX({est.order},{est.order}) by bayes-uniform (held-out PRBS fit "
         + ", ".join(f"n={k}: {v:.1f} %" for k, v in est.order_scores.items())
         + f"); r_hat = {arx.noise_bound:.2f} um, minimum-phase B: {arx.is_minimum_phase()}"
+    )
+
+
+def _rich_line(config: IdentificationConfig, u_rich: np.ndarray) -> str:
+    return f"c) {config.rich_signal} {config.rich_amplitude:g} V, {len(u_rich)} samples"
+
+
+def _hidden_line(hidden: HiddenSignal) -> str:
+    bound, rms = hidden.error["z_error_bound_V"], hidden.error["z_error_rms_V"]
+    return (
+        f"d) z_hat by {hidden.method}; error from r_hat: worst case {_volts(bound)}, "
+        f"RMS {_volts(rms)}"
+    )
+
+
+def _gain_line(nls: NlsFit) -> str:
+    return (
+        f"   NLS small-signal gain on the PRBS record: {nls.small_signal_gain:.3f} "
+        "(1 by construction)"
     )
 
 
@@ -171,14 +162,20 @@ def _volts(value: float | None) -> str:
     return "n/a (not eq. 25)" if value is None else f"{value:.2f} V"
 
 
-class _Stopwatch:
-    """Wall time per step (s): ``lap(name)`` closes a step, ``timings()`` adds the total."""
+class _StepLog:
+    """Progress lines and wall time per step (s).
 
-    def __init__(self) -> None:
+    ``log(name, line)`` reports the line of a step that has just ended and closes its time;
+    ``log.say(line)`` reports a line within a step; ``timings()`` adds the total.
+    """
+
+    def __init__(self, progress: Callable[[str], None] | None) -> None:
+        self.say = progress or (lambda _line: None)
         self._start = self._last = time.perf_counter()
         self._laps: dict[str, float] = {}
 
-    def __call__(self, name: str) -> None:
+    def __call__(self, name: str, line: str) -> None:
+        self.say(line)
         now = time.perf_counter()
         self._laps[name] = round(now - self._last, 3)
         self._last = now

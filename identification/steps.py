@@ -1,9 +1,8 @@
 """The steps a-f of the paper's procedure (section 3.4), one function each, and their results.
 
-:func:`collect` drives the environment open loop; its ``y[t]`` is the deflection before
-``u[t]`` is applied (the alignment of :meth:`HammersteinModel.simulate`). Every record comes
-from the environment through its Gymnasium interface, as from a real bender: the measured
-(noisy) deflection is all the identification sees.
+Each step takes what the earlier steps returned and the settings; the experiments (steps a and
+c, and the selection and validation records of e and f) run on the environment through
+:func:`identification.experiment.collect`.
 """
 
 from __future__ import annotations
@@ -14,12 +13,11 @@ from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
-from numpy.typing import ArrayLike
 
-import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from identification.arx import ARXModel
 from identification.config import ORDER_TIE_PERCENT, IdentificationConfig
 from identification.estimation import fit_arx
+from identification.experiment import collect, sample_time
 from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
@@ -32,73 +30,15 @@ __all__ = [
     "HiddenSignal",
     "NlsFit",
     "Validation",
-    "collect",
     "estimate_arx",
     "estimate_hidden_signal",
     "excite_prbs",
     "excite_rich",
     "fit_nonlinearity",
-    "identification_env",
     "rand_signal",
-    "sample_time",
     "step_seeds",
     "validate",
 ]
-
-
-def collect(
-    env: gym.Env, u: ArrayLike, *, seed: int | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Drive ``env`` open loop with the voltage sequence ``u`` from rest; return ``(u, y)``.
-
-    Alignment: ``y[t]`` is the measured deflection *before* ``u[t]`` is applied, i.e. the
-    observation returned by ``reset`` (t = 0) or by the ``step`` that applied ``u[t-1]``. So
-    ``y[t]`` depends on ``u[t-1], u[t-2], ...`` (the ARX convention, and the convention of
-    :meth:`HammersteinModel.simulate`): compare ``model.simulate(u)`` with this ``y``. If you step
-    the env yourself with ``u`` and collect the observations *returned by step*, you get
-    ``y[1:]`` plus one more sample: a one-sample shift, which on white input costs almost all of
-    the fit. ``u[-1]`` is never applied (no output of the record would see it).
-
-    Parameters
-    ----------
-    env : gymnasium.Env
-        A ``PiezoBender-v0`` environment (or wrapper) with deflection in um as ``obs[0]``; its
-        ``reference`` should be None. Truncation flags are ignored (a record may be longer than
-        an episode).
-    u : array_like, shape (T,)
-        Drive voltage, V.
-    seed : int, optional
-        Seed of ``env.reset`` (sensor noise and initial state draws).
-
-    Returns
-    -------
-    u : numpy.ndarray, shape (T,)
-        The voltage the env applied, V: ``u`` clipped to the action space, as the amplifier
-        saturates.
-    y : numpy.ndarray, shape (T,)
-        Measured tip deflection, um, ``y[t]`` before ``u[t]``.
-
-    Raises
-    ------
-    ValueError
-        If ``u`` is not a finite 1-D sequence of at least 2 samples, or the env terminates
-        (deflection limit).
-    """
-    u = np.asarray(u, dtype=float)
-    if u.ndim != 1 or u.size < 2 or not np.all(np.isfinite(u)):
-        raise ValueError(f"u must be a finite 1-D voltage sequence of >= 2 samples; got {u!r}")
-    obs, _ = env.reset(seed=seed)
-    y = np.empty(len(u))
-    y[0] = obs[0]
-    for t in range(len(u) - 1):
-        obs, _, terminated, _, _ = env.step(np.array([u[t]], dtype=np.float32))
-        if terminated:
-            raise ValueError(
-                f"the env terminated at sample {t + 1} (deflection limit); identify on an env "
-                "without deflection_limit or with a smaller excitation"
-            )
-        y[t + 1] = obs[0]
-    return np.clip(u, env.action_space.low[0], env.action_space.high[0]), y
 
 
 # -- the steps of section 3.4 -----------------------------------------------------------------
@@ -324,26 +264,18 @@ def validate(
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
 
 
-# -- the procedure ----------------------------------------------------------------------------
-
-
-def identification_env(config: IdentificationConfig) -> gym.Env:
-    return gym.make(
-        "piezo_env:PiezoBender-v0", reference=None, max_episode_steps=-1, **config.env_kwargs
-    )
-
-
-def sample_time(env: gym.Env) -> float:
-    return float(env.unwrapped.model.dt)
+# -- seeds and signals shared by the steps -----------------------------------------------------
 
 
 def step_seeds(seed: int) -> dict[str, int]:
+    """Independent seeds of the steps' signals, the env's noise and the training, from one."""
     names = ("prbs", "rich", "selection", "validation", "env", "nls")
     children = np.random.SeedSequence(seed).spawn(len(names))
     return {name: int(c.generate_state(1)[0]) for name, c in zip(names, children, strict=True)}
 
 
 def rand_signal(config: IdentificationConfig, n: int, dt: float, seed: int) -> np.ndarray:
+    """``n`` samples of the RAND input of the selection and validation records, V."""
     return make_signal(
         "random",
         n,

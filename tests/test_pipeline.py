@@ -7,9 +7,10 @@ import pytest
 import scipy.signal
 
 from identification.arx import ARXModel
-from identification.inversion import inverse_error_bounds, inverse_impulse_response
+from identification.config import IdentificationConfig
+from identification.inversion import inverse_arx, inverse_error_bounds, inverse_impulse_response
 from identification.metrics import fit_percent
-from identification.pipeline import IdentificationConfig, identify, inverse_arx
+from identification.pipeline import identify
 
 # A short run: half the default record lengths and epochs.
 SHORT = {
@@ -188,7 +189,7 @@ def test_collect_aligns_y_before_u_as_simulate_does():
     """y[t] from collect is the deflection before u[t]: the model predicts it from u[:t]."""
     import gymnasium as gym
 
-    from identification.pipeline import collect
+    from identification.experiment import collect
 
     env = gym.make("piezo_env:PiezoBender-v0", reference=None, noise_bound=0.0)
     u = np.zeros(40)
@@ -212,8 +213,38 @@ def test_bad_configuration_is_rejected():
         IdentificationConfig(prbs_amplitude=-1.0)
     with pytest.raises(ValueError, match="hidden"):
         IdentificationConfig(hidden=())
+    with pytest.raises(ValueError, match="ARX order"):
+        IdentificationConfig(orders=(2, True))
+    with pytest.raises(ValueError, match="max_epochs"):
+        IdentificationConfig(max_epochs=10.0)
+    with pytest.raises(ValueError, match="validation_amplitude"):
+        IdentificationConfig(validation_amplitude=float("inf"))
     with pytest.raises(ValueError, match="unknown signal"):
         IdentificationConfig(rich_signal="nope")
     with pytest.raises(ValueError, match="does not accept"):
         IdentificationConfig(rich_signal="multisine", rich_params={"frequency": 5.0})
     assert IdentificationConfig(rich_signal="multisine").rich_signal_params()["n_tones"] == 10
+
+
+def test_public_names_import_from_the_package_and_the_old_paths():
+    import identification
+    import identification.pipeline as pipeline
+    from identification import (
+        HammersteinModel,
+        IdentificationResult,
+        collect,
+        write_outputs,
+    )
+    from identification.experiment import collect as collect_home
+    from identification.hammerstein import HammersteinModel as model_home
+    from identification.outputs import IdentificationResult as result_home
+    from identification.outputs import write_outputs as write_home
+
+    assert (collect, HammersteinModel, IdentificationResult) == (
+        collect_home,
+        model_home,
+        result_home,
+    )
+    assert write_outputs is write_home is pipeline.write_outputs
+    assert pipeline.IdentificationConfig is identification.IdentificationConfig
+    assert pipeline.collect is collect and pipeline.identify is identification.identify
