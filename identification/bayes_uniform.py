@@ -188,19 +188,11 @@ class BayesUniformEstimator:
                 f"theta_estimate must be 'vertex' or 'midpoint', got {theta_estimate!r}"
             )
         self.theta_estimate = theta_estimate
-        for name, value, minimum in (("na", na, 0), ("nb", nb, 1)):
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, np.integer))
-                or value < minimum
-            ):
-                raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-        self.na, self.nb = int(na), int(nb)
+        self.na = require_int("na", na, minimum=0)
+        self.nb = require_int("nb", nb)
         self.n = self.na + self.nb + 1
-        for name, value in (("window", window), ("reorient_every", reorient_every)):
-            require_int(name, value)
-        self.window = int(window)
-        self.reorient_every = int(reorient_every)
+        self.window = require_int("window", window)
+        self.reorient_every = require_int("reorient_every", reorient_every)
         self.n_init = max(4 * self.n, self.window) if n_init is None else int(n_init)
         if self.n_init < self.n:
             raise ValueError(f"n_init must be >= na + nb + 1 = {self.n}, got {n_init}")

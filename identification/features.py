@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from piezo_env.checks import require_int
 from piezo_env.operators import (
     BoucWenBatch,
     bouc_wen_casadi,
@@ -119,9 +120,7 @@ def default_play_radii(u_range: Sequence[float], n_play: int) -> np.ndarray:
         Radii in V, increasing.
     """
     low, high = _as_range("u_range", u_range)
-    if int(n_play) != n_play or n_play < 1:
-        raise ValueError(f"n_play must be a positive integer; got {n_play!r}")
-    n = int(n_play)
+    n = require_int("n_play", n_play)
     return (high - low) / (2.0 * (n + 1)) * np.arange(1, n + 1, dtype=np.float64)
 
 
@@ -278,9 +277,7 @@ class PastInputFeatures:
     name = "past-inputs"
 
     def __post_init__(self) -> None:
-        if int(self.n_past) != self.n_past or self.n_past < 1:
-            raise ValueError(f"n_past must be a positive integer; got {self.n_past!r}")
-        object.__setattr__(self, "n_past", int(self.n_past))
+        object.__setattr__(self, "n_past", require_int("n_past", self.n_past))
         object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
 
     @property
@@ -466,10 +463,8 @@ def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
         Levels in V, increasing.
     """
     low, high = _as_range("u_range", u_range)
-    if int(n) != n or n < 1:
-        raise ValueError(f"n_bouc_wen must be a positive integer; got {n!r}")
     half = 0.5 * (high - low)
-    return half * np.geomspace(0.1, 2.0, int(n))
+    return half * np.geomspace(0.1, 2.0, require_int("n_bouc_wen", n))
 
 
 FeatureMap = PlayFeatures | PastInputFeatures | BoucWenFeatures

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import re
 import shutil
@@ -39,6 +38,7 @@ from numpy.typing import ArrayLike
 
 from identification.arx import ARXModel
 from identification.nls import NLS
+from piezo_env.checks import require_int, require_number
 
 __all__ = ["HAMMERSTEIN_FORMAT", "HAMMERSTEIN_FORMAT_VERSION", "HammersteinModel"]
 
@@ -348,11 +348,7 @@ def _read_description(path: Path) -> dict[str, Any]:
 
 
 def _number(value: Any, field: str, *, positive: bool = False) -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{field!r} must be a number; got {value!r}")
-    if not math.isfinite(value) or (positive and value <= 0):
-        kind = "a positive finite number" if positive else "finite"
-        raise ValueError(f"{field!r} must be {kind}; got {value!r}")
+    require_number(repr(field), value, low=0.0 if positive else None, low_open=positive)
 
 
 def _numbers(value: Any, field: str, *, positive: bool = False, min_len: int = 0) -> None:
@@ -362,11 +358,6 @@ def _numbers(value: Any, field: str, *, positive: bool = False, min_len: int = 0
         raise ValueError(f"{field!r} must have at least {min_len} entries; got {value!r}")
     for i, v in enumerate(value):
         _number(v, f"{field}[{i}]", positive=positive)
-
-
-def _integer(value: Any, field: str, *, minimum: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"{field!r} must be an integer >= {minimum}; got {value!r}")
 
 
 def _object(value: Any, field: str, keys: Sequence[str]) -> None:
@@ -425,13 +416,13 @@ def _check_nls_fields(nls: Any) -> None:
     if kind == "numbers":
         _numbers(features[key], f"nls.features.{key}", positive=True, min_len=1)
     else:
-        _integer(features[key], f"nls.features.{key}", minimum=0)
+        require_int(repr(f"nls.features.{key}"), features[key], minimum=0)
     _number(features["initial_input"], "nls.features.initial_input")
     hidden = nls["hidden"]
     if not isinstance(hidden, list) or not hidden:
         raise ValueError(f"'nls.hidden' must be a non-empty list of layer widths; got {hidden!r}")
     for i, width in enumerate(hidden):
-        _integer(width, f"nls.hidden[{i}]", minimum=1)
+        require_int(repr(f"nls.hidden[{i}]"), width)
     _numbers(nls["u_range"], "nls.u_range", min_len=2)
     if len(nls["u_range"]) != 2 or not nls["u_range"][0] < nls["u_range"][1]:
         raise ValueError(f"'nls.u_range' must be [low, high], low < high; got {nls['u_range']!r}")

@@ -27,6 +27,7 @@ from identification.features import (
     _as_scalar,
     _as_signal,
 )
+from piezo_env.checks import require_int
 from piezo_env.inverse import InverseResult, solve_increasing
 
 __all__ = ["InverseMixin", "NLSInverse", "NLSInverseWarning"]
@@ -191,7 +192,6 @@ class InverseMixin:
         """Bracketing grid of the inverse, cached for the last range used."""
         key = (low, high, n_grid)
         if self._grid_cache is None or self._grid_cache[0] != key:
-            if isinstance(n_grid, bool) or int(n_grid) != n_grid or n_grid < 2:
-                raise ValueError(f"n_grid must be an integer >= 2; got {n_grid!r}")
-            self._grid_cache = (key, np.linspace(low, high, int(n_grid)))
+            n_grid = require_int("n_grid", n_grid, minimum=2)
+            self._grid_cache = (key, np.linspace(low, high, n_grid))
         return self._grid_cache[1]
