@@ -163,28 +163,60 @@ def play_operators(
     return play_sequence(u_arr, r, p)
 
 
-def _check_state(state: ArrayLike | None, feature_map: Any, message: str) -> np.ndarray:
-    """Return ``state`` as a finite float64 vector of the map's state length, or raise.
+def _freeze_operator_fields(features: Any, field: str, what: str) -> np.ndarray:
+    """Check an operator feature map's ``field`` (V) and ``initial_input``, store them as floats.
 
-    A float64 vector of the right length is returned as is (no copy: feature maps never write
-    into a state, they return new ones), which keeps per-step calls cheap.
+    ``field`` must hold one or more positive finite numbers (play radii, Bouc-Wen levels); it is
+    stored as a tuple of floats and returned as a float64 array.
     """
-    if state is None:
-        return feature_map.initial_state()
-    if type(state) is np.ndarray and state.dtype == np.float64 and state.ndim == 1:
-        s = state
-    else:
-        try:
-            s = np.array(state, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
-            raise ValueError(f"{message}; got {state!r}") from None
-    if s.shape != (feature_map.n_state,) or not np.isfinite(s).all():
-        raise ValueError(f"{message}; got {np.asarray(state).tolist()}")
-    return s
+    given = getattr(features, field)
+    values = np.asarray(given, dtype=np.float64)
+    if values.ndim != 1 or values.size < 1 or not np.isfinite(values).all() or (values <= 0).any():
+        raise ValueError(f"{what} must be one or more positive numbers; got {given}")
+    object.__setattr__(features, field, tuple(float(x) for x in values))
+    rest = _as_scalar("initial_input", features.initial_input)
+    object.__setattr__(features, "initial_input", rest)
+    return values
+
+
+class _StateChecks:
+    """``check_state`` of a feature map, and its rest state with every value at ``initial_input``.
+
+    The map names its state for the error message in :meth:`_state_text`.
+    """
+
+    n_state: int
+    initial_input: float
+
+    def _state_text(self) -> str:
+        raise NotImplementedError
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: every state value equal to ``initial_input`` (V)."""
+        return np.full(self.n_state, self.initial_input)
+
+    def check_state(self, state: ArrayLike | None) -> np.ndarray:
+        """Validated ``state`` as a float64 vector (the rest state for None); never mutated.
+
+        A float64 vector of the right length is returned as is (no copy: feature maps never
+        write into a state, they return new ones), which keeps per-step calls cheap.
+        """
+        if state is None:
+            return self.initial_state()
+        if type(state) is np.ndarray and state.dtype == np.float64 and state.ndim == 1:
+            s = state
+        else:
+            try:
+                s = np.array(state, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ValueError(f"{self._state_text()}; got {state!r}") from None
+        if s.shape != (self.n_state,) or not np.isfinite(s).all():
+            raise ValueError(f"{self._state_text()}; got {np.asarray(state).tolist()}")
+        return s
 
 
 @dataclass(frozen=True)
-class PlayFeatures:
+class PlayFeatures(_StateChecks):
     """Play-operator features ``F_t = [u_t, p_1,t, ..., p_n,t]``; state: play outputs (V).
 
     Attributes
@@ -201,12 +233,7 @@ class PlayFeatures:
     name = "play"
 
     def __post_init__(self) -> None:
-        r = np.asarray(self.radii, dtype=np.float64)
-        if r.ndim != 1 or r.size < 1 or not np.all(np.isfinite(r)) or np.any(r <= 0.0):
-            raise ValueError(f"play radii must be one or more positive numbers; got {self.radii}")
-        object.__setattr__(self, "radii", tuple(float(x) for x in r))
-        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
-        object.__setattr__(self, "_r", r)
+        object.__setattr__(self, "_r", _freeze_operator_fields(self, "radii", "play radii"))
 
     @property
     def n_features(self) -> int:
@@ -218,17 +245,8 @@ class PlayFeatures:
         """Length of the state vector (one play output per radius)."""
         return len(self.radii)
 
-    def initial_state(self) -> np.ndarray:
-        """State at rest: every play output equal to ``initial_input`` (V)."""
-        return np.full(self.n_state, self.initial_input)
-
-    def check_state(self, state: ArrayLike | None) -> np.ndarray:
-        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
-        return _check_state(
-            state,
-            self,
-            f"play feature state must be {self.n_state} finite play outputs (V)",
-        )
+    def _state_text(self) -> str:
+        return f"play feature state must be {self.n_state} finite play outputs (V)"
 
     def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
@@ -260,7 +278,7 @@ class PlayFeatures:
 
 
 @dataclass(frozen=True)
-class PastInputFeatures:
+class PastInputFeatures(_StateChecks):
     """Past-input (nlarx) features ``F_t = [u_t, u_t-1, ..., u_t-k]``; state: ``[u_t-1..u_t-k]``.
 
     Attributes
@@ -290,17 +308,10 @@ class PastInputFeatures:
         """Length of the state vector (the input buffer)."""
         return self.n_past
 
-    def initial_state(self) -> np.ndarray:
-        """State at rest: the buffer filled with ``initial_input`` (V)."""
-        return np.full(self.n_state, self.initial_input)
-
-    def check_state(self, state: ArrayLike | None) -> np.ndarray:
-        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
-        return _check_state(
-            state,
-            self,
+    def _state_text(self) -> str:
+        return (
             f"past-input feature state must be the {self.n_state} previous inputs "
-            "[u_t-1, ..., u_t-k] (V), finite",
+            "[u_t-1, ..., u_t-k] (V), finite"
         )
 
     def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -349,7 +360,7 @@ def bouc_wen_update(h: np.ndarray, du: np.ndarray, levels: np.ndarray) -> np.nda
 
 
 @dataclass(frozen=True)
-class BoucWenFeatures:
+class BoucWenFeatures(_StateChecks):
     """Bouc-Wen operator features ``F_t = [u_t, h_1,t, ..., h_n,t]``.
 
     Smooth, saturating relatives of play operators (see :func:`bouc_wen_update`) with
@@ -370,11 +381,7 @@ class BoucWenFeatures:
     name = "bouc-wen"
 
     def __post_init__(self) -> None:
-        lv = np.asarray(self.levels, dtype=np.float64)
-        if lv.ndim != 1 or lv.size < 1 or not np.all(np.isfinite(lv)) or np.any(lv <= 0.0):
-            raise ValueError(f"Bouc-Wen levels must be positive numbers; got {self.levels}")
-        object.__setattr__(self, "levels", tuple(float(x) for x in lv))
-        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+        lv = _freeze_operator_fields(self, "levels", "Bouc-Wen levels")
         object.__setattr__(self, "_lv", lv)
         object.__setattr__(self, "_operator", normalized_bouc_wen(lv))
         object.__setattr__(self, "_batch", BoucWenBatch(*self._operator))
@@ -395,13 +402,9 @@ class BoucWenFeatures:
         state[0] = self.initial_input
         return state
 
-    def check_state(self, state: ArrayLike | None) -> np.ndarray:
-        """Validated ``state`` as a float64 vector (the rest state for None); never mutated."""
-        return _check_state(
-            state,
-            self,
-            f"Bouc-Wen feature state must be [u_t-1, h_1, ..., h_{len(self.levels)}] (V), finite",
-        )
+    def _state_text(self) -> str:
+        n = len(self.levels)
+        return f"Bouc-Wen feature state must be [u_t-1, h_1, ..., h_{n}] (V), finite"
 
     def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""

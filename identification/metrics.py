@@ -77,34 +77,18 @@ def fit_percent(y: ArrayLike, y_hat: ArrayLike) -> float:
 
 
 def rmse(y: ArrayLike, y_hat: ArrayLike) -> float:
-    """Root-mean-square error ``sqrt(mean((y - y_hat)^2))`` in the unit of ``y``.
+    """Root-mean-square error ``sqrt(mean((y - y_hat)^2))``, in the unit of ``y`` (normally um).
 
-    Parameters
-    ----------
-    y, y_hat : array_like, shape (T,)
-        Measured and model output, same unit (normally um).
-
-    Returns
-    -------
-    float
-        RMSE, unit of ``y``.
+    ``y`` (measured) and ``y_hat`` (model) as in :func:`fit_percent`: shape (T,), one unit.
     """
     y_arr, y_hat_arr = _pair(y, y_hat)
     return float(np.sqrt(np.mean((y_arr - y_hat_arr) ** 2)))
 
 
 def max_abs_error(y: ArrayLike, y_hat: ArrayLike) -> float:
-    """Largest absolute error ``max |y - y_hat|`` in the unit of ``y``.
+    """Largest absolute error ``max |y - y_hat|``, in the unit of ``y`` (normally um).
 
-    Parameters
-    ----------
-    y, y_hat : array_like, shape (T,)
-        Measured and model output, same unit (normally um).
-
-    Returns
-    -------
-    float
-        Maximum absolute error, unit of ``y``.
+    ``y`` (measured) and ``y_hat`` (model) as in :func:`fit_percent`: shape (T,), one unit.
     """
     y_arr, y_hat_arr = _pair(y, y_hat)
     return float(np.max(np.abs(y_arr - y_hat_arr)))
