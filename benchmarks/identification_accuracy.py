@@ -229,7 +229,35 @@ def _timing_section(runs: dict, tests: dict) -> list[str]:
 
 def _held_out_section(runs, models, tests, scores, narx, records) -> list[str]:
     selected = runs["auto"].report["nls"]["features"]
-    names = list(models)
+    rand10 = scores["RAND +-30 V, hold 10"]
+    h_sel, h_lin = rand10[f"Hammerstein {selected}"], rand10["linear ARX"]
+    return [
+        "## Free-run fit on held-out test records: fit % / RMSE um",
+        "",
+        f"Each record: {TEST_SAMPLES} samples from rest, signal and noise seeds disjoint from "
+        "identification. H = Hammerstein model with that NLS feature set (same ARX part); "
+        "linear ARX = that ARX part alone; NARX = "
+        f"y_t = MLP(y_t-1..t-{NARX_LAGS}, u_t-1..t-{NARX_LAGS}), 3 x 32 tanh, trained one step "
+        "ahead on the pipeline's PRBS + rich records, early-stopped on the free-run fit of their "
+        "last 20 %; (skip): plus an affine skip initialised by least squares, (plain): MLP only. "
+        "SINE 5 Hz 30 V is the rich identification input (fresh noise).",
+        "",
+        _held_out_table(list(models), tests, scores, selected),
+        "",
+        f"Targets on RAND +-30 V hold 10 (selected model, {selected}): fit "
+        f"{h_sel['fit_percent']:.2f} % (target >= 95 %), RMSE ratio Hammerstein / ARX "
+        f"{h_sel['rmse'] / h_lin['rmse']:.3f} (target <= 0.333).",
+        "",
+        _narx_table(narx),
+        "",
+        f"NARX training data: {sum(len(u) for u, _ in records)} samples: the pipeline's PRBS and "
+        "rich records.",
+        "",
+    ]
+
+
+def _held_out_table(names: list[str], tests: dict, scores: dict, selected: str) -> str:
+    """Fit % / RMSE of every model on every test record, and each model's worst fit."""
     head = [
         "test signal",
         "peak abs(y) um",
@@ -252,9 +280,12 @@ def _held_out_section(runs, models, tests, scores, narx, records) -> list[str]:
         label = min(fits, key=fits.get)
         worst.append(f"{fits[label]:.1f} ({label})")
     rows.append(["**worst fit %**", "", *worst])
-    rand10 = scores["RAND +-30 V, hold 10"]
-    h_sel, h_lin = rand10[f"Hammerstein {selected}"], rand10["linear ARX"]
-    narx_rows = [
+    return markdown_table(head, rows)
+
+
+def _narx_table(narx: dict) -> str:
+    """Training record of each NARX baseline."""
+    rows = [
         [
             label,
             f"{m.training['epochs']}",
@@ -264,31 +295,8 @@ def _held_out_section(runs, models, tests, scores, narx, records) -> list[str]:
         ]
         for label, m in narx.items()
     ]
-    return [
-        "## Free-run fit on held-out test records: fit % / RMSE um",
-        "",
-        f"Each record: {TEST_SAMPLES} samples from rest, signal and noise seeds disjoint from "
-        "identification. H = Hammerstein model with that NLS feature set (same ARX part); "
-        "linear ARX = that ARX part alone; NARX = "
-        f"y_t = MLP(y_t-1..t-{NARX_LAGS}, u_t-1..t-{NARX_LAGS}), 3 x 32 tanh, trained one step "
-        "ahead on the pipeline's PRBS + rich records, early-stopped on the free-run fit of their "
-        "last 20 %; (skip): plus an affine skip initialised by least squares, (plain): MLP only. "
-        "SINE 5 Hz 30 V is the rich identification input (fresh noise).",
-        "",
-        markdown_table(head, rows),
-        "",
-        f"Targets on RAND +-30 V hold 10 (selected model, {selected}): fit "
-        f"{h_sel['fit_percent']:.2f} % (target >= 95 %), RMSE ratio Hammerstein / ARX "
-        f"{h_sel['rmse'] / h_lin['rmse']:.3f} (target <= 0.333).",
-        "",
-        markdown_table(
-            ["NARX", "epochs", "best epoch", "validation free-run fit %", "training s"], narx_rows
-        ),
-        "",
-        f"NARX training data: {sum(len(u) for u, _ in records)} samples: the pipeline's PRBS and "
-        "rich records.",
-        "",
-    ]
+    head = ["NARX", "epochs", "best epoch", "validation free-run fit %", "training s"]
+    return markdown_table(head, rows)
 
 
 def _other_bender_row(label: str, env_kwargs: dict, base: IdentificationConfig) -> list[str]:

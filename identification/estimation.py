@@ -150,7 +150,13 @@ def fit_arx(
             raise ValueError(f"method {method!r} takes no options, got {', '.join(options)}")
         fit = fit_chebyshev if method == "chebyshev" else fit_least_squares
         return fit(u, y, na=na, nb=nb, dt=dt)
+    return _fit_bayes_uniform(u, y, na, nb, dt, options)
 
+
+def _fit_bayes_uniform(
+    u: Any, y: Any, na: int, nb: int, dt: float, options: dict[str, Any]
+) -> ARXModel:
+    """The ``"bayes-uniform"`` branch of :func:`fit_arx` (same arguments and options)."""
     point_estimate, steady_fraction = _bayes_options(options)
     if point_estimate == "mean":
         options["record_history"] = True

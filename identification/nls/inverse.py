@@ -101,10 +101,7 @@ class InverseMixin:
         low, high = self.u_range if u_range is None else _as_range("u_range", u_range)
         grid = self._grid(low, high, n_grid)
         if u_ref is None:
-            if isinstance(self.feature_map, PastInputFeatures | BoucWenFeatures):
-                u_ref = float(s[0])
-            else:
-                u_ref = 0.5 * (low + high)
+            u_ref = self._default_u_ref(s, low, high)
         candidates, rows = self.feature_map.candidates, self._mlp.evaluate_rows
 
         def evaluate(u: np.ndarray) -> np.ndarray:
@@ -187,6 +184,12 @@ class InverseMixin:
                 stacklevel=2,
             )
         return u, s
+
+    def _default_u_ref(self, state: np.ndarray, low: float, high: float) -> float:
+        """The previous input where the state holds it (past inputs, Bouc-Wen), else mid-range."""
+        if isinstance(self.feature_map, PastInputFeatures | BoucWenFeatures):
+            return float(state[0])
+        return 0.5 * (low + high)
 
     def _grid(self, low: float, high: float, n_grid: int) -> np.ndarray:
         """Bracketing grid of the inverse, cached for the last range used."""
