@@ -38,18 +38,22 @@ def run(args: argparse.Namespace) -> int:
     )
     result = identify(config=config, progress=print)
     paths = write_outputs(result, out)
+    print()
     print(summary(result.report))
-    print("wrote " + ", ".join(str(p) for p in paths))
+    names = ", ".join(p.name + ("/" if p.is_dir() else "") for p in paths)
+    print(f"files in {out}: {names}")
     return 0
 
 
 def summary(report: dict) -> str:
-    """A few lines a user reads first: the chosen order, the noise bound and the fits."""
-    arx, validation = report["arx"], report["validation"]
+    """A few lines a user reads first: the chosen order and features, the noise bound, the fits."""
+    arx, nls, validation = report["arx"], report["nls"], report["validation"]
+    how = "chosen on a selection record" if report["config"]["features"] == "auto" else "as asked"
     lines = [
         f"ARX order {arx['order']} (chosen by held-out free-run fit), static gain "
         f"{arx['static_gain_um_per_V']:.2f} um/V, estimated noise bound "
         f"{arx['noise_bound_um']:.2f} um (equation error: model error and sensor noise)",
+        f"NLS memory features: {nls['features']} ({how})",
         f"validation on {validation['signal']}, free run:",
     ]
     for name, label in (("hammerstein", "Hammerstein model"), ("linear_arx", "linear ARX alone")):
@@ -70,7 +74,7 @@ IDENTIFY = Subcommand(
         "PRBS excitation, ARX part by the uniform-noise Bayesian estimator, rich excitation, "
         "hidden signal by the inverse ARX model, neural nonlinearity, free-run validation. "
         "Writes the model (model/), report.json, report.md and figures into --out; takes "
-        "about 15 s on 2 cores, most of it the network's training."
+        "about 20 s on 2 cores, most of it the network's training."
     ),
     add_arguments=add_arguments,
     run=run,

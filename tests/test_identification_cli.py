@@ -1,0 +1,49 @@
+"""``piezo identify`` tells a user what came out in a few lines; the JSON stays in the folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from piezo_cli.identify import summary
+from piezo_cli.main import main
+
+COMMITTED = Path(__file__).resolve().parents[1] / "docs" / "identify"
+
+
+@pytest.fixture
+def report() -> dict:
+    """The report of the committed ``piezo identify`` run."""
+    return json.loads((COMMITTED / "report.json").read_text(encoding="utf-8"))
+
+
+def test_identify_prints_a_short_summary_and_no_json(report, tmp_path, monkeypatch, capsys):
+    def fake_identify(*, config, progress):
+        progress("a) ...")
+        return SimpleNamespace(report=report)
+
+    def fake_write(result, out):
+        (Path(out) / "model").mkdir()
+        (Path(out) / "report.json").write_text(json.dumps(result.report), encoding="utf-8")
+        return [Path(out) / "model", Path(out) / "report.json"]
+
+    monkeypatch.setattr("identification.pipeline.identify", fake_identify)
+    monkeypatch.setattr("identification.pipeline.write_outputs", fake_write)
+    assert main(["identify", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "{" not in out and '"arx"' not in out
+    assert len(out.splitlines()) <= 12
+    assert f"ARX order {report['arx']['order']}" in out
+    assert f"NLS memory features: {report['nls']['features']}" in out
+    fit = report["validation"]["hammerstein"]["fit_percent"]
+    assert f"Hammerstein model: fit {fit:.2f} %" in out
+    assert out.rstrip().endswith(f"files in {tmp_path}: model/, report.json")
+
+
+def test_summary_says_whether_the_features_were_chosen(report):
+    assert "(chosen on a selection record)" in summary(report)
+    asked = {**report, "config": {**report["config"], "features": "play"}}
+    assert "(as asked)" in summary(asked)
