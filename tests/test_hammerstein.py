@@ -190,12 +190,12 @@ def test_refused_save_leaves_the_old_model_loadable(model, tmp_path):
 
 @pytest.mark.parametrize("fail_at", ["json", "rename-new", "rename-old"])
 def test_interrupted_save_leaves_the_old_model_loadable(model, tmp_path, monkeypatch, fail_at):
-    import identification.hammerstein as hammerstein
+    import identification.model_files as model_files
 
     directory = model.save(tmp_path / "m")
     u = _input(300, seed=9)
     other = HammersteinModel(model.nls, ARXModel([0.5], [1.0], noise_bound=0.1, dt=1e-3))
-    real_replace, real_dumps = hammerstein.os.replace, hammerstein.json.dumps
+    real_replace, real_dumps = model_files.os.replace, model_files.json.dumps
     calls = []
 
     def replace(src, dst):
@@ -212,9 +212,9 @@ def test_interrupted_save_leaves_the_old_model_loadable(model, tmp_path, monkeyp
         return real_dumps(*args, **kwargs)
 
     if fail_at == "json":
-        monkeypatch.setattr(hammerstein.json, "dumps", dumps)
+        monkeypatch.setattr(model_files.json, "dumps", dumps)
     else:
-        monkeypatch.setattr(hammerstein.os, "replace", replace)
+        monkeypatch.setattr(model_files.os, "replace", replace)
     with pytest.raises(KeyboardInterrupt):
         other.save(directory)
     monkeypatch.undo()
