@@ -23,7 +23,6 @@ it step by step, and serialises to a plain dict.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from identification.arguments import as_range, as_scalar, as_signal
 from piezo_env.checks import require_int
 from piezo_env.operators import (
     BoucWenBatch,
@@ -59,46 +59,6 @@ FEATURE_SETS = ("play", "past-inputs", "bouc-wen")
 """Names of the memory feature sets accepted by :func:`identification.nls.fit_nls`."""
 
 # ---------------------------------------------------------------------------------------------
-# validation helpers
-
-
-def _as_signal(name: str, values: ArrayLike) -> np.ndarray:
-    """Return ``values`` as a finite float64 1-D array or raise a ValueError naming it."""
-    arr = np.asarray(values, dtype=np.float64)
-    if arr.ndim == 0:
-        arr = arr.reshape(1)
-    if arr.ndim != 1:
-        raise ValueError(f"{name} must be a 1-D sequence; got shape {arr.shape}")
-    bad = ~np.isfinite(arr)
-    if bad.any():
-        index = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name} contains a non-finite value at index {index}: {arr[index]}")
-    return arr
-
-
-def _as_scalar(name: str, value: float) -> float:
-    """Return ``value`` as a finite float or raise a ValueError naming it."""
-    try:
-        result = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite number; got {value!r}") from None
-    if not math.isfinite(result):
-        raise ValueError(f"{name} must be a finite number; got {value!r}")
-    return result
-
-
-def _as_range(name: str, value: Sequence[float]) -> tuple[float, float]:
-    """Return ``value`` as a finite ``(low, high)`` pair with ``low < high``."""
-    try:
-        low, high = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair (low, high) of numbers; got {value!r}") from None
-    if not (math.isfinite(low) and math.isfinite(high) and low < high):
-        raise ValueError(f"{name} must be finite with low < high; got {value!r}")
-    return low, high
-
-
-# ---------------------------------------------------------------------------------------------
 # memory features
 
 
@@ -119,7 +79,7 @@ def default_play_radii(u_range: Sequence[float], n_play: int) -> np.ndarray:
     numpy.ndarray, shape (n_play,)
         Radii in V, increasing.
     """
-    low, high = _as_range("u_range", u_range)
+    low, high = as_range("u_range", u_range)
     n = require_int("n_play", n_play)
     return (high - low) / (2.0 * (n + 1)) * np.arange(1, n + 1, dtype=np.float64)
 
@@ -148,12 +108,12 @@ def play_operators(
     final_state : numpy.ndarray, shape (n,)
         Play outputs after the last sample (pass back as ``state`` to continue).
     """
-    u_arr = _as_signal("u", u)
+    u_arr = as_signal("u", u)
     r = np.asarray(radii, dtype=np.float64).reshape(-1)
     if not np.all(np.isfinite(r)) or np.any(r < 0.0):
         raise ValueError(f"radii must be finite and non-negative; got {r}")
     if state is None:
-        p = np.full(r.shape, _as_scalar("initial_input", initial_input))
+        p = np.full(r.shape, as_scalar("initial_input", initial_input))
     else:
         p = np.array(state, dtype=np.float64).reshape(-1)
         if p.shape != r.shape or not np.all(np.isfinite(p)):
@@ -174,7 +134,7 @@ def _freeze_operator_fields(features: Any, field: str, what: str) -> np.ndarray:
     if values.ndim != 1 or values.size < 1 or not np.isfinite(values).all() or (values <= 0).any():
         raise ValueError(f"{what} must be one or more positive numbers; got {given}")
     object.__setattr__(features, field, tuple(float(x) for x in values))
-    rest = _as_scalar("initial_input", features.initial_input)
+    rest = as_scalar("initial_input", features.initial_input)
     object.__setattr__(features, "initial_input", rest)
     return values
 
@@ -296,7 +256,7 @@ class PastInputFeatures(_StateChecks):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "n_past", require_int("n_past", self.n_past))
-        object.__setattr__(self, "initial_input", _as_scalar("initial_input", self.initial_input))
+        object.__setattr__(self, "initial_input", as_scalar("initial_input", self.initial_input))
 
     @property
     def n_features(self) -> int:
@@ -465,7 +425,7 @@ def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
     numpy.ndarray, shape (n,)
         Levels in V, increasing.
     """
-    low, high = _as_range("u_range", u_range)
+    low, high = as_range("u_range", u_range)
     half = 0.5 * (high - low)
     return half * np.geomspace(0.1, 2.0, require_int("n_bouc_wen", n))
 

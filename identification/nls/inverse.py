@@ -20,13 +20,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from identification.features import (
-    BoucWenFeatures,
-    PastInputFeatures,
-    _as_range,
-    _as_scalar,
-    _as_signal,
-)
+from identification.arguments import as_range, as_scalar, as_signal
+from identification.features import BoucWenFeatures, PastInputFeatures
 from piezo_env.checks import require_int
 from piezo_env.inverse import InverseResult, solve_increasing
 
@@ -96,9 +91,9 @@ class InverseMixin:
             Voltage, achieved ``z`` (evaluated at that voltage), status (``"ok"``,
             ``"out-of-range"``, ``"non-monotone"``) and the state after applying the voltage.
         """
-        target = _as_scalar("z_target", z_target)
+        target = as_scalar("z_target", z_target)
         s = self.feature_map.check_state(state)
-        low, high = self.u_range if u_range is None else _as_range("u_range", u_range)
+        low, high = self.u_range if u_range is None else as_range("u_range", u_range)
         grid = self._grid(low, high, n_grid)
         if u_ref is None:
             u_ref = self._default_u_ref(s, low, high)
@@ -107,7 +102,7 @@ class InverseMixin:
         def evaluate(u: np.ndarray) -> np.ndarray:
             return rows(candidates(u, s))
 
-        guess = u_ref if u_guess is None else _as_scalar("u_guess", u_guess)
+        guess = u_ref if u_guess is None else as_scalar("u_guess", u_guess)
         sol = solve_increasing(evaluate, target, grid, guess, u_ref=u_ref, xtol=xtol)
         _, new_state = self.feature_map.step(sol.u, s)
         return InverseResult(sol.u, sol.z, sol.status, new_state)
@@ -166,7 +161,7 @@ class InverseMixin:
         final_state : numpy.ndarray
             Feature state after the last voltage.
         """
-        z = _as_signal("z_seq", z_seq)
+        z = as_signal("z_seq", z_seq)
         s = self.feature_map.check_state(state)
         u = np.empty_like(z)
         u_ref = None

@@ -33,14 +33,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from identification.arguments import as_range, as_scalar, as_signal
 from identification.features import (
     BoucWenFeatures,
     FeatureMap,
     PastInputFeatures,
     PlayFeatures,
-    _as_range,
-    _as_scalar,
-    _as_signal,
 )
 from identification.nls.export import ExportMixin
 from identification.nls.files import ARRAY_NAMES, FilesMixin
@@ -149,7 +147,7 @@ class NLS(InverseMixin, ExportMixin, FilesMixin):
                 f"got {type(feature_map)}"
             )
         self.feature_map = feature_map
-        self.u_range = _as_range("u_range", u_range)
+        self.u_range = as_range("u_range", u_range)
         self.training = dict(training or {})
         self._params = _check_params(params, feature_map.n_features)
         self._mlp = _fold(self._params)
@@ -208,7 +206,7 @@ class NLS(InverseMixin, ExportMixin, FilesMixin):
         final_state : numpy.ndarray, shape (n_state,)
             State after the last sample.
         """
-        u = _as_signal("u_seq", u_seq)
+        u = as_signal("u_seq", u_seq)
         return self.feature_map.features(u, self.feature_map.check_state(state))
 
     def evaluate(self, u_seq: ArrayLike, state: ArrayLike | None = None) -> np.ndarray:
@@ -220,7 +218,7 @@ class NLS(InverseMixin, ExportMixin, FilesMixin):
 
     def step(self, u_t: float, state: ArrayLike | None) -> tuple[float, np.ndarray]:
         """Advance one sample: input ``u_t`` (V) -> ``(z_t, next_state)`` (equivalent V)."""
-        u = _as_scalar("u_t", u_t)
+        u = as_scalar("u_t", u_t)
         f, new_state = self.feature_map.step(u, self.feature_map.check_state(state))
         return self._mlp.evaluate_one(f), new_state
 

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from identification.features import FEATURE_SETS, _as_range, _as_signal
+from identification.arguments import as_range, as_signal
+from identification.features import FEATURE_SETS
 from piezo_env.checks import require_int, require_number
 
 __all__ = [
@@ -113,7 +114,7 @@ class TrainingSettings:
             object.__setattr__(self, name, require_int(name, getattr(self, name), minimum=minimum))
         self._check_numbers()
         if self.u_range is not None:
-            object.__setattr__(self, "u_range", _as_range("u_range", self.u_range))
+            object.__setattr__(self, "u_range", as_range("u_range", self.u_range))
 
     def _check_numbers(self) -> None:
         """Check the real-valued settings, resolving the default ``skip_ridge``."""
@@ -131,8 +132,8 @@ class TrainingSettings:
 
 def check_signals(u: ArrayLike, z: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Return ``u`` and ``z`` as finite float64 arrays of one length, or raise a ValueError."""
-    u_arr = _as_signal("u", u)
-    z_arr = _as_signal("z", z)
+    u_arr = as_signal("u", u)
+    z_arr = as_signal("z", z)
     if u_arr.shape != z_arr.shape:
         raise ValueError(f"u and z must have the same length; got {u_arr.size} and {z_arr.size}")
     return u_arr, z_arr
@@ -154,7 +155,7 @@ def loss_weights(z_weights: ArrayLike | None, u: np.ndarray, n_train: int) -> np
     """Per-sample loss weights, ones or ``z_weights`` scaled to mean 1 on the training block."""
     if z_weights is None:
         return np.ones(u.size)
-    weights = _as_signal("z_weights", z_weights)
+    weights = as_signal("z_weights", z_weights)
     if weights.shape != u.shape or np.any(weights < 0.0):
         raise ValueError("z_weights must be non-negative with the same length as u")
     if weights[:n_train].sum() <= 0.0:
