@@ -108,8 +108,14 @@ class NARXNetwork:
             gen = torch.Generator().manual_seed(self.seed)
             layers, out, lin = self._initial_modules(skip, gen)
             epochs, best_epoch, best_fit = self._train(
-                layers, out, lin, torch.from_numpy(xn), torch.from_numpy(tn), gen,
-                records, splits,
+                layers,
+                out,
+                lin,
+                torch.from_numpy(xn),
+                torch.from_numpy(tn),
+                gen,
+                records,
+                splits,
             )
         finally:
             torch.set_num_threads(previous_threads)

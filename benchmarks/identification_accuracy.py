@@ -188,9 +188,9 @@ def _timing_section(runs: dict, tests: dict) -> list[str]:
     selected = auto.report["nls"]["features"]
     timings, arx = auto.report["timings_s"], auto.report["arx"]
     u_check = tests["RAND +-30 V, hold 10"][0]
-    same = float(np.max(np.abs(
-        auto.model.simulate(u_check) - by_features[selected].model.simulate(u_check)
-    )))
+    same = float(
+        np.max(np.abs(auto.model.simulate(u_check) - by_features[selected].model.simulate(u_check)))
+    )
     nls_rows = [
         [
             f,

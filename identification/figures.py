@@ -124,8 +124,13 @@ def _error_panels(axes, t, models, errors, val, noise, window, dt) -> None:
     for ax, (name, key, _, colour, _) in zip(axes, models, strict=True):
         m, err = val[key], errors[key]
         ax.plot(t, err, color=colour, lw=0.5, alpha=0.45, label="error")
-        ax.plot(t, _moving_rms(err, n_rms), color="k", lw=1.2,
-                label=f"moving RMS ({RMS_WINDOW_S * 1e3:.0f} ms)")
+        ax.plot(
+            t,
+            _moving_rms(err, n_rms),
+            color="k",
+            lw=1.2,
+            label=f"moving RMS ({RMS_WINDOW_S * 1e3:.0f} ms)",
+        )
         ax.axvspan(t[lo], t[hi - 1], color="gold", alpha=0.3, lw=0, label="zoom window")
         ax.set_ylabel("error (um)")
         ax.set_title(
@@ -136,8 +141,13 @@ def _error_panels(axes, t, models, errors, val, noise, window, dt) -> None:
         ax.set_xlim(t[0], t[-1])
         ax.grid(alpha=0.3)
     for sign in (-1, 1):  # what a perfect model would leave: the sensor noise
-        axes[1].axhline(sign * noise, color="k", ls=":", lw=1.2,
-                        label=f"sensor noise bound +-{noise:g} um" if sign > 0 else None)
+        axes[1].axhline(
+            sign * noise,
+            color="k",
+            ls=":",
+            lw=1.2,
+            label=f"sensor noise bound +-{noise:g} um" if sign > 0 else None,
+        )
     for ax in axes:
         ax.legend(loc="upper right", fontsize=8, ncol=4)
     axes[1].set_xlabel("time (s)")
@@ -149,8 +159,14 @@ def _zoom_panels(zoom, zoom_err, t, y, models, errors, val, noise, window) -> No
     tz = (t[lo:hi] - t[lo]) * 1e3
     zoom.plot(tz, y[lo:hi], color="k", lw=2.4, label="measured")
     for name, key, y_hat, colour, style in models:
-        zoom.plot(tz, y_hat[lo:hi], color=colour, lw=1.2, ls=style,
-                  label=f"{name} ({val[key]['fit_percent']:.1f} %)")
+        zoom.plot(
+            tz,
+            y_hat[lo:hi],
+            color=colour,
+            lw=1.2,
+            ls=style,
+            label=f"{name} ({val[key]['fit_percent']:.1f} %)",
+        )
     zoom_err.plot(tz, errors["hammerstein"][lo:hi], color="tab:red", lw=1.2, label="Hammerstein")
     zoom_err.axhspan(-noise, noise, color="0.6", alpha=0.5, lw=0, label=f"+-{noise:g} um noise")
     zoom.set_ylabel("tip deflection (um)")

@@ -65,8 +65,17 @@ def _validation_section(val: dict[str, Any]) -> list[str]:
         ("Hammerstein (one step ahead)", "hammerstein_one_step"),
     ):
         m = val[key]
-        lines.append(_row([name, f"{m['fit_percent']:.2f}", f"{m['rmse']:.2f}",
-                           f"{m['rmse_percent_stroke']:.2f}", f"{m['max_abs_error']:.1f}"]))
+        lines.append(
+            _row(
+                [
+                    name,
+                    f"{m['fit_percent']:.2f}",
+                    f"{m['rmse']:.2f}",
+                    f"{m['rmse_percent_stroke']:.2f}",
+                    f"{m['max_abs_error']:.1f}",
+                ]
+            )
+        )
     return [
         *lines,
         "",
@@ -90,10 +99,26 @@ def _arx_section(arx: dict[str, Any], inversion: dict[str, Any]) -> list[str]:
     names = [f"a{i + 1}" for i in range(len(arx["a"]))]
     names += [f"b{i + 1}" for i in range(len(arx["b"]))]
     for i, name in enumerate(names):
-        lines.append(_row([name, f"{theta[i]:.6g}", f"{arx['chebyshev']['theta'][i]:.6g}",
-                           f"{arx['least_squares']['theta'][i]:.6g}"]))
-    lines.append(_row(["r (um)", f"{arx['noise_bound_um']:.4g}",
-                       f"{arx['chebyshev']['noise_bound_um']:.4g}", ""]))
+        lines.append(
+            _row(
+                [
+                    name,
+                    f"{theta[i]:.6g}",
+                    f"{arx['chebyshev']['theta'][i]:.6g}",
+                    f"{arx['least_squares']['theta'][i]:.6g}",
+                ]
+            )
+        )
+    lines.append(
+        _row(
+            [
+                "r (um)",
+                f"{arx['noise_bound_um']:.4g}",
+                f"{arx['chebyshev']['noise_bound_um']:.4g}",
+                "",
+            ]
+        )
+    )
     return [
         *lines,
         "",

@@ -60,4 +60,3 @@ def test_constant_output_and_bad_stroke():
 def test_column_vectors_accepted():
     y = np.arange(5.0)[:, None]
     assert fit_percent(y, y.ravel()) == 100.0
-
