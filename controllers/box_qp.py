@@ -1,59 +1,143 @@
 """The box-constrained QP both MPCs solve, set up once the way OSQP's MPC pattern asks.
 
 ``min 1/2 v' P v + q' v  s.t.  lower <= v <= upper``: P's upper triangle as a sparse matrix (its
-pattern fixed, so that later ``update(Px=...)`` calls can change the values), the identity as
-the constraint matrix, and the options every MPC here uses: no polishing, warm starts on, and
-the termination checked every 5 iterations (OSQP's default of 25 wastes most of what a warm
-start saves).
+pattern fixed, so that later updates of its values need no new set-up), the identity as the
+constraint matrix, and the options every MPC here uses: no polishing, warm starts on, and the
+termination checked every 5 iterations (OSQP's default of 25 wastes most of what a warm start
+saves). Each solve updates only what changed (q; the bounds or P's values when they change),
+warm-starts, and returns the solution only when OSQP says it is usable.
+
+Both MPCs first try the unconstrained optimum ``-P^-1 q`` (:func:`within`). That is exact, not an
+approximation: for a convex QP with box constraints, a point inside the box where the gradient
+vanishes meets the KKT conditions with no active constraint. Smooth references rarely touch the
+bounds, so most steps cost one linear solve (or one matrix-vector product); OSQP solves the rest.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 import osqp
 import scipy.sparse
 
-__all__ = ["setup_box_qp"]
+from controllers.settings import USABLE_OSQP_STATUS
+
+__all__ = ["BoxQP", "BoxQPSolution", "within"]
 
 
-def setup_box_qp(
-    hessian: np.ndarray | scipy.sparse.csc_matrix,
-    lower: np.ndarray,
-    upper: np.ndarray,
-    *,
-    eps_abs: float,
-    eps_rel: float,
-    max_iter: int,
-) -> osqp.OSQP:
-    """OSQP set up (and factorised) for the box QP of ``hessian`` (dense or an upper CSC).
+class BoxQPSolution(NamedTuple):
+    """One solve of :class:`BoxQP`.
+
+    Attributes
+    ----------
+    x : numpy.ndarray or None
+        The minimiser clipped to the box (OSQP meets the bounds only within its tolerance);
+        None when OSQP failed or reached its iteration cap.
+    duals : numpy.ndarray or None
+        The bounds' multipliers (None with ``x``), for the next warm start.
+    status : str
+        OSQP's status.
+    iterations : int
+        OSQP's iterations.
+    """
+
+    x: np.ndarray | None
+    duals: np.ndarray | None
+    status: str
+    iterations: int
+
+
+def within(x: np.ndarray, lower: np.ndarray | float, upper: np.ndarray | float) -> bool:
+    """True when every entry of ``x`` lies in ``[lower, upper]`` (False for NaN)."""
+    return bool(np.all(x >= lower) and np.all(x <= upper))
+
+
+class BoxQP:
+    """OSQP set up (and factorised) once for the box QP of a dense Hessian.
 
     Parameters
     ----------
-    hessian : ndarray or scipy.sparse.csc_matrix
-        P (n, n): a dense symmetric matrix, or the sparse upper triangle with its pattern.
-    lower, upper : ndarray
-        Box bounds (n,).
+    lower, upper : numpy.ndarray
+        Box bounds (n,); :meth:`solve` may replace them.
+    hessian : numpy.ndarray, optional
+        P (n, n), dense and symmetric, when it stays fixed; None when :meth:`solve` gives P
+        every time (OSQP is then set up on the full upper-triangular pattern).
     eps_abs, eps_rel : float
         OSQP tolerances.
     max_iter : int
         OSQP iteration cap.
     """
-    n = lower.size
-    if not scipy.sparse.issparse(hessian):
-        hessian = scipy.sparse.csc_matrix(np.triu(hessian))
-    solver = osqp.OSQP()
-    solver.setup(
-        P=hessian,
-        q=np.zeros(n),
-        A=scipy.sparse.identity(n, format="csc"),
-        l=lower,
-        u=upper,
-        verbose=False,
-        eps_abs=eps_abs,
-        eps_rel=eps_rel,
-        max_iter=max_iter,
-        check_termination=5,
-        polishing=False,
-        warm_starting=True,
-    )
-    return solver
+
+    def __init__(
+        self,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        *,
+        hessian: np.ndarray | None = None,
+        eps_abs: float,
+        eps_rel: float,
+        max_iter: int,
+    ) -> None:
+        n = lower.size
+        self.lower, self.upper = lower, upper
+        # Column-major order of the upper triangle: the order of OSQP's CSC P values.
+        cols, rows = np.tril_indices(n)
+        self._upper_triangle = (rows, cols)
+        if hessian is None:  # placeholder values; the diagonal dominant, so P is convex
+            pattern = np.ones(rows.size) + (rows == cols)
+            sparse = scipy.sparse.csc_matrix((pattern, (rows, cols)), shape=(n, n))
+        else:
+            sparse = scipy.sparse.csc_matrix(np.triu(hessian))
+        self._solver = osqp.OSQP()
+        self._solver.setup(
+            P=sparse,
+            q=np.zeros(n),
+            A=scipy.sparse.identity(n, format="csc"),
+            l=lower,
+            u=upper,
+            verbose=False,
+            eps_abs=eps_abs,
+            eps_rel=eps_rel,
+            max_iter=max_iter,
+            check_termination=5,
+            polishing=False,
+            warm_starting=True,
+        )
+
+    def solve(
+        self,
+        q: np.ndarray,
+        warm_x: np.ndarray,
+        warm_duals: np.ndarray,
+        *,
+        hessian: np.ndarray | None = None,
+        bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> BoxQPSolution:
+        """Minimise ``1/2 v' P v + q' v`` over the box, warm-started (a usable solution or None).
+
+        Parameters
+        ----------
+        q : numpy.ndarray
+            Linear term (n,).
+        warm_x, warm_duals : numpy.ndarray
+            Warm start: a point inside the box and the bounds' multipliers (n,).
+        hessian : numpy.ndarray, optional
+            A new dense P (only for a QP set up without one).
+        bounds : (numpy.ndarray, numpy.ndarray), optional
+            New (lower, upper).
+        """
+        data = {"q": q}
+        if bounds is not None:
+            self.lower, self.upper = bounds
+            data.update(l=self.lower, u=self.upper)
+        if hessian is not None:
+            data["Px"] = hessian[self._upper_triangle]
+        self._solver.update(**data)
+        self._solver.warm_start(x=warm_x, y=warm_duals)
+        result = self._solver.solve(raise_error=False)
+        status, iterations = result.info.status, int(result.info.iter)
+        if status not in USABLE_OSQP_STATUS or not np.all(np.isfinite(result.x)):
+            return BoxQPSolution(None, None, status, iterations)
+        x = np.clip(result.x, self.lower, self.upper)
+        return BoxQPSolution(x, result.y, status, iterations)

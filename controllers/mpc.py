@@ -17,11 +17,13 @@ The first move's bounds are exact: the z reachable in one sample from the curren
 s_t over the drive range; later moves use the range of z over the drive range (the major loop).
 The targets r_t+1 .. r_t+N come from the reference preview (the last previewed sample holds).
 
-Implementation follows OSQP's documented MPC pattern: P and the constraint matrix are built and
-factorised once in ``setup``; each step updates only q, l and u (one stacked matrix-vector
-product gives q from [x; d; r; z_prev]) and warm-starts from the shifted previous plan. A
-solver failure never stops the loop: the shifted previous plan (else the last z) is used and
-counted in ``stats.fallbacks``.
+Implementation follows OSQP's documented MPC pattern (:class:`controllers.box_qp.BoxQP`): P
+and the constraint matrix are built and factorised once per episode; each step updates only q, l
+and u (one stacked matrix-vector product gives q from [x; d; r; z_prev]) and warm-starts from the
+shifted previous plan. A solver failure never stops the loop: the shifted previous plan (else
+the last z) is used and counted in ``stats.fallbacks``. Phi, Gamma, the rate penalty and the
+start of an episode (the steady state holding the first measurement) are the nonlinear MPC's
+too: :mod:`controllers.predictive`.
 """
 
 from __future__ import annotations
@@ -31,67 +33,39 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import osqp
 
-from controllers.base import Controller
-from controllers.box_qp import setup_box_qp
-from controllers.observer import DisturbanceObserver
-from controllers.prediction import PredictionModel
-from controllers.settings import USABLE_OSQP_STATUS, check_settings
-from controllers.task import ControlTask
+from controllers.box_qp import BoxQP, within
+from controllers.prediction import SteadyStart
+from controllers.predictive import PredictiveController
+from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
 
-__all__ = ["LinearMPC", "prediction_matrices"]
+__all__ = ["LinearMPC", "MPCSettings", "qp_matrices"]
 
 
-def qp_matrices(model: PredictionModel, settings: MPCSettings) -> tuple[np.ndarray, np.ndarray]:
+def qp_matrices(
+    phi: np.ndarray, gamma: np.ndarray, rate_hessian: np.ndarray, settings: MPCSettings
+) -> tuple[np.ndarray, np.ndarray]:
     """Hessian P (N, N) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
 
     Scaled so that the largest Hessian entry is 1: OSQP's absolute tolerances then mean the
     same thing for any bender and unit (the minimiser does not change).
+
+    Parameters
+    ----------
+    phi, gamma : numpy.ndarray
+        The condensed prediction (:func:`controllers.condensed.prediction_matrices`).
+    rate_hessian : numpy.ndarray
+        ``lambda D^T D`` (:func:`controllers.condensed.rate_hessian`).
+    settings : MPCSettings
     """
-    n_hor, lam = settings.horizon, settings.rate_weight
-    phi, gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
-    diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
-    hessian = gamma.T @ gamma + lam * diff.T @ diff
+    n_hor = settings.horizon
+    hessian = gamma.T @ gamma + rate_hessian
     previous_move = np.zeros((n_hor, 1))  # the rate penalty's link to z_t-1
-    previous_move[0, 0] = -lam
+    previous_move[0, 0] = -settings.rate_weight
     columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
     if settings.slope_std > 0:  # d_t+k = d_t + k s_t
         columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
     scale = 1.0 / float(np.max(np.diag(hessian)))
-    _check_well_posed(hessian * scale, float(gamma[0, 0]), lam)
     return hessian * scale, scale * np.hstack([*columns, -gamma.T, previous_move])
-
-
-def _check_well_posed(hessian: np.ndarray, cb: float, rate_weight: float) -> None:
-    """Raise ValueError when the QP has no unique minimiser (a singular Hessian).
-
-    That happens when some move reaches no predicted output and nothing else weighs it: a
-    model with C B = 0 (its output lags the input by two samples or more) and rate_weight = 0
-    leaves the last move of the horizon free.
-    """
-    if np.linalg.cond(hessian) < 1e12:
-        return
-    raise ValueError(
-        f"the MPC's QP is singular (rate_weight = {rate_weight:g}, the model's first Markov "
-        f"parameter C B = {cb:.3g}): some moves reach no predicted output; set rate_weight > 0"
-    )
-
-
-def prediction_matrices(
-    a: np.ndarray, b: np.ndarray, c: np.ndarray, horizon: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Phi (N, n) and Gamma (N, N) with ``y_t+1..t+N = Phi x_t + Gamma z_t..t+N-1``."""
-    n = a.shape[0]
-    phi = np.empty((horizon, n))
-    markov = np.empty(horizon)  # C A^k B, k = 0 .. N-1
-    row = c[0].copy()
-    for k in range(horizon):
-        markov[k] = row @ b[:, 0]
-        row = row @ a
-        phi[k] = row
-    gamma = np.zeros((horizon, horizon))
-    for k in range(horizon):
-        gamma[k, : k + 1] = markov[k::-1]
-    return phi, gamma
 
 
 @dataclass(frozen=True)
@@ -132,18 +106,17 @@ class MPCSettings:
     max_iter : int
         OSQP iteration cap; reaching it is a fallback.
     shortcut : bool
-        Skip OSQP when the unconstrained optimum -P^-1 q satisfies every bound. That is exact,
-        not an approximation: for a convex QP with box constraints, a point inside the box
-        where the gradient vanishes meets the KKT conditions with no active constraint.
-        Smooth references rarely touch the bounds, so most steps cost one matrix-vector
-        product; OSQP (warm-started) solves the others.
+        Skip OSQP when the unconstrained optimum -P^-1 q satisfies every bound: exact, not an
+        approximation (see :mod:`controllers.box_qp`). Smooth references rarely touch the
+        bounds, so most steps cost one matrix-vector product; OSQP (warm-started) solves the
+        others.
     """
 
     horizon: int = 20
     rate_weight: float = 1e-2
     measurement_std: float | None = None
-    disturbance_std: float = 0.8
-    process_std: float = 0.04
+    disturbance_std: float = DISTURBANCE_STD
+    process_std: float = PROCESS_STD
     slope_std: float = 0.0
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
@@ -159,66 +132,41 @@ class MPCSettings:
         )
 
 
-class LinearMPC(Controller):
+class LinearMPC(PredictiveController):
     """Offset-free linear MPC in z (OSQP) with the exact nonlinearity inverse to volts.
 
-    Parameters
-    ----------
-    model : PredictionModel
-        Identified Hammerstein model or the plant (oracle).
-    task : ControlTask
-        Sample time, drive range, preview layout.
-    settings : MPCSettings
-    name : str
-        Name in reports.
+    ``LinearMPC(model, task, settings=None, *, name="mpc")`` with :class:`MPCSettings`; the
+    parameters are :class:`controllers.predictive.PredictiveController`'s.
     """
 
     Settings = MPCSettings
+    name = "mpc"
 
-    def __init__(
-        self,
-        model: PredictionModel,
-        task: ControlTask,
-        settings: MPCSettings | None = None,
-        *,
-        name: str = "mpc",
-    ) -> None:
-        super().__init__(task)
-        self.name = name
-        self.model = model
-        self.settings = settings = settings or MPCSettings()
-        self._hessian, self._q_matrix = qp_matrices(model, settings)
+    def _set_up(self) -> None:
+        settings = self.settings
+        self._hessian, self._q_matrix = qp_matrices(
+            self._phi, self._gamma, self._rate_hessian, settings
+        )
         self._unconstrained = -np.linalg.solve(self._hessian, self._q_matrix)
         self._vector = np.zeros(self._q_matrix.shape[1])
-        z_min, z_max = model.z_bounds
+        z_min, z_max = self.model.z_bounds
         self._lower = np.full(settings.horizon, z_min)
         self._upper = np.full(settings.horizon, z_max)
-        self.observer = DisturbanceObserver.for_controller(model, task, settings)
-        self._reset(None)
 
-    def _setup_solver(self) -> osqp.OSQP:
-        """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
+    def _start(self, start: SteadyStart) -> None:
         s = self.settings
-        return setup_box_qp(
-            self._hessian,
+        # Set up afresh: no adapted step size or duals carry over episodes.
+        self._qp = BoxQP(
             self._lower,
             self._upper,
+            hessian=self._hessian,
             eps_abs=s.eps_abs,
             eps_rel=s.eps_rel,
             max_iter=s.max_iter,
         )
-
-    def _reset(self, observation: np.ndarray | None) -> None:
-        """Start from the steady state that holds the first measurement (rest at 0 V within
-        the noise bound: :meth:`PredictionModel.steady_start`)."""
-        y0 = 0.0 if observation is None else float(observation[0])
-        start = self.model.steady_start(y0, self.task.noise_bound_um)
-        self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
-        self._solver = self._setup_solver()
-        self._plan = np.full(self.settings.horizon, start.z)
+        self._plan = np.full(s.horizon, start.z)
         self._duals: np.ndarray | None = None
         self._z_prev = start.z
-        self._memory = start.memory
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
@@ -244,26 +192,24 @@ class LinearMPC(Controller):
         self._lower[0], self._upper[0] = low, high
         if self.settings.shortcut:
             plan = self._unconstrained @ stacked
-            if np.all(plan >= self._lower) and np.all(plan <= self._upper):
+            if within(plan, self._lower, self._upper):
                 self.stats.status["unconstrained"] += 1
                 self.stats.iterations.append(0)
                 self._plan = plan
                 self._duals = None  # no bound is active: the optimal multipliers are zero
                 return float(plan[0])
-        self._solver.update(q=self._q_matrix @ stacked, l=self._lower, u=self._upper)
-        shifted = np.r_[self._plan[1:], self._plan[-1]]
+        shifted = np.clip(np.r_[self._plan[1:], self._plan[-1]], self._lower, self._upper)
         duals = np.zeros(self.settings.horizon) if self._duals is None else self._duals
-        self._solver.warm_start(x=np.clip(shifted, self._lower, self._upper), y=duals)
-        result = self._solver.solve(raise_error=False)
-        self.stats.iterations.append(int(result.info.iter))
-        status = result.info.status
-        self.stats.status[status] += 1
-        if status in USABLE_OSQP_STATUS and np.all(np.isfinite(result.x)):
-            self._plan = np.clip(result.x, self._lower, self._upper)
-            self._duals = result.y
-        else:
+        solution = self._qp.solve(
+            self._q_matrix @ stacked, shifted, duals, bounds=(self._lower, self._upper)
+        )
+        self.stats.iterations.append(solution.iterations)
+        self.stats.status[solution.status] += 1
+        if solution.x is None:
             self.stats.fallbacks += 1
-            self._plan = np.clip(shifted, self._lower, self._upper)
+            self._plan = shifted
+        else:
+            self._plan, self._duals = solution.x, solution.duals
         return float(self._plan[0])
 
     def describe(self) -> dict:

@@ -35,7 +35,10 @@ Solvers
 
 A QP or NLP that fails or reaches its cap never stops the loop: the shifted previous plan is
 applied (at the very first step that is the rest plan, i.e. the last voltage), counted in
-``stats.fallbacks`` and ``stats.status``. The per-step BLAS calls are small matrix products far
+``stats.fallbacks`` and ``stats.status``. When a later SQP iteration's QP fails, the last good
+iterate is a plan of its own, not a fallback: it is applied and counted as :data:`KEPT`. The
+observer, the condensed linear part and the start of an episode are the linear MPC's
+(:mod:`controllers.predictive`). The per-step BLAS calls are small matrix products far
 below OpenBLAS's threading threshold, so they run single-threaded without a thread limit.
 """
 
@@ -46,16 +49,12 @@ from typing import Any
 
 import numpy as np
 import osqp
-import scipy.sparse
 
-from controllers.base import Controller
-from controllers.box_qp import setup_box_qp
-from controllers.mpc import MPCSettings, prediction_matrices
+from controllers.box_qp import BoxQP, within
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
-from controllers.observer import DisturbanceObserver
-from controllers.prediction import IdentifiedNLS, PredictionModel
-from controllers.settings import USABLE_OSQP_STATUS, check_settings
-from controllers.task import ControlTask
+from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
+from controllers.predictive import PredictiveController
+from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
 
 __all__ = ["KEPT", "NMPCSettings", "NonlinearMPC"]
 
@@ -63,7 +62,6 @@ KEPT = "kept-last-iterate"
 """Status of a step whose later SQP iteration failed: the previous iterate is applied."""
 
 _SOLVERS = ("rti", "ipopt")
-_LINEAR_MPC_DEFAULTS = MPCSettings()  # the observer tuning is the linear MPC's, held there once
 _JACOBIANS = ("auto", "structured", "structured-vm", "generic", "generic-vm")
 
 
@@ -105,7 +103,7 @@ class NMPCSettings:
         OSQP iteration cap per QP; reaching it is a fallback.
     shortcut : bool
         Try the unconstrained optimum of each QP first and skip OSQP when it lies inside the
-        drive range (exact: see :meth:`NonlinearMPC._solve_qp`).
+        drive range (exact: see :mod:`controllers.box_qp`).
     ipopt_max_iter : int
         IPOPT iteration cap; reaching it is a fallback.
     ipopt_max_cpu_time : float
@@ -118,9 +116,9 @@ class NMPCSettings:
     step_tolerance: float = 1e-3
     tracking_weight: float = 1.0
     rate_weight: float = 1e-2
-    measurement_std: float | None = _LINEAR_MPC_DEFAULTS.measurement_std
-    disturbance_std: float = _LINEAR_MPC_DEFAULTS.disturbance_std
-    process_std: float = _LINEAR_MPC_DEFAULTS.process_std
+    measurement_std: float | None = None
+    disturbance_std: float = DISTURBANCE_STD
+    process_std: float = PROCESS_STD
     jacobian: str = "auto"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
@@ -163,57 +161,33 @@ def make_horizon(model: PredictionModel, horizon: int, jacobian: str) -> Any:
     return GenericHorizon(nonlinearity, horizon, compiled=compiled)
 
 
-class NonlinearMPC(Controller):
+class NonlinearMPC(PredictiveController):
     """Offset-free nonlinear MPC in the voltage (see the module docstring).
 
-    Parameters
-    ----------
-    model : PredictionModel
-        Identified Hammerstein model or the plant (oracle).
-    task : ControlTask
-        Sample time, drive range, preview layout.
-    settings : NMPCSettings
-    name : str
-        Name in reports.
+    ``NonlinearMPC(model, task, settings=None, *, name="nmpc")`` with :class:`NMPCSettings`; the
+    parameters are :class:`controllers.predictive.PredictiveController`'s.
     """
 
     Settings = NMPCSettings
-
-    def __init__(
-        self,
-        model: PredictionModel,
-        task: ControlTask,
-        settings: NMPCSettings | None = None,
-        *,
-        name: str = "nmpc",
-    ) -> None:
-        super().__init__(task)
-        self.name = name
-        self.model = model
-        self.settings = settings = settings or NMPCSettings()
-        n_hor = settings.horizon
-        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
-        self.horizon = make_horizon(model, n_hor, settings.jacobian)
-        self.observer = DisturbanceObserver.for_controller(model, task, settings)
-        diff = np.eye(n_hor) - np.eye(n_hor, k=-1)
-        self._rate_hessian = settings.rate_weight * diff.T @ diff
-        if settings.solver == "ipopt":
-            self._nlp = self._build_nlp()
-        self._reset(None)
+    name = "nmpc"
 
     # -- episode ------------------------------------------------------------------------------
 
-    def _reset(self, observation: np.ndarray | None) -> None:
-        """Start from the steady state that holds the first measurement (rest at 0 V within
-        the noise bound: :meth:`PredictionModel.steady_start`)."""
-        if self.settings.solver == "rti":
-            self._setup_qp()  # afresh: no adapted step size or duals carry over episodes
-        y0 = 0.0 if observation is None else float(observation[0])
-        start = self.model.steady_start(y0, self.task.noise_bound_um)
-        self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
-        self._plan = np.full(self.settings.horizon, start.u)
+    def _set_up(self) -> None:
+        settings = self.settings
+        self.horizon = make_horizon(self.model, settings.horizon, settings.jacobian)
+        if settings.solver == "ipopt":
+            self._nlp = self._build_nlp()
+
+    def _start(self, start: SteadyStart) -> None:
+        s = self.settings
+        if s.solver == "rti":  # afresh: no adapted step size or duals carry over episodes
+            box = np.full(s.horizon, self._u_max)
+            self._qp = BoxQP(
+                -box, box, eps_abs=s.eps_abs, eps_rel=s.eps_rel, max_iter=s.max_qp_iterations
+            )
+        self._plan = np.full(s.horizon, start.u)
         self._u_prev = start.u
-        self._memory = start.memory
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
@@ -266,24 +240,6 @@ class NonlinearMPC(Controller):
 
     # -- real-time iteration ------------------------------------------------------------------
 
-    def _setup_qp(self) -> None:
-        """OSQP once: dense upper-triangular P pattern, identity constraints, box bounds."""
-        s, n_hor = self.settings, self.settings.horizon
-        # Column-major order of the upper triangle: the order of OSQP's CSC P values.
-        cols, rows = np.tril_indices(n_hor)
-        self._p_index = (rows, cols)
-        pattern = scipy.sparse.csc_matrix(
-            (np.ones(rows.size) + (rows == cols), (rows, cols)), shape=(n_hor, n_hor)
-        )
-        self._qp = setup_box_qp(
-            pattern,
-            np.full(n_hor, -self._u_max),
-            np.full(n_hor, self._u_max),
-            eps_abs=s.eps_abs,
-            eps_rel=s.eps_rel,
-            max_iter=s.max_qp_iterations,
-        )
-
     def _solve_rti(
         self, offset: np.ndarray, u_bar: np.ndarray
     ) -> tuple[np.ndarray | None, str, int]:
@@ -316,23 +272,19 @@ class NonlinearMPC(Controller):
     ) -> tuple[np.ndarray | None, str, int]:
         """Box-constrained QP: (solution or None, status, OSQP iterations).
 
-        The unconstrained optimum is tried first: inside the box it meets the KKT conditions
-        with no active bound, so it is the exact solution (most steps on smooth references).
+        The unconstrained optimum is tried first: inside the box it is the exact solution
+        (:mod:`controllers.box_qp`; most steps on smooth references).
         """
         if self.settings.shortcut:
             try:
                 u_new = -np.linalg.solve(hessian, q)
-            except np.linalg.LinAlgError:
+            except np.linalg.LinAlgError:  # dz/du = 0 somewhere and no rate weight
                 u_new = None
-            if u_new is not None and np.all(np.abs(u_new) <= self._u_max):
+            if u_new is not None and within(u_new, -self._u_max, self._u_max):
                 return u_new, "unconstrained", 0
-        self._qp.update(Px=hessian[self._p_index], q=q)
-        self._qp.warm_start(x=u_bar, y=np.zeros_like(u_bar))
-        result = self._qp.solve(raise_error=False)
-        status = result.info.status
-        if status not in USABLE_OSQP_STATUS or not np.all(np.isfinite(result.x)):
-            return None, status, int(result.info.iter)
-        return np.clip(result.x, -self._u_max, self._u_max), status, int(result.info.iter)
+        # Zero duals: each SQP iteration's QP has a new Hessian, the last duals mean little.
+        solution = self._qp.solve(q, u_bar, np.zeros_like(u_bar), hessian=hessian)
+        return solution.x, solution.status, solution.iterations
 
     # -- IPOPT reference ------------------------------------------------------------------------
 

@@ -7,10 +7,26 @@ import math
 from controllers.task import ControlTask
 from piezo_env.checks import require_int
 
-__all__ = ["USABLE_OSQP_STATUS", "check_settings", "measurement_std", "number_at_least"]
+__all__ = [
+    "DISTURBANCE_STD",
+    "PROCESS_STD",
+    "USABLE_OSQP_STATUS",
+    "check_settings",
+    "measurement_std",
+    "number_at_least",
+]
 
 USABLE_OSQP_STATUS = ("solved", "solved inaccurate")
 """OSQP statuses whose solution is applied; any other falls back to the shifted plan."""
+
+DISTURBANCE_STD = 0.8
+"""The observer's default output-disturbance random-walk step (um per sample), both MPCs'."""
+
+PROCESS_STD = 0.04
+"""The observer's default input-referred process noise (equivalent V), both MPCs'.
+
+One tuning for every plant; :class:`controllers.mpc.MPCSettings` says what it trades.
+"""
 
 
 def number_at_least(value: object, low: float) -> bool:

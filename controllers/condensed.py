@@ -1,0 +1,82 @@
+"""The condensed prediction both MPCs build once: outputs over the horizon as matrices.
+
+With the hidden input z held over each sample, the linear part's outputs over the horizon N are
+an affine function of the state and the inputs (no equality constraints, N decision variables)::
+
+    y_t+1..t+N = Phi x_t + Gamma z_t..t+N-1,   Phi_k = C A^(k+1),   Gamma_kj = C A^(k-j) B (j <= k)
+
+and the input-rate penalty ``lambda sum_k (v_t+k - v_t+k-1)^2`` of a plan v (z for the linear
+MPC, volts for the nonlinear one) has the Hessian ``lambda D^T D`` with D the first difference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["check_well_posed", "prediction_matrices", "rate_hessian"]
+
+
+def prediction_matrices(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, horizon: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Phi (N, n) and Gamma (N, N) with ``y_t+1..t+N = Phi x_t + Gamma z_t..t+N-1``.
+
+    Parameters
+    ----------
+    a, b, c : numpy.ndarray
+        ``x_t+1 = a x_t + b z_t``, ``y_t = c x_t`` (b: (n, 1), c: (1, n); y in um).
+    horizon : int
+        N (samples).
+    """
+    n = a.shape[0]
+    phi = np.empty((horizon, n))
+    markov = np.empty(horizon)  # C A^k B, k = 0 .. N-1
+    row = c[0].copy()
+    for k in range(horizon):
+        markov[k] = row @ b[:, 0]
+        row = row @ a
+        phi[k] = row
+    gamma = np.zeros((horizon, horizon))
+    for k in range(horizon):
+        gamma[k, : k + 1] = markov[k::-1]
+    return phi, gamma
+
+
+def rate_hessian(horizon: int, rate_weight: float) -> np.ndarray:
+    """``lambda D^T D`` (N, N): the Hessian of ``lambda sum_k (v_t+k - v_t+k-1)^2`` in v.
+
+    The link of the first move to the previous one (``v_t-1``, known) is a linear term; each
+    controller adds it to its own q.
+    """
+    diff = np.eye(horizon) - np.eye(horizon, k=-1)
+    return rate_weight * diff.T @ diff
+
+
+def check_well_posed(
+    gamma: np.ndarray, rate_weight: float, tracking_weight: float = 1.0, *, name: str = "MPC"
+) -> None:
+    """Raise ValueError when the QP ``w Gamma^T Gamma + lambda D^T D`` has no unique minimiser.
+
+    That happens when some move reaches no predicted output and nothing else weighs it: a
+    model with C B = 0 (its output lags the input by two samples or more) and rate_weight = 0
+    leaves the last move of the horizon free, and ``numpy.linalg.solve`` would fail later with
+    a LinAlgError. For the nonlinear MPC the Hessian also holds the nonlinearity's Jacobian,
+    which is lower triangular with a nonzero diagonal (dz/du > 0), so the same test applies.
+
+    Parameters
+    ----------
+    gamma : numpy.ndarray
+        Gamma (N, N) of :func:`prediction_matrices` (um per equivalent V).
+    rate_weight, tracking_weight : float
+        lambda and w of the cost.
+    name : str
+        The controller, for the message.
+    """
+    hessian = tracking_weight * gamma.T @ gamma + rate_hessian(gamma.shape[0], rate_weight)
+    if np.max(np.diag(hessian)) > 0 and np.linalg.cond(hessian) < 1e12:
+        return
+    raise ValueError(
+        f"the {name}'s QP is singular (rate_weight = {rate_weight:g}, the model's first Markov "
+        f"parameter C B = {gamma[0, 0]:.3g}): some moves reach no predicted output; set "
+        "rate_weight > 0 (the default is 1e-2)"
+    )

@@ -1,0 +1,90 @@
+"""What the linear and the nonlinear MPC share: model, settings, observer, prediction, start.
+
+Both predict the deflection over the horizon with the condensed linear part
+(:mod:`controllers.condensed`), estimate ``[x; d]`` with the offset-free observer
+(:mod:`controllers.observer`), penalise the rate of their plan (z for
+:class:`controllers.mpc.LinearMPC`, volts for :class:`controllers.nmpc.NonlinearMPC`), and
+start each episode from the model's steady state that holds the first measurement:
+
+- within the sensor noise bound, rest at 0 V (the measurement is noise);
+- beyond it (an env reset with ``initial_voltage``), the linear state holding y_0 and the
+  nonlinearity's memory after the voltage that holds it (:meth:`PredictionModel.steady_start`).
+
+A subclass builds its solver in :meth:`PredictiveController._set_up` and sets its plan from the
+start in :meth:`PredictiveController._start`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+
+from controllers.base import Controller
+from controllers.condensed import check_well_posed, prediction_matrices, rate_hessian
+from controllers.observer import DisturbanceObserver
+from controllers.prediction import PredictionModel, SteadyStart
+from controllers.task import ControlTask
+
+__all__ = ["PredictiveController"]
+
+
+class PredictiveController(Controller):
+    """Base of the MPCs (see the module docstring).
+
+    Parameters
+    ----------
+    model : PredictionModel
+        Identified Hammerstein model or the plant (oracle).
+    task : ControlTask
+        Sample time, drive range, preview layout.
+    settings
+        The subclass's ``Settings`` (default: its defaults). Has ``horizon``, ``rate_weight``
+        and the observer's fields; ``tracking_weight`` if the cost weighs the error.
+    name : str, optional
+        Name in reports (default: the class's).
+
+    Raises
+    ------
+    ValueError
+        When the QP would be singular (:func:`controllers.condensed.check_well_posed`).
+    """
+
+    Settings: ClassVar[type]
+
+    def __init__(
+        self,
+        model: PredictionModel,
+        task: ControlTask,
+        settings: Any | None = None,
+        *,
+        name: str | None = None,
+    ) -> None:
+        super().__init__(task)
+        if name is not None:
+            self.name = name
+        self.model = model
+        self.settings = settings = settings or self.Settings()
+        n_hor = settings.horizon
+        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
+        self._rate_hessian = rate_hessian(n_hor, settings.rate_weight)
+        weight = getattr(settings, "tracking_weight", 1.0)  # the linear MPC weighs error by 1
+        check_well_posed(self._gamma, settings.rate_weight, weight, name=self.name)
+        self.observer = DisturbanceObserver.for_controller(model, task, settings)
+        self._set_up()
+        self._reset(None)
+
+    def _reset(self, observation: np.ndarray | None) -> None:
+        y0 = 0.0 if observation is None else float(observation[0])
+        start = self.model.steady_start(y0, self.task.noise_bound_um)
+        self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
+        self._memory = start.memory
+        self._start(start)
+
+    def _set_up(self) -> None:
+        """Build what stays fixed over episodes (called once, before the first reset)."""
+        raise NotImplementedError
+
+    def _start(self, start: SteadyStart) -> None:
+        """Set the plan and the solver for an episode that starts at ``start``."""
+        raise NotImplementedError
