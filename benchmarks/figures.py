@@ -54,6 +54,13 @@ def _bender(result: BenchmarkResult) -> str:
     return str(getattr(result.config, "bender", "PL140"))
 
 
+def _wrapped(title: str, fig: Any) -> str:
+    """``title`` broken into lines that fit the figure's width (10 pt text, ~13 chars/inch)."""
+    import textwrap
+
+    return textwrap.fill(title, width=max(40, int(13 * fig.get_figwidth())))
+
+
 def _save(fig: Any, path: Path) -> None:
     import matplotlib.pyplot as plt
 
@@ -113,48 +120,67 @@ def _tracking(result: BenchmarkResult, path: Path) -> str | None:
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=8)
     note = f" (not drawn, overlapping a drawn row or another seed: {', '.join(omitted)})"
-    fig.suptitle(
-        f"Nominal {_bender(result)}: tracking (top) and error, symlog beyond 2 um (bottom)"
-        + (note if omitted else ""),
-        fontsize=10,
-    )
+    title = f"Nominal {_bender(result)}: tracking (top) and error, symlog beyond 2 um (bottom)"
+    fig.suptitle(_wrapped(title + (note if omitted else ""), fig), fontsize=10)
     fig.tight_layout(rect=(0, 0.06, 1, 1))
     _save(fig, path)
     return None
 
 
 def _summary(result: BenchmarkResult, path: Path) -> str | None:
+    """Nominal RMSE bars per reference; the seeds of one recipe as one bar (mean, min-max)."""
     import matplotlib.pyplot as plt
 
     cfg = result.config
     nominal = {
-        (c["controller"], c["reference"]): c
+        (c["controller"], c["reference"]): c["rmse_percent"]
         for c in aggregate(result.episodes)
         if c["plant"] == "nominal"
     }
-    controllers = [c for c in cfg.rows if any(k[0] == c for k in nominal)]
-    refs = [r for r in cfg.references if any(k[1] == r for k in nominal)]
     if not nominal:
         return "the nominal plant was not run"
+    bars = _bars([c for c in cfg.rows if any(k[0] == c for k in nominal)])
+    refs = [r for r in cfg.references if any(k[1] == r for k in nominal)]
     fig, ax = plt.subplots(figsize=(max(6.0, 1.6 * len(refs) + 3), 5.2))
-    width = 0.8 / len(controllers)
+    width = 0.8 / len(bars)
     x = np.arange(len(refs))
-    for i, c in enumerate(controllers):
-        values = [nominal[(c, r)]["rmse_percent"] if (c, r) in nominal else np.nan for r in refs]
-        offset = (i - (len(controllers) - 1) / 2) * width
-        ax.bar(x + offset, values, width, label=c, color=row_color(c))
+    for i, (label, members) in enumerate(bars.items()):
+        values = [[nominal[(m, r)] for m in members if (m, r) in nominal] for r in refs]
+        height = np.array([np.mean(v) if v else np.nan for v in values])
+        offset = (i - (len(bars) - 1) / 2) * width
+        spread = None
+        if len(members) > 1:  # whiskers from the best to the worst seed
+            low = np.array([min(v) if v else np.nan for v in values])
+            high = np.array([max(v) if v else np.nan for v in values])
+            spread = np.nan_to_num(np.stack([height - low, high - height]))
+        ax.bar(x + offset, height, width, label=label, color=row_color(members[0]),
+               yerr=spread, capsize=2)
     ax.set_yscale("log")
     ax.set_xticks(x, refs, rotation=20)
     ax.set_ylabel("RMSE (% of full stroke)")
-    ax.set_title(
-        f"Nominal {_bender(result)}: tracking RMSE per controller and reference (log scale)"
-    )
+    title = f"Nominal {_bender(result)}: tracking RMSE per controller and reference (log scale)"
+    if any(len(m) > 1 for m in bars.values()):
+        title += "; seeds of one recipe: mean, whiskers min to max"
+    ax.set_title(_wrapped(title, fig), fontsize=10)
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=min(len(controllers), 6), loc="upper center",
+    ax.legend(fontsize=8, ncol=min(len(bars), 6), loc="upper center",
               bbox_to_anchor=(0.5, -0.2))
     fig.tight_layout()
     _save(fig, path)
     return None
+
+
+def _bars(rows: list[str]) -> dict[str, list[str]]:
+    """Bar label -> the rows it stands for: a row, or every seed of one trained recipe."""
+    groups = seed_groups(rows)
+    bars: dict[str, list[str]] = {}
+    for row in rows:
+        recipe = next((name for name, members in groups.items() if row in members), None)
+        if recipe is None:
+            bars[row] = [row]
+        else:
+            bars.setdefault(f"{recipe} ({len(groups[recipe])} seeds)", groups[recipe])
+    return bars
 
 
 def _robustness_grid(result: BenchmarkResult) -> tuple[np.ndarray, list[str], list[str], list]:
@@ -209,36 +235,85 @@ def _robustness(result: BenchmarkResult, path: Path) -> str | None:
     return None
 
 
+def _loops(result: BenchmarkResult) -> dict[str, dict[str, Any]]:
+    """Rows whose description carries a usable loop (``describe()["loop"]``: num, den, dt)."""
+    loops = {}
+    for name, d in result.controllers.items():
+        loop = d.get("loop") if isinstance(d, dict) else None
+        if isinstance(loop, dict) and {"num", "den", "dt"} <= loop.keys() and loop["dt"]:
+            loops[name] = d
+    return loops
+
+
+_MARGINS = (
+    ("gain_margin_db", "GM {:.1f} dB"),
+    ("phase_margin_deg", "PM {:.0f} deg"),
+    ("ms", "Ms {:.2f}"),
+    ("crossover_hz", "crossover {:.3g} Hz"),
+)
+"""The margins a loop's description may give, as its legend shows them."""
+
+
+def _number(d: dict[str, Any], key: str) -> float | None:
+    """``d[key]`` when it is a finite number, else None."""
+    value = d.get(key)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+    return float(value) if ok else None
+
+
+def _margins_label(name: str, d: dict[str, Any]) -> str:
+    """Legend text: the row and the margins its description gives."""
+    given = [text.format(_number(d, key)) for key, text in _MARGINS if _number(d, key) is not None]
+    return name + (": " + ", ".join(given) if given else " (no margins given)")
+
+
 def _pid_loops(result: BenchmarkResult, path: Path) -> str | None:
-    """Loop gain |L| and sensitivity |S| = |1 / (1 + L)| of every tuned PID loop, with margins."""
+    """Bode plot of every tuned loop L = C N P (magnitude, phase) and its sensitivity
+    |S| = |1 / (1 + L)|, with the crossover, the phase margin and Ms marked."""
     import control
     import matplotlib.pyplot as plt
 
-    loops = {
-        name: d for name, d in result.controllers.items() if isinstance(d.get("loop"), dict)
-    }
+    loops = _loops(result)
     if not loops:
-        return "no PID controller was run (the loop figure shows tuned PID loops)"
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+        return "no controller described a feedback loop (the tuned PID rows do)"
+    fig, (mag, phase, sens) = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
     for name, d in loops.items():
         loop = control.tf(d["loop"]["num"], d["loop"]["den"], d["loop"]["dt"])
         freqs = np.geomspace(0.1, 0.4999 / loop.dt, 3000)
         response = loop(np.exp(2j * np.pi * freqs * loop.dt))
-        label = (
-            f"{name}: GM {d['gain_margin_db']:.1f} dB, PM {d['phase_margin_deg']:.0f} deg, "
-            f"Ms {d['ms']:.2f}, crossover {d['crossover_hz']:.3g} Hz"
-        )
-        top.loglog(freqs, np.abs(response), color=row_color(name), label=label)
-        bottom.loglog(freqs, np.abs(1.0 / (1.0 + response)), color=row_color(name))
-        bottom.axhline(d["ms"], color=row_color(name), lw=0.8, ls=":")
-    top.axhline(1.0, color="k", lw=0.8)
-    top.set_ylabel("|L| (loop gain)")
-    bottom.set_ylabel("|S| = |1 / (1 + L)|")
-    bottom.set_xlabel("frequency (Hz)")
-    for ax in (top, bottom):
+        degrees = np.degrees(np.unwrap(np.angle(response)))
+        colour = row_color(name)
+        mag.loglog(freqs, np.abs(response), color=colour, label=_margins_label(name, d))
+        phase.semilogx(freqs, degrees, color=colour)
+        sens.loglog(freqs, np.abs(1.0 / (1.0 + response)), color=colour)
+        _mark_margins(d, colour, (mag, phase, sens))
+    mag.axhline(1.0, color="k", lw=0.8)
+    phase.axhline(-180.0, color="k", lw=0.8)
+    mag.set_ylabel("|L| (loop gain)")
+    phase.set_ylabel("phase of L (deg)")
+    sens.set_ylabel("|S| = |1 / (1 + L)|")
+    sens.set_xlabel("frequency (Hz)")
+    for ax in (mag, phase, sens):
         ax.grid(True, which="both", alpha=0.3)
-    top.legend(fontsize=8)
-    top.set_title(f"Tuned PID loops on the identified {_bender(result)} model (Ms dotted)")
+    mag.legend(fontsize=8)
+    title = (
+        f"Tuned loops on the identified {_bender(result)} model: crossover dashed, phase margin "
+        "as a bar above -180 deg, Ms dotted"
+    )
+    mag.set_title(_wrapped(title, fig), fontsize=10)
     fig.tight_layout()
     _save(fig, path)
     return None
+
+
+def _mark_margins(d: dict[str, Any], colour: str, axes: tuple) -> None:
+    """Crossover (dashed, every panel), phase margin (a bar up from -180 deg), Ms (dotted)."""
+    _, phase, sens = axes
+    crossover, margin, ms = (_number(d, k) for k in ("crossover_hz", "phase_margin_deg", "ms"))
+    if crossover is not None and crossover > 0:
+        for ax in axes:
+            ax.axvline(crossover, color=colour, lw=0.8, ls="--")
+        if margin is not None:
+            phase.plot([crossover] * 2, [-180.0, margin - 180.0], color=colour, lw=3, alpha=0.5)
+    if ms is not None:
+        sens.axhline(ms, color=colour, lw=0.8, ls=":")

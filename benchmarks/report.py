@@ -9,20 +9,34 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.cells import TIE, aggregate, different
+from benchmarks.cells import TIE, aggregate
+from benchmarks.descriptions import controller_tables, loop_table
 from benchmarks.figures import draw_figures
-from benchmarks.references import REFERENCES
+from benchmarks.reference_checks import (
+    check_targets,
+    missed_checks,
+    reference_checks_section,
+    strict_status,
+    summary_line,
+)
 from benchmarks.rows import seed_groups
 from benchmarks.runner import MONTE_CARLO, BenchmarkResult
+from benchmarks.verdict import cell_index, tie_rule, verdict, winners
 
 __all__ = [
     "SCHEMA",
     "SCHEMA_VERSION",
+    "TIE",
     "check_targets",
     "controller_tables",
+    "deterministic_json",
     "missed_checks",
+    "monte_carlo_table",
+    "strict_status",
+    "summary_line",
     "tracking_tables",
     "verdict",
+    "winners",
     "write_benchmark",
 ]
 
@@ -35,21 +49,12 @@ _TIMING_KEYS = ("compute_median_us", "compute_p99_us", "compute_max_us", "deadli
 """Measured per run, not reproducible: kept out of the deterministic part of the JSON."""
 
 
-def _lookup(result: BenchmarkResult) -> dict[tuple[str, str, str], dict[str, Any]]:
-    """Cells (means over the noise seeds) by (plant, controller, reference); the Monte Carlo
-    draws are left out."""
-    return {
-        (c["plant"], c["controller"], c["reference"]): c
-        for c in aggregate(result.episodes)
-        if c["plant"] != MONTE_CARLO
-    }
-
-
 def monte_carlo_table(result: BenchmarkResult) -> str:
     """RMSE (% of the full stroke) over random plants, as order statistics of the draws.
 
     With n draws an empirical 90th percentile is not one (with 10 draws it is the 2nd worst,
-    give or take): the table names what it shows, the median, the 2nd worst and the worst of n.
+    give or take): the table names what it shows, the median, the 2nd worst and the worst of
+    the n draws, and says that upper quantiles need more draws.
     """
     draws = [c for c in aggregate(result.episodes) if c["plant"] == MONTE_CARLO]
     if not draws:
@@ -57,22 +62,40 @@ def monte_carlo_table(result: BenchmarkResult) -> str:
     cfg = result.config
     rows = [c for c in cfg.rows if any(e["controller"] == c for e in draws)]
     refs = [r for r in cfg.references if any(e["reference"] == r for e in draws)]
+    counts = {
+        len([e for e in draws if (e["controller"], e["reference"]) == (row, ref)])
+        for row in rows
+        for ref in refs
+    } - {0}
+    n = max(counts)
 
     def cell(row: str, ref: str) -> str:
         values = sorted(
             e["rmse_percent"] for e in draws if (e["controller"], e["reference"]) == (row, ref)
         )
-        if not values:
-            return ""
-        second = f"{values[-2]:.3f} / " if len(values) > 1 else ""
-        return f"{np.median(values):.3f} / {second}{values[-1]:.3f}"
+        return " / ".join(f"{v:.3f}" for v in _order_statistics(values))
 
-    n = cfg.draws
     head = (
         f"### Monte Carlo: {n} plants drawn from the datasheet tolerances, RMSE (% of the full "
-        f"stroke): median / 2nd worst / worst of {n}\n"
+        f"stroke): {_order_statistics_names(n)}\n\n"
+        f"Order statistics of the {n} draws, not quantiles: an upper percentile such as the "
+        f"90th needs many more draws than {n} to be estimated (`--draws`).\n"
     )
     return head + "\n" + _table(rows, refs, cell, "controller") + "\n"
+
+
+def _order_statistics(values: list[float]) -> list[float]:
+    """Median, 2nd worst and worst of sorted ``values`` (fewer for fewer than 3 draws)."""
+    if len(values) < 3:
+        return values[-1:] if len(values) == 1 else values
+    return [float(np.median(values)), values[-2], values[-1]]
+
+
+def _order_statistics_names(n: int) -> str:
+    """What :func:`_order_statistics` gives for ``n`` draws."""
+    if n <= 2:
+        return "the one draw" if n == 1 else "better / worse of 2"
+    return f"median / 2nd worst / worst of {n}"
 
 
 def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
@@ -80,20 +103,6 @@ def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
     for row in rows:
         lines.append(f"| {row} | " + " | ".join(cell(row, c) for c in columns) + " |")
     return "\n".join(lines)
-
-
-def winners(index: dict, plant: str, rows: list[str], ref: str) -> list[str]:
-    """Rows with the best RMSE on ``ref`` (oracles aside): one, or those the best cannot be
-    told apart from (:func:`benchmarks.cells.different`)."""
-    cells = {
-        r: index[(plant, r, ref)]
-        for r in rows
-        if (plant, r, ref) in index and not r.endswith("-oracle")
-    }
-    if not cells:
-        return []
-    best = min(cells.values(), key=lambda c: c["rmse_percent"])
-    return [r for r, c in cells.items() if c is best or not different(c, best)]
 
 
 def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]):
@@ -143,7 +152,7 @@ def tracking_tables(
     ``plants`` selects the plants (default all but the Monte Carlo draws); ``max_errors``
     adds the nominal plant's max-error table.
     """
-    index = _lookup(result)
+    index = cell_index(result)
     cfg = result.config
     parts = []
     chosen = cfg.plants if plants is None else plants
@@ -200,114 +209,8 @@ def _effort_table(result: BenchmarkResult) -> str:
     return _table(rows, columns, cell, "controller (nominal, mean over references)")
 
 
-def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
-    """The project's expectations of its default run, each with its measured value and whether
-    it holds. They were set on the PL140, so other benders get none."""
-    if getattr(result.config, "bender", "PL140").split(".")[0] != "PL140":
-        return []
-    index = _lookup(result)
-    checks: list[dict[str, Any]] = []
-
-    def get(plant, c, r):
-        e = index.get((plant, c, r))
-        return None if e is None else e["rmse_percent"]
-
-    def add(text, value, limit):
-        if value is not None:
-            checks.append({"target": text, "value": value, "limit": limit, "holds": value <= limit})
-
-    for r in result.config.references:
-        smooth = REFERENCES[r].smooth
-        if r in ("random-steps", "chirp"):
-            continue
-        add(f"mpc RMSE on {r} (%)", get("nominal", "mpc", r), 0.05 if smooth else 0.9)
-        episode = index.get(("nominal", "mpc", r))
-        if smooth and episode is not None:
-            add(f"mpc max error on {r} (um)", episode["max_error_um"], 4.0)
-    for r in ("sine-10Hz", "sine-50Hz", "sine-100Hz"):
-        m, p = get("nominal", "mpc", r), get("nominal", "pid-notch", r)
-        if m is not None and p is not None:
-            add(f"mpc / pid-notch on {r}", m / p, 0.1)
-    for r in ("sine-50Hz", "steps"):
-        m, p = get("nominal", "mpc", r), get("nominal", "pid-ff", r)
-        if m is not None and p is not None:
-            add(f"mpc / pid-ff on {r} (>= 3x better)", m / p, 1 / 3)
-    for r in result.config.references:
-        m, o = get("nominal", "mpc", r), get("nominal", "mpc-oracle", r)
-        if m is not None and o is not None and REFERENCES[r].smooth:
-            add(f"mpc / mpc-oracle on {r}", m / o, 2.0)
-        n = get("nominal", "nmpc", r)
-        if m is not None and n is not None:
-            add(f"nmpc / mpc on {r}", n / m, 1.1)
-    limits = {
-        "damping-0.01": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
-        "damping-0.04": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
-        "prandtl-ishlinskii": {
-            "sine-10Hz": 0.15,
-            "sine-50Hz": 0.5,
-            "sine-100Hz": 0.9,
-            "multisine": 0.3,
-        },
-    }
-    for plant, refs in limits.items():
-        for r, limit in refs.items():
-            add(f"mpc RMSE on {r}, plant {plant} (%)", get(plant, "mpc", r), limit)
-    return checks
-
-
-def verdict(result: BenchmarkResult) -> list[str]:
-    """Per nominal reference: the best controller (oracles aside), its lead and why, one line."""
-    index = _lookup(result)
-    rows = [r for r in result.config.rows if not r.endswith("-oracle")]
-    lines = []
-    for ref in result.config.references:
-        ranked = sorted(
-            (index[("nominal", r, ref)]["rmse_percent"], r)
-            for r in rows
-            if ("nominal", r, ref) in index
-        )
-        if not ranked:
-            continue
-        best_value, best = ranked[0]
-        tied = winners(index, "nominal", rows, ref)
-        rest = [(v, r) for v, r in ranked if r not in tied]
-        if len(tied) > 1:
-            head = f"tie between {', '.join(f'`{t}`' for t in tied)} ({best_value:.3f} %)"
-            if rest:
-                head += f", {rest[0][0] / best_value:.1f}x better than `{rest[0][1]}`"
-        elif len(ranked) > 1:
-            lead = ranked[1][0] / best_value
-            head = f"**`{best}`** ({best_value:.3f} %), {lead:.1f}x better than `{ranked[1][1]}`"
-        else:
-            head = f"`{best}` ({best_value:.3f} %), the only controller run"
-        lines.append(f"- {ref}: {head}; {_why(index, best, ref)}")
-    return lines
-
-
-def _why(index: dict, row: str, ref: str) -> str:
-    """One reason for the best row's figure: the drive limit, the oracle's floor or model error."""
-    episode = index[("nominal", row, ref)]
-    if episode["saturated_fraction"] > 0.05:
-        return (
-            f"the drive limit binds ({100 * episode['saturated_fraction']:.0f} % of the steps "
-            "saturated): the amplifier, not the controller, sets the floor"
-        )
-    oracle = index.get(("nominal", "mpc-oracle", ref))
-    if oracle is None:
-        return "no oracle row to compare with"
-    ratio = episode["rmse_percent"] / oracle["rmse_percent"]
-    if ratio < 1.25 and not REFERENCES[ref].smooth:
-        return (
-            f"at the oracle's level ({ratio:.2f}x `mpc-oracle`): a jump takes several samples "
-            "at the drive limit, so the drive range sets the floor"
-        )
-    if ratio < 1.25:
-        return f"at the oracle's level ({ratio:.2f}x `mpc-oracle`): noise sets the floor"
-    return f"{ratio:.1f}x `mpc-oracle`: model error sets the floor"
-
-
-def _step_table(result: BenchmarkResult) -> str:
-    """Rise time, overshoot and settling time on the nominal step references."""
+def _step_table(result: BenchmarkResult, dt: float) -> str:
+    """Rise time, overshoot and settling time on the nominal step references (``dt`` in s)."""
     episodes = [
         c
         for c in aggregate(result.episodes)
@@ -330,78 +233,47 @@ def _step_table(result: BenchmarkResult) -> str:
             f"{e['steps_settled']} |"
         )
     return (
-        "Medians over the steps of each reference; 10-90 % rise, 2 % settling band, read over "
-        "the first 3/4 of each hold (a controller with preview moves before the next step).\n\n"
+        "Medians over the steps of each reference (`controllers.metrics.step_metrics`); 10-90 "
+        "% rise, 2 % settling band, read over the first 3/4 of each hold (a controller with "
+        f"preview moves before the next step). Times at the sample's resolution ({dt * 1e3:g} "
+        "ms): a rise of 0 went from 10 % to 90 % within one sample.\n\n"
         + "\n".join(lines)
         + "\n"
     )
 
 
-def _flatten(description: dict[str, Any], prefix: str = "") -> list[tuple[str, str]]:
-    """(key, value) pairs of a description's scalars, nested dicts as ``a.b``; lists left out."""
-    pairs = []
-    for key, value in description.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            pairs += _flatten(value, name + ".")
-        elif isinstance(value, float):
-            pairs.append((name, f"{value:.4g}"))
-        elif isinstance(value, (str, int, bool)) or value is None:
-            pairs.append((name, str(value)))
-    return pairs
-
-
-def controller_tables(result: BenchmarkResult) -> str:
-    """Every controller's settings and derived facts (gains, margins, horizon) as a table."""
-    parts = []
-    for name, description in result.controllers.items():
-        pairs = [(k, v) for k, v in _flatten(description) if k not in ("name", "stats")]
-        rows = "\n".join(f"| {k} | {v} |" for k, v in pairs)
-        parts.append(f"### `{name}`\n\n| setting or fact | value |\n|---|---|\n{rows}\n")
-    return "\n".join(parts)
-
-
-def reference_checks_section(checks: list[dict[str, Any]]) -> list[str]:
-    """The project's own expectations of the default run, framed as such."""
-    if not checks:
-        return [
-            "## Reference checks",
-            "",
-            "None for this run: the project's expectations were set on the PL140's default run.",
-        ]
-    missed = [c for c in checks if not c["holds"]]
-    lines = [
-        "## Reference checks",
-        "",
-        "The project's own expectations of its default run (limits set from earlier "
-        "measurements on a 2-core machine), kept to notice regressions. A miss is news about "
-        "the controllers on this run, not an installation error; `piezo benchmark --strict` "
-        f"turns misses into a failing exit code. {len(checks) - len(missed)} of {len(checks)} "
-        "met.",
-        "",
-        "| check | measured | limit | met |",
-        "|---|---|---|---|",
-    ]
-    lines += [
-        f"| {c['target']} | {c['value']:.4g} | {c['limit']:.4g} | "
-        f"{'yes' if c['holds'] else 'NO'} |"
-        for c in checks
-    ]
-    return lines
-
-
 def _seeds_sentence(cfg: Any) -> str:
     seeds = getattr(cfg, "seeds", 1)
     if seeds == 1:
-        return (
-            f"Seed {cfg.seed}, one noise seed per cell (differences under {100 * TIE:g} % are "
-            "called ties; --seeds N gives intervals);"
-        )
+        return f"Noise seed {cfg.seed}, one per cell;"
     return (
         f"Noise seeds {cfg.seed} .. {cfg.seed + seeds - 1}: every cell is the mean over {seeds} "
-        "seeds +- the half-width of its 95 % interval (Student's t); differences within the "
-        "intervals are called ties and not bolded;"
+        "seeds +- the half-width of its 95 % interval (Student's t);"
     )
+
+
+_BUILT_IN = ("pid", "pid-notch", "pid-ff", "mpc", "nmpc")
+"""The project's controllers the 'who gets what' and tuning paragraphs speak of."""
+
+
+def _disclosure_lines(result: BenchmarkResult) -> list[str]:
+    """What each of the project's controllers sees and how they were tuned (when any ran)."""
+    if not {r.removesuffix("-oracle") for r in result.config.rows} & set(_BUILT_IN):
+        return []
+    return [
+        "Who gets what: `pid` and `pid-notch` use only the error r_t+1 - y_t (no preview, no "
+        "model inverse); `pid-ff` adds the model-inverse feedforward of r_t+1 (one sample of "
+        "preview); `mpc` and `nmpc` predict over the whole preview with the model. Every "
+        "controller is built for the nominal task and runs unchanged on the robustness "
+        "plants; an oracle differs only in its prediction model (the plant's hysteresis and "
+        "exact beam; its z is the plant's effective voltage).",
+        "",
+        "Tuning disclosure: the controllers' defaults were chosen on this benchmark's "
+        "references (the MPC observer speed on the nominal 50 Hz sine against the "
+        "Prandtl-Ishlinskii plant's 10 Hz sine; the narrow feedforward notch of `pid-ff` on the "
+        "50 Hz sine); the PID gains come from a tuning rule on the identified model alone.",
+        "",
+    ]
 
 
 def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
@@ -424,18 +296,7 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
         "one (not deployable: it shows what identification costs, and is left out of the "
         "verdict).",
         "",
-        "Who gets what: `pid` and `pid-notch` use only the error r_t+1 - y_t (no preview, no "
-        "model inverse); `pid-ff` adds the model-inverse feedforward of r_t+1 (one sample of "
-        "preview); `mpc` and `nmpc` predict over the whole preview with the model. Every "
-        "controller is built for the nominal task and runs unchanged on the robustness "
-        "plants; an oracle differs only in its prediction model (the plant's hysteresis and "
-        "exact beam; its z is the plant's effective voltage).",
-        "",
-        "Tuning disclosure: the controllers' defaults were chosen on this benchmark's "
-        "references (the MPC observer speed on the nominal 50 Hz sine against the "
-        "Prandtl-Ishlinskii plant's 10 Hz sine; the narrow feedforward notch of `pid-ff` on the "
-        "50 Hz sine); the PID gains come from a tuning rule on the identified model alone.",
-        "",
+        *_disclosure_lines(result),
         f"Model: {meta['model']}. Time: "
         + ", ".join(f"{k} {v} s" for k, v in meta["timing"].items()),
         "",
@@ -477,9 +338,10 @@ def _markdown(
         "",
         "## Verdict",
         "",
-        "Best controller per reference on the nominal plant (RMSE, % of the full stroke):",
+        "Best controller per reference on the nominal plant (RMSE, % of the full stroke), "
+        "winners in bold, and what limits it. " + tie_rule(getattr(result.config, "seeds", 1)),
         "",
-        *verdict(result),
+        *verdict(result, meta),
         "",
         *_setup_lines(result, meta),
         "",
@@ -488,7 +350,7 @@ def _markdown(
         tracking_tables(result),
         monte_carlo_table(result),
     ]
-    steps = _step_table(result)
+    steps = _step_table(result, meta["dt"])
     if steps:
         lines += ["## Step responses (nominal)", "", steps]
     lines += ["## Effort and compute time", "", _effort_table(result), ""]
@@ -513,7 +375,12 @@ def _markdown(
             for name, v in figures.items()
         ]
         lines.append("")
-    lines += ["## Controllers", "", controller_tables(result), ""]
+    lines += ["## Controllers", ""]
+    loops = loop_table(result)
+    if loops:
+        title = "Tuned feedback loops (margins on the identified model; `pid_loops.png`):"
+        lines += [title, "", loops, ""]
+    lines += [controller_tables(result), ""]
     lines += reference_checks_section(checks)
     return "\n".join(lines) + "\n"
 
@@ -559,8 +426,3 @@ def write_benchmark(
     path = out / "benchmark.json"
     path.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return [md, path, *(v for v in drawn.values() if isinstance(v, Path))]
-
-
-def missed_checks(checks: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The reference checks that do not hold (``piezo benchmark --strict`` fails on any)."""
-    return [c for c in checks if not c["holds"]]

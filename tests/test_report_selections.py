@@ -1,7 +1,8 @@
 """Report and figures over any selection of controllers, references and plants.
 
 A hand-made result (no episodes run) stands in for a benchmark, so that every selection a user
-can ask for is drawn in a second; user warnings are errors here (an empty figure warns).
+can ask for is drawn in a second. Every warning is an error here: an empty figure, a legend
+without entries or a log axis without positive data warns, and none may.
 """
 
 from __future__ import annotations
@@ -9,14 +10,20 @@ from __future__ import annotations
 import itertools
 import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import benchmarks.figures as figures
 from benchmarks.figures import draw_figures
-from benchmarks.report import TIE, missed_checks, verdict, write_benchmark
+from benchmarks.report import TIE, verdict, write_benchmark
 from benchmarks.rows import row_color
 from benchmarks.runner import BenchmarkConfig, BenchmarkResult
+
+ROOT = Path(__file__).resolve().parents[1]
+POLICIES = tuple(str(ROOT / "docs" / "policies" / f"ppo-seed{k}") for k in range(3))
+FIGURES = ("tracking.png", "summary.png", "robustness.png", "pid_loops.png")
 
 META = {
     "model": "model",
@@ -37,6 +44,7 @@ _LOOP = {"num": [0.0, 0.02, 0.01], "den": [1.0, -1.5, 0.56], "dt": 1e-3}
 
 
 def _episode(plant: str, controller: str, reference: str, rmse: float, **extra) -> dict:
+    steps = reference in ("steps", "random-steps")
     return {
         "plant": plant,
         "controller": controller,
@@ -51,27 +59,61 @@ def _episode(plant: str, controller: str, reference: str, rmse: float, **extra) 
         "compute_max_us": 40.0,
         "deadline_misses": 0,
         "fallbacks": 0,
-        "steps_settled": "3 of 3" if reference == "steps" else None,
-        "rise_time_ms": 1.0 if reference == "steps" else None,
-        "overshoot_percent": 2.0 if reference == "steps" else None,
-        "settling_time_ms": 5.0 if reference == "steps" else None,
+        "steps_settled": "3 of 3" if steps else None,
+        "rise_time_ms": 1.0 if steps else None,
+        "overshoot_percent": 2.0 if steps else None,
+        "settling_time_ms": 5.0 if steps else None,
         **extra,
     }
 
 
-def _result(controllers, references, plants) -> BenchmarkResult:
+def _description(row: str) -> dict:
+    if row.startswith("pid"):
+        return {
+            "name": row,
+            "settings": {"notch": row != "pid", "ms_max": 1.8},
+            "gains": {"kp": 0.1, "ki": 2.0, "kd": 0.0},
+            "gain_margin_db": 8.0,
+            "phase_margin_deg": 60.0,
+            "ms": 1.8,
+            "crossover_hz": 10.0,
+            "bandwidth_hz": 12.0,
+            "loop": _LOOP,
+        }
+    if row.startswith("ppo"):
+        return {"policy": row, "observation": {"stroke_um": 1000.0, "preview": 10}}
+    return {
+        "name": row,
+        "settings": {"horizon": 20},
+        "native": {
+            "nls_inverse": {
+                "path": "compiled",
+                "reason": "built",
+                "compiled": True,
+                "compiler": "cc",
+                "sha256": "ab" * 32,
+            }
+        },
+    }
+
+
+def _result(controllers, references, plants, policies=()) -> BenchmarkResult:
+    """A benchmark's result made by hand: random RMSE per cell, sine traces, descriptions."""
     config = BenchmarkConfig(
-        controllers=controllers, references=references, plants=plants, draws=3
+        controllers=controllers,
+        references=references,
+        plants=plants,
+        draws=3,
+        policies=policies,
     )
     rng = np.random.default_rng(0)
     episodes = []
     for plant, controller, refs in config.groups():
         for ref in refs:
-            draws = range(3) if plant == "random-plants" else [None]
-            for draw in draws:
+            for draw in range(3) if plant == "random-plants" else [None]:
                 extra = {} if draw is None else {"draw": draw}
-                episodes.append(_episode(plant, controller, ref, float(rng.uniform(0.01, 2)),
-                                         **extra))
+                rmse = float(rng.uniform(0.01, 2))
+                episodes.append(_episode(plant, controller, ref, rmse, **extra))
     t = np.arange(2000)
     traces = {
         ref: {
@@ -80,85 +122,274 @@ def _result(controllers, references, plants) -> BenchmarkResult:
                 "reference_um": list(np.sin(t / 30.0) * 500),
                 "voltage_V": list(np.zeros(t.size)),
             }
-            for c in controllers
+            for c in config.rows
         }
         for ref in references
         if ref in ("sine-50Hz", "multisine", "steps") and "nominal" in plants
     }
-    described = {
-        c: {"name": c, "settings": {"horizon": 20}, "gain_margin_db": 8.0,
-            "phase_margin_deg": 60.0, "ms": 1.8, "crossover_hz": 10.0,
-            **({"loop": _LOOP} if c.startswith("pid") else {})}
-        for c in controllers
-    }
+    described = {c: _description(c) for c in config.rows}
     return BenchmarkResult(config, episodes, described, traces, {"episodes_s": 1.0})
 
 
 SELECTIONS = {
-    "two slow sines (no trace reference)": (("pid", "mpc"), ("sine-1Hz", "sine-10Hz"),
-                                            ("nominal",)),
-    "nominal only": (("pid-ff", "mpc", "mpc-oracle"), ("sine-50Hz", "steps"), ("nominal",)),
+    "two slow sines (no trace reference)": (
+        ("pid", "mpc"),
+        ("sine-1Hz", "sine-10Hz"),
+        ("nominal",),
+    ),
+    "one reference": (("pid", "pid-ff", "mpc"), ("steps",), ("nominal",)),
+    "nominal only, no Monte Carlo": (
+        ("pid-ff", "mpc", "mpc-oracle"),
+        ("sine-50Hz", "steps"),
+        ("nominal",),
+    ),
     "one controller": (("mpc",), ("multisine",), ("nominal", "damping-0.01")),
     "robustness without nominal": (("mpc", "pid-ff"), ("sine-10Hz",), ("stiffness+20%",)),
+    "robustness plant on a reference it does not run": (
+        ("mpc",),
+        ("sine-1Hz",),
+        ("nominal", "creep"),
+    ),
     "monte carlo only": (("mpc",), ("sine-10Hz",), ("random-plants",)),
     "no pid": (("mpc", "nmpc"), ("steps",), ("nominal", "random-plants", "creep")),
-    "everything small": (("pid", "pid-notch", "pid-ff", "mpc"), ("sine-50Hz", "steps"),
-                         ("nominal", "damping-0.04", "random-plants")),
+    "oracle only": (("mpc-oracle",), ("sine-10Hz",), ("nominal",)),
+    "everything small": (
+        ("pid", "pid-notch", "pid-ff", "mpc"),
+        ("sine-50Hz", "steps"),
+        ("nominal", "damping-0.04", "random-plants"),
+    ),
 }
+
+POLICY_SELECTIONS = {
+    "policies only": ((), ("sine-50Hz", "steps"), ("nominal", "stiffness-20%")),
+    "policies beside mpc": (("mpc",), ("multisine",), ("nominal", "random-plants")),
+}
+
+
+def _write(result: BenchmarkResult, out: Path) -> tuple[list[Path], str]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        paths = write_benchmark(result, out, META)
+    return paths, (out / "benchmark.md").read_text()
+
+
+def _check_report(paths: list[Path], text: str, out: Path) -> None:
+    assert text.startswith("# Closed-loop benchmark")
+    assert "{" not in text.split("## Controllers")[1]  # tables, not JSON dumps
+    for name in FIGURES:
+        drawn = (out / name).exists()
+        assert drawn == (out / name in paths)
+        assert drawn or f"{name}: not drawn (" in text  # a missing figure says why
+    json.loads((out / "benchmark.json").read_text())
 
 
 @pytest.mark.parametrize("selection", list(SELECTIONS))
 def test_every_selection_gets_a_report_and_the_figures_it_can_show(selection, tmp_path):
-    result = _result(*SELECTIONS[selection])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", UserWarning)
-        # Old matplotlib calls old pyparsing names; that is not this figure code's warning.
-        warnings.filterwarnings("ignore", message=".*deprecated", category=UserWarning)
-        paths = write_benchmark(result, tmp_path, META)
-    text = (tmp_path / "benchmark.md").read_text()
-    assert text.startswith("# Closed-loop benchmark")
-    for name in ("tracking.png", "summary.png", "robustness.png", "pid_loops.png"):
-        drawn = (tmp_path / name).exists()
-        assert drawn == (tmp_path / name in paths)
-        assert drawn or f"{name}: not drawn (" in text  # a missing figure says why
-    json.loads((tmp_path / "benchmark.json").read_text())
+    paths, text = _write(_result(*SELECTIONS[selection]), tmp_path)
+    _check_report(paths, text, tmp_path)
+
+
+@pytest.mark.parametrize("selection", list(POLICY_SELECTIONS))
+def test_selections_with_policies(selection, tmp_path):
+    paths, text = _write(_result(*POLICY_SELECTIONS[selection], policies=POLICIES), tmp_path)
+    _check_report(paths, text, tmp_path)
+    assert "### `ppo` (3 seeds)" in text  # the seeds of one recipe share one table
+    assert "| differs by seed | ppo-seed0 | ppo-seed1 | ppo-seed2 |" in text
 
 
 def test_figures_skip_what_has_nothing_to_show(tmp_path):
     result = _result(("pid", "mpc"), ("sine-1Hz", "sine-10Hz"), ("nominal",))
     drawn = draw_figures(result, tmp_path)
-    assert isinstance(drawn["tracking.png"], str) and isinstance(drawn["robustness.png"], str)
+    assert "none of" in drawn["tracking.png"]
+    assert "robustness plant" in drawn["robustness.png"]
     assert drawn["summary.png"] == tmp_path / "summary.png"
     assert drawn["pid_loops.png"] == tmp_path / "pid_loops.png"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pid_loops.png", "summary.png"]
 
 
-def test_each_row_keeps_its_colour():
+def test_the_loop_figure_needs_a_loop_and_draws_one_without_margins(tmp_path):
+    result = _result(("pid", "mpc"), ("sine-10Hz",), ("nominal",))
+    del result.controllers["pid"]["loop"]  # a PID that does not describe its loop yet
+    assert (
+        "no controller described a feedback loop" in draw_figures(result, tmp_path)["pid_loops.png"]
+    )
+    result.controllers["mpc"]["loop"] = _LOOP  # a loop without margins is drawn all the same
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert draw_figures(result, tmp_path)["pid_loops.png"] == tmp_path / "pid_loops.png"
+
+
+def _colours(result: BenchmarkResult, out: Path, monkeypatch) -> dict[str, dict[str, str]]:
+    """Figure -> row -> the colour it was drawn in (lines and bars by their legend label)."""
+    import matplotlib.colors
+
+    drawn: dict[str, dict[str, str]] = {}
+
+    def keep(fig, path):
+        colours = {}
+        for ax in fig.axes:
+            for line in ax.get_lines():
+                colours[line.get_label()] = matplotlib.colors.to_hex(line.get_color())
+            for bars in ax.containers:
+                patch = bars.patches[0] if hasattr(bars, "patches") else None
+                if patch is not None:
+                    colours[bars.get_label()] = matplotlib.colors.to_hex(patch.get_facecolor())
+        drawn[Path(path).name] = colours
+        fig.clf()
+
+    monkeypatch.setattr(figures, "_save", keep)
+    draw_figures(result, out)
+    return drawn
+
+
+def test_each_row_keeps_its_colour_in_every_figure_and_selection(tmp_path, monkeypatch):
+    first = _colours(_result(("mpc", "pid-ff"), ("steps",), ("nominal",)), tmp_path, monkeypatch)
+    second = _colours(
+        _result(("pid", "pid-notch", "pid-ff", "nmpc", "mpc"), ("sine-50Hz",), ("nominal",)),
+        tmp_path,
+        monkeypatch,
+    )
+    for drawn in (first, second):
+        for figure in ("tracking.png", "summary.png"):
+            assert drawn[figure]["mpc"] == row_color("mpc"), figure
+            assert drawn[figure]["pid-ff"] == row_color("pid-ff"), figure
+    assert first["pid_loops.png"]["pid-ff: GM 8.0 dB, PM 60 deg, Ms 1.80, crossover 10 Hz"] == (
+        row_color("pid-ff")
+    )
+
+
+def test_colours_are_fixed_by_name():
     names = ["pid", "pid-notch", "pid-ff", "mpc", "nmpc", "mpc-oracle", "nmpc-oracle"]
     colours = [row_color(n) for n in names]
     assert len(set(colours)) == len(colours)
+    assert colours == [
+        "#1f77b4",
+        "#ff7f0e",
+        "#2ca02c",
+        "#d62728",
+        "#9467bd",
+        "#8c564b",
+        "#e377c2",
+    ]  # the same in every run: a fixed map, not the draw order
     assert row_color("ppo-seed0") == row_color("ppo-seed2")  # one recipe, one colour
-    assert row_color("mypkg.ctl:Mine") == row_color("mypkg.ctl:Mine")
+    assert row_color("Mine") == row_color("Mine") and row_color("Mine") not in colours
+
+
+def _with_rmse(result: BenchmarkResult, values: dict[tuple[str, str], float]) -> BenchmarkResult:
+    for e in result.episodes:
+        e["rmse_percent"] = values[(e["controller"], e["reference"])]
+    return result
 
 
 def test_the_verdict_names_the_best_and_calls_near_ties_ties():
-    result = _result(("pid-ff", "mpc", "mpc-oracle"), ("sine-50Hz", "steps"), ("nominal",))
-    values = {("pid-ff", "sine-50Hz"): 0.2, ("mpc", "sine-50Hz"): 0.05,
-              ("mpc-oracle", "sine-50Hz"): 0.01,
-              ("pid-ff", "steps"): 0.90, ("mpc", "steps"): 0.90 * (1 + TIE / 2),
-              ("mpc-oracle", "steps"): 0.5}
-    for e in result.episodes:
-        e["rmse_percent"] = values[(e["controller"], e["reference"])]
-    lines = verdict(result)
+    result = _with_rmse(
+        _result(("pid-ff", "mpc", "mpc-oracle"), ("sine-50Hz", "steps"), ("nominal",)),
+        {
+            ("pid-ff", "sine-50Hz"): 0.2,
+            ("mpc", "sine-50Hz"): 0.05,
+            ("mpc-oracle", "sine-50Hz"): 0.01,
+            ("pid-ff", "steps"): 0.90,
+            ("mpc", "steps"): 0.90 * (1 + TIE / 2),
+            ("mpc-oracle", "steps"): 0.5,
+        },
+    )
+    lines = verdict(result, META)
     assert lines[0].startswith("- sine-50Hz: **`mpc`** (0.050 %), 4.0x better than `pid-ff`")
-    assert "5.0x `mpc-oracle`" in lines[0]  # the oracle is a yardstick, not a winner
+    assert "model-limited: 5.0x `mpc-oracle`" in lines[0]  # a yardstick, not a winner
     assert lines[1].startswith("- steps: tie between `pid-ff`, `mpc`")
+    assert "**" not in lines[1]
 
 
-def test_missed_checks_are_what_strict_fails_on():
-    checks = [{"holds": True}, {"holds": False}]
-    assert missed_checks(checks) == [{"holds": False}]
+def test_the_verdict_says_what_limits_the_best_without_an_oracle():
+    result = _with_rmse(
+        _result(("pid-ff", "mpc"), ("sine-10Hz", "sine-100Hz", "steps"), ("nominal",)),
+        {
+            ("pid-ff", "sine-10Hz"): 0.030,
+            ("mpc", "sine-10Hz"): 0.0318,  # 6 % apart
+            ("pid-ff", "sine-100Hz"): 0.5,
+            ("mpc", "sine-100Hz"): 0.2,
+            ("pid-ff", "steps"): 1.5,
+            ("mpc", "steps"): 0.9,
+        },
+    )
+    for e in result.episodes:
+        if (e["controller"], e["reference"]) == ("pid-ff", "sine-100Hz"):
+            e["saturated_fraction"] = 0.2  # pid-ff saturates, but mpc is the best there
+    ten, hundred, steps = verdict(result, META)
+    # 0.030 % of 2000 um = 0.6 um against the noise's RMS 1 / sqrt(3) = 0.577 um
+    assert ten.startswith("- sine-10Hz: **`pid-ff`** (0.030 %), 6.0 % better than `mpc`")
+    assert "noise-limited: 1.0x the sensor noise's RMS (0.58 um)" in ten
+    assert "7x the sensor noise's RMS" in hundred and "dynamics or model error" in hundred
+    assert "jump-limited" in steps and "rise 1 ms" in steps
+    assert verdict(result)[0] == ten  # the nominal plant's noise is the env's default
+
+
+def test_a_saturated_winner_is_drive_limited():
+    result = _result(("mpc",), ("sine-100Hz",), ("nominal",))
+    result.episodes[0]["saturated_fraction"] = 0.3
+    assert "drive-limited: 30 % of the steps saturated" in verdict(result, META)[0]
+
+
+def test_the_report_opens_with_the_verdict_and_takes_its_numbers_from_the_task(tmp_path):
+    result = _result(("pid-ff", "mpc"), ("sine-10Hz",), ("nominal",))
+    meta = {**META, "stroke_um": 450.0, "noise_bound_um": 0.5}
+    write_benchmark(result, tmp_path, meta, figures=False)
+    text = (tmp_path / "benchmark.md").read_text()
+    head = text.split("\n## ")[1]
+    assert head.startswith("Verdict") and "- sine-10Hz: **`" in head
+    assert f"under {100 * TIE:g} % is called a tie" in head
+    assert "2 x 450 um = 900 um" in text and "sensor noise +-0.5 um" in text
+    assert "1000 um" not in text and "2000 um" not in text
+
+
+def test_the_reference_checks_come_last_framed_as_the_projects():
+    from benchmarks.reference_checks import (
+        missed_checks,
+        reference_checks_section,
+        strict_status,
+        summary_line,
+    )
+
+    checks = [
+        {"target": "a", "value": 1.0, "limit": 2.0, "holds": True},
+        {"target": "b", "value": 3.0, "limit": 2.0, "holds": False},
+    ]
+    assert missed_checks(checks) == checks[1:]
+    assert strict_status(checks, strict=True) == 1
+    assert strict_status(checks, strict=False) == 0
+    assert strict_status(checks[:1], strict=True) == 0
+    assert "not an install test" in summary_line(checks) and "1 of 2 met" in summary_line(checks)
+    assert summary_line([]) == ""
+    section = "\n".join(reference_checks_section(checks))
+    assert "not an installation error" in section and "| b | 3 | 2 | NO |" in section
+
+
+def test_the_monte_carlo_table_gives_order_statistics_not_quantiles(tmp_path):
+    from benchmarks.report import monte_carlo_table
+
+    result = _result(("mpc",), ("sine-10Hz",), ("random-plants",))
+    values = [0.3, 0.1, 0.2]
+    for e, v in zip(result.episodes, values, strict=True):
+        e["rmse_percent"] = v
+    table = monte_carlo_table(result)
+    assert "median / 2nd worst / worst of 3" in table and "not quantiles" in table
+    assert "| mpc | 0.200 / 0.200 / 0.300 |" in table
+    assert "percentile |" not in table
+
+
+def test_controller_tables_are_readable():
+    from benchmarks.descriptions import controller_tables, loop_table
+
+    result = _result(("pid-ff", "mpc"), ("sine-10Hz",), ("nominal",), policies=POLICIES[:2])
+    tables = controller_tables(result)
+    assert "| native.nls_inverse | compiled: built |" in tables  # digests stay in the JSON
+    assert "sha256" not in tables and "loop" not in tables
+    assert "| observation.stroke_um (one-sided) | 1000 |" in tables  # shared by both seeds
+    assert "| `pid-ff` | 0.1 | 2 | 0 | 8 | 60 | 10 | 1.8 | 12 |" in loop_table(result)
+    assert "gain_margin_db" not in tables  # in the loop table, not twice
 
 
 def test_selections_cover_every_plant_kind():
-    plants = set(itertools.chain.from_iterable(s[2] for s in SELECTIONS.values()))
+    chosen = {**SELECTIONS, **POLICY_SELECTIONS}.values()
+    plants = set(itertools.chain.from_iterable(s[2] for s in chosen))
     assert {"nominal", "random-plants"} <= plants and len(plants) >= 5

@@ -1,0 +1,137 @@
+"""The project's reference checks: its own expectations of the default PL140 run.
+
+Each check is a limit set from earlier measurements of the default run on a 2-core machine,
+kept to notice regressions of the controllers. They are the project's, not the user's: a
+miss says that a controller did worse on this run than the project expects, never that the
+installation is broken. The report frames them so (:func:`reference_checks_section`), the
+terminal gives one line, and ``piezo benchmark --strict`` exits non-zero when
+:func:`strict_status` says so.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from benchmarks.references import REFERENCES
+from benchmarks.runner import BenchmarkResult
+from benchmarks.verdict import cell_index
+
+__all__ = [
+    "check_targets",
+    "missed_checks",
+    "reference_checks_section",
+    "strict_status",
+    "summary_line",
+]
+
+_PLANT_LIMITS = {
+    "damping-0.01": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
+    "damping-0.04": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
+    "prandtl-ishlinskii": {
+        "sine-10Hz": 0.15,
+        "sine-50Hz": 0.5,
+        "sine-100Hz": 0.9,
+        "multisine": 0.3,
+    },
+}
+"""Plant -> reference -> the largest ``mpc`` RMSE (% of the full stroke) expected there."""
+
+
+def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
+    """The project's expectations of its default run, each with its measured value.
+
+    They were set on the PL140, so other benders get none.
+
+    Returns
+    -------
+    list of dict
+        ``target`` (what is checked, with its unit), ``value``, ``limit`` (the largest value
+        expected) and ``holds``, for every check whose rows this run has.
+    """
+    if getattr(result.config, "bender", "PL140").split(".")[0] != "PL140":
+        return []
+    index = cell_index(result)
+    checks: list[dict[str, Any]] = []
+
+    def get(plant: str, c: str, r: str) -> float | None:
+        e = index.get((plant, c, r))
+        return None if e is None else e["rmse_percent"]
+
+    def add(text: str, value: float | None, limit: float) -> None:
+        if value is not None:
+            checks.append({"target": text, "value": value, "limit": limit, "holds": value <= limit})
+
+    def ratio(a: str, b: str, r: str) -> float | None:
+        x, y = get("nominal", a, r), get("nominal", b, r)
+        return None if x is None or y is None else x / y
+
+    for r in result.config.references:
+        smooth = REFERENCES[r].smooth
+        if r in ("random-steps", "chirp"):
+            continue
+        add(f"mpc RMSE on {r} (%)", get("nominal", "mpc", r), 0.05 if smooth else 0.9)
+        episode = index.get(("nominal", "mpc", r))
+        if smooth and episode is not None:
+            add(f"mpc max error on {r} (um)", episode["max_error_um"], 4.0)
+    for r in ("sine-10Hz", "sine-50Hz", "sine-100Hz"):
+        add(f"mpc / pid-notch on {r}", ratio("mpc", "pid-notch", r), 0.1)
+    for r in ("sine-50Hz", "steps"):
+        add(f"mpc / pid-ff on {r} (>= 3x better)", ratio("mpc", "pid-ff", r), 1 / 3)
+    for r in result.config.references:
+        if REFERENCES[r].smooth:
+            add(f"mpc / mpc-oracle on {r}", ratio("mpc", "mpc-oracle", r), 2.0)
+        add(f"nmpc / mpc on {r}", ratio("nmpc", "mpc", r), 1.1)
+    for plant, refs in _PLANT_LIMITS.items():
+        for r, limit in refs.items():
+            add(f"mpc RMSE on {r}, plant {plant} (%)", get(plant, "mpc", r), limit)
+    return checks
+
+
+def missed_checks(checks: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The reference checks that do not hold (``piezo benchmark --strict`` fails on any)."""
+    return [c for c in checks if not c["holds"]]
+
+
+def strict_status(checks: list[dict[str, Any]], *, strict: bool) -> int:
+    """The exit status of ``piezo benchmark``: 1 under ``--strict`` when a check was missed."""
+    return 1 if strict and missed_checks(checks) else 0
+
+
+def summary_line(checks: list[dict[str, Any]]) -> str:
+    """One terminal line on the checks, framed as the project's ('' when the run has none)."""
+    if not checks:
+        return ""
+    missed = missed_checks(checks)
+    return (
+        f"reference checks (the project's own expectations, not an install test; see the "
+        f"report): {len(checks) - len(missed)} of {len(checks)} met"
+        + ("" if not missed else "; --strict fails on a miss")
+    )
+
+
+def reference_checks_section(checks: list[dict[str, Any]]) -> list[str]:
+    """The report's section on the checks, framed as the project's expectations (lines)."""
+    if not checks:
+        return [
+            "## Reference checks",
+            "",
+            "None for this run: the project's expectations were set on the PL140's default run.",
+        ]
+    missed = missed_checks(checks)
+    lines = [
+        "## Reference checks",
+        "",
+        "The project's own expectations of this run: limits set from earlier measurements of "
+        "the default run on a 2-core machine, kept to notice regressions. A miss is news about "
+        "the controllers on this run, not an installation error; `piezo benchmark --strict` "
+        f"turns misses into a failing exit code. {len(checks) - len(missed)} of {len(checks)} "
+        "met.",
+        "",
+        "| check | measured | limit | met |",
+        "|---|---|---|---|",
+    ]
+    lines += [
+        f"| {c['target']} | {c['value']:.4g} | {c['limit']:.4g} | {'yes' if c['holds'] else 'NO'} |"
+        for c in checks
+    ]
+    return lines
