@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.cells import aggregate, different
+from benchmarks.cells import aggregate
+from benchmarks.verdict import winners
 
 __all__ = [
     "BLOCKS",
@@ -59,49 +60,40 @@ def _rows(data: dict[str, Any]) -> tuple[list[str], dict[str, list[str]]]:
 
 
 def headline_table(data: dict[str, Any]) -> str:
-    """Nominal RMSE (% of the full stroke) per controller and reference, and step medians."""
-    rmse = _nominal(data)
+    """Nominal RMSE (% of the full stroke) per controller and reference, and step medians.
+
+    The winner of a column is bolded as in the report's verdict (:func:`benchmarks.verdict.
+    winners`): oracles aside, and not when it ties; a trained recipe's seeds share one row,
+    mean +- std over the seeds.
+    """
+    index = {
+        ("nominal", c["controller"], c["reference"]): c
+        for c in aggregate(data["results"]["episodes"])
+        if c["plant"] == "nominal"
+    }
     refs = list(data["results"]["config"]["references"])
     rows, members = _rows(data)
-    steps = {}
+    best = {ref: winners(index, "nominal", rows, ref) for ref in refs}
+    steps: dict[str, list[float]] = {}
     for t in data["timing"]:
         if t["plant"] == "nominal":
             steps.setdefault(t["controller"], []).append(t["compute_median_us"])
 
-    def values(row: str, ref: str) -> list[float]:
-        names = members.get(row, [row])
-        return [rmse[(n, ref)] for n in names if (n, ref) in rmse]
+    def cell(row: str, ref: str) -> str:
+        values = [index[k]["rmse_percent"] for n in members.get(row, [row])
+                  if (k := ("nominal", n, ref)) in index]
+        if len(values) > 1:
+            return f"{np.mean(values):.2f} +- {np.std(values, ddof=1):.2f}"
+        text = f"{values[0]:.3f}" if values else ""
+        return f"**{text}**" if text and best[ref] == [row] else text
 
-    cells = {
-        (c["controller"], c["reference"]): c
-        for c in aggregate(data["results"]["episodes"])
-        if c["plant"] == "nominal"
-    }
-    best = {}
-    for ref in refs:
-        single = {r: cells[(r, ref)] for r in rows if (r, ref) in cells
-                  and r not in members and not r.endswith("-oracle")}
-        if single:
-            low = min(single.values(), key=lambda c: c["rmse_percent"])
-            tied = [r for r, c in single.items() if c is low or not different(c, low)]
-            best[ref] = tied[0] if len(tied) == 1 else None
     head = "| controller | " + " | ".join(refs) + " | step median (us) |"
     lines = [head, "|---" * (len(refs) + 2) + "|"]
     for row in rows:
-        cells = []
-        for ref in refs:
-            v = values(row, ref)
-            if not v:
-                cells.append("")
-            elif len(v) > 1:
-                cells.append(f"{np.mean(v):.2f} +- {np.std(v, ddof=1):.2f}")
-            else:
-                text = f"{v[0]:.3f}"
-                cells.append(f"**{text}**" if best.get(ref) == row else text)
         medians = [m for n in members.get(row, [row]) for m in steps.get(n, [])]
         step = f"{np.median(medians):.0f}" if medians else ""
         label = _LABELS.get(row, f"`{row}`" if row not in members else row)
-        lines.append(f"| {label} | " + " | ".join(cells) + f" | {step} |")
+        lines.append(f"| {label} | " + " | ".join(cell(row, r) for r in refs) + f" | {step} |")
     return "\n".join(lines)
 
 
