@@ -79,7 +79,7 @@ def monte_carlo_table(result: BenchmarkResult) -> str:
         f"### Monte Carlo: {n} plants drawn from the datasheet tolerances, RMSE (% of the full "
         f"stroke): {_order_statistics_names(n)}\n\n"
         f"Order statistics of the {n} draws, not quantiles: an upper percentile such as the "
-        f"90th needs many more draws than {n} to be estimated (`--draws`).\n"
+        f"90th needs many more draws than {n} to be estimated (`BenchmarkConfig.draws`).\n"
     )
     return head + "\n" + _table(rows, refs, cell, "controller") + "\n"
 
