@@ -74,7 +74,7 @@ IDENTIFY = Subcommand(
         "PRBS excitation, ARX part by the uniform-noise Bayesian estimator, rich excitation, "
         "hidden signal by the inverse ARX model, neural nonlinearity, free-run validation. "
         "Writes the model (model/), report.json, report.md and figures into --out; takes "
-        "about 20 s on 2 cores, most of it the network's training."
+        "15-20 s on 2 cores, most of it the network's training."
     ),
     add_arguments=add_arguments,
     run=run,
