@@ -53,21 +53,29 @@ def observation(y: float, targets: np.ndarray) -> np.ndarray:
     return np.r_[y, targets[0], targets[: TASK.preview]]
 
 
-def independent_first_move(model, x0, d, targets, z_prev, lam, horizon):
-    """argmin ||y(z) - r||^2 + lam ||D z - z_prev e1||^2 by lstsq, y(z) simulated by dlsim."""
+def least_squares_form(model, x0, d, targets, z_prev, lam):
+    """(M, b) with the MPC's cost ``||M z - b||^2`` = ||y(z) - r||^2 + lam ||D z - z_prev e1||^2.
+
+    Built without the controller's matrices: y(z) simulated by scipy's dlsim.
+    """
+    horizon = len(targets)
     system = (model.a, model.b, model.c, np.zeros((1, 1)), model.dt)
 
     def outputs(z):
         _, y, _ = scipy.signal.dlsim(system, np.r_[z, 0.0], x0=x0)
         return y[1:, 0] + d  # y_t+1 .. y_t+N
 
-    base = outputs(np.zeros(horizon))
-    columns = np.column_stack([outputs(np.eye(horizon)[j]) - base for j in range(horizon)])
+    free = outputs(np.zeros(horizon))
+    columns = np.column_stack([outputs(np.eye(horizon)[j]) - free for j in range(horizon)])
     diff = np.eye(horizon) - np.eye(horizon, k=-1)
-    e1 = np.eye(horizon)[0]
     matrix = np.vstack([columns, np.sqrt(lam) * diff])
-    rhs = np.r_[targets - base, np.sqrt(lam) * z_prev * e1]
-    return np.linalg.lstsq(matrix, rhs, rcond=None)[0][0]
+    rhs = np.r_[targets - free, np.sqrt(lam) * z_prev * np.eye(horizon)[0]]
+    return matrix, rhs
+
+
+def bounded_least_squares(matrix, rhs, low, high):
+    """scipy's bounded-variable least squares (an active-set method, independent of OSQP)."""
+    return scipy.optimize.lsq_linear(matrix, rhs, bounds=(low, high), method="bvls", tol=1e-14).x
 
 
 @pytest.mark.parametrize("shortcut", [True, False])
@@ -94,7 +102,8 @@ def test_unconstrained_first_move_equals_independent_least_squares(shortcut):
         z_prev = rng.uniform(-5.0, 5.0)
         mpc._z_prev = z_prev
         got = mpc._solve(np.r_[x0, d], targets)
-        expected = independent_first_move(model, x0, d, targets, z_prev, lam, horizon)
+        matrix, rhs = least_squares_form(model, x0, d, targets, z_prev, lam)
+        expected = np.linalg.lstsq(matrix, rhs, rcond=None)[0][0]
         assert got == pytest.approx(expected, abs=1e-6 * (1 + abs(expected)))
 
 
@@ -241,33 +250,68 @@ def test_constrained_plan_equals_bounded_least_squares(shortcut):
     """Bounds binding, first-move bounds narrower than the rest: OSQP's plan against
     scipy's bounded-variable least squares (lsq_linear, an independent active-set solver)."""
     base = synthetic_model()
-    model = PredictionModel(base.a, base.b, base.c, base.dt, NarrowFirstMove(), "identified",
-                            (-59.0, 61.0))
+    model = PredictionModel(
+        base.a, base.b, base.c, base.dt, NarrowFirstMove(), "identified", (-59.0, 61.0)
+    )
     horizon, lam = 8, 0.05
-    settings = MPCSettings(horizon=horizon, rate_weight=lam, shortcut=shortcut,
-                           eps_abs=1e-10, eps_rel=1e-10, max_iter=50000)
+    settings = MPCSettings(
+        horizon=horizon,
+        rate_weight=lam,
+        shortcut=shortcut,
+        eps_abs=1e-10,
+        eps_rel=1e-10,
+        max_iter=50000,
+    )
     mpc = LinearMPC(model, TASK, settings)
     rng = np.random.default_rng(7)
-    system = (model.a, model.b, model.c, np.zeros((1, 1)), model.dt)
     for _ in range(4):
         x0, d = rng.normal(0.0, 5.0, model.n_states), rng.normal(0.0, 3.0)
         targets = rng.uniform(150.0, 250.0, horizon)  # far: the unconstrained plan leaves the box
         mpc._z_prev = z_prev = rng.uniform(-5.0, 5.0)
         got = mpc._solve(np.r_[x0, d], targets)
-
-        def outputs(z, x0=x0, d=d):
-            return scipy.signal.dlsim(system, np.r_[z, 0.0], x0=x0)[1][1:, 0] + d
-
-        free = outputs(np.zeros(horizon))
-        columns = np.column_stack([outputs(np.eye(horizon)[j]) - free for j in range(horizon)])
-        diff = np.eye(horizon) - np.eye(horizon, k=-1)
-        matrix = np.vstack([columns, np.sqrt(lam) * diff])
-        rhs = np.r_[targets - free, np.sqrt(lam) * z_prev * np.eye(horizon)[0]]
         low, high = np.full(horizon, -59.0), np.full(horizon, 61.0)
         low[0], high[0] = -4.0, 6.0
-        expected = scipy.optimize.lsq_linear(matrix, rhs, bounds=(low, high), tol=1e-14).x
+        matrix, rhs = least_squares_form(model, x0, d, targets, z_prev, lam)
+        expected = bounded_least_squares(matrix, rhs, low, high)
         assert expected[0] == pytest.approx(6.0)  # the first-move bound binds ...
         assert expected[1] > 6.5  # ... and the later moves use their wider range
         # Measured: 2.5e-9 on the first move, 5.1e-7 over the plan (OSQP at eps 1e-10).
         assert got == pytest.approx(expected[0], abs=1e-8)
         np.testing.assert_allclose(mpc._plan, expected, atol=3e-6)
+
+
+def test_constrained_steps_on_the_bender_equal_bounded_least_squares(env):
+    """Default settings on the identified model, the reference beyond reach (the drive bound
+    binds): every step OSQP solves against scipy's active-set solver, on its own QP."""
+    mpc = controllers.make("mpc", MODEL_DIR, env)
+    reference = np.r_[np.full(60, -1300.0), np.full(100, 1300.0)]  # about 1030 um at 30 V
+    obs, _ = env.reset(seed=0, options={"reference": reference})
+    mpc.reset(obs)
+    solve, steps = mpc._solve, []
+
+    def recording(estimate, targets):
+        qp = (estimate.copy(), targets.copy(), mpc._z_prev)
+        unconstrained = mpc.stats.status["unconstrained"]
+        z = solve(estimate, targets)
+        if mpc.stats.status["unconstrained"] == unconstrained:  # OSQP ran
+            steps.append((*qp, mpc._lower.copy(), mpc._upper.copy(), mpc._plan.copy()))
+        return z
+
+    mpc._solve = recording
+    for _ in range(100):
+        obs, *_ = env.step(mpc.act(obs))
+    n, first_move_bound_binds = mpc.model.n_states, 0
+    for estimate, targets, z_prev, low, high, plan in steps:
+        matrix, rhs = least_squares_form(
+            mpc.model, estimate[:n], estimate[n], targets, z_prev, mpc.settings.rate_weight
+        )
+        expected = bounded_least_squares(matrix, rhs, low, high)
+        # Measured at OSQP's default tolerance over these 100 steps: up to 1.9e-3 on the
+        # first move (median 1.3e-5) and 3.6e-3 over the plan (equivalent V).
+        assert plan[0] == pytest.approx(expected[0], abs=1e-2)
+        np.testing.assert_allclose(plan, expected, atol=2e-2)
+        own_lower = expected[0] == low[0] != low[1]
+        own_upper = expected[0] == high[0] != high[1]
+        first_move_bound_binds += own_lower or own_upper
+    assert mpc.stats.fallbacks == 0 and len(steps) == 100
+    assert first_move_bound_binds > 40  # at a bound of its own, not the later moves' (84)
