@@ -8,7 +8,13 @@ optional ``stats`` and ``describe``):
 - :mod:`benchmarks.plants`: the nominal and robustness plants (env keyword arguments).
 - :mod:`benchmarks.runner`: :class:`~benchmarks.runner.BenchmarkConfig` and
   :func:`~benchmarks.runner.run_benchmark` (episode groups on the local pool or Ray).
+- :mod:`benchmarks.cells`: episodes to table cells (means over noise seeds, 95 % intervals).
+- :mod:`benchmarks.verdict`: the best controller per reference and what limits it.
+- :mod:`benchmarks.reference_checks`: the project's own expectations of its default run.
+- :mod:`benchmarks.descriptions`: the controllers' settings and tuned loops as tables.
 - :mod:`benchmarks.report`: tables, JSON and the Markdown report.
+- :mod:`benchmarks.compare`: what changed between two runs (``piezo compare``).
+- :mod:`benchmarks.readme`: the README's numbers, generated from the committed results.
 - :mod:`benchmarks.figures`: the figures of a run.
 
 The speed and accuracy scripts run as modules from the project folder, each printing a table

@@ -264,6 +264,8 @@ def run(args: argparse.Namespace) -> int:
     from benchmarks.report import (
         check_targets,
         missed_checks,
+        strict_status,
+        summary_line,
         tracking_tables,
         verdict,
         write_benchmark,
@@ -294,23 +296,19 @@ def run(args: argparse.Namespace) -> int:
     }
     paths = write_benchmark(result, out, meta)
     print("verdict (nominal plant, RMSE in % of the full stroke):")
-    print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result)))
+    print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result, meta)))
     print()
     print(tracking_tables(result, plants=("nominal",), max_errors=False).replace("**", ""))
     checks = check_targets(result)
-    missed = missed_checks(checks)
-    if checks:
-        print(
-            f"reference checks (the project's expectations of this run, see the report): "
-            f"{len(checks) - len(missed)} of {len(checks)} met"
-        )
+    line = summary_line(checks)
+    if line:
+        print(line)
     print("time: " + ", ".join(f"{k} {v} s" for k, v in timing.items()))
     print("wrote " + ", ".join(str(p) for p in paths))
-    if args.strict and missed:
-        for c in missed:
+    if args.strict:
+        for c in missed_checks(checks):
             print(f"  missed: {c['target']}: {c['value']:.4g} (limit {c['limit']:.4g})")
-        return 1
-    return 0
+    return strict_status(checks, strict=args.strict)
 
 
 BENCHMARK = Subcommand(
