@@ -153,10 +153,10 @@ class LinearMPC(PredictiveController):
         self._lower = np.full(settings.horizon, z_min)
         self._upper = np.full(settings.horizon, z_max)
 
-    def _start(self, start: SteadyStart) -> None:
+    def _setup_solver(self) -> BoxQP:
+        """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
         s = self.settings
-        # Set up afresh: no adapted step size or duals carry over episodes.
-        self._qp = BoxQP(
+        return BoxQP(
             self._lower,
             self._upper,
             hessian=self._hessian,
@@ -164,7 +164,10 @@ class LinearMPC(PredictiveController):
             eps_rel=s.eps_rel,
             max_iter=s.max_iter,
         )
-        self._plan = np.full(s.horizon, start.z)
+
+    def _start(self, start: SteadyStart) -> None:
+        self._qp = self._setup_solver()
+        self._plan = np.full(self.settings.horizon, start.z)
         self._duals: np.ndarray | None = None
         self._z_prev = start.z
 
