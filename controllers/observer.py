@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from controllers.settings import measurement_std
+
 __all__ = ["DisturbanceObserver"]
 
 
@@ -114,8 +116,6 @@ class DisturbanceObserver:
             Has ``measurement_std``, ``disturbance_std``, ``process_std`` and, optionally,
             ``slope_std`` (0 without it).
         """
-        from controllers.settings import measurement_std
-
         return cls(
             model.a,
             model.b,
