@@ -6,7 +6,9 @@ natively batched vector env is the id's vector entry point, reached the same way
 ``gymnasium.make_vec("piezo_env:PiezoBender-v0", num_envs=N,
 vectorization_mode="vector_entry_point")``. The task settings and their defaults live in
 :class:`TaskConfig`; ``randomize=True`` (or a :class:`DomainRandomization`) draws the plant
-from the datasheet tolerances at each reset.
+from the datasheet tolerances at each reset. The bench options (:class:`Amplifier`,
+:class:`Sensor`, :class:`Drift`, ``hysteresis="rate-dependent"``) make the plant behave like a
+real bench; all are off by default.
 
 The package is light to import: registering the ids needs only
 ``gymnasium.envs.registration``, and every public name below is imported from its submodule on
@@ -22,33 +24,49 @@ from typing import TYPE_CHECKING, Any
 from gymnasium.envs.registration import register, registry
 
 if TYPE_CHECKING:
+    from piezo_env.amplifier import Amplifier
     from piezo_env.datasheet import CATALOGUE, BenderDatasheet, get_datasheet
     from piezo_env.discrete import Creep
+    from piezo_env.drift import Drift
     from piezo_env.env import PiezoBenderEnv
-    from piezo_env.hysteresis import BoucWen, NoHysteresis, PrandtlIshlinskii
+    from piezo_env.hysteresis import (
+        BoucWen,
+        NoHysteresis,
+        PrandtlIshlinskii,
+        RateDependentPrandtlIshlinskii,
+    )
     from piezo_env.model import BenderSimulator, PiezoBenderModel
     from piezo_env.parameters import BenderParameters, bender_parameters
     from piezo_env.randomization import DomainRandomization
+    from piezo_env.sensor import Sensor
     from piezo_env.task import TaskConfig
 
 __all__ = [
     "CATALOGUE",
+    "Amplifier",
     "BenderDatasheet",
     "BenderParameters",
     "BenderSimulator",
     "BoucWen",
     "Creep",
     "DomainRandomization",
+    "Drift",
     "NoHysteresis",
     "PiezoBenderEnv",
     "PiezoBenderModel",
     "PrandtlIshlinskii",
+    "RateDependentPrandtlIshlinskii",
+    "Sensor",
     "TaskConfig",
     "bender_parameters",
     "get_datasheet",
 ]
 
 _HOMES = {
+    "Amplifier": "piezo_env.amplifier",
+    "Drift": "piezo_env.drift",
+    "RateDependentPrandtlIshlinskii": "piezo_env.hysteresis",
+    "Sensor": "piezo_env.sensor",
     "CATALOGUE": "piezo_env.datasheet",
     "BenderDatasheet": "piezo_env.datasheet",
     "get_datasheet": "piezo_env.datasheet",

@@ -13,11 +13,13 @@ from typing import Any
 
 import numpy as np
 
+from piezo_env.amplifier import Amplifier
 from piezo_env.checks import require_int, require_number
 from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.discrete import Creep
+from piezo_env.drift import Drift
 from piezo_env.fem import DEFAULT_ELEMENTS, check_damping_ratio
-from piezo_env.hysteresis import Hysteresis, make_hysteresis
+from piezo_env.hysteresis import HYSTERESIS_NAMES, Hysteresis, make_hysteresis
 from piezo_env.randomization import DomainRandomization
 from piezo_env.reference import (
     DEFAULT_BAND,
@@ -25,6 +27,7 @@ from piezo_env.reference import (
     check_reference_array,
     check_reference_band,
 )
+from piezo_env.sensor import Sensor
 
 __all__ = ["DEFAULT_HORIZON", "NOISE_BLOCK", "TaskConfig"]
 
@@ -54,8 +57,11 @@ class TaskConfig:
         Hermite beam finite elements (positive integer).
     dt : float
         Sample time (s), > 0: one env step.
-    hysteresis : {"bouc-wen", "prandtl-ishlinskii", None} or Hysteresis
-        Input hysteresis; None for a linear bender.
+    hysteresis : {"bouc-wen", "prandtl-ishlinskii", "rate-dependent", None} or Hysteresis
+        Input hysteresis; None for a linear bender. ``"rate-dependent"`` is the
+        Prandtl-Ishlinskii map whose play radii grow with the drive's rate (loop 1.5x as wide
+        at a full-stroke 50 Hz sine as quasi-static;
+        :class:`~piezo_env.hysteresis.RateDependentPrandtlIshlinskii`).
     creep : bool or Creep
         Linear creep: False (off), True (1.5 % per decade) or a
         :class:`~piezo_env.discrete.Creep`.
@@ -88,6 +94,25 @@ class TaskConfig:
         Stored as a DomainRandomization or None. The draw order is in
         :mod:`piezo_env.randomization`, the proof of the observation bound over the whole
         range in :mod:`piezo_env.randomized_bound`.
+    amplifier : bool, Amplifier or None
+        The drive amplifier's current (slew) limit and bandwidth
+        (:class:`~piezo_env.amplifier.Amplifier`): None or False (the default): an ideal
+        amplifier; True: 100 mA, i.e. a slew limit I_max / C_p = 12.2 V/ms on a PL140
+        (C_p = 8.2 uF), full-stroke sines up to 64.7 Hz; an Amplifier sets the current (mA)
+        and an optional small-signal bandwidth (Hz). The action is then the amplifier's
+        command; ``info["voltage_V"]`` is the voltage on the bender, ``info["command_V"]`` the
+        clipped command, ``info["slew_limited"]`` whether the limit was active and
+        ``info["current_mA"]`` the drive current dQ/dt. Stored as an Amplifier or None.
+    sensor : bool, Sensor or None
+        Dynamics of the displacement sensor, on the observed deflection only
+        (:class:`~piezo_env.sensor.Sensor`): None or False (the default): ideal; True: no delay
+        and a 20 kHz first-order bandwidth; a Sensor sets the delay (0, 1 or 2 samples) and the
+        bandwidth (Hz, or None). Stored as a Sensor or None.
+    drift : bool, Drift or None
+        Slow drift of the piezoelectric coefficient and the stiffness over the episode
+        (:class:`~piezo_env.drift.Drift`, factors relative to the datasheet, linear in time):
+        None or False (the default): a constant plant; True: piezoelectric coefficient 1 ->
+        1.05, stiffness 1 -> 0.95 over 2 s. Not with ``randomize``. Stored as a Drift or None.
     """
 
     bender: str | BenderDatasheet = "PL140"
@@ -102,6 +127,9 @@ class TaskConfig:
     deflection_limit: float | None = None
     damping_ratio: float = 0.02
     randomize: bool | DomainRandomization | None = None
+    amplifier: bool | Amplifier | None = None
+    sensor: bool | Sensor | None = None
+    drift: bool | Drift | None = None
 
     def __post_init__(self) -> None:
         get_datasheet(self.bender)
@@ -109,11 +137,11 @@ class TaskConfig:
         require_number("dt (s)", self.dt, low=0.0, low_open=True)
         if not (self.hysteresis is None or isinstance(self.hysteresis, (str, Hysteresis))):
             raise ValueError(
-                "hysteresis must be 'bouc-wen', 'prandtl-ishlinskii', None or a Hysteresis, "
+                f"hysteresis must be one of {HYSTERESIS_NAMES}, None or a Hysteresis, "
                 f"got {self.hysteresis!r}"
             )
         if isinstance(self.hysteresis, str):
-            make_hysteresis(self.hysteresis, get_datasheet(self.bender).rated_voltage)
+            make_hysteresis(self.hysteresis, get_datasheet(self.bender).rated_voltage, dt=self.dt)
         if not isinstance(self.creep, (bool, Creep)):
             raise ValueError(f"creep must be a bool or a Creep, got {self.creep!r}")
         require_number("noise_bound (um)", self.noise_bound, low=0.0)
@@ -130,6 +158,19 @@ class TaskConfig:
             )
         check_damping_ratio(self.damping_ratio)
         object.__setattr__(self, "randomize", _check_randomize(self.randomize))
+        object.__setattr__(self, "amplifier", _check_option("amplifier", self.amplifier, Amplifier))
+        object.__setattr__(self, "sensor", _check_option("sensor", self.sensor, Sensor))
+        object.__setattr__(self, "drift", _check_option("drift", self.drift, Drift))
+        if self.drift is not None and self.randomize is not None:
+            raise ValueError(
+                "drift and randomize cannot be combined: the observation bound is proven for "
+                "a drift of the nominal plant; pass one of them"
+            )
+
+    @property
+    def bench_options(self) -> bool:
+        """Whether an amplifier, a sensor or a drift is on (the env then steps through them)."""
+        return self.amplifier is not None or self.sensor is not None or self.drift is not None
 
     @classmethod
     def from_kwargs(cls, config: TaskConfig | None = None, /, **settings: Any) -> TaskConfig:
@@ -176,6 +217,17 @@ def _check_randomize(randomize: object) -> DomainRandomization | None:
     raise ValueError(
         f"randomize must be True, False, None or a DomainRandomization, got {randomize!r}"
     )
+
+
+def _check_option(name: str, value: object, kind: type) -> Any:
+    """None for None or False, the default ``kind()`` for True, or ``value`` if a ``kind``."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        return kind()
+    if isinstance(value, kind):
+        return value
+    raise ValueError(f"{name} must be True, False, None or a {kind.__name__}, got {value!r}")
 
 
 def _check_reference(reference: object) -> str | np.ndarray | None:

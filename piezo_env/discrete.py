@@ -166,6 +166,17 @@ class DiscreteBender:
 
 def _mode_block(omega: float, zeta: float, phi_b: float, creep: Creep | None, dt: float):
     """Exact ZOH of [creep; eta; eta'] for one mode driven by u_eff (creep rows included)."""
+    aug = mode_augmented(omega, zeta, phi_b, creep, dt)
+    n = aug.shape[0] - 1
+    e = scipy.linalg.expm(aug)
+    return e[:n, :n], e[:n, n]
+
+
+def mode_augmented(
+    omega: float, zeta: float, phi_b: float, creep: Creep | None, dt: float
+) -> np.ndarray:
+    """[[A, b], [0, 0]] dt of one mode (rad/s, -, modal input per V) with its creep rows: the
+    matrix whose exponential is the mode's exact ZOH step."""
     nc = 0 if creep is None else creep.size
     n = nc + 2
     a = np.zeros((n, n))
@@ -182,8 +193,7 @@ def _mode_block(omega: float, zeta: float, phi_b: float, creep: Creep | None, dt
     aug = np.zeros((n + 1, n + 1))
     aug[:n, :n] = a
     aug[:n, n] = b
-    e = scipy.linalg.expm(aug * dt)
-    return e[:n, :n], e[:n, n]
+    return aug * dt
 
 
 def discretize(

@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from piezo_env.model import BenderSimulator
+from piezo_env.model import BenderSimulator, DriftingSimulator
 from piezo_env.reference import ReferenceStream
 from piezo_env.task import (
     NOISE_BLOCK,
@@ -102,6 +102,31 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     reports the draw: ``free_deflection_um``, ``blocking_force_N``, ``stiffness_N_per_m``,
     ``resonance_Hz``, ``damping_ratio``, ``hysteresis_scale``.
 
+    ## Bench options (amplifier, sensor, rate-dependent hysteresis, drift)
+    Off by default; each is documented with its physics in its module and in
+    :class:`piezo_env.TaskConfig`. With any of ``amplifier``, ``sensor`` or ``drift`` on, the env
+    steps through a second path chosen at construction (the default path is unchanged).
+
+    - ``amplifier`` (:mod:`piezo_env.amplifier`): the action is the amplifier's command; the
+      bender gets v_t = v_{t-1} + (1 - p) clip(c_t - v_{t-1}, +-S dt) with the slew limit
+      S = I_max / C_p (``env.unwrapped.slew_limit``, V/s; None without an amplifier) from the
+      current limit and the drive capacitance of the charge equation Q = C_p u + Gamma theta.
+      Info adds ``command_V`` (the clipped command), ``slew_limited`` (the limit was active)
+      and ``current_mA`` (dQ/dt over the sample, capacitive plus motional); ``voltage_V`` is the
+      voltage on the bender.
+    - ``sensor`` (:mod:`piezo_env.sensor`): a delay of 0-2 samples and a first-order bandwidth
+      on the observed deflection only; reward and ``info["deflection_um"]`` stay true.
+    - ``hysteresis="rate-dependent"`` (:class:`piezo_env.hysteresis.
+      RateDependentPrandtlIshlinskii`): play radii that grow with the drive's rate, so the loop
+      widens with frequency (needs no second path).
+    - ``drift`` (:mod:`piezo_env.drift`): piezoelectric coefficient and stiffness move linearly
+      over the episode (restarting at each reset); ``model`` stays the start plant's
+      datasheet model. The observation bound is proven for the drifted plant.
+
+    Every bound above still holds: the amplifier keeps |v| <= U_r, the sensor's output is a
+    convex combination of true deflections, the rate-dependent map has the quasi-static one's
+    bound, and the drift bound is proven in :mod:`piezo_env.drift`.
+
     ## Reset options
     ``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this
     voltage (V) instead of 0 V.
@@ -116,8 +141,8 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         The fields of :class:`piezo_env.TaskConfig`, each documented there with its unit and
         default (``help(piezo_env.TaskConfig)``): ``bender``, ``n_elements``, ``dt``,
         ``hysteresis``, ``creep``, ``noise_bound``, ``reference``, ``reference_band``,
-        ``preview``, ``deflection_limit``, ``damping_ratio``, ``randomize``. An unknown
-        keyword raises TypeError naming the valid ones.
+        ``preview``, ``deflection_limit``, ``damping_ratio``, ``randomize``, ``amplifier``,
+        ``sensor``, ``drift``. An unknown keyword raises TypeError naming the valid ones.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}
@@ -142,6 +167,12 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         self.metadata = {**self.metadata, "render_fps": min(30.0, 1.0 / self.config.dt)}
 
         self._plant = BenderSimulator(self.model)
+        self._amplifier = None
+        self._sensor = None
+        self._charge = 0.0
+        self.slew_limit: float | None = None
+        if self.config.bench_options:
+            self._set_up_bench()
         self._reference: ReferenceStream | None = None
         self._ref_values = np.zeros(0, dtype=np.float32)
         self._noise = np.zeros(NOISE_BLOCK)
@@ -172,10 +203,13 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         info["effective_voltage_V"] = float(
             self.model.hysteresis.step(self._plant.get_state()[1], voltage)[1]
         )
-        info["charge_uC"] = self.model.charge(voltage, self._plant.tip_rotation) * 1e6
+        info["charge_uC"] = self._plant.charge(voltage) * 1e6
         if plant_info is not None:
             info["plant"] = plant_info
-        return self._observe(deflection_um + self._next_noise()), info
+        measured_um = deflection_um
+        if self.config.bench_options:
+            measured_um = self._reset_bench(voltage, deflection_um, info)
+        return self._observe(measured_um + self._next_noise()), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         voltage, saturated = self._drive_voltage(action)
@@ -193,6 +227,40 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
             self._trace[self._t % _TRACE] = deflection_um
         observation = self._observe(deflection_um + self._next_noise())
         info = self._info(deflection_um, voltage, u_eff, charge * 1e6, saturated)
+        if self.render_mode == "human":
+            self.render()
+        return observation, reward, terminated, False, info
+
+    def _step_bench(
+        self, action: np.ndarray
+    ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """``step`` with an amplifier, a sensor or a drift (chosen at construction)."""
+        command, saturated = self._drive_voltage(action)
+        amplifier = self._amplifier
+        if amplifier is None:
+            voltage, limited = command, False
+        else:
+            voltage, limited = amplifier.apply(command)
+        deflection, u_eff, charge = self._plant.step(voltage)
+        self._t += 1
+        if self._t + self.preview >= len(self._ref_values) and self._reference is not None:
+            self._ref_values = self._window_values()
+        deflection_um = deflection * 1e6
+        error = deflection_um - self._reference_at(self._t)
+        reward = -((error / self._stroke) ** 2)
+        terminated = (
+            self.deflection_limit is not None and abs(deflection_um) > self.deflection_limit
+        )
+        if self._trace is not None:
+            self._trace[self._t % _TRACE] = deflection_um
+        sensor = self._sensor
+        measured_um = deflection_um if sensor is None else sensor.measure(deflection_um)
+        observation = self._observe(measured_um + self._next_noise())
+        info = self._info(deflection_um, voltage, u_eff, charge * 1e6, saturated)
+        info["command_V"] = command
+        info["slew_limited"] = limited
+        info["current_mA"] = (charge - self._charge) / self.config.dt * 1e3
+        self._charge = charge
         if self.render_mode == "human":
             self.render()
         return observation, reward, terminated, False, info
@@ -229,9 +297,38 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
         state["_renderer"] = None
+        state.pop("step", None)  # the bench path, set again from the config
         return state
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        if self.config.bench_options:
+            self.step = self._step_bench
+
     # -- helpers -------------------------------------------------------------------------------
+
+    def _set_up_bench(self) -> None:
+        """The amplifier, sensor and drift of the config, and the bench stepping path."""
+        config = self.config
+        if config.drift is not None:
+            self._plant = DriftingSimulator(self.model, self.task.drift_plan)
+        if config.amplifier is not None:
+            capacitance = self.model.params.capacitance
+            self._amplifier = config.amplifier.state(capacitance, config.dt)
+            self.slew_limit = config.amplifier.slew_limit(capacitance)
+        if config.sensor is not None:
+            self._sensor = config.sensor.state(config.dt)
+        self.step = self._step_bench  # the default path stays PiezoBenderEnv.step
+
+    def _reset_bench(self, voltage: float, deflection_um: float, info: dict[str, Any]) -> float:
+        """Amplifier and sensor at rest; the bench keys of the reset info; the measured um."""
+        if self._amplifier is not None:
+            self._amplifier.reset(voltage)
+        self._charge = self._plant.charge(voltage)
+        info["command_V"] = voltage
+        info["slew_limited"] = False
+        info["current_mA"] = 0.0
+        return deflection_um if self._sensor is None else self._sensor.reset(deflection_um)
 
     def _draw_plant(self) -> dict[str, float]:
         """Draw this episode's plant from ``np_random`` and step it from now on; its info."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from piezo_env.config import TaskConfig  # the one home of the defaults
 from piezo_env.datasheet import BenderDatasheet
@@ -19,7 +20,7 @@ from piezo_env.fem import BeamFE, assemble_beam
 from piezo_env.hysteresis import BoucWen, Hysteresis, make_hysteresis
 from piezo_env.parameters import BenderParameters, bender_parameters
 
-__all__ = ["BenderSimulator", "PiezoBenderModel", "SimulationResult"]
+__all__ = ["BenderSimulator", "DriftingSimulator", "PiezoBenderModel", "SimulationResult"]
 
 
 class PiezoBenderModel:
@@ -33,7 +34,7 @@ class PiezoBenderModel:
         Hermite beam elements (default 10: f1..f3 within 0.03 % of the continuum).
     dt : float
         Sample time (s).
-    hysteresis : {"bouc-wen", "prandtl-ishlinskii", None} or Hysteresis
+    hysteresis : {"bouc-wen", "prandtl-ishlinskii", "rate-dependent", None} or Hysteresis
         Input hysteresis model; None for a linear bender.
     creep : bool or Creep
         Add linear creep (True: 1.5 % per decade between 10 ms and 100 s).
@@ -69,7 +70,7 @@ class PiezoBenderModel:
             raise ValueError(f"creep must be a bool or a Creep, got {creep!r}")
         self.creep: Creep | None = creep
         self.discrete: DiscreteBender = discretize(self.beam, dt, creep=creep)
-        self.hysteresis: Hysteresis = make_hysteresis(hysteresis, self.params.rated_voltage)
+        self.hysteresis: Hysteresis = make_hysteresis(hysteresis, self.params.rated_voltage, dt=dt)
         self.dt: float = float(dt)
 
     @property
@@ -191,6 +192,7 @@ class BenderSimulator:
         self._w = np.zeros(n + 2)
         self._hyst = np.zeros(model.hysteresis.state_size)
         self._bouc_wen = model.hysteresis if isinstance(model.hysteresis, BoucWen) else None
+        self._in_place = getattr(model.hysteresis, "step_inplace", None)
         self._c_p = model.params.capacitance
         self._gamma = model.params.piezo_moment
         self.deflection = 0.0
@@ -211,6 +213,8 @@ class BenderSimulator:
             h, u_eff = self._bouc_wen.step_scalar(self._hyst[0], self._hyst[1], u)
             self._hyst[0] = u
             self._hyst[1] = h
+        elif self._in_place is not None:
+            u_eff = self._in_place(self._hyst, u)
         else:
             self._hyst, u_eff = self.model.hysteresis.step(self._hyst, u)
             u_eff = float(u_eff)
@@ -222,6 +226,10 @@ class BenderSimulator:
         self._v, self._w = w, v
         return y, u_eff, self._c_p * u + self._gamma * theta
 
+    def charge(self, voltage: float) -> float:
+        """Drive charge Q = C_p u + Gamma theta_tip (C) now under ``voltage`` (V)."""
+        return self._c_p * voltage + self._gamma * self.tip_rotation
+
     @property
     def nodal_deflection(self) -> np.ndarray:
         """Nodal deflections (m), root first, from the modes carried as states."""
@@ -230,3 +238,53 @@ class BenderSimulator:
     def get_state(self) -> tuple[np.ndarray, np.ndarray]:
         """Copy of (LTI state, hysteresis state)."""
         return self._v[: self._n].copy(), self._hyst.copy()
+
+
+class DriftingSimulator(BenderSimulator):
+    """A bender whose piezoelectric coefficient and stiffness drift (:mod:`piezo_env.drift`).
+
+    Steps like :class:`BenderSimulator` with the step matrix and Gamma of the current segment
+    of ``plan`` (a :class:`piezo_env.drift.DriftPlan` of ``model``); ``reset`` starts the drift
+    again at the rest state of its first segment (the ramp at that segment's midpoint).
+    """
+
+    def __init__(self, model: PiezoBenderModel, plan) -> None:
+        super().__init__(model)
+        self.plan = plan
+        self._segment_steps = plan.segment_steps
+        self._last = plan.n_segments - 1
+        self._segment = 0
+        self._count = 0
+
+    def _enter(self, segment: int) -> None:
+        self._segment = segment
+        self._count = 0
+        self._matrix = self.plan.square_matrices[segment]
+        self._gamma = float(self.plan.piezo_moments[segment])
+
+    def reset(self, voltage: float = 0.0) -> None:
+        """At rest under ``voltage`` (V) with the first segment's parameters."""
+        self._enter(0)
+        hyst = self.model.hysteresis.initial_state(voltage)
+        _, u_eff = self.model.hysteresis.step(hyst, voltage)
+        m = self._matrix
+        n = self._n
+        a, b = m[:n, :n], m[:n, n]
+        state = scipy.linalg.solve(np.eye(n) - a, b * float(u_eff))
+        self._v[:] = 0.0
+        self._v[:n] = state
+        self._hyst = np.array(hyst, dtype=float)
+        out = self.model.discrete.output_matrix @ state
+        self.deflection, self.tip_rotation = float(out[0]), float(out[1])
+
+    def step(self, u: float) -> tuple[float, float, float]:
+        """Advance one sample under voltage u (V); returns (deflection m, u_eff V, charge C)."""
+        result = super().step(u)
+        self._count += 1
+        if self._count == self._segment_steps and self._segment < self._last:
+            self._enter(self._segment + 1)
+        return result
+
+    def charge(self, voltage: float) -> float:
+        """Drive charge (C) now under ``voltage`` (V), with the current segment's Gamma."""
+        return self._c_p * voltage + self._gamma * self.tip_rotation

@@ -18,6 +18,7 @@ from gymnasium import spaces
 from piezo_env.blas import single_blas_thread
 from piezo_env.checks import require_int, require_number
 from piezo_env.config import DEFAULT_HORIZON, NOISE_BLOCK, TaskConfig
+from piezo_env.drift import DriftPlan, drift_deflection_bound_um
 from piezo_env.model import PiezoBenderModel
 from piezo_env.randomization import PlantDraw, scale_hysteresis
 from piezo_env.randomized_bound import randomized_deflection_bound_um
@@ -40,7 +41,9 @@ __all__ = [
 class BenderTask:
     """The model, bound, spaces and reference streams of a validated :class:`TaskConfig`.
 
-    ``model`` is the nominal plant. With ``config.randomize`` each episode's plant comes from
+    ``model`` is the nominal plant; with ``config.drift``, ``drift_plan`` holds the step
+    matrices of its drift (:class:`piezo_env.drift.DriftPlan`), and the bound covers the
+    drifted plant too. With ``config.randomize`` each episode's plant comes from
     :meth:`draw_plant`, and the observation bound covers every plant the spread can draw;
     references and rewards keep the nominal stroke (``stroke_um``), so that episodes on
     different plants score alike.
@@ -63,6 +66,12 @@ class BenderTask:
         self.reference_band = config.reference_band
         self.randomization = config.randomize
         self.bound = observation_bound(self.model, self.noise_bound)
+        self.drift_plan = None
+        if config.drift is not None:
+            self.drift_plan = DriftPlan(self.model, config.drift)
+            with single_blas_thread():  # tiny matrices: threads only stall (see drawn_plant)
+                deflection = drift_deflection_bound_um(self.model, self.drift_plan)
+            self.bound = max(self.bound, _rounded_bound(deflection, self.noise_bound))
         if self.randomization is not None:
             deflection = randomized_deflection_bound_um(self.model, self.randomization)
             self.bound = max(self.bound, _rounded_bound(deflection, self.noise_bound))

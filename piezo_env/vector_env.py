@@ -102,6 +102,13 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         self.num_envs = int(num_envs)
         self.max_episode_steps = check_max_episode_steps(max_episode_steps)
         self._adopt_task(config, settings)
+        if self.config.bench_options:
+            raise ValueError(
+                "the vector env does not model the amplifier, the sensor or the drift "
+                f"(amplifier={self.config.amplifier!r}, sensor={self.config.sensor!r}, "
+                f"drift={self.config.drift!r}); make single envs "
+                '(gymnasium.make_vec(..., vectorization_mode="sync")) for these options'
+            )
         self.render_mode = None
         self.single_observation_space = self.task.observation_space()
         self.single_action_space = self.task.action_space()
