@@ -151,6 +151,7 @@ def save_policy(
         },
         "observation": {
             "wrapper": "piezo_env.wrappers.TrackingObservation",
+            "version": observation.version,
             **observation.to_dict(),
         },
         "action": {"low": -1.0, "high": 1.0, "volts_per_unit": observation.u_max},
@@ -215,8 +216,31 @@ def _field(document: dict[str, Any], path: str, json_path: Path) -> Any:
 
 
 def _observation_config(document: dict[str, Any], json_path: Path) -> ObservationConfig:
+    """The observation of a policy file; a file without ``observation.version`` is version 1.
+
+    Version 1 (the first policies) has no past deflections; version 2 has
+    ``observation.n_deflections`` > 0 (:mod:`piezo_env.wrappers`).
+    """
     names = ("stroke_um", "u_max", "bound_um", "preview", "n_inputs", "n_errors")
     values = {name: _field(document, f"observation.{name}", json_path) for name in names}
+    version = _field(document, "observation", json_path).get("version", 1)
+    if version == 2:
+        values["n_deflections"] = _field(document, "observation.n_deflections", json_path)
+        if not (isinstance(values["n_deflections"], int) and values["n_deflections"] > 0):
+            raise ValueError(
+                f"{json_path}: field 'observation.n_deflections' must be a positive integer in "
+                f"observation version 2, got {values['n_deflections']!r}"
+            )
+    elif version == 1:
+        if _field(document, "observation", json_path).get("n_deflections", 0) != 0:
+            raise ValueError(
+                f"{json_path}: field 'observation.n_deflections' needs 'observation.version' 2 "
+                "(version 1 has no past deflections)"
+            )
+    else:
+        raise ValueError(
+            f"{json_path}: field 'observation.version' must be 1 or 2, got {version!r}"
+        )
     try:
         config = ObservationConfig(**values)
     except ValueError as error:

@@ -20,10 +20,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/policy", metavar="DIR", help="policy folder")
     parser.add_argument("--seed", type=seed, default=0, help="seed of torch and the envs")
     parser.add_argument(
-        "--steps", type=positive_int, default=3_000_000, help="env steps over all envs"
+        "--steps",
+        type=positive_int,
+        default=None,
+        help="env steps over all envs (default 3000000; with --randomize the recipe's)",
     )
     parser.add_argument(
-        "--num-envs", type=positive_int, default=16, help="sub-envs of the native vector env"
+        "--num-envs",
+        type=positive_int,
+        default=None,
+        help="sub-envs of the native vector env (default 16)",
+    )
+    parser.add_argument(
+        "--randomize",
+        action="store_true",
+        help="domain randomisation: every sub-env draws its plant from the datasheet "
+        "tolerances at each reset; trains the recipe of piezo_rl.ppo.RANDOMIZED (observation "
+        "version 2 with past deflections; --seeds writes OUT/ppo-dr-seedN)",
     )
     parser.add_argument(
         "--preview", type=non_negative_int, default=10, help="reference samples seen ahead"
@@ -33,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_seeds,
         default=None,
         metavar="A,B",
-        help="train one policy per seed into OUT/ppo-seedN instead of --seed, in parallel",
+        help="train one policy per seed into OUT/ppo-seedN (OUT/ppo-dr-seedN with --randomize) "
+        "instead of --seed, in parallel",
     )
     parser.add_argument("--jobs", type=positive_int, default=1, help="worker processes for --seeds")
     parser.add_argument(
@@ -51,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="LOW,HIGH",
         help="frequency band (Hz) of the random training references (default: the env's, "
-        "0.5,20; the committed policies used 0.5,60)",
+        "0.5,20; the committed policies used 0.5,60, the --randomize recipe's default)",
     )
     add_env_arguments(parser)
 
@@ -73,6 +87,24 @@ def _kwargs(args: argparse.Namespace) -> dict:
     return kwargs
 
 
+def _training(args: argparse.Namespace) -> tuple[int, dict]:
+    """Total steps and the keyword arguments of ``train_ppo`` (nominal or randomised recipe)."""
+    if not args.randomize:
+        kwargs = {
+            "num_envs": args.num_envs or 16,
+            "preview": args.preview,
+            "env_kwargs": _kwargs(args),
+        }
+        return args.steps or 3_000_000, kwargs
+    from piezo_rl.ppo import RANDOMIZED
+
+    kwargs = RANDOMIZED.train_kwargs(_kwargs(args))
+    kwargs["preview"] = args.preview
+    if args.num_envs is not None:
+        kwargs["num_envs"] = args.num_envs
+    return args.steps or RANDOMIZED.total_steps, kwargs
+
+
 def _seeds(text: str) -> tuple[int, ...]:
     values = tuple(seed(part.strip()) for part in text.split(",") if part.strip())
     if not values or len(set(values)) != len(values):
@@ -92,15 +124,8 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     if args.seeds is not None:
         return _run_seeds(args, out, start)
-    folder = train_ppo(
-        args.seed,
-        args.steps,
-        out,
-        num_envs=args.num_envs,
-        preview=args.preview,
-        env_kwargs=_kwargs(args),
-        progress=print,
-    )
+    steps, kwargs = _training(args)
+    folder = train_ppo(args.seed, steps, out, progress=print, **kwargs)
     print(
         f"trained in {time.perf_counter() - start:.0f} s; wrote {folder / 'policy.json'} "
         f"and {folder / 'weights.npz'}"
@@ -116,16 +141,16 @@ def _run_seeds(args: argparse.Namespace, out, start: float) -> int:
         check_backend(args.backend)
     except (ValueError, RuntimeError) as error:
         raise CommandLineError(str(error)) from None
+    steps, kwargs = _training(args)
     folders = train_seeds(
         args.seeds,
-        args.steps,
+        steps,
         out,
         jobs=args.jobs,
         backend=args.backend,
         overwrite=args.overwrite,
-        num_envs=args.num_envs,
-        preview=args.preview,
-        env_kwargs=_kwargs(args),
+        name="ppo-dr" if args.randomize else "ppo",
+        **kwargs,
     )
     print(
         f"trained {len(folders)} policies in {time.perf_counter() - start:.0f} s: "
@@ -144,7 +169,9 @@ TRAIN_RL = Subcommand(
         "the policy as plain files into --out: policy.json (architecture, observation, "
         "training configuration, versions) and weights.npz (the actor's arrays). Needs the "
         'optional extra: pip install "piezo-testbed[rl]". 3 M steps take about 3 minutes on '
-        "2 cores."
+        "2 cores. With --randomize every sub-env draws its plant from the datasheet "
+        "tolerances at each reset and the policy sees the past deflections too "
+        "(piezo_rl.ppo.RANDOMIZED): a policy for every plant, not only the nominal one."
     ),
     add_arguments=add_arguments,
     run=run,
@@ -152,5 +179,6 @@ TRAIN_RL = Subcommand(
         "piezo train-rl --seed 0 --out out/ppo-seed0",
         "piezo train-rl --seed 1 --steps 500000 --num-envs 32 --out out/ppo-quick",
         "piezo train-rl --seeds 0,1,2 --jobs 2 --out out/ppo",
+        "piezo train-rl --randomize --seeds 0,1,2 --out docs/policies",
     ),
 )

@@ -12,17 +12,25 @@ for the native vector env, identical output sub-env by sub-env) present instead,
 - index 2 + P + j, j < n_inputs: u_t-1-j / U_r, the voltages applied before, newest first;
 - index 2 + P + n_inputs + j, j < n_errors: (r_t-1-j - y_t-1-j) / s, the measured errors
   before, newest first;
+- index 2 + P + n_inputs + n_errors + j, j < n_deflections: (y_t-1-j - y_t) / s, the measured
+  deflections before, relative to the current one, newest first (observation version 2 only);
 
 and take the action in [-1, 1] (volts = action U_r; values outside are clipped, as the
 amplifier would). At reset the voltage history holds the reset's voltage (``info["voltage_V"]``)
-and the error history the first error r_0 - y_0, as if the bender had rested so for ever.
+and the error history the first error r_0 - y_0, the deflection history y_0, as if the bender
+had rested so for ever.
+
+**Versions.** Version 1 (``n_deflections = 0``) is the observation of the first policies;
+version 2 adds the past measured deflections, so that with the past voltages a policy sees the
+input-output history it needs to tell one plant from another (domain randomisation). Version 1
+is version 2 with no deflections: the layout of the first entries is the same.
 
 **Bounds (proven).** Every raw entry lies in [-B, B] (B = the env's observation bound, um) and
 every applied voltage in [-U_r, U_r]. The normalised entries are computed by
 :func:`normalize_observation` with correctly rounded IEEE operations (subtraction and division
 in float64, then the cast to float32), each monotone in its operands, so applying the same
 operations to the extreme operands gives bounds that hold exactly: ``B / s`` for index 0,
-``(B - (-B)) / s`` for the relative and error entries, 1 for the voltages
+``(B - (-B)) / s`` for the relative, error and past-deflection entries, 1 for the voltages
 (:func:`observation_high`). No bound is a guess or a margin.
 
 **Inverse.** :func:`denormalize_observation` recovers the raw observation, the voltages (V) and
@@ -55,6 +63,7 @@ __all__ = [
     "denormalize_observation",
     "normalize_observation",
     "observation_high",
+    "past_deflections",
 ]
 
 
@@ -76,6 +85,8 @@ class ObservationConfig:
         Past voltages in the observation (>= 0).
     n_errors : int
         Past measured errors in the observation (>= 0).
+    n_deflections : int
+        Past measured deflections in the observation (>= 0; > 0 is observation version 2).
     """
 
     stroke_um: float
@@ -84,15 +95,18 @@ class ObservationConfig:
     preview: int
     n_inputs: int = 4
     n_errors: int = 4
+    n_deflections: int = 0
 
     def __post_init__(self) -> None:
         for name in ("stroke_um", "u_max", "bound_um"):
             require_number(name, getattr(self, name), low=0.0, low_open=True)
-        for name in ("preview", "n_inputs", "n_errors"):
+        for name in ("preview", "n_inputs", "n_errors", "n_deflections"):
             require_int(name, getattr(self, name), minimum=0)
 
     @classmethod
-    def from_env(cls, env: Any, *, n_inputs: int = 4, n_errors: int = 4) -> ObservationConfig:
+    def from_env(
+        cls, env: Any, *, n_inputs: int = 4, n_errors: int = 4, n_deflections: int = 0
+    ) -> ObservationConfig:
         """The config of a ``PiezoBender-v0`` env (single or vector, wrapped or not).
 
         Read from the env's task, not from its current plant: with domain randomisation the
@@ -114,7 +128,13 @@ class ObservationConfig:
             preview=int(space.shape[0]) - 2,
             n_inputs=n_inputs,
             n_errors=n_errors,
+            n_deflections=n_deflections,
         )
+
+    @property
+    def version(self) -> int:
+        """Observation version: 1 without past deflections, 2 with them."""
+        return 2 if self.n_deflections else 1
 
     @property
     def raw_size(self) -> int:
@@ -124,11 +144,22 @@ class ObservationConfig:
     @property
     def size(self) -> int:
         """Entries of the normalised observation."""
-        return 2 + self.preview + self.n_inputs + self.n_errors
+        return 2 + self.preview + self.n_inputs + self.n_errors + self.n_deflections
+
+    @property
+    def _errors_start(self) -> int:
+        return self.raw_size + self.n_inputs
+
+    @property
+    def _deflections_start(self) -> int:
+        return self.raw_size + self.n_inputs + self.n_errors
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-safe fields."""
-        return asdict(self)
+        """JSON-safe fields; a version 1 config leaves out ``n_deflections`` (it is 0)."""
+        fields = asdict(self)
+        if not self.n_deflections:
+            del fields["n_deflections"]
+        return fields
 
 
 def observation_high(config: ObservationConfig) -> np.ndarray:
@@ -146,12 +177,16 @@ def observation_high(config: ObservationConfig) -> np.ndarray:
     high[start : start + config.n_inputs] = np.float32(
         np.float64(config.u_max) / np.float64(config.u_max)
     )
-    high[start + config.n_inputs :] = np.float32((b - (-b)) / s)
+    high[config._errors_start :] = np.float32((b - (-b)) / s)
     return high
 
 
 def normalize_observation(
-    raw: np.ndarray, voltages: np.ndarray, errors: np.ndarray, config: ObservationConfig
+    raw: np.ndarray,
+    voltages: np.ndarray,
+    errors: np.ndarray,
+    config: ObservationConfig,
+    deflections: np.ndarray | None = None,
 ) -> np.ndarray:
     """The normalised observation (see the module docstring for the layout).
 
@@ -164,10 +199,18 @@ def normalize_observation(
     errors : ndarray, shape (n, n_errors) or (n_errors,)
         r_t-1 - y_t-1 .. (um, measured), newest first.
     config : ObservationConfig
+    deflections : ndarray, shape (n, n_deflections) or (n_deflections,), optional
+        y_t-1 + nu_t-1 .. (um, measured), newest first; required when
+        ``config.n_deflections > 0``.
 
     Returns
     -------
     ndarray, float32, shape (n, size) or (size,)
+
+    Raises
+    ------
+    ValueError
+        When ``config`` has past deflections and none are given.
     """
     raw64 = np.asarray(raw, dtype=np.float64)
     single = raw64.ndim == 1
@@ -181,7 +224,17 @@ def normalize_observation(
     out[:, start : start + config.n_inputs] = np.atleast_2d(
         np.asarray(voltages, dtype=np.float64)
     ) / np.float64(config.u_max)
-    out[:, start + config.n_inputs :] = np.atleast_2d(np.asarray(errors, dtype=np.float64)) / s
+    out[:, config._errors_start : config._deflections_start] = (
+        np.atleast_2d(np.asarray(errors, dtype=np.float64)) / s
+    )
+    if config.n_deflections:
+        if deflections is None:
+            raise ValueError(
+                f"the observation holds {config.n_deflections} past deflections: pass them "
+                "as deflections=(n, n_deflections) um, newest first"
+            )
+        past = np.atleast_2d(np.asarray(deflections, dtype=np.float64))
+        out[:, config._deflections_start :] = (past - y) / s
     return out[0] if single else out
 
 
@@ -214,10 +267,23 @@ def denormalize_observation(
     raw[:, 1:] = y + n[:, 1 : config.raw_size] * s
     start = config.raw_size
     voltages = n[:, start : start + config.n_inputs] * np.float64(config.u_max)
-    errors = n[:, start + config.n_inputs :] * s
+    errors = n[:, config._errors_start : config._deflections_start] * s
     if single:
         return raw[0], voltages[0], errors[0]
     return raw, voltages, errors
+
+
+def past_deflections(normalized: np.ndarray, config: ObservationConfig) -> np.ndarray:
+    """The past measured deflections (um, float64, newest first) of a normalised observation.
+
+    The inverse of the version 2 entries of :func:`normalize_observation`, within
+    ``2**-22 (|x| + |y_t|)`` of the original x (float32 rounding); shape (n, n_deflections) or
+    (n_deflections,).
+    """
+    n = np.asarray(normalized, dtype=np.float64)
+    s = np.float64(config.stroke_um)
+    y = n[..., :1] * s
+    return y + n[..., config._deflections_start :] * s
 
 
 def action_to_voltage(action: np.ndarray, u_max: float) -> np.ndarray:
@@ -246,6 +312,8 @@ class ObservationHistory:
         self.voltages = np.zeros((n, config.n_inputs))
         self.errors = np.zeros((n, config.n_errors))
         self.last_error = np.zeros(n)
+        self.deflections = np.zeros((n, config.n_deflections))
+        self.last_measured = np.zeros(n)
 
     def start(self, rows: Any, raw: np.ndarray, voltage: Any) -> None:
         """Rest history for ``rows`` from their first raw observations and the voltage (V)."""
@@ -254,6 +322,8 @@ class ObservationHistory:
         self.voltages[rows] = np.asarray(voltage, dtype=np.float64).reshape(-1, 1)
         self.errors[rows] = error[:, None]
         self.last_error[rows] = error
+        self.deflections[rows] = raw[:, :1]
+        self.last_measured[rows] = raw[:, 0]
 
     def push(self, rows: Any, raw: np.ndarray, voltage: Any) -> None:
         """Advance ``rows`` by one step: the voltage applied (V) and the new raw observations."""
@@ -267,10 +337,19 @@ class ObservationHistory:
             errors[:, 0] = self.last_error[rows]
         self.voltages[rows], self.errors[rows] = voltages, errors
         self.last_error[rows] = raw[:, 1] - raw[:, 0]
+        if self.config.n_deflections:
+            deflections = self.deflections[rows]
+            deflections[:, 1:] = deflections[:, :-1]
+            deflections[:, 0] = self.last_measured[rows]
+            self.deflections[rows] = deflections
+        self.last_measured[rows] = raw[:, 0]
 
     def observe(self, raw: np.ndarray, rows: Any = slice(None)) -> np.ndarray:
         """Normalised observations of ``rows`` from their raw observations."""
-        return normalize_observation(raw, self.voltages[rows], self.errors[rows], self.config)
+        deflections = self.deflections[rows] if self.config.n_deflections else None
+        return normalize_observation(
+            raw, self.voltages[rows], self.errors[rows], self.config, deflections
+        )
 
 
 def _spaces(config: ObservationConfig) -> tuple[spaces.Box, spaces.Box]:
@@ -290,14 +369,20 @@ class TrackingObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
     ----------
     env : gymnasium.Env
         A ``PiezoBender-v0`` env made with a reference (any preview).
-    n_inputs, n_errors : int
-        Past voltages and past errors in the observation.
+    n_inputs, n_errors, n_deflections : int
+        Past voltages, past errors and past deflections in the observation.
     """
 
-    def __init__(self, env: gym.Env, *, n_inputs: int = 4, n_errors: int = 4) -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, n_inputs=n_inputs, n_errors=n_errors)
+    def __init__(
+        self, env: gym.Env, *, n_inputs: int = 4, n_errors: int = 4, n_deflections: int = 0
+    ) -> None:
+        gym.utils.RecordConstructorArgs.__init__(
+            self, n_inputs=n_inputs, n_errors=n_errors, n_deflections=n_deflections
+        )
         gym.Wrapper.__init__(self, env)
-        self.config = ObservationConfig.from_env(env, n_inputs=n_inputs, n_errors=n_errors)
+        self.config = ObservationConfig.from_env(
+            env, n_inputs=n_inputs, n_errors=n_errors, n_deflections=n_deflections
+        )
         self.observation_space, self.action_space = _spaces(self.config)
         self._history = ObservationHistory(1, self.config)
 
@@ -327,13 +412,17 @@ class TrackingObservationVector(VectorWrapper):
     env : gymnasium.vector.VectorEnv
         ``gym.make_vec("piezo_env:PiezoBender-v0", num_envs=N,
         vectorization_mode="vector_entry_point")`` made with a reference.
-    n_inputs, n_errors : int
-        Past voltages and past errors in the observation.
+    n_inputs, n_errors, n_deflections : int
+        Past voltages, past errors and past deflections in the observation.
     """
 
-    def __init__(self, env: VectorEnv, *, n_inputs: int = 4, n_errors: int = 4) -> None:
+    def __init__(
+        self, env: VectorEnv, *, n_inputs: int = 4, n_errors: int = 4, n_deflections: int = 0
+    ) -> None:
         super().__init__(env)
-        self.config = ObservationConfig.from_env(env, n_inputs=n_inputs, n_errors=n_errors)
+        self.config = ObservationConfig.from_env(
+            env, n_inputs=n_inputs, n_errors=n_errors, n_deflections=n_deflections
+        )
         single_obs, single_action = _spaces(self.config)
         self.single_observation_space, self.single_action_space = single_obs, single_action
         self.observation_space = batch_space(single_obs, self.num_envs)

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,9 @@ from piezo_env.wrappers import TrackingObservationVector
 
 __all__ = [
     "ENV_ID",
+    "RANDOMIZED",
     "PPOConfig",
+    "RandomizedRecipe",
     "SB3VectorEnv",
     "actor_layers",
     "make_ppo",
@@ -122,16 +124,72 @@ class PPOConfig:
             raise ValueError(f"activation must be 'tanh' or 'relu', got {self.activation!r}")
 
 
+@dataclass(frozen=True, kw_only=True)
+class RandomizedRecipe:
+    """What ``piezo train-rl --randomize`` trains: a policy for every plant of the tolerances.
+
+    Every sub-env draws its plant at each reset from the datasheet tolerances (``randomize``);
+    the observation is version 2 (:mod:`piezo_env.wrappers`): with the past voltages and the
+    past measured deflections the policy sees the plant's recent input-output history, from
+    which it can tell a stiff, weak or lightly damped plant from the nominal one.
+
+    Attributes
+    ----------
+    total_steps : int
+        Env steps over all sub-envs.
+    num_envs : int
+        Sub-envs of the native vector env.
+    n_inputs, n_errors, n_deflections : int
+        Past voltages, errors and deflections in the observation.
+    reference_band : tuple of float
+        Frequency band (Hz) of the random training references.
+    config : PPOConfig
+        PPO hyperparameters.
+    """
+
+    total_steps: int = 3_000_000
+    num_envs: int = 16
+    n_inputs: int = 16
+    n_errors: int = 8
+    n_deflections: int = 16
+    reference_band: tuple[float, float] = (0.5, 60.0)
+    config: PPOConfig = PPOConfig()
+
+    def train_kwargs(self, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Keyword arguments of :func:`train_ppo` (``env_kwargs`` override the band)."""
+        return {
+            "num_envs": self.num_envs,
+            "n_inputs": self.n_inputs,
+            "n_errors": self.n_errors,
+            "n_deflections": self.n_deflections,
+            "config": self.config,
+            "env_kwargs": {
+                "reference_band": self.reference_band,
+                **(env_kwargs or {}),
+                "randomize": True,
+            },
+        }
+
+
+RANDOMIZED = RandomizedRecipe()
+"""The recipe of the committed ``docs/policies/ppo-dr-seed*`` policies."""
+
+
 def make_training_env(
     num_envs: int,
     *,
     preview: int = 10,
     n_inputs: int = 4,
     n_errors: int = 4,
+    n_deflections: int = 0,
     max_episode_steps: int = EPISODE_STEPS,
     env_kwargs: dict[str, Any] | None = None,
 ) -> TrackingObservationVector:
-    """The native vector env in the training observation (Gymnasium API)."""
+    """The native vector env in the training observation (Gymnasium API).
+
+    ``env_kwargs={"randomize": True}`` gives domain randomisation: every sub-env draws its
+    plant at each of its resets from its own seeded generator.
+    """
     vec = gym.make_vec(
         ENV_ID,
         num_envs=num_envs,
@@ -140,7 +198,9 @@ def make_training_env(
         max_episode_steps=max_episode_steps,
         **(env_kwargs or {}),
     )
-    return TrackingObservationVector(vec, n_inputs=n_inputs, n_errors=n_errors)
+    return TrackingObservationVector(
+        vec, n_inputs=n_inputs, n_errors=n_errors, n_deflections=n_deflections
+    )
 
 
 class SB3VectorEnv(VecEnv):
@@ -286,6 +346,7 @@ def train_ppo(
     preview: int = 10,
     n_inputs: int = 4,
     n_errors: int = 4,
+    n_deflections: int = 0,
     config: PPOConfig | None = None,
     env_kwargs: dict[str, Any] | None = None,
     progress: Callable[[str], None] | None = None,
@@ -304,12 +365,14 @@ def train_ppo(
         Sub-envs of the native vector env.
     preview : int
         Reference samples ahead in the observation (the env's ``preview``).
-    n_inputs, n_errors : int
-        Past voltages and errors in the observation.
+    n_inputs, n_errors, n_deflections : int
+        Past voltages, errors and deflections in the observation (n_deflections > 0:
+        observation version 2).
     config : PPOConfig, optional
         Hyperparameters (default :class:`PPOConfig`).
     env_kwargs : dict, optional
-        Further ``PiezoBender-v0`` settings (bender, noise_bound, hysteresis ...).
+        Further ``PiezoBender-v0`` settings (bender, noise_bound, hysteresis ...);
+        ``{"randomize": True}`` trains on plants drawn from the datasheet tolerances.
     progress : callable, optional
         Called with one line of progress about every 100k steps.
 
@@ -321,7 +384,12 @@ def train_ppo(
     config = config or PPOConfig()
     require_int("total_steps", total_steps)
     env = make_training_env(
-        num_envs, preview=preview, n_inputs=n_inputs, n_errors=n_errors, env_kwargs=env_kwargs
+        num_envs,
+        preview=preview,
+        n_inputs=n_inputs,
+        n_errors=n_errors,
+        n_deflections=n_deflections,
+        env_kwargs=env_kwargs,
     )
     venv: VecEnv = VecMonitor(SB3VectorEnv(env))
     if config.normalize_reward:
@@ -344,12 +412,27 @@ def train_ppo(
         "num_envs": num_envs,
         "episode_steps": EPISODE_STEPS,
         "reference": "random (steps, sines, triangles, multisines)",
-        "env_kwargs": {**(env_kwargs or {}), "preview": preview},
+        "plants": (
+            "drawn from the datasheet tolerances at every reset (randomize)"
+            if (env_kwargs or {}).get("randomize")
+            else "the nominal bender"
+        ),
+        "env_kwargs": {**_json_safe(env_kwargs or {}), "preview": preview},
         "ppo": {**asdict(config), "net_arch": list(config.net_arch)},
         "wall_time_s": round(wall, 1),
         "episode_returns": [[t, round(r, 4)] for t, r in callback.returns[-20:]],
     }
     return _write(model, env, out_dir, config, training)
+
+
+def _json_safe(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """Env settings as JSON: a dataclass (a ``DomainRandomization``, a datasheet) as its fields."""
+    out: dict[str, Any] = {}
+    for key, value in kwargs.items():
+        if is_dataclass(value) and not isinstance(value, type):
+            value = {"type": type(value).__name__, **asdict(value)}
+        out[key] = value
+    return out
 
 
 def _write(model: PPO, env: Any, out_dir: str | Path, config: PPOConfig, training: dict) -> Path:
@@ -395,6 +478,7 @@ def train_seeds(
     address: str | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     overwrite: bool = False,
+    name: str = "ppo",
     **train_kwargs: Any,
 ) -> list[Path]:
     """Train one policy per seed, each seed a task of :func:`piezo_parallel.backends.run_tasks`.
@@ -412,13 +496,16 @@ def train_seeds(
     total_steps : int
         Env steps per run.
     out_root : str or Path
-        Parent folder; run ``s`` writes ``out_root/ppo-seed{s}``.
+        Parent folder; run ``s`` writes ``out_root/{name}-seed{s}``.
     jobs, backend, address
         As for :func:`piezo_parallel.backends.run_tasks` (``"local"`` or ``"ray"``).
     progress : callable, optional
         ``progress(done, total, label)`` after each run.
     overwrite : bool
         Replace policy folders that exist already (else refused before any training).
+    name : str
+        Recipe name of the folders (``"ppo"``; ``"ppo-dr"`` for domain randomisation): the
+        benchmark groups ``NAME-seedK`` rows into one mean +- std row.
     **train_kwargs
         Further keyword arguments of :func:`train_ppo` (not ``progress``).
 
@@ -437,7 +524,9 @@ def train_seeds(
     seeds = [int(s) for s in seeds]
     if len(set(seeds)) != len(seeds) or not seeds:
         raise ValueError(f"seeds must be distinct and at least one, got {seeds}")
-    folders = [Path(out_root) / f"ppo-seed{seed}" for seed in seeds]
+    if not name or "/" in name or name != name.strip():
+        raise ValueError(f"name must be a plain folder prefix such as 'ppo-dr', got {name!r}")
+    folders = [Path(out_root) / f"{name}-seed{seed}" for seed in seeds]
     if not overwrite:
         refuse_existing_policies(folders)
     tasks = [
@@ -450,7 +539,7 @@ def train_seeds(
         jobs=jobs,
         backend=backend,
         address=address,
-        labels=[f"ppo seed {s}" for s in seeds],
+        labels=[f"{name} seed {s}" for s in seeds],
         progress=progress,
     )
 
