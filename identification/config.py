@@ -11,7 +11,10 @@ from piezo_env.checks import require_int, require_number
 from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 from piezo_env.task import TaskConfig
 
-__all__ = ["ORDER_TIE_PERCENT", "IdentificationConfig"]
+__all__ = ["ORDER_TIE_PERCENT", "REFINEMENTS", "IdentificationConfig"]
+
+REFINEMENTS = ("output-error", "none")
+"""Choices of ``IdentificationConfig.refinement`` (step b')."""
 
 ORDER_TIE_PERCENT = 0.25
 """Held-out fits (percentage points) this close to the best count as a tie between orders."""
@@ -37,8 +40,17 @@ class IdentificationConfig:
     orders : tuple of int
         Candidate ARX orders n (na = nb = n), scored by free-run fit on the last quarter of the
         PRBS record; near-ties (ORDER_TIE_PERCENT) go to the larger order.
+    refinement : str
+        Step b' after the Bayesian ARX estimate: ``"output-error"`` (default) refines the
+        linear part by minimising its free-run error and chooses its order again
+        (:func:`identification.steps.refine_linear_part`); ``"none"`` keeps the step b
+        estimate (the paper's procedure as it is).
     rich_signal : str
-        Rich excitation for the NLS: ``"sine"`` (paper), ``"multisine"``, ``"random"``, ...
+        Rich excitation for the NLS: ``"decaying-multisine"`` (default: 1, 3 and 7 Hz under a
+        decaying envelope, so that the bender traces nested minor loops at every amplitude up
+        to ``rich_amplitude``), ``"sine"`` (the paper's, one major loop: an NLS trained on it
+        errs most on loops of half the stroke, where tracking references live), ``"random"``,
+        ``"multisine"``, ...
     rich_amplitude : float
         Its amplitude (V).
     rich_params : dict or None
@@ -67,7 +79,8 @@ class IdentificationConfig:
     prbs_clock: int = 1
     prbs_samples: int = 8000
     orders: tuple[int, ...] = (2, 3, 4, 5, 6)
-    rich_signal: str = "sine"
+    refinement: str = "output-error"
+    rich_signal: str = "decaying-multisine"
     rich_amplitude: float = 30.0
     rich_params: dict | None = None
     rich_samples: int = 12000
@@ -83,6 +96,8 @@ class IdentificationConfig:
             raise ValueError(
                 f"features must be 'auto' or one of {FEATURE_SETS}, got {self.features!r}"
             )
+        if self.refinement not in REFINEMENTS:
+            raise ValueError(f"refinement must be one of {REFINEMENTS}, got {self.refinement!r}")
         if not self.orders or not self.hidden:
             raise ValueError("orders and hidden must each list at least one value")
         for n in self.orders:

@@ -20,15 +20,80 @@ def _pyplot():
 
 
 def write_figures(result: Any, out: str | Path) -> list[Path]:
-    """Write the four figures of an :class:`IdentificationResult` into ``out``; return paths."""
+    """Write the figures of an :class:`IdentificationResult` into ``out``; return their paths.
+
+    Four always; a fifth, the Bode plot of the linear part before and after step b' against the
+    true plant's, when the run refined it and its data hold the plant's linear part.
+    """
     out = Path(out)
     data = result.data
-    return [
+    paths = [
         _arx_estimates(data, result.report, out / "arx_estimates.png"),
         _hysteresis(data, out / "hysteresis.png"),
         _validation(data, result.report, out / "validation.png"),
         _residuals(data, out / "residuals.png"),
     ]
+    if data.get("arx_unrefined") is not None and data.get("plant_linear") is not None:
+        paths.append(_bode(data, result.model.arx, out / "linear_part_bode.png"))
+    return paths
+
+
+def _bode(data: dict, refined: Any, path: Path) -> Path:
+    """Frequency response of the step b estimate and the refined linear part against the true
+    plant's linear part, each normalised to its static gain (z is in equivalent volts)."""
+    import control
+
+    plt = _pyplot()
+    plant = data["plant_linear"]
+    nyquist = 0.5 / data["dt"]
+    f = np.logspace(0, np.log10(nyquist * 0.999), 400)
+    w = 2.0 * np.pi * f
+    curves = (
+        ("true plant (linear part)", plant, float(np.real(control.dcgain(plant))), "k", "-", 2.4),
+        (
+            "step b: bayes-uniform ARX",
+            data["arx_unrefined"].to_state_space(),
+            data["arx_unrefined"].static_gain(),
+            "tab:blue",
+            "--",
+            1.2,
+        ),
+        (
+            "step b': output-error refinement",
+            refined.to_state_space(),
+            refined.static_gain(),
+            "tab:red",
+            "-.",
+            1.2,
+        ),
+    )
+    fig, (ax_m, ax_p, ax_e) = plt.subplots(3, 1, figsize=(8, 9), dpi=110, sharex=True)
+    truth = None
+    for label, system, gain, colour, style, width in curves:
+        response = control.frequency_response(system, w).complex.ravel() / gain
+        ax_m.loglog(f, np.abs(response), color=colour, ls=style, lw=width, label=label)
+        ax_p.semilogx(
+            f, np.degrees(np.unwrap(np.angle(response))), color=colour, ls=style, lw=width
+        )
+        if truth is None:
+            truth = response
+        else:
+            error = np.abs(response - truth) / np.abs(truth)
+            ax_e.loglog(f, 100 * error, color=colour, ls=style, lw=width, label=label)
+    ax_m.set_ylabel("|G| / static gain")
+    ax_p.set_ylabel("phase (deg)")
+    ax_e.set_ylabel("|G - P| / |P| (%)")
+    ax_e.set_xlabel("frequency (Hz)")
+    ax_m.legend(fontsize=8, loc="lower left")
+    ax_e.legend(fontsize=8, loc="upper left")
+    for ax in (ax_m, ax_p, ax_e):
+        ax.grid(alpha=0.3, which="both")
+        ax.set_xlim(f[0], f[-1])
+    fig.suptitle("Linear part before and after the output-error refinement, against the plant")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def _arx_estimates(data: dict, report: dict, path: Path) -> Path:

@@ -15,10 +15,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from identification.arx import ARXModel
 from identification.config import IdentificationConfig
 from identification.experiment import sample_time
 from identification.hammerstein import HammersteinModel
-from identification.steps import ArxEstimate, HiddenSignal, NlsFit, Validation
+from identification.steps import ArxEstimate, HiddenSignal, LinearRefinement, NlsFit, Validation
 
 __all__ = [
     "IdentificationResult",
@@ -51,12 +52,27 @@ class IdentificationResult:
 
 
 def model_metadata(
-    env: gym.Env, config: IdentificationConfig, features: str, hidden: HiddenSignal
+    env: gym.Env,
+    config: IdentificationConfig,
+    features: str,
+    hidden: HiddenSignal,
+    refinement: LinearRefinement | None = None,
 ) -> dict[str, Any]:
     """What the model files record about their origin (JSON-safe): the bender (its datasheet
-    values) and the task it was identified on, so that a controller can refuse another one."""
+    values) and the task it was identified on, so that a controller can refuse another one;
+    with step b', how the linear part was refined and the output noise it identified (a model
+    saved before step b' existed has no ``linear_part`` entry and loads as before)."""
     plant = env.unwrapped.model
+    extra = {}
+    if refinement is not None:
+        extra["linear_part"] = {
+            "method": refinement.model.method,
+            "order": refinement.order,
+            "output_noise_std_um": refinement.fit.output_error_rms,
+            "output_error_bound_um": refinement.fit.output_error_bound,
+        }
     return {
+        **extra,
         "bender": plant.name,
         "datasheet": dataclasses.asdict(plant.params.datasheet),
         "task": {
@@ -80,12 +96,19 @@ def build_report(
     nls: NlsFit,
     val: Validation,
     timings: dict[str, float],
+    refinement: LinearRefinement | None = None,
 ) -> dict[str, Any]:
-    """The JSON report of a run (keys read by the CLI, the benchmarks and report.md)."""
+    """The JSON report of a run (keys read by the CLI, the benchmarks and report.md).
+
+    With step b', ``refinement`` compares the step b estimate with the refined linear part,
+    each also against the true plant's linear part: available in simulation, used here for the
+    report only, never for fitting.
+    """
     return {
         "config": jsonable(asdict(config)),
         "environment": _environment_section(env),
         "arx": _arx_section(est),
+        "refinement": _refinement_section(env, est, refinement, val),
         "inversion": {
             "method": hidden.method,
             **hidden.error,
@@ -141,6 +164,75 @@ def _arx_section(est: ArxEstimate) -> dict[str, Any]:
     }
 
 
+BODE_CHECK_HZ = (1.0, 10.0, 50.0, 100.0, 200.0, 400.0)
+"""Frequencies (Hz) at which the report compares the linear parts with the true plant's."""
+
+
+def _refinement_section(
+    env: gym.Env, est: ArxEstimate, refinement: LinearRefinement | None, val: Validation
+) -> dict[str, Any] | None:
+    """Step b' before and after: fits, zeros, poles, and the frequency response against the
+    true plant's linear part (normalised to each model's static gain: z is in equivalent volts,
+    so the identified gain differs from the plant's by the NLS's small-signal gain)."""
+    if refinement is None:
+        return None
+    true = env.unwrapped.model.state_space()
+    models = {"before": est.model, "after": refinement.model}
+    section: dict[str, Any] = {
+        "method": "output-error (prediction error, free-run least squares from the "
+        "bayes-uniform estimate)",
+        "order_scores_rms_um": {str(k): v for k, v in refinement.order_scores.items()},
+        "order_tolerance": refinement.tolerance,
+        "solver": {"evaluations": refinement.fit.iterations, "status": refinement.fit.status},
+        "output_noise_std_um": refinement.fit.output_error_rms,
+        "output_error_bound_um": refinement.fit.output_error_bound,
+        "frequencies_hz": list(BODE_CHECK_HZ),
+        "true_plant": {"zeros": complex_list(_ss_zeros(true)), "poles": complex_list(true.poles())},
+    }
+    prbs_rms = {
+        "before": refinement.unrefined_output_error_rms,
+        "after": refinement.fit.output_error_rms,
+    }
+    validation_fit = {
+        "before": val.metrics.get("linear_arx_unrefined", val.metrics["linear_arx"]),
+        "after": val.metrics["linear_arx"],
+    }
+    for key, model in models.items():
+        error = relative_response_error(model, true, BODE_CHECK_HZ)
+        section[key] = {
+            "order": model.na,
+            "a": model.a.tolist(),
+            "b": model.b.tolist(),
+            "zeros": complex_list(model.zeros()),
+            "poles": complex_list(model.poles()),
+            "static_gain_um_per_V": model.static_gain(),
+            "prbs_free_run_rms_um": prbs_rms[key],
+            "validation_linear_fit_percent": validation_fit[key]["fit_percent"],
+            "response_error_vs_plant": error.tolist(),
+        }
+    return section
+
+
+def _ss_zeros(system: Any) -> np.ndarray:
+    import control
+
+    return np.asarray(control.zeros(system), dtype=complex)
+
+
+def relative_response_error(model: ARXModel, true: Any, frequencies_hz: Any) -> np.ndarray:
+    """``|G(jw)/G(1) - P(jw)/P(1)| / |P(jw)/P(1)|`` at each frequency (Hz): the error of the
+    model's frequency response shape against the plant's linear part ``true`` (python-control
+    state space), both normalised to their static gains."""
+    import control
+
+    w = 2.0 * np.pi * np.asarray(frequencies_hz, dtype=float)
+    g = control.frequency_response(model.to_state_space(), w).complex.ravel()
+    p = control.frequency_response(true, w).complex.ravel()
+    g = g / model.static_gain()
+    p = p / float(np.real(control.dcgain(true)))
+    return np.abs(g - p) / np.abs(p)
+
+
 def _validation_section(config: IdentificationConfig, val: Validation) -> dict[str, Any]:
     return {
         "signal": f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold}",
@@ -160,10 +252,17 @@ def figure_data(
     hidden: HiddenSignal,
     model: HammersteinModel,
     val: Validation,
+    unrefined: ARXModel | None = None,
 ) -> dict[str, Any]:
-    """The records of a run, for the figures (V, equivalent V, um; ``dt`` in s)."""
+    """The records of a run, for the figures (V, equivalent V, um; ``dt`` in s).
+
+    ``unrefined``: the step b estimate (its history draws the estimates' figure; when step b'
+    replaced it, the Bode figure compares both with the plant).
+    """
+    step_b = model.arx if unrefined is None else unrefined
     return {
-        "arx_history": model.arx.history,
+        "arx_history": step_b.history,
+        "arx_unrefined": None if step_b is model.arx else step_b,
         "u_prbs": u_prbs,
         "y_prbs": y_prbs,
         "u_rich": u_rich,

@@ -37,6 +37,7 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         "",
         *_validation_section(report["validation"]),
         *_arx_section(report["arx"], report["inversion"]),
+        *_refinement_section(report.get("refinement")),
         *_nls_section(report["nls"]),
         "## Timings (s)",
         "",
@@ -126,6 +127,71 @@ def _arx_section(arx: dict[str, Any], inversion: dict[str, Any]) -> list[str]:
         f"{inversion['method']}.",
         "",
         _inversion_error(inversion, arx["noise_bound_um"]),
+        "",
+    ]
+
+
+def _roots(values: list[list[float]]) -> str:
+    """Complex roots as ``a+bj`` text, one decimal place more than a table needs."""
+    return ", ".join(f"{complex(re, im):.3f}".strip("()") for re, im in values) or "none"
+
+
+def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
+    """Step b': the linear part before and after the output-error refinement (absent in a
+    report of ``refinement="none"`` or of a run made before the step existed)."""
+    if refinement is None:
+        return []
+    freqs = refinement["frequencies_hz"]
+    before, after = refinement["before"], refinement["after"]
+    lines = [
+        "## Output-error refinement of the linear part (step b')",
+        "",
+        f"Method: {refinement['method']}; order {after['order']}, chosen by held-out free-run "
+        "RMS error (um) "
+        + ", ".join(f"n = {k}: {v:.3f}" for k, v in refinement["order_scores_rms_um"].items())
+        + f" (the smallest order within {refinement['order_tolerance']:g} standard errors of "
+        f"the best). Identified output noise: white, RMS "
+        f"{refinement['output_noise_std_um']:.3f} um, largest "
+        f"{refinement['output_error_bound_um']:.3f} um on the PRBS record.",
+        "",
+        _row(["", "before (step b)", "after (step b')"]),
+        _row(["---"] * 3),
+        _row(["order", before["order"], after["order"]]),
+        _row(
+            [
+                "free-run RMS on the PRBS record (um)",
+                f"{before['prbs_free_run_rms_um']:.3f}",
+                f"{after['prbs_free_run_rms_um']:.3f}",
+            ]
+        ),
+        _row(
+            [
+                "linear free-run fit on the validation record (%)",
+                f"{before['validation_linear_fit_percent']:.2f}",
+                f"{after['validation_linear_fit_percent']:.2f}",
+            ]
+        ),
+        _row(["zeros", _roots(before["zeros"]), _roots(after["zeros"])]),
+        _row(["poles", _roots(before["poles"]), _roots(after["poles"])]),
+    ]
+    for i, f in enumerate(freqs):
+        lines.append(
+            _row(
+                [
+                    f"response error vs plant at {f:g} Hz (%)",
+                    f"{100 * before['response_error_vs_plant'][i]:.2f}",
+                    f"{100 * after['response_error_vs_plant'][i]:.2f}",
+                ]
+            )
+        )
+    plant = refinement["true_plant"]
+    return [
+        *lines,
+        "",
+        "Response error: |G/G(1) - P/P(1)| / |P/P(1)| against the true plant's linear part P "
+        "(each normalised to its static gain: z is in equivalent volts). The true plant is "
+        "known in simulation only and is used for this comparison, never for fitting. Its "
+        f"zeros: {_roots(plant['zeros'])}; poles: {_roots(plant['poles'])}.",
         "",
     ]
 

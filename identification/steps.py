@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import gymnasium as gym
 import numpy as np
@@ -23,11 +23,13 @@ from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
+from identification.refine import OutputErrorFit, refine_output_error
 from piezo_env.signals import make_signal
 
 __all__ = [
     "ArxEstimate",
     "HiddenSignal",
+    "LinearRefinement",
     "NlsFit",
     "Validation",
     "estimate_arx",
@@ -36,9 +38,15 @@ __all__ = [
     "excite_rich",
     "fit_nonlinearity",
     "rand_signal",
+    "refine_linear_part",
     "step_seeds",
     "validate",
 ]
+
+
+ORDER_TIE_SIGMAS = 2.0
+"""Step b': an order ties with the best when its held-out squared free-run errors exceed the
+best's by at most this many standard errors of the mean excess."""
 
 
 # -- the steps of section 3.4 -----------------------------------------------------------------
@@ -58,6 +66,9 @@ class ArxEstimate:
         Held-out PRBS free-run fit (%) of every candidate order.
     chebyshev, least_squares : ARXModel
         The exact MAP and least-squares estimates of the same order (cross-checks).
+    candidates : dict
+        The bayes-uniform estimate of every candidate order on the first three quarters of
+        the record (the starting points of step b').
     """
 
     model: ARXModel
@@ -65,6 +76,38 @@ class ArxEstimate:
     order_scores: dict[int, float]
     chebyshev: ARXModel
     least_squares: ARXModel
+    candidates: dict[int, ARXModel] = field(default_factory=dict)
+
+
+@dataclass
+class LinearRefinement:
+    """Result of step b': the output-error refinement of the linear part.
+
+    Attributes
+    ----------
+    model : ARXModel
+        The refined linear part on the whole PRBS record (method ``"output-error"``).
+    order : int
+        Its order n (na = nb = n).
+    fit : OutputErrorFit
+        The refinement on the whole record (output-error RMS and bound, solver facts).
+    order_scores : dict
+        Held-out output-error RMS (um) of every candidate order, refined on the first three
+        quarters of the record and run free over the last quarter.
+    tolerance : float
+        Standard errors of the paired held-out comparison within which an order ties with
+        the best (the smallest order in a tie is chosen): ORDER_TIE_SIGMAS.
+    unrefined_output_error_rms : float
+        Free-run RMS error (um) of the step b estimate on the whole PRBS record, for comparison
+        with ``fit.output_error_rms``.
+    """
+
+    model: ARXModel
+    order: int
+    fit: OutputErrorFit
+    order_scores: dict[int, float]
+    tolerance: float
+    unrefined_output_error_rms: float
 
 
 @dataclass
@@ -121,7 +164,8 @@ class Validation:
     y_sim, y_lin, y_pred : numpy.ndarray
         Hammerstein free run, linear ARX free run, Hammerstein one step ahead (um).
     metrics : dict
-        ``hammerstein``, ``linear_arx``, ``hammerstein_one_step``: :func:`fit_metrics` dicts.
+        ``hammerstein``, ``linear_arx``, ``hammerstein_one_step``: :func:`fit_metrics` dicts;
+        with an unrefined model given, also ``linear_arx_unrefined`` (its free run).
     """
 
     u: np.ndarray
@@ -159,7 +203,7 @@ def estimate_arx(
     refitted on the whole record (with the Chebyshev and least-squares cross-checks).
     """
     split = (3 * len(u)) // 4
-    scores = {}
+    scores, candidates = {}, {}
     for n in config.orders:
         candidate = fit_arx(
             u[:split], y[:split], na=n, nb=n, dt=dt, method="bayes-uniform", record_history=False
@@ -169,6 +213,7 @@ def estimate_arx(
         scores[n] = (
             float(fit_metrics(y[split:], sim[split:])["fit_percent"]) if stable else -math.inf
         )
+        candidates[n] = candidate
     best_fit = max(scores.values())
     order = max(n for n, fit in scores.items() if fit >= best_fit - ORDER_TIE_PERCENT)
     fits = {
@@ -176,8 +221,70 @@ def estimate_arx(
         for method in ("bayes-uniform", "chebyshev", "least-squares")
     }
     return ArxEstimate(
-        fits["bayes-uniform"], order, scores, fits["chebyshev"], fits["least-squares"]
+        fits["bayes-uniform"],
+        order,
+        scores,
+        fits["chebyshev"],
+        fits["least-squares"],
+        candidates,
     )
+
+
+def refine_linear_part(est: ArxEstimate, u: np.ndarray, y: np.ndarray) -> LinearRefinement:
+    """Step b': output-error refinement of the linear part, order by held-out free-run error.
+
+    The equation-error ARX estimate of step b is biased when the noise is on the measured
+    output, as the sensor's is, and the bias lands in the zeros (:mod:`identification.refine`).
+    Every candidate of step b (fitted to the first three quarters of the PRBS record) is refined
+    there by minimising its free-run error, and so is the refined model of the next lower order
+    taken as a model of this order (an extra pole and zero at the origin): the better of the
+    two is kept, so that a local minimum of the output-error cost (a pole pushed against the
+    unit circle, cancelled by a zero) does not decide the order, and the refined cost never
+    rises with the order. Each is scored by its free-run mean square error on the last
+    quarter. The smallest order whose held-out squared errors exceed the best
+    order's by no more than ORDER_TIE_SIGMAS standard errors of their mean (a paired
+    comparison on the same samples) wins: an order that only fits noise never wins, and the
+    spurious pole-zero pairs of a needlessly high order stay out of the model the controllers
+    invert. The winner is then refined on the whole
+    record, starting from its held-out refinement. Under the PRBS the nonlinearity is affine
+    (Bai 2004), so ``u`` is the linear part's input up to the scale fixed in step b.
+    """
+    split = (3 * len(u)) // 4
+    refined, errors = {}, {}
+    previous = None
+    for n in sorted(est.candidates):
+        starts = [est.candidates[n]]
+        if previous is not None:  # the lower order's optimum, as an order-n model
+            starts.append(ARXModel(np.r_[previous.a, 0.0], np.r_[previous.b, 0.0], dt=previous.dt))
+        fits = []
+        for start in starts:
+            try:
+                fits.append(refine_output_error(start, u[:split], y[:split]))
+            except ValueError:
+                continue  # an unstable start or end point
+        if not fits:
+            continue
+        fit = min(fits, key=lambda f: f.output_error_rms)
+        previous = refined[n] = fit.model
+        errors[n] = (y[split:] - fit.model.simulate(u)[split:]) ** 2
+    if not errors:
+        raise ValueError(
+            "no candidate ARX order gave a stable output-error model; check the PRBS record "
+            "(amplitude, length) or the candidate orders"
+        )
+    best = min(errors, key=lambda n: errors[n].mean())
+    order = min(n for n in errors if _within_noise(errors[n] - errors[best], ORDER_TIE_SIGMAS))
+    scores = {n: float(np.sqrt(e.mean())) for n, e in errors.items()}
+    fit = refine_output_error(refined[order], u, y)
+    unrefined = float(np.sqrt(np.mean((y - est.model.simulate(u)) ** 2)))
+    return LinearRefinement(fit.model, order, fit, scores, ORDER_TIE_SIGMAS, unrefined)
+
+
+def _within_noise(excess: np.ndarray, sigmas: float) -> bool:
+    """Whether the mean of the per-sample excess squared errors is within ``sigmas`` standard
+    errors of zero (a paired comparison on the same held-out samples)."""
+    spread = float(np.std(excess, ddof=1)) / math.sqrt(excess.size) if excess.size > 1 else 0.0
+    return float(excess.mean()) <= sigmas * spread
 
 
 def excite_rich(
@@ -249,9 +356,17 @@ def fit_nonlinearity(
 
 
 def validate(
-    env: gym.Env, model: HammersteinModel, config: IdentificationConfig, seeds: dict[str, int]
+    env: gym.Env,
+    model: HammersteinModel,
+    config: IdentificationConfig,
+    seeds: dict[str, int],
+    *,
+    unrefined: ARXModel | None = None,
 ) -> Validation:
-    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data."""
+    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data.
+
+    ``unrefined``: the step b estimate when step b' replaced it, run free as well.
+    """
     record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
     u, y = collect(env, record, seed=seeds["env"] + 3)
     y_sim, y_lin, y_pred = model.simulate(u), model.arx.simulate(u), model.predict(u, y)
@@ -261,6 +376,8 @@ def validate(
         "linear_arx": fit_metrics(y, y_lin, stroke=stroke),
         "hammerstein_one_step": fit_metrics(y, y_pred, stroke=stroke),
     }
+    if unrefined is not None and unrefined is not model.arx:
+        metrics["linear_arx_unrefined"] = fit_metrics(y, unrefined.simulate(u), stroke=stroke)
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
 
 

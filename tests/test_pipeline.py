@@ -47,7 +47,15 @@ def test_report_is_complete_and_consistent(short_default_run):
     report = short_default_run.report
     assert set(report) >= {"arx", "nls", "validation", "timings_s", "environment", "inversion"}
     arx = short_default_run.model.arx
-    assert report["arx"]["order"] == arx.na == arx.nb
+    # report["arx"] is step b's estimate; the model's linear part is step b''s refinement
+    assert report["arx"]["order"] in report["config"]["orders"]
+    assert report["refinement"]["after"]["order"] == arx.na == arx.nb
+    assert arx.method == "output-error"
+    assert report["refinement"]["after"]["a"] == arx.a.tolist()
+    assert report["refinement"]["before"]["a"] == report["arx"]["a"]
+    after, before = report["refinement"]["after"], report["refinement"]["before"]
+    assert after["prbs_free_run_rms_um"] <= before["prbs_free_run_rms_um"]
+    assert short_default_run.model.metadata["linear_part"]["order"] == arx.na
     assert report["nls"]["features"] in report["nls"]["selection_fit_percent"]
     chosen = report["nls"]["features"]
     assert report["nls"]["selection_fit_percent"][chosen] == max(
