@@ -84,16 +84,18 @@ class Controller:
     """
 
     name: ClassVar[str] = "controller"
+    stats_type: ClassVar[type[ControllerStats]] = ControllerStats
+    """The class of :attr:`stats` (a subclass may record more)."""
 
     def __init__(self, task: ControlTask) -> None:
         self.task = task
-        self.stats = ControllerStats()
+        self.stats = self.stats_type()
         self._u_max = task.u_max
 
     def reset(self, observation: Any) -> None:
         """Start an episode from its first observation (um); clears :attr:`stats`."""
         obs = self.task.check_observation(observation)
-        self.stats = ControllerStats()
+        self.stats = self.stats_type()
         self._reset(obs)
 
     def act(self, observation: Any) -> np.ndarray:

@@ -18,6 +18,7 @@ CONTROLLERS: dict[str, tuple[str, str, dict[str, Any]]] = {
     "pid-notch": ("controllers.pid", "PIDController", {"notch": True, "feedforward": False}),
     "pid-ff": ("controllers.pid", "PIDController", {"notch": True, "feedforward": True}),
     "mpc": ("controllers.mpc", "LinearMPC", {}),
+    "mpc-adaptive": ("controllers.adaptive", "AdaptiveMPC", {}),
     "nmpc": ("controllers.nmpc", "NonlinearMPC", {}),
     "nmpc-ipopt": ("controllers.nmpc", "NonlinearMPC", {"solver": "ipopt"}),
     "policy": ("controllers.policy", "PolicyController", {}),
@@ -96,9 +97,10 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     ----------
     name : str
         One of :data:`CONTROLLERS`: ``"pid"``, ``"pid-notch"``, ``"pid-ff"``, ``"mpc"``,
-        ``"nmpc"``, ``"nmpc-ipopt"``, ``"policy"``; or a user's factory as an entry point,
-        ``"package.module:Name"``, called as ``Name(prediction_model, env, **options)`` and
-        checked against the protocol (:mod:`controllers.protocol`).
+        ``"mpc-adaptive"``, ``"nmpc"``, ``"nmpc-ipopt"``, ``"policy"``; or a user's factory
+        as an entry point, ``"package.module:Name"``, called as
+        ``Name(prediction_model, env, **options)`` and checked against the protocol
+        (:mod:`controllers.protocol`).
     model : HammersteinModel, str, pathlib.Path, PredictionModel or "plant"
         See :func:`prediction_model`; for ``"policy"``, the folder of a trained policy
         (:func:`controllers.policy.save_policy`).

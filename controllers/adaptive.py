@@ -1,0 +1,527 @@
+"""Adaptive MPC: the identified linear part follows the actuator while it is controlled.
+
+A controller identified on one bender runs on another bender of the same type, or on the same
+bender warmer or older; the datasheet allows +-20 % on stiffness and resonance, and the fixed
+model then costs 10-100x in tracking error. :class:`AdaptiveMPC` is the linear MPC of
+:mod:`controllers.mpc` whose linear part (the ARX model from z to the deflection) is
+re-estimated in closed loop, on the regressors the controller already has: the measured
+deflection y and the hidden signal z its own nonlinearity model produced from the voltages it
+applied.
+
+Candidates. Every ``period`` samples the controller proposes candidate linear parts from the
+data so far:
+
+- ``"full"``: all ARX coefficients, from an online estimator started at the offline model:
+  ``estimator="rls"`` (recursive least squares, exponential forgetting) or ``"bayes"`` (the
+  paper's uniform-noise posterior over a sliding window, its mode by LP): see
+  :mod:`identification.online`;
+- ``"modal"``: the offline model with three numbers corrected (DC gain, frequency and damping
+  of the first bending mode; :mod:`identification.correction`), fit by least squares on the
+  multi-step prediction error of the last ``window`` samples. A stiffer or softer bender, a
+  warmer one, a better or worse damped one differ from the nominal in just these, and they are
+  identifiable from a reference at a single frequency, where the full re-estimation is not;
+- ``"revert"``: the model in use before the last swap.
+
+The safeguard. A candidate is validated on the ``period`` samples that follow its proposal
+(held-out data: it was fit before they arrived), by the mean squared 1 .. ``criterion_horizon``
+step-ahead prediction error on the measured data (what the MPC's horizon needs). It replaces
+the model in use only if it is stable (every pole inside ``max_pole_modulus``), has no more
+zeros outside the unit circle than the offline model (a zero crossing the unit circle, from
+data that do not excite the frequencies where it acts, is an artefact that would change what
+the MPC can achieve), and its error is at least ``improvement`` (relative) below the current
+model's. Then the closed loop is watched: if the measured tracking error over the period after a
+swap is much larger than over the period before (``monitor_ratio``), the controller returns
+to the offline model at once and pauses the adaptation. The revert candidate watches a swap
+over longer times: if the data turn against it, the model before comes back by the
+validation rule. Adapting blindly is dangerous (a linear part that absorbs a hysteresis
+mismatch makes things worse); this gate is what should keep the adaptive controller at least
+as good as the fixed one where there is nothing to gain (see the measured limits in the
+benchmark's notes).
+
+The swap. The ARX model's measured-history realization has the same state for every parameter
+value of given orders (past y and past z), so a swap keeps the observer's state ``[x; d]``, the
+nonlinearity's memory, the plan (warm start) and the last z; it rebuilds what depends on the
+model (condensed prediction, QP matrices, OSQP set-up, the observer's gain). The closed loop
+then continues exactly as a fresh controller built on the new model with that state would.
+
+Each episode starts from the offline model (episodes are independent and reproducible);
+``stats.adaptation`` counts proposals, acceptances and rejections, ``stats.trace`` records the
+model in use at every review, and :attr:`AdaptiveMPC.dc_gain` and
+:attr:`AdaptiveMPC.resonance_hz` read the current model at any time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from controllers.base import ControllerStats
+from controllers.condensed import check_well_posed, prediction_matrices
+from controllers.mpc import LinearMPC, MPCSettings, qp_matrices
+from controllers.observer import DisturbanceObserver
+from controllers.prediction import PredictionModel
+from controllers.settings import check_settings, measurement_std
+from controllers.task import ControlTask
+from identification.arx import ARXModel
+from identification.correction import ModalCorrection, fit_modal_correction, multi_step_errors
+from identification.online import RecursiveLeastSquares, SlidingWindowBayes, regressor_scales
+
+__all__ = [
+    "AdaptiveMPC",
+    "AdaptiveMPCSettings",
+    "AdaptiveStats",
+    "arx_from_realization",
+    "first_resonance_hz",
+]
+
+ESTIMATORS = ("rls", "bayes")
+STRUCTURES = ("both", "full", "modal")
+
+
+@dataclass(frozen=True)
+class AdaptiveMPCSettings(MPCSettings):
+    """Settings of :class:`AdaptiveMPC`: those of :class:`controllers.mpc.MPCSettings` and
+
+    Attributes
+    ----------
+    structure : {"both", "full", "modal"}
+        Which candidates are proposed (see the module docstring).
+    estimator : {"rls", "bayes"}
+        Online estimator of the full candidate.
+    forgetting : float
+        RLS forgetting factor lambda (memory about 1 / (1 - lambda) samples).
+    window : int
+        Samples the Bayesian window and the modal fit use (also: no candidate before this
+        many samples of the episode).
+    period : int
+        Samples between reviews; each candidate is validated on the next ``period`` samples.
+    criterion_horizon : int
+        Steps ahead of the prediction criterion (samples).
+    improvement : float
+        Relative improvement a candidate needs over the current model to replace it.
+    max_pole_modulus : float
+        A candidate with a pole of larger modulus is rejected: the slowest physical pole is
+        the first bending mode's, 0.98 at 1 kHz for the PL140's damping ratio 0.02 and 0.995
+        for 0.005; slower poles estimated from closed-loop data are near-cancelling artefacts
+        that let the loop drift.
+    monitor_ratio : float
+        Closed-loop monitor: a swap is undone when, in the period after it, the measured
+        tracking error's mean square exceeds this multiple of the period's before it (plus
+        twice the sensor noise's variance), or a single measured error exceeds this multiple
+        of the RMS before it plus five noise bounds (checked every sample). Each undone swap
+        pauses the adaptation for twice as many periods as the one before.
+    dead_zone : float
+        No swap while the model in use predicts the last period within this many sensor
+        noise standard deviations (RMS of its 1 .. ``criterion_horizon``-step errors): the
+        noise alone, propagated from the measured history, gives one to three, and below this
+        the data cannot tell a better model from a luckier one. On the nominal PL140 the
+        identified model's error is 1-3 noise standard deviations, on a bender 20 % stiffer
+        80-150 before adaptation.
+    modal_stride : int
+        The modal fit uses every ``modal_stride``-th start of its record (cost vs accuracy).
+    """
+
+    structure: str = "both"
+    estimator: str = "bayes"
+    forgetting: float = 0.998
+    window: int = 300
+    period: int = 100
+    criterion_horizon: int = 20
+    improvement: float = 0.1
+    max_pole_modulus: float = 0.995
+    monitor_ratio: float = 2.0
+    dead_zone: float = 5.0
+    modal_stride: int = 4
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_settings(
+            self,
+            integers=("window", "period", "criterion_horizon", "modal_stride"),
+            non_negative=("improvement", "dead_zone"),
+            positive=("monitor_ratio",),
+        )
+        if self.structure not in STRUCTURES:
+            raise ValueError(f"structure must be one of {STRUCTURES}, got {self.structure!r}")
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f"estimator must be one of {ESTIMATORS}, got {self.estimator!r}")
+        if not 0.0 < self.forgetting <= 1.0:
+            raise ValueError(f"forgetting must lie in (0, 1], got {self.forgetting!r}")
+        if not 0.0 < self.max_pole_modulus <= 1.0:
+            raise ValueError(f"max_pole_modulus must lie in (0, 1], got {self.max_pole_modulus!r}")
+        if self.period <= self.criterion_horizon:
+            raise ValueError(
+                f"period ({self.period}) must exceed criterion_horizon "
+                f"({self.criterion_horizon}): a candidate is validated on one period's data"
+            )
+
+
+@dataclass
+class AdaptiveStats(ControllerStats):
+    """:class:`controllers.base.ControllerStats` plus what the adaptation did.
+
+    Attributes
+    ----------
+    adaptation : collections.Counter
+        ``proposed-<kind>``, ``accepted-<kind>`` (kind: full, modal, revert),
+        ``rejected-unstable``, ``rejected-nonminimum-phase`` (candidates refused before
+        validation), ``kept-within-noise`` (reviews where the model in use predicted within
+        the noise dead zone), ``rejected-worse`` (reviews where no candidate beat the model
+        in use), ``rejected-closed-loop-unstable`` (the best candidate's MPC would not
+        stabilise the model in use),
+        ``reverted-closed-loop`` (swaps the closed-loop monitor undid), ``no-estimate`` (the
+        estimator had none to offer).
+    trace : list of (int, float, float)
+        At every review: (step, DC gain (um per equivalent V), first resonance (Hz)) of the
+        model in use after it.
+    """
+
+    adaptation: Counter = field(default_factory=Counter)
+    trace: list[tuple[int, float, float]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        """The base summary plus ``"adaptation"`` (the counts)."""
+        return {**super().summary(), "adaptation": dict(self.adaptation)}
+
+
+def arx_from_realization(model: PredictionModel) -> ARXModel:
+    """The ARX model whose measured-history realization is ``model``'s linear part.
+
+    Raises
+    ------
+    ValueError
+        If the linear part is not such a realization (e.g. the true plant's modal state
+        space of an oracle): the adaptive MPC re-estimates ARX coefficients.
+    """
+    a, b, c = model.a, model.b, model.c
+    n = a.shape[0]
+    for na in range(1, n + 1):
+        arx = ARXModel(a[0, :na], np.r_[b[0, 0], a[0, na:]], dt=model.dt)
+        a2, b2, c2, _ = arx.state_space_matrices()
+        same = a2.shape == a.shape and np.array_equal(a2, a) and np.array_equal(b2, b)
+        if same and np.array_equal(c2, c):
+            return arx
+    raise ValueError(
+        f"the {model.source} model's linear part is not an ARX model's measured-history "
+        "realization; the adaptive MPC needs an identified model (not the plant's)"
+    )
+
+
+def first_resonance_hz(arx: ARXModel) -> float:
+    """Natural frequency (Hz) of the model's first bending mode: the complex pole pair of
+    largest modulus, ``|ln p| / (2 pi dt)``; NaN without a complex pair."""
+    poles = arx.poles()
+    upper = poles[poles.imag > 1e-9]
+    if upper.size == 0:
+        return math.nan
+    p = upper[np.argmax(np.abs(upper))]
+    return float(abs(np.log(p)) / (2.0 * math.pi * arx.dt))
+
+
+def _outside_unit_circle(roots: np.ndarray) -> int:
+    return int(np.sum(np.abs(roots) >= 1.0))
+
+
+@dataclass
+class _Candidate:
+    kind: str
+    arx: ARXModel
+    correction: ModalCorrection | None = None
+
+
+class AdaptiveMPC(LinearMPC):
+    """Linear MPC whose ARX linear part is re-estimated online behind a safeguard.
+
+    ``AdaptiveMPC(model, task, settings=None, *, name="mpc-adaptive")`` with
+    :class:`AdaptiveMPCSettings`; the model must be an identified one (its linear part an ARX
+    model, :func:`arx_from_realization`). See the module docstring.
+    """
+
+    Settings = AdaptiveMPCSettings
+    name = "mpc-adaptive"
+    stats_type = AdaptiveStats
+
+    def __init__(
+        self,
+        model: PredictionModel,
+        task: ControlTask,
+        settings: AdaptiveMPCSettings | None = None,
+        *,
+        name: str | None = None,
+    ) -> None:
+        settings = settings or AdaptiveMPCSettings()
+        self._offline = model
+        self._offline_arx = arx = arx_from_realization(model)
+        self._offline_nonminimum = _outside_unit_circle(arx.zeros())
+        self._history_length = max(arx.na, arx.nb)
+        self._scales = regressor_scales(arx, task.u_max)
+        self._buffer = settings.window + 2 * settings.period + self._history_length
+        super().__init__(model, task, settings, name=name)
+
+    # -- model in use ---------------------------------------------------------------------------
+
+    @property
+    def arx(self) -> ARXModel:
+        """The ARX linear part in use (z in equivalent V -> um)."""
+        return self._arx
+
+    @property
+    def dc_gain(self) -> float:
+        """DC gain of the linear part in use (um per equivalent V)."""
+        return self._arx.static_gain()
+
+    @property
+    def resonance_hz(self) -> float:
+        """First bending mode of the linear part in use (Hz), :func:`first_resonance_hz`."""
+        return first_resonance_hz(self._arx)
+
+    # -- episode --------------------------------------------------------------------------------
+
+    def _reset(self, observation: np.ndarray | None) -> None:
+        if getattr(self, "_arx", None) is not self._offline_arx:
+            self._arx = self._offline_arx
+            if self.model is not self._offline:
+                self._rebuild(self._offline)
+        super()._reset(observation)
+        s = self.settings
+        self._estimator = self._make_estimator()
+        self._z = np.zeros(self._buffer)
+        self._y = np.zeros(self._buffer)
+        self._error = np.zeros(self._buffer)  # measured tracking error y_t - r_t (um)
+        self._swapped_at: int | None = None
+        self._watch_limit: float | None = None
+        self._failures = 0
+        self._paused_until = 0
+        self._step = 0
+        self._pending: list[_Candidate] = []
+        self._previous: ARXModel | None = None
+        self._correction = ModalCorrection()
+        self._next_review = max(s.window, s.period)
+
+    def _make_estimator(self) -> RecursiveLeastSquares | SlidingWindowBayes | None:
+        s = self.settings
+        if s.structure == "modal":
+            return None
+        if s.estimator == "rls":
+            return RecursiveLeastSquares(self._offline_arx, self._scales, forgetting=s.forgetting)
+        return SlidingWindowBayes(
+            self._offline_arx.na, self._offline_arx.nb, window=s.window, dt=self._offline.dt
+        )
+
+    def _act(self, observation: np.ndarray) -> float:
+        u = super()._act(observation)
+        self._record(self._z_prev, float(observation[0]), float(observation[0] - observation[1]))
+        return u
+
+    # -- adaptation -----------------------------------------------------------------------------
+
+    def _record(self, z_t: float, y_t: float, error_t: float) -> None:
+        """Store the sample (z_t applied now, y_t measured now, the measured tracking error)
+        and review when it is time."""
+        if self._estimator is not None:
+            self._estimator.update(z_t, y_t)
+        slot = self._step % self._buffer
+        self._z[slot], self._y[slot], self._error[slot] = z_t, y_t, error_t
+        self._step += 1
+        if self._watch_limit is not None and abs(error_t) > self._watch_limit:
+            self._undo_swap()
+        if self._step >= self._next_review:
+            self._next_review += self.settings.period
+            self._review()
+
+    def _recent(self, samples: int) -> tuple[np.ndarray, np.ndarray]:
+        """The last ``samples`` samples (z, y), oldest first (fewer at the episode's start)."""
+        samples = min(samples, self._step, self._buffer)
+        index = np.arange(self._step - samples, self._step) % self._buffer
+        return self._z[index], self._y[index]
+
+    def _criterion(self, arx: ARXModel, z: np.ndarray, y: np.ndarray) -> float:
+        errors = multi_step_errors(arx, z, y, self.settings.criterion_horizon)
+        return float(np.mean(errors**2)) if errors.size else math.inf
+
+    def _review(self) -> None:
+        """Check the last swap in closed loop, validate the pending candidates on the data
+        since their proposal, then propose new ones."""
+        s = self.settings
+        stats = self.stats.adaptation
+        self._watch_limit = None  # the per-sample watch covers one period after a swap
+        if self._swap_failed():
+            self._undo_swap()
+        elif self._pending and self._step >= self._paused_until:
+            z, y = self._recent(s.period + self._history_length)
+            current = self._criterion(self._arx, z, y)
+            scores = [self._criterion(c.arx, z, y) for c in self._pending]
+            best = int(np.argmin(scores))
+            chosen = self._pending[best]
+            noise_std = measurement_std(None, self.task)
+            if current < (s.dead_zone * noise_std) ** 2:
+                stats["kept-within-noise"] += 1
+            elif scores[best] >= (1.0 - s.improvement) * current:
+                stats["rejected-worse"] += 1
+            elif not self.stabilises(chosen.arx, self._arx):
+                stats["rejected-closed-loop-unstable"] += 1
+            else:
+                stats[f"accepted-{chosen.kind}"] += 1
+                self._swap(chosen)
+        self._pending = self._propose()
+        self.stats.trace.append((self._step, self.dc_gain, self.resonance_hz))
+
+    def _error_limit(self) -> float:
+        """The measured error (um) that undoes a fresh swap at once: ``monitor_ratio``
+        times the RMS of the last period plus five sensor noise bounds."""
+        period = min(self.settings.period, self._step)
+        index = np.arange(self._step - period, self._step) % self._buffer
+        rms = float(np.sqrt(np.mean(self._error[index] ** 2))) if period else 0.0
+        return self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
+
+    def _undo_swap(self) -> None:
+        """Return to the offline model and pause the adaptation."""
+        self.stats.adaptation["reverted-closed-loop"] += 1
+        self._failures += 1
+        self._swap(_Candidate("revert", self._offline_arx))
+        self._previous = None
+        self._swapped_at = None
+        self._watch_limit = None
+        self._pending = []
+        self._paused_until = self._step + self.settings.period * 2**self._failures
+
+    def stabilises(self, candidate: ARXModel, plant: ARXModel) -> bool:
+        """True if the unconstrained MPC and observer built on ``candidate`` stabilise
+        ``plant`` (the model in use, which the closed loop has been running on).
+
+        The unconstrained MPC is linear: ``z_t = K [x_hat; d_hat] + k z_t-1`` (the first row
+        of its solution, feedforward left out) with the observer's correction and prediction,
+        so the loop around ``plant`` is a linear system; its spectral radius must be < 1.
+        """
+        s = self.settings
+        a, b, c, _ = candidate.state_space_matrices()
+        phi, gamma = prediction_matrices(a, b, c, s.horizon)
+        hessian, q_matrix = qp_matrices(phi, gamma, self._rate_hessian, s)
+        first = -np.linalg.solve(hessian, q_matrix)[0]
+        observer = DisturbanceObserver.for_controller(
+            dataclasses.replace(self._offline, a=a, b=b, c=c), self.task, s
+        )
+        m = observer.a_aug.shape[0]
+        k_estimate, k_previous = first[:m], first[-1]
+        ap, bp, cp, _ = plant.state_space_matrices()
+        n_p = ap.shape[0]
+        correct_x = np.outer(observer.gain, cp[0])  # xi+ = (I - L c) xi- + L C x
+        correct_xi = np.eye(m) - np.outer(observer.gain, observer.c_aug)
+        # z = kx x + kxi xi- + kz z_prev
+        kx, kxi = k_estimate @ correct_x, k_estimate @ correct_xi
+        size = n_p + m + 1
+        loop = np.zeros((size, size))
+        loop[:n_p, :n_p] = ap + np.outer(bp[:, 0], kx)
+        loop[:n_p, n_p : n_p + m] = np.outer(bp[:, 0], kxi)
+        loop[:n_p, -1] = bp[:, 0] * k_previous
+        loop[n_p : n_p + m, :n_p] = observer.a_aug @ correct_x + np.outer(observer.b_aug, kx)
+        loop[n_p : n_p + m, n_p : n_p + m] = observer.a_aug @ correct_xi + np.outer(
+            observer.b_aug, kxi
+        )
+        loop[n_p : n_p + m, -1] = observer.b_aug * k_previous
+        loop[-1, :n_p], loop[-1, n_p : n_p + m], loop[-1, -1] = kx, kxi, k_previous
+        return bool(np.max(np.abs(np.linalg.eigvals(loop))) < 1.0)
+
+    def _swap_failed(self) -> bool:
+        """True when the measured tracking error got much worse in the period after the last
+        swap than in the period before it."""
+        period = self.settings.period
+        if self._swapped_at is None or self._step - self._swapped_at != period:
+            return False
+        if self._step < 2 * period:
+            return False
+        index = np.arange(self._step - 2 * period, self._step) % self._buffer
+        before, after = np.mean(self._error[index].reshape(2, period) ** 2, axis=1)
+        noise_variance = self.task.noise_bound_um**2 / 3.0
+        return bool(after > self.settings.monitor_ratio * before + 2.0 * noise_variance)
+
+    def _propose(self) -> list[_Candidate]:
+        s = self.settings
+        stats = self.stats.adaptation
+        candidates: list[_Candidate] = []
+        if self._estimator is not None:
+            estimator = self._estimator
+            estimate = estimator.model() if s.estimator == "rls" else estimator.estimate()
+            if estimate is None:
+                stats["no-estimate"] += 1
+            else:
+                candidates.append(_Candidate("full", estimate))
+        if s.structure in ("both", "modal"):
+            z, y = self._recent(s.window)
+            correction, arx = fit_modal_correction(
+                self._offline_arx,
+                z,
+                y,
+                horizon=s.criterion_horizon,
+                start=self._correction,
+                stride=s.modal_stride,
+            )
+            candidates.append(_Candidate("modal", arx, correction))
+        if self._previous is not None:
+            candidates.append(_Candidate("revert", self._previous))
+        kept = []
+        for candidate in candidates:
+            stats[f"proposed-{candidate.kind}"] += 1
+            refusal = self.refusal(candidate.arx)
+            if refusal is None:
+                kept.append(candidate)
+            else:
+                stats[refusal] += 1
+        return kept
+
+    def refusal(self, arx: ARXModel) -> str | None:
+        """Why the candidate ``arx`` is refused before validation (the ``stats.adaptation``
+        key), or None: ``"rejected-unstable"`` (a pole beyond ``max_pole_modulus``) or
+        ``"rejected-nonminimum-phase"`` (more zeros outside the unit circle than the offline
+        model)."""
+        if np.max(np.abs(arx.poles()), initial=0.0) >= self.settings.max_pole_modulus:
+            return "rejected-unstable"
+        if _outside_unit_circle(arx.zeros()) > self._offline_nonminimum:
+            return "rejected-nonminimum-phase"
+        return None
+
+    def _swap(self, candidate: _Candidate) -> None:
+        """Predict with the candidate's linear part from now on (see the module docstring)."""
+        self._watch_limit = self._error_limit()
+        self._previous = self._arx
+        self._arx = candidate.arx
+        self._swapped_at = self._step
+        if candidate.correction is not None:
+            self._correction = candidate.correction
+        a, b, c, _ = candidate.arx.state_space_matrices()
+        self._rebuild(dataclasses.replace(self._offline, a=a, b=b, c=c))
+
+    def _rebuild(self, model: PredictionModel) -> None:
+        """Rebuild what depends on the linear part, keeping the observer's state, the
+        nonlinearity's memory, the plan and the last z."""
+        settings = self.settings
+        if model.a.shape != self.model.a.shape:
+            raise ValueError(
+                f"a swapped model must keep the state size {self.model.a.shape[0]}, "
+                f"got {model.a.shape[0]}"
+            )
+        estimate = self.observer.estimate.copy()
+        self.model = model
+        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, settings.horizon)
+        check_well_posed(self._gamma, settings.rate_weight, 1.0, name=self.name)
+        self.observer = DisturbanceObserver.for_controller(model, self.task, settings)
+        self.observer.reset(estimate)
+        self._set_up()
+        if hasattr(self, "_qp"):
+            self._qp = self._setup_solver()
+
+    def describe(self) -> dict:
+        """The linear MPC's description plus the adaptation's settings and the offline and
+        current linear parts' DC gain and first resonance."""
+        out = super().describe()
+        out["settings"] = asdict(self.settings)
+        out["adaptation"] = {
+            "offline_dc_gain": self._offline_arx.static_gain(),
+            "offline_resonance_hz": first_resonance_hz(self._offline_arx),
+        }
+        return out
