@@ -17,6 +17,21 @@ The first move's bounds are exact: the z reachable in one sample from the curren
 s_t over the drive range; later moves use the range of z over the drive range (the major loop).
 The targets r_t+1 .. r_t+N come from the reference preview (the last previewed sample holds).
 
+**Amplifier slew limit** (``task.slew_limit`` = S, V/s, a datasheet value read from the env,
+:class:`controllers.task.ControlTask`). The voltage may change by at most S dt per sample
+(less 1e-5 V for the float32 action). The first move stays exact: its bounds are the z reachable
+from s_t over the voltages [u_t-1 - S dt, u_t-1 + S dt] within the drive range (the map is
+increasing, so they are its values at the two ends), and the voltage the inverse returns is
+kept in that window. Later moves get rate constraints in z, |z_t+k - z_t+k-1| <= m S dt
+(k >= 1), with m the smallest one-sample secant slope dz/du of the nonlinearity found along a
+full-stroke triangle driven at the slew limit, right after its reversals included (where a
+hysteresis map is flattest). For a rate-independent map, re-applying u_t+k-1 leaves z
+unchanged, so a z step of at most m S dt needs a voltage step of at most S dt wherever the
+slope is at least m: the constraint is an inner approximation, sound on the states that
+triangle visits, and the plan stays one the amplifier can follow. The QP then has 2N - 1
+constraint rows ([I; D], D the first differences) instead of the box; without a slew limit
+nothing changes (the same box QP, bitwise).
+
 Implementation follows OSQP's documented MPC pattern (:class:`controllers.box_qp.BoxQP`): P
 and the constraint matrix are built and factorised once per episode; each step updates only q, l
 and u (one stacked matrix-vector product gives q from [x; d; r; z_prev]) and warm-starts from the
@@ -28,17 +43,20 @@ too: :mod:`controllers.predictive`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 import osqp
+import scipy.sparse
 
-from controllers.box_qp import BoxQP, within
+from controllers.box_qp import BoxQP, BoxQPSolution, within
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
-from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
+from controllers.settings import DISTURBANCE_STD, PROCESS_STD, USABLE_OSQP_STATUS, check_settings
 
-__all__ = ["LinearMPC", "MPCSettings", "qp_matrices"]
+__all__ = ["LinearMPC", "MPCSettings", "RateQP", "qp_matrices", "smallest_slope"]
 
 
 def qp_matrices(
@@ -152,10 +170,25 @@ class LinearMPC(PredictiveController):
         z_min, z_max = self.model.z_bounds
         self._lower = np.full(settings.horizon, z_min)
         self._upper = np.full(settings.horizon, z_max)
+        self._slew_step = self.task.slew_step
+        self._n_rows = settings.horizon
+        if self._slew_step is not None:
+            self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
+            self._n_rows = 2 * settings.horizon - 1
 
-    def _setup_solver(self) -> BoxQP:
+    def _setup_solver(self) -> BoxQP | RateQP:
         """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
         s = self.settings
+        if self._slew_step is not None:
+            return RateQP(
+                self._lower,
+                self._upper,
+                self.z_rate,
+                hessian=self._hessian,
+                eps_abs=s.eps_abs,
+                eps_rel=s.eps_rel,
+                max_iter=s.max_iter,
+            )
         return BoxQP(
             self._lower,
             self._upper,
@@ -170,10 +203,13 @@ class LinearMPC(PredictiveController):
         self._plan = np.full(self.settings.horizon, start.z)
         self._duals: np.ndarray | None = None
         self._z_prev = start.z
+        self._u_prev = float(np.float32(start.u))
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
         z_target = self._solve(estimate, self.task.targets(observation, self.settings.horizon))
+        if self._slew_step is not None:
+            return self._act_slewing(z_target)
         inverse = self.model.nonlinearity.inverse(z_target, self._memory)
         self.stats.inverse[inverse.status] += 1
         # The plant gets float32 volts; rounding moves u by at most 1e-6 V (at 30 V), within
@@ -184,6 +220,30 @@ class LinearMPC(PredictiveController):
         self._z_prev = z
         return u
 
+    def _slew_window(self) -> tuple[float, float]:
+        """Voltages (V) reachable this sample: u_t-1 +- S dt within the drive range."""
+        step = self._slew_step
+        return max(self._u_prev - step, -self._u_max), min(self._u_prev + step, self._u_max)
+
+    def _act_slewing(self, z_target: float) -> float:
+        """The inverse of ``z_target`` kept inside the slew window (slew limit only)."""
+        nonlinearity = self.model.nonlinearity
+        inverse = nonlinearity.inverse(z_target, self._memory)
+        self.stats.inverse[inverse.status] += 1
+        low, high = self._slew_window()
+        u = float(np.float32(inverse.u))
+        if low <= u <= high:
+            z, self._memory = inverse.z, inverse.state
+        else:  # the inverse's tolerance or float32 rounding at the window's edge
+            u = float(np.float32(min(max(u, low), high)))
+            u = min(max(u, low), high)
+            z, self._memory = nonlinearity.step(u, self._memory)
+            self.stats.inverse["slew-window"] += 1
+        self.observer.predict(z)
+        self._z_prev = z
+        self._u_prev = u
+        return u
+
     def _solve(self, estimate: np.ndarray, targets: np.ndarray) -> float:
         """First move z_t (equivalent V) of the QP for the estimate [x; d] and targets (um)."""
         n = estimate.size
@@ -191,18 +251,21 @@ class LinearMPC(PredictiveController):
         stacked[:n] = estimate
         stacked[n:-1] = targets
         stacked[-1] = self._z_prev
-        low, high = self.model.nonlinearity.reachable(self._memory)
+        if self._slew_step is None:
+            low, high = self.model.nonlinearity.reachable(self._memory)
+        else:
+            low, high = self._reachable_in_window()
         self._lower[0], self._upper[0] = low, high
         if self.settings.shortcut:
             plan = self._unconstrained @ stacked
-            if within(plan, self._lower, self._upper):
+            if within(plan, self._lower, self._upper) and self._rates_within(plan):
                 self.stats.status["unconstrained"] += 1
                 self.stats.iterations.append(0)
                 self._plan = plan
                 self._duals = None  # no bound is active: the optimal multipliers are zero
                 return float(plan[0])
         shifted = np.clip(np.r_[self._plan[1:], self._plan[-1]], self._lower, self._upper)
-        duals = np.zeros(self.settings.horizon) if self._duals is None else self._duals
+        duals = np.zeros(self._n_rows) if self._duals is None else self._duals
         solution = self._qp.solve(
             self._q_matrix @ stacked, shifted, duals, bounds=(self._lower, self._upper)
         )
@@ -215,9 +278,27 @@ class LinearMPC(PredictiveController):
             self._plan, self._duals = solution.x, solution.duals
         return float(self._plan[0])
 
+    def _reachable_in_window(self) -> tuple[float, float]:
+        """z reachable this sample (equivalent V): the map at the slew window's two ends."""
+        low, high = self._slew_window()
+        step = self.model.nonlinearity.step
+        z_low, z_high = step(low, self._memory)[0], step(high, self._memory)[0]
+        return (z_low, z_high) if z_low <= z_high else (z_high, z_low)
+
+    def _rates_within(self, plan: np.ndarray) -> bool:
+        """The plan's later moves meet the z rate constraints (always True without a slew
+        limit)."""
+        if self._slew_step is None:
+            return True
+        return bool(np.all(np.abs(np.diff(plan)) <= self.z_rate))
+
     def describe(self) -> dict:
         """Settings, model source and observer speed (JSON-safe)."""
+        slew = {}
+        if self._slew_step is not None:
+            slew = {"slew_limit_V_per_s": self.task.slew_limit, "z_rate_per_sample": self.z_rate}
         return {
+            **slew,
             "name": self.name,
             "model": self.model.source,
             "settings": asdict(self.settings),
@@ -226,3 +307,102 @@ class LinearMPC(PredictiveController):
             "qp_solver": f"osqp {osqp.__version__}",
             "native": self.native_code(),
         }
+
+
+def smallest_slope(nonlinearity: Any, step: float, legs: int = 3) -> float:
+    """Smallest one-sample secant slope dz/du of ``nonlinearity`` at voltage steps ``step`` (V).
+
+    Drives a full-stroke triangle (0 -> u_max -> u_min -> ..., ``legs`` legs) at ``step`` per
+    sample and, at every sample, evaluates the secants to u +- step (within the drive range)
+    from the state there, right after each reversal included, where a hysteresis map is
+    flattest. The MPC's z rate constraint m S dt uses it (module docstring).
+
+    Raises
+    ------
+    ValueError
+        If a slope is not positive (the map is not increasing: no slew constraint in z).
+    """
+    u_min, u_max = nonlinearity.u_range
+    n = max(1, math.ceil((u_max - u_min) / step))
+    path = [np.linspace(0.0, u_max, max(1, math.ceil(u_max / step)) + 1)[1:]]
+    for leg in range(legs - 1):
+        ends = (u_max, u_min) if leg % 2 == 0 else (u_min, u_max)
+        path.append(np.linspace(*ends, n + 1)[1:])
+    state = nonlinearity.initial_state()
+    slope = math.inf
+    for u in np.concatenate(path):
+        z, state = nonlinearity.step(float(u), state)
+        for other in (min(u + step, u_max), max(u - step, u_min)):
+            if other != u:
+                z_other = nonlinearity.step(float(other), state)[0]
+                slope = min(slope, (z_other - z) / (other - u))
+    if not slope > 0:
+        raise ValueError(
+            f"the nonlinearity's slope dz/du reaches {slope:.3g} along a full-stroke triangle: "
+            "it is not increasing, so the slew limit has no z rate equivalent"
+        )
+    return float(slope)
+
+
+class RateQP:
+    """OSQP for the MPC's QP with box bounds and z rate rows (slew limit; module docstring).
+
+    ``min 1/2 v' P v + q' v  s.t.  lower <= v <= upper,  |v_k - v_k-1| <= rate (k >= 1)``: the
+    constraint matrix [I; D] and P are set up (and factorised) once, with the options of
+    :class:`controllers.box_qp.BoxQP`; :meth:`solve` has its signature and returns its
+    :class:`controllers.box_qp.BoxQPSolution` (the duals of all 2N - 1 rows).
+    """
+
+    def __init__(
+        self,
+        lower: np.ndarray,
+        upper: np.ndarray,
+        rate: float,
+        *,
+        hessian: np.ndarray,
+        eps_abs: float,
+        eps_rel: float,
+        max_iter: int,
+    ) -> None:
+        n = lower.size
+        self.lower, self.upper = lower, upper
+        self._rate = np.full(n - 1, rate)
+        difference = scipy.sparse.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], (n - 1, n))
+        matrix = scipy.sparse.vstack([scipy.sparse.identity(n), difference], format="csc")
+        self._solver = osqp.OSQP()
+        self._solver.setup(
+            P=scipy.sparse.csc_matrix(np.triu(hessian)),
+            q=np.zeros(n),
+            A=matrix,
+            l=np.r_[lower, -self._rate],
+            u=np.r_[upper, self._rate],
+            verbose=False,
+            eps_abs=eps_abs,
+            eps_rel=eps_rel,
+            max_iter=max_iter,
+            check_termination=5,
+            polishing=False,
+            warm_starting=True,
+        )
+
+    def solve(
+        self,
+        q: np.ndarray,
+        warm_x: np.ndarray,
+        warm_duals: np.ndarray,
+        *,
+        bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> BoxQPSolution:
+        """Minimise over the box and the rate rows, warm-started (a usable solution or None)."""
+        data: dict[str, np.ndarray] = {"q": q}
+        if bounds is not None:
+            self.lower, self.upper = bounds
+            data.update(l=np.r_[self.lower, -self._rate], u=np.r_[self.upper, self._rate])
+        self._solver.update(**data)
+        self._solver.warm_start(x=warm_x, y=warm_duals)
+        result = self._solver.solve(raise_error=False)
+        status, iterations = result.info.status, int(result.info.iter)
+        if status not in USABLE_OSQP_STATUS or not np.all(np.isfinite(result.x)):
+            return BoxQPSolution(None, None, status, iterations)
+        x = np.clip(result.x, self.lower, self.upper)
+        return BoxQPSolution(x, result.y, status, iterations)

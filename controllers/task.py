@@ -15,7 +15,10 @@ import numpy as np
 
 from piezo_env.checks import require_int, require_number
 
-__all__ = ["ControlTask"]
+__all__ = ["SLEW_MARGIN_V", "ControlTask"]
+
+SLEW_MARGIN_V = 1e-5
+"""Margin (V) of a controller's voltage step below the amplifier's S dt (float32 rounding)."""
 
 
 @dataclass(frozen=True)
@@ -35,6 +38,11 @@ class ControlTask:
         r_t+1, the sample its action is scored against).
     noise_bound_um : float
         Sensor noise bound r (um): the datasheet of the sensor, not a secret of the plant.
+    slew_limit : float or None
+        The amplifier's slew limit S (V/s) when the env models one (``env.unwrapped.
+        slew_limit`` = current limit / drive capacitance, :mod:`piezo_env.amplifier`): a
+        datasheet value, not an identified one. None: an ideal amplifier. Controllers keep
+        |u_t - u_t-1| <= S dt.
     """
 
     dt: float
@@ -42,6 +50,7 @@ class ControlTask:
     stroke_um: float
     preview: int
     noise_bound_um: float = 1.0
+    slew_limit: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("dt", "u_max", "stroke_um"):
@@ -55,6 +64,24 @@ class ControlTask:
                 "gym.make('piezo_env:PiezoBender-v0', preview=20)"
             ) from None
         require_number("noise_bound_um", self.noise_bound_um, low=0.0)
+        if self.slew_limit is not None:
+            require_number(
+                "slew_limit (V/s, or None)",
+                self.slew_limit,
+                low=2.0 * SLEW_MARGIN_V / self.dt,
+                low_open=True,
+            )
+
+    @property
+    def slew_step(self) -> float | None:
+        """The largest voltage change per sample a controller commands (V), or None.
+
+        S dt less 1e-5 V: the env receives float32 volts, whose rounding (at most 2e-6 V at
+        30 V) must not carry a command past the amplifier's limit.
+        """
+        if self.slew_limit is None:
+            return None
+        return self.slew_limit * self.dt - SLEW_MARGIN_V
 
     @classmethod
     def from_env(cls, env: Any) -> ControlTask:
@@ -71,6 +98,9 @@ class ControlTask:
         [-1, 1]. Pass the unwrapped env, or a wrapper that keeps the spaces. A wrapper that
         keeps the spaces but changes the values inside them cannot be told apart and is the
         caller's to avoid.
+
+        The amplifier's slew limit (``env.unwrapped.slew_limit``) is read too: it is a datasheet
+        value of the amplifier, which a controller may use as a constraint.
 
         Raises
         ------
@@ -98,6 +128,7 @@ class ControlTask:
             stroke_um=float(nominal.stroke_um),
             preview=int(shape[0]) - 2,
             noise_bound_um=float(nominal.noise_bound),
+            slew_limit=_slew_limit(base),
         )
 
     @property
@@ -130,3 +161,9 @@ class ControlTask:
         out[: seen.size] = seen
         out[seen.size :] = observation[-1]
         return out
+
+
+def _slew_limit(env: Any) -> float | None:
+    """The env's amplifier slew limit (V/s), or None (an ideal amplifier or an older env)."""
+    value = getattr(env, "slew_limit", None)
+    return None if value is None else float(value)

@@ -280,3 +280,118 @@ def test_vector_env_refuses_the_bench_options_and_runs_the_rate_dependent_map():
         obs_v, *_ = vec.step(np.full((2, 1), u))
         obs_s, *_ = single.step(np.array([u]))
     np.testing.assert_allclose(obs_v[0], obs_s, rtol=1e-6)
+
+
+# -- controllers: the amplifier's slew limit --------------------------------------------------
+
+
+def _closed_loop(name: str, current_ma: float, reference: np.ndarray, **options):
+    """Commands, slew flags and true deflections of ``name`` (plant model) on an env whose
+    amplifier has ``current_ma``."""
+    import controllers as ctl
+
+    env = gym.make(
+        "piezo_env:PiezoBender-v0",
+        preview=20,
+        amplifier=Amplifier(current_limit_mA=current_ma),
+        reference=reference,
+        max_episode_steps=reference.size - 21,
+    )
+    controller = ctl.make(name, "plant", env, **options)
+    obs, _ = env.reset(seed=0)
+    controller.reset(obs)
+    commands, limited, deflection = [0.0], [], []
+    done = False
+    while not done:
+        action = controller.act(obs)
+        obs, _, terminated, truncated, info = env.step(action)
+        commands.append(float(action[0]))
+        limited.append(info["slew_limited"])
+        deflection.append(info["deflection_um"])
+        done = terminated or truncated
+    step = env.unwrapped.slew_limit * env.unwrapped.config.dt
+    return np.array(commands), np.array(limited), np.array(deflection), step, controller
+
+
+STEP_REFERENCE = np.r_[np.zeros(30), np.full(300, 600.0)]
+SINE_50HZ = 500.0 * np.sin(2 * np.pi * 50.0 * 1e-3 * np.arange(400))
+
+
+@pytest.mark.parametrize("reference", [STEP_REFERENCE, SINE_50HZ], ids=["step", "sine-50Hz"])
+def test_mpc_voltages_respect_the_slew_limit(reference):
+    """30 mA: S dt = 3.66 V per sample, below what both references ask (the 50 Hz sine needs
+    4.7 V per sample at its zero crossings): the limit binds, the MPC plans within it, and the
+    amplifier never has to clip its command."""
+    u, limited, _, step, mpc = _closed_loop("mpc", 30.0, reference)
+    du = np.abs(np.diff(u))
+    assert du.max() <= step
+    assert du.max() >= step - 1e-3  # binding
+    assert not limited.any()
+    assert mpc.describe()["slew_limit_V_per_s"] == pytest.approx(30e-3 / C_PL140)
+
+
+def test_mpc_plans_later_moves_within_the_z_rate():
+    import controllers as ctl
+
+    env = gym.make(
+        "piezo_env:PiezoBender-v0",
+        preview=20,
+        amplifier=Amplifier(current_limit_mA=30.0),
+        reference=STEP_REFERENCE[:80],
+    )
+    mpc = ctl.make("mpc", "plant", env)
+    obs, _ = env.reset(seed=0)
+    mpc.reset(obs)
+    worst = 0.0
+    for _ in range(50):
+        obs, *_ = env.step(mpc.act(obs))
+        worst = max(worst, float(np.abs(np.diff(mpc._plan)).max()))
+    assert worst <= mpc.z_rate * (1 + 1e-3) + 1e-6  # OSQP meets the rows to its tolerance
+    assert worst >= 0.9 * mpc.z_rate  # and they were active
+    assert mpc.stats.status["solved"] > 0
+
+
+@pytest.mark.parametrize("name", ["pid", "pid-ff"])
+def test_pid_voltages_respect_the_slew_limit(name):
+    current = 2.0 if name == "pid" else 20.0  # the plain PID moves gently: a tighter limit
+    u, limited, _, step, pid = _closed_loop(name, current, STEP_REFERENCE)
+    du = np.abs(np.diff(u))
+    assert du.max() <= step and du.max() >= step - 1e-3
+    assert not limited.any()
+    assert pid.stats.status["slew-limited"] > 0
+
+
+def test_pid_integrator_does_not_wind_up_against_the_slew_limit():
+    """Back-calculation on the slew: with it the plain PID overshoots a step far less than with
+    a back-calculation gain near zero (the integrator winding up while the voltage slews)."""
+    overshoot = {}
+    for gain in (1.0, 1e-3):
+        *_, y, _, _ = _closed_loop("pid", 2.0, STEP_REFERENCE, antiwindup_gain=gain)
+        overshoot[gain] = y.max() - 600.0
+    assert overshoot[1.0] < 0.5 * overshoot[1e-3]
+
+
+def test_controllers_without_an_amplifier_keep_their_paths():
+    import controllers as ctl
+    from controllers.box_qp import BoxQP
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    mpc = ctl.make("mpc", "plant", env)
+    assert mpc.task.slew_limit is None and mpc.task.slew_step is None
+    assert isinstance(mpc._qp, BoxQP) and "slew_limit_V_per_s" not in mpc.describe()
+    assert ctl.make("pid-ff", "plant", env)._slew_step is None
+
+
+def test_smallest_slope_matches_the_hysteresis_closed_forms():
+    """Bouc-Wen (beta = gamma): the slope just after a major-loop reversal is k (1 - alpha);
+    Prandtl-Ishlinskii: the linear weight w_0 (every play inside its band after a reversal)."""
+    from controllers.mpc import smallest_slope
+    from controllers.prediction import PlantHysteresis
+    from piezo_env.hysteresis import BoucWen
+
+    bw = BoucWen.for_voltage(30.0)
+    slope = smallest_slope(PlantHysteresis(bw, (-30.0, 30.0)), 0.05)
+    assert slope == pytest.approx(bw.k * (1 - bw.alpha), rel=2e-3)
+    pi = PrandtlIshlinskii.for_voltage(30.0)
+    slope = smallest_slope(PlantHysteresis(pi, (-30.0, 30.0)), 2.0)
+    assert slope == pytest.approx(pi.linear_weight, rel=1e-12)
