@@ -13,7 +13,10 @@ from collections.abc import Callable
 from typing import Any
 
 __all__ = [
+    "BENCH_CURRENT_MA",
+    "BENCH_SENSOR_HZ",
     "DEFAULT_BENDER",
+    "DRIFT",
     "DT",
     "MONTE_CARLO",
     "MONTE_CARLO_REFERENCES",
@@ -45,6 +48,49 @@ def _tolerance_sheet(bender: str, scale: float) -> Any:
     )
 
 
+BENCH_CURRENT_MA = 50.0
+"""Current limit of the ``bench`` plant's amplifier at the PL140 (mA).
+
+The benchmark's sines are half-stroke (500 um, about 15 V): at 50 mA (S = I / C_p = 6.1 V/ms on
+the PL140's 8.2 uF) the 50 Hz sine needs 77 % of the slew limit in steady state and reaches it
+in transients, as a full-stroke 50 Hz sine does at 100 mA (the ``amplifier=True`` default);
+half-stroke sines are within the limit up to 65 Hz, so the 100 Hz sine is not (it needs
+9.4 V/ms). Another bender's current scales with its capacitance and rated voltage, so that its
+slew limit in rated voltages per second (and so in stroke per second on its references, which
+are the same fractions of its stroke) stays the PL140's."""
+
+BENCH_SENSOR_HZ = 20e3
+"""First-order bandwidth of the ``bench`` plant's displacement sensor (Hz), no delay: its lag
+of 8 us costs 0.25 % of the stroke at a full-stroke 50 Hz sine when uncompensated."""
+
+DRIFT = {"piezo_coefficient": (1.0, 1.05), "stiffness": (1.0, 0.95), "duration": 2.0}
+"""The ``drift`` plant: over the 2 s episode the piezoelectric coefficient rises 5 % and the
+stiffness falls 5 % (static gain +10.5 %, first resonance -2.5 %), the direction a warming soft
+PZT bender takes; compressed into one episode so that adaptation has to keep up."""
+
+
+def _bench(bender: str) -> dict[str, Any]:
+    """Amplifier, sensor and rate-dependent hysteresis at their documented values."""
+    from piezo_env import Amplifier, Sensor, get_datasheet
+
+    sheet = get_datasheet(bender)
+    nominal = get_datasheet(DEFAULT_BENDER)
+    capacitance = sheet.capacitance_half / nominal.capacitance_half
+    current = BENCH_CURRENT_MA * capacitance * sheet.rated_voltage / nominal.rated_voltage
+    return {
+        "bender": bender,
+        "amplifier": Amplifier(current_limit_mA=current),
+        "sensor": Sensor(delay=0, bandwidth_Hz=BENCH_SENSOR_HZ),
+        "hysteresis": "rate-dependent",
+    }
+
+
+def _drift(bender: str) -> dict[str, Any]:
+    from piezo_env import Drift
+
+    return {"bender": bender, "drift": Drift(**DRIFT)}
+
+
 PLANTS: dict[str, Callable[[str], dict[str, Any]]] = {
     "nominal": lambda bender: {"bender": bender},
     "damping-0.01": lambda bender: {"bender": bender, "damping_ratio": 0.01},
@@ -55,6 +101,8 @@ PLANTS: dict[str, Callable[[str], dict[str, Any]]] = {
     "stiffness+20%": lambda bender: {"bender": _tolerance_sheet(bender, 1.2)},
     "stiffness-20%": lambda bender: {"bender": _tolerance_sheet(bender, 0.8)},
     "random-plants": lambda bender: {"bender": bender, "randomize": True},
+    "bench": _bench,
+    "drift": _drift,
 }
 """Plant name -> (nominal bender -> env keyword arguments): changes from the nominal bender.
 
@@ -62,6 +110,13 @@ PLANTS: dict[str, Callable[[str], dict[str, Any]]] = {
 reference draws a new plant from the datasheet tolerances (``piezo_env.DomainRandomization``:
 stiffness, blocking force and resonance +-20 %, damping 0.01-0.04, hysteresis +-30 %) with
 its own seed; the report gives the distribution of each controller's RMSE over the draws.
+
+``bench`` is a real bench: a current-limited amplifier (:data:`BENCH_CURRENT_MA`), a 20 kHz
+displacement sensor (:data:`BENCH_SENSOR_HZ`) and rate-dependent Prandtl-Ishlinskii hysteresis
+(loop 1.5x as wide at a full-stroke 50 Hz sine as quasi-static), each documented in
+:mod:`piezo_env`. A controller may know the amplifier's slew limit (a datasheet value:
+``env.unwrapped.slew_limit``); the rest it does not. ``drift`` moves the piezoelectric
+coefficient and the stiffness during the episode (:data:`DRIFT`).
 """
 
 MONTE_CARLO = "random-plants"
