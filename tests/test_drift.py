@@ -67,12 +67,18 @@ def test_segments_stay_within_the_stated_ramp_error():
     assert err_g == pytest.approx(0.3 * 25 * dt / (2 * drift.duration))
 
 
-def test_the_drift_bound_covers_the_time_invariant_worst_case():
-    """Without drift the proven switched-plant bound must not be below the exact L1 bound
-    (the attainable worst case of a time-invariant plant)."""
+def test_the_drift_bounds_cover_the_time_invariant_worst_case():
+    """Without drift both proven switched-plant bounds must not be below the exact L1 bound
+    (the attainable worst case of a time-invariant plant), and the time-varying L1 sum must
+    reproduce it."""
     model = PiezoBenderModel()
     still = DriftPlan(model, Drift(piezo_coefficient=(1.0, 1.0), stiffness=(1.0, 1.0)))
-    assert drift_deflection_bound_um(model, still) >= model.deflection_bound_um()
+    nominal = model.deflection_bound_um()
+    u_eff = model.hysteresis.max_effective_voltage(model.rated_voltage)
+    assert still.energy_bound_m(u_eff) * 1e6 >= nominal
+    assert still.l1_bound_m(u_eff) * 1e6 == pytest.approx(nominal, rel=1e-8)
+    assert still.l1_bound_m(u_eff) * 1e6 >= nominal * (1 - 1e-12)
+    assert drift_deflection_bound_um(model, still) == pytest.approx(nominal, rel=1e-8)
 
 
 @pytest.mark.parametrize(
