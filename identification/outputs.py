@@ -182,7 +182,7 @@ def _refinement_section(
         "method": "output-error (prediction error, free-run least squares from the "
         "bayes-uniform estimate)",
         "order_scores_rms_um": {str(k): v for k, v in refinement.order_scores.items()},
-        "order_tolerance": refinement.tolerance,
+        "order_description_length": {str(k): v for k, v in refinement.description_length.items()},
         "solver": {"evaluations": refinement.fit.iterations, "status": refinement.fit.status},
         "output_noise_std_um": refinement.fit.output_error_rms,
         "output_error_bound_um": refinement.fit.output_error_bound,

@@ -10,8 +10,7 @@ b') :func:`refine_linear_part`: refine the linear part by output error, started 
    The sensor noise is on the measured output, where equation-error ARX estimates are biased
    (mostly in the zeros, which the inverse of step d and the MPC invert); the prediction-error
    estimate of the output-error model is not (:mod:`identification.refine`). Its order is chosen
-   again, by held-out free-run error with a preference for the smaller order. Steps d-f use the
-   refined linear part;
+   again, by minimum description length. Steps d-f use the refined linear part;
 c) :func:`excite_rich`: excite it with a rich signal (a decaying multisine by default: nested
    minor loops at every amplitude; the paper's SINE is ``rich_signal="sine"``);
 d) :func:`estimate_hidden_signal`: estimate the hidden signal z_t by inverting the ARX model

@@ -146,11 +146,12 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
     lines = [
         "## Output-error refinement of the linear part (step b')",
         "",
-        f"Method: {refinement['method']}; order {after['order']}, chosen by held-out free-run "
-        "RMS error (um) "
+        f"Method: {refinement['method']}; order {after['order']}, the smallest minimum "
+        "description length on the first three quarters of the PRBS record ("
+        + ", ".join(f"n = {k}: {v:.1f}" for k, v in refinement["order_description_length"].items())
+        + "); free-run RMS error on the last quarter (um): "
         + ", ".join(f"n = {k}: {v:.3f}" for k, v in refinement["order_scores_rms_um"].items())
-        + f" (the smallest order within {refinement['order_tolerance']:g} standard errors of "
-        f"the best). Identified output noise: white, RMS "
+        + ". Identified output noise: white, RMS "
         f"{refinement['output_noise_std_um']:.3f} um, largest "
         f"{refinement['output_error_bound_um']:.3f} um on the PRBS record.",
         "",
