@@ -1,5 +1,5 @@
-"""Figures of the closed-loop benchmark: tracking windows, RMSE summary, robustness map, and the
-tuned PID loops.
+"""Figures of the closed-loop benchmark: tracking windows, RMSE summary, robustness map, the
+tuned PID loops, and the adaptive MPC's adaptation.
 
 Every figure copes with any selection of controllers, references and plants: a figure with
 nothing to show is not written, and :func:`draw_figures` says why instead. Each row keeps its
@@ -41,6 +41,7 @@ def draw_figures(result: BenchmarkResult, out: Path) -> dict[str, Path | str]:
         "summary.png": _summary,
         "robustness.png": _robustness,
         "pid_loops.png": _pid_loops,
+        "adaptation.png": _adaptation,
     }
     done: dict[str, Path | str] = {}
     for name, draw in figures.items():
@@ -317,3 +318,83 @@ def _mark_margins(d: dict[str, Any], colour: str, axes: tuple) -> None:
             phase.plot([crossover] * 2, [-180.0, margin - 180.0], color=colour, lw=3, alpha=0.5)
     if ms is not None:
         sens.axhline(ms, color=colour, lw=0.8, ls=":")
+
+
+def plant_ratios(plant: str, bender: str, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plant's DC gain and first resonance relative to the nominal bender's, over ``times``
+    (s): the truth the adaptive MPC's estimates are drawn against.
+
+    A tolerance plant's datasheet gives both (free deflection and resonance ratios); the drift
+    plant's gain moves as piezo / stiffness and its resonance as sqrt(stiffness)
+    (:mod:`piezo_env.drift`); any other plant is taken as nominal.
+    """
+    from benchmarks.plants import PLANTS
+    from piezo_env import get_datasheet
+
+    options = PLANTS[plant](bender)
+    ones = np.ones_like(times, dtype=float)
+    drift = options.get("drift")
+    if drift is not None:
+        piezo, stiffness = drift.factors(times)
+        return piezo / stiffness, np.sqrt(stiffness)
+    sheet = options.get("bender")
+    if sheet is None or isinstance(sheet, str):
+        return ones, ones
+    nominal = get_datasheet(bender)
+    return (
+        ones * sheet.free_deflection / nominal.free_deflection,
+        ones * sheet.resonance / nominal.resonance,
+    )
+
+
+def _rolling_rms(error: np.ndarray, width: int) -> np.ndarray:
+    squares = np.convolve(np.asarray(error, float) ** 2, np.ones(width) / width, mode="valid")
+    return np.sqrt(squares)
+
+
+def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
+    """Tracking error envelope of mpc and mpc-adaptive on each adaptation plant, and the
+    adaptive model's DC gain and first resonance against the plant's (relative to nominal)."""
+    import matplotlib.pyplot as plt
+
+    from benchmarks.runner import ADAPTATION_REFERENCE
+
+    plants = [
+        key.split(":", 1)[1]
+        for key, rows in result.traces.items()
+        if key.startswith("adaptation:") and any("models" in row for row in rows.values())
+    ]
+    if not plants:
+        return "mpc-adaptive was not run on an adaptation plant (stiffness+20%, drift)"
+    bender = _bender(result)
+    full_stroke = 2.0 * float(result.config.stroke_um)
+    fig, axes = plt.subplots(2, len(plants), figsize=(5.2 * len(plants), 6.4), squeeze=False)
+    width = 50
+    for j, plant in enumerate(plants):
+        rows = result.traces[f"adaptation:{plant}"]
+        top, bottom = axes[0, j], axes[1, j]
+        for name, row in rows.items():
+            rms = 100.0 * _rolling_rms(row["error_um"], width) / full_stroke
+            t = (np.arange(rms.size) + width) * DT
+            top.semilogy(t, rms, color=row_color(name), label=name, lw=1.2)
+        top.set_title(f"{plant}, {ADAPTATION_REFERENCE}: RMSE over {width} ms", fontsize=9)
+        top.set_ylabel("% of full stroke")
+        top.legend(fontsize=8)
+        adaptive = next(row for row in rows.values() if "models" in row)
+        models = np.asarray(adaptive["models"], float)
+        gain0, resonance0 = adaptive["offline"]
+        times = np.r_[0.0, models[:, 0] * DT, len(adaptive["error_um"]) * DT]
+        gains = np.r_[1.0, models[:, 1] / gain0, models[-1, 1] / gain0]
+        resonances = np.r_[1.0, models[:, 2] / resonance0, models[-1, 2] / resonance0]
+        true_gain, true_resonance = plant_ratios(plant, bender, times)
+        bottom.step(times, gains, where="post", color="C0", label="model DC gain")
+        bottom.step(times, resonances, where="post", color="C3", label="model first resonance")
+        bottom.plot(times, true_gain, "--", color="C0", lw=1, label="plant DC gain")
+        bottom.plot(times, true_resonance, "--", color="C3", lw=1, label="plant resonance")
+        bottom.set_xlabel("time (s)")
+        bottom.set_ylabel("relative to the nominal")
+        bottom.legend(fontsize=7)
+    fig.suptitle("Adaptive MPC: tracking error and the model it predicts with", fontsize=10)
+    fig.tight_layout()
+    _save(fig, path)
+    return None

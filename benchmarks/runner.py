@@ -51,10 +51,19 @@ __all__ = [
     "run_benchmark",
 ]
 
-DEFAULT_CONTROLLERS = ("pid", "pid-notch", "pid-ff", "mpc", "nmpc", "mpc-oracle", "nmpc-oracle")
+DEFAULT_CONTROLLERS = (
+    "pid",
+    "pid-notch",
+    "pid-ff",
+    "mpc",
+    "mpc-adaptive",
+    "nmpc",
+    "mpc-oracle",
+    "nmpc-oracle",
+)
 """Controllers of ``piezo benchmark`` (nmpc-ipopt, 20-60 ms per step, is opt-in)."""
 
-ROBUSTNESS_CONTROLLERS = ("pid-notch", "pid-ff", "mpc", "nmpc", "mpc-oracle")
+ROBUSTNESS_CONTROLLERS = ("pid-notch", "pid-ff", "mpc", "mpc-adaptive", "nmpc", "mpc-oracle")
 """The controllers also run on the robustness plants (when selected)."""
 
 ROBUSTNESS_REFERENCES = ("sine-10Hz", "sine-50Hz", "sine-100Hz", "multisine", "steps")
@@ -62,6 +71,14 @@ ROBUSTNESS_REFERENCES = ("sine-10Hz", "sine-50Hz", "sine-100Hz", "multisine", "s
 
 TRACE_REFERENCES = ("sine-50Hz", "multisine", "steps")
 """References whose nominal time series are kept for the tracking figure."""
+
+ADAPTATION_PLANTS = ("stiffness+20%", "drift")
+"""Plants whose ``ADAPTATION_REFERENCE`` episode of ``mpc`` and ``mpc-adaptive`` is kept for
+the adaptation figure (a tolerance plant and the plant that drifts)."""
+
+ADAPTATION_REFERENCE = "sine-10Hz"
+
+ADAPTATION_ROWS = ("mpc", "mpc-adaptive")
 
 @dataclass(frozen=True)
 class BenchmarkConfig:
@@ -353,14 +370,35 @@ def _run_group(
                         episodes.append({**record, **episode.metrics})
                         if seed_index == 0:
                             traced = episode  # the figures draw the first seed
+                            if (
+                                plant in ADAPTATION_PLANTS
+                                and ref_name == ADAPTATION_REFERENCE
+                                and controller in ADAPTATION_ROWS
+                            ):
+                                traces[f"adaptation:{plant}"] = _adaptation_trace(episode, built)
                 if plant == "nominal" and ref_name in TRACE_REFERENCES:
                     traces[ref_name] = {
                         "deflection_um": traced.deflection_um.tolist(),
                         "reference_um": traced.reference_um.tolist(),
                         "voltage_V": traced.voltage_V.tolist(),
                     }
+
     env.close()
     return episodes, built.describe() if hasattr(built, "describe") else {}, traces
+
+
+def _adaptation_trace(episode: Any, controller: Any) -> dict[str, Any]:
+    """Tracking error (um) of an episode and, for an adaptive controller, the model in use at
+    each review ((step, DC gain, first resonance) and the offline values)."""
+    out: dict[str, Any] = {
+        "error_um": (episode.deflection_um - episode.reference_um).tolist(),
+    }
+    trace = getattr(getattr(controller, "stats", None), "trace", None)
+    if trace is not None:
+        described = controller.describe()["adaptation"]
+        out["models"] = [list(row) for row in trace]
+        out["offline"] = [described["offline_dc_gain"], described["offline_resonance_hz"]]
+    return out
 
 
 def _warm_up(env: Any, controller: Any, reference: np.ndarray, seed: int, steps: int = 25) -> None:

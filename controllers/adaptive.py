@@ -38,11 +38,15 @@ mismatch makes things worse); this gate is what should keep the adaptive control
 as good as the fixed one where there is nothing to gain (see the measured limits in the
 benchmark's notes).
 
-The swap. The ARX model's measured-history realization has the same state for every parameter
-value of given orders (past y and past z), so a swap keeps the observer's state ``[x; d]``, the
-nonlinearity's memory, the plan (warm start) and the last z; it rebuilds what depends on the
-model (condensed prediction, QP matrices, OSQP set-up, the observer's gain). The closed loop
-then continues exactly as a fresh controller built on the new model with that state would.
+The swap. The ARX model's measured-history realization has the same state for every parameter value
+of given orders (past y and past z), so a swap keeps the observer's state, the nonlinearity's
+memory, the plan (warm start) and the last z; it rebuilds what depends on the model (condensed
+prediction, QP matrices, OSQP set-up, the observer's gain). One thing is re-derived: the state's
+past outputs are the old model's, which a model of another gain reads as far from its own steady
+state, so they are recomputed by running the new model over the recent inputs, and the output
+disturbance takes the rest (the total output estimate is continuous; carrying the old state over
+made a bump of 1-2 % of the stroke on a 1 Hz sine). The closed loop then continues exactly as a
+fresh controller built on the new model with that state would.
 
 Each episode starts from the offline model (episodes are independent and reproducible);
 ``stats.adaptation`` counts proposals, acceptances and rejections, ``stats.trace`` records the
@@ -115,6 +119,11 @@ class AdaptiveMPCSettings(MPCSettings):
         twice the sensor noise's variance), or a single measured error exceeds this multiple
         of the RMS before it plus five noise bounds (checked every sample). Each undone swap
         pauses the adaptation for twice as many periods as the one before.
+    confirmations : int
+        Consecutive held-out periods a candidate must win before it is swapped in. A model
+        fit to a stretch of a slow reference can explain the next stretch and not the one
+        after (hysteresis the linear part cannot hold: a Prandtl-Ishlinskii plant on a 1 Hz
+        sine); two wins cost one period of delay.
     dead_zone : float
         No swap while the model in use predicts the last period within this many sensor
         noise standard deviations (RMS of its 1 .. ``criterion_horizon``-step errors): the
@@ -136,13 +145,14 @@ class AdaptiveMPCSettings(MPCSettings):
     max_pole_modulus: float = 0.995
     monitor_ratio: float = 2.0
     dead_zone: float = 5.0
+    confirmations: int = 2
     modal_stride: int = 4
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_settings(
             self,
-            integers=("window", "period", "criterion_horizon", "modal_stride"),
+            integers=("window", "period", "criterion_horizon", "modal_stride", "confirmations"),
             non_negative=("improvement", "dead_zone"),
             positive=("monitor_ratio",),
         )
@@ -232,6 +242,7 @@ class _Candidate:
     kind: str
     arx: ARXModel
     correction: ModalCorrection | None = None
+    wins: int = 0
 
 
 class AdaptiveMPC(LinearMPC):
@@ -347,29 +358,44 @@ class AdaptiveMPC(LinearMPC):
     def _review(self) -> None:
         """Check the last swap in closed loop, validate the pending candidates on the data
         since their proposal, then propose new ones."""
-        s = self.settings
-        stats = self.stats.adaptation
         self._watch_limit = None  # the per-sample watch covers one period after a swap
         if self._swap_failed():
             self._undo_swap()
-        elif self._pending and self._step >= self._paused_until:
-            z, y = self._recent(s.period + self._history_length)
-            current = self._criterion(self._arx, z, y)
-            scores = [self._criterion(c.arx, z, y) for c in self._pending]
-            best = int(np.argmin(scores))
-            chosen = self._pending[best]
-            noise_std = measurement_std(None, self.task)
-            if current < (s.dead_zone * noise_std) ** 2:
-                stats["kept-within-noise"] += 1
-            elif scores[best] >= (1.0 - s.improvement) * current:
-                stats["rejected-worse"] += 1
-            elif not self.stabilises(chosen.arx, self._arx):
-                stats["rejected-closed-loop-unstable"] += 1
-            else:
-                stats[f"accepted-{chosen.kind}"] += 1
-                self._swap(chosen)
-        self._pending = self._propose()
+        winners: list[_Candidate] = []
+        if self._pending and self._step >= self._paused_until:
+            winners = self._validate(self._pending)
+        self._pending = winners + self._propose()
         self.stats.trace.append((self._step, self.dc_gain, self.resonance_hz))
+
+    def _validate(self, pending: list[_Candidate]) -> list[_Candidate]:
+        """Score the pending candidates on the last period (held out: it arrived after they
+        were fit); swap in the best one that has now won ``confirmations`` periods in a row.
+        Returns the winners still waiting for confirmation."""
+        s = self.settings
+        stats = self.stats.adaptation
+        z, y = self._recent(s.period + self._history_length)
+        current = self._criterion(self._arx, z, y)
+        if current < (s.dead_zone * measurement_std(None, self.task)) ** 2:
+            stats["kept-within-noise"] += 1
+            return []
+        scores = [self._criterion(c.arx, z, y) for c in pending]
+        bar = (1.0 - s.improvement) * current
+        winners = [c for c, score in zip(pending, scores, strict=True) if score < bar]
+        if not winners:
+            stats["rejected-worse"] += 1
+            return []
+        for candidate in winners:
+            candidate.wins += 1
+        ready = [c for c in winners if c.wins >= s.confirmations]
+        if not ready:
+            return winners
+        chosen = min(ready, key=lambda c: scores[pending.index(c)])
+        if not self.stabilises(chosen.arx, self._arx):
+            stats["rejected-closed-loop-unstable"] += 1
+            return [c for c in winners if c is not chosen]
+        stats[f"accepted-{chosen.kind}"] += 1
+        self._swap(chosen)
+        return []
 
     def _error_limit(self) -> float:
         """The measured error (um) that undoes a fresh swap at once: ``monitor_ratio``
@@ -494,7 +520,31 @@ class AdaptiveMPC(LinearMPC):
         if candidate.correction is not None:
             self._correction = candidate.correction
         a, b, c, _ = candidate.arx.state_space_matrices()
+        estimate_before = self.observer.estimate.copy()
         self._rebuild(dataclasses.replace(self._offline, a=a, b=b, c=c))
+        self.observer.reset(self._consistent_estimate(estimate_before, candidate.arx))
+
+    def _consistent_estimate(self, estimate: np.ndarray, arx: ARXModel) -> np.ndarray:
+        """The observer estimate for ``arx`` at a swap: its own past outputs, same total.
+
+        The state's first ``na`` entries are the model's past outputs, the rest past inputs
+        (z, exact). A model with another gain would read the old model's outputs as far from
+        its own steady state and predict a jump; so the outputs are re-derived by running the
+        new model over the recent inputs (from the measured outputs ``window`` samples ago:
+        its modes have decayed long before), and the output disturbance d takes what they do
+        not explain, so that the total output estimate ``C x + d`` is unchanged at the swap.
+        """
+        estimate = estimate.copy()
+        n, na = self.observer.n, max(arx.na, 1)
+        z, y = self._recent(self.settings.window)
+        if z.size <= na:
+            return estimate
+        outputs = arx.simulate(np.r_[z, 0.0], y0=y[: arx.na]) if arx.na else None
+        total = estimate[0] + estimate[n]
+        estimate[:na] = outputs[::-1][:na]  # y_t+1, y_t, .. as the state holds them
+        estimate[n:] = 0.0
+        estimate[n] = total - estimate[0]
+        return estimate
 
     def _rebuild(self, model: PredictionModel) -> None:
         """Rebuild what depends on the linear part, keeping the observer's state, the

@@ -46,8 +46,10 @@ def tracking_metrics(
     Returns
     -------
     dict
-        ``rmse_um``, ``rmse_percent``, ``max_error_um``, ``max_error_percent``,
-        ``rms_voltage_v``, ``voltage_tv_v`` (total variation, sum |u_t - u_t-1|),
+        ``rmse_um``, ``rmse_percent``, ``rmse_second_half_percent`` (over the second half
+        of the episode: after an adaptive controller has adapted), ``max_error_um``,
+        ``max_error_percent``, ``rms_voltage_v``, ``voltage_tv_v`` (total variation,
+        sum |u_t - u_t-1|),
         ``saturated_fraction``, ``compute_median_us``, ``compute_p99_us``, ``compute_max_us``,
         ``fallbacks``, ``steps``; with ``dt`` also ``deadline_misses`` and
         ``rise_time_ms``, ``overshoot_percent``, ``settling_time_ms``, ``steps_settled``
@@ -60,6 +62,7 @@ def tracking_metrics(
     times = np.asarray(compute_s, float) * 1e6
     full_stroke = 2.0 * stroke_um
     rmse = float(np.sqrt(np.mean(error**2)))
+    second_half = float(np.sqrt(np.mean(error[error.size // 2 :] ** 2)))
     max_error = float(np.max(np.abs(error)))
     median, p99, worst = np.quantile(times, [0.5, 0.99, 1.0]) if times.size else (0.0,) * 3
     extra: dict[str, Any] = {}
@@ -70,6 +73,7 @@ def tracking_metrics(
         "steps": int(error.size),
         "rmse_um": rmse,
         "rmse_percent": 100.0 * rmse / full_stroke,
+        "rmse_second_half_percent": 100.0 * second_half / full_stroke,
         "max_error_um": max_error,
         "max_error_percent": 100.0 * max_error / full_stroke,
         "rms_voltage_v": float(np.sqrt(np.mean(voltage**2))),

@@ -135,8 +135,7 @@ class ModalSplit:
         na, nb = model.na, model.nb
         if nb < na or na == 0:
             raise ValueError(
-                "a modal correction needs an ARX model with 0 < na <= nb, "
-                f"got na = {na}, nb = {nb}"
+                f"a modal correction needs an ARX model with 0 < na <= nb, got na = {na}, nb = {nb}"
             )
         self.model = model
         num = np.concatenate([[0.0], model.b])  # B(w), lowest power first
