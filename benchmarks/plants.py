@@ -51,13 +51,14 @@ def _tolerance_sheet(bender: str, scale: float) -> Any:
 BENCH_CURRENT_MA = 50.0
 """Current limit of the ``bench`` plant's amplifier at the PL140 (mA).
 
-The benchmark's sines are half-stroke (500 um, about 15 V): at 50 mA (S = I / C_p = 6.1 V/ms on
-the PL140's 8.2 uF) the 50 Hz sine needs 77 % of the slew limit in steady state and reaches it
-in transients, as a full-stroke 50 Hz sine does at 100 mA (the ``amplifier=True`` default);
-half-stroke sines are within the limit up to 65 Hz, so the 100 Hz sine is not (it needs
-9.4 V/ms). Another bender's current scales with its capacitance and rated voltage, so that its
-slew limit in rated voltages per second (and so in stroke per second on its references, which
-are the same fractions of its stroke) stays the PL140's."""
+The benchmark's sines are half-stroke (500 um, about 15 V of effective voltage quasi-statically):
+at 50 mA (S = I / C_p = 6.1 V/ms on the PL140's 8.2 uF) the 50 Hz sine needs about 71 % of the
+slew limit in steady state (the beam's gain there is 1.08 times the static one) and reaches it
+in transients, as a full-stroke 50 Hz sine does at 100 mA (the ``amplifier=True`` default); the
+100 Hz sine (beam gain 1.52) needs about 100 % of it. Another bender's current scales with its
+capacitance and rated voltage, so that its slew limit in rated voltages per second (and so in
+stroke per second on its references, which are the same fractions of its stroke) stays the
+PL140's."""
 
 BENCH_SENSOR_HZ = 20e3
 """First-order bandwidth of the ``bench`` plant's displacement sensor (Hz), no delay: its lag
