@@ -27,8 +27,9 @@ Default values: 100 mA, no small-signal bandwidth (the sample rate is the bandwi
 a typical bender amplifier's class of output current (tens to a few hundred mA at 60 V); the
 E-650 / E-651 datasheet values could not be retrieved here, so the figure is a documented
 choice, not a quoted one. What it implies on a PL140: S = 12.2 V/ms, full-stroke sines up to
-64.7 Hz; the benchmark's 50 Hz full-stroke sine needs 77 % of it in steady state and hits it in
-transients.
+64.7 Hz; a full-stroke 50 Hz sine needs 77 % of it (less by the beam's 1.08 gain there), so the
+limit binds in transients. The benchmark's ``bench`` plant uses 50 mA for its half-stroke references
+(:mod:`benchmarks.plants`).
 """
 
 from __future__ import annotations
