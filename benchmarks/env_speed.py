@@ -4,7 +4,9 @@ Single env: step time through ``gymnasium.make`` (all default wrappers) with def
 (FE beam + Bouc-Wen hysteresis + sensor noise + random reference), random actions, autoreset
 included, beside CartPole-v1 made the same way. Vector env: native vector env-steps/s at
 N = 1, 64, 1024, 4096 beside CartPole-v1's native vector env. Ratios > 1 mean PiezoBender is
-faster. Writes ``benchmarks/results/env_speed.md``.
+faster. Every bench option on (amplifier with bandwidth, sensor with delay and bandwidth, drift,
+rate-dependent hysteresis): single-env step time as a ratio to the default env's, measured
+in alternating rounds (target <= 1.5). Writes ``benchmarks/results/env_speed.md``.
 
 Run: ``python -m benchmarks.env_speed`` (about a minute).
 """
@@ -22,6 +24,52 @@ from benchmarks._common import header, markdown_table, single_env_step_times, wr
 SINGLE_STEPS = 60_000
 VECTOR_BATCHES = 2_001  # one PiezoBender episode and its autoreset
 ROUNDS = 5
+OPTION_STEPS = 20_000
+
+
+def every_option() -> dict:
+    """PiezoBender-v0 keyword arguments with every bench option on."""
+    from piezo_env import Amplifier, Drift, Sensor
+
+    return {
+        "amplifier": Amplifier(current_limit_mA=100.0, bandwidth_Hz=5e3),
+        "sensor": Sensor(delay=1, bandwidth_Hz=20e3),
+        "drift": Drift(),
+        "hysteresis": "rate-dependent",
+    }
+
+
+def step_times(settings: dict, steps: int, seed: int = 0) -> np.ndarray:
+    """Per-step wall times (s) of PiezoBender-v0 made with ``settings`` through gym.make, random
+    actions, resets included (as :func:`benchmarks._common.single_env_step_times`)."""
+    env = gym.make("PiezoBender-v0", **settings)
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    actions = [env.action_space.sample() for _ in range(steps)]
+    times = np.empty(steps)
+    clock = time.perf_counter
+    for i, action in enumerate(actions):
+        start = clock()
+        _, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            env.reset()
+        times[i] = clock() - start
+    env.close()
+    return times
+
+
+def option_ratio(rounds: int = ROUNDS) -> tuple[float, float, float]:
+    """Median step times (s) of the default and the every-option env, and the median of their
+    per-round ratios (the two alternate within each round)."""
+    pairs = [
+        (
+            float(np.median(step_times({}, OPTION_STEPS, seed=r))),
+            float(np.median(step_times(every_option(), OPTION_STEPS, seed=r))),
+        )
+        for r in range(rounds)
+    ]
+    default, options = np.array(pairs).T
+    return float(np.median(default)), float(np.median(options)), float(np.median(options / default))
 
 
 def vector_env_rate(env_id: str, num_envs: int, seed: int = 0) -> float:
@@ -79,6 +127,8 @@ def main() -> None:
     ratio_single = float(np.median([np.median(p) / np.median(c) for p, c in rounds]))
     ratio_mean = float(np.median([p.mean() / c.mean() for p, c in rounds]))
 
+    default_s, options_s, options_ratio = option_ratio()
+
     rows_vector = []
     for n in (1, 64, 1024, 4096):
         p, c, ratio = paired_rates(n)
@@ -98,6 +148,20 @@ def main() -> None:
         "",
         f"PiezoBender / CartPole step time (median of {ROUNDS} alternating rounds): median "
         f"{ratio_single:.2f}, mean {ratio_mean:.2f} (target: <= 1).",
+        "",
+        "## Every bench option on",
+        "",
+        "Amplifier (100 mA, 5 kHz), sensor (1 sample delay, 20 kHz), drift (the default Drift),",
+        "rate-dependent hysteresis; single env through gymnasium.make, random actions (mostly",
+        "slew-limited), resets included, alternating with the default env in each round.",
+        "",
+        markdown_table(
+            ["env", "median us/step"],
+            [["default", f"{default_s * 1e6:.2f}"], ["every option on", f"{options_s * 1e6:.2f}"]],
+        ),
+        "",
+        f"Every option on / default step time (median of {ROUNDS} rounds' ratios): "
+        f"{options_ratio:.2f} (target: <= 1.5).",
         "",
         "## Native vector env (vector_entry_point), env-steps/s",
         "",
