@@ -7,6 +7,8 @@
   nominal RMSE table (winners bold, near ties not), each controller's median step time, and the
   bad news of the same run (worst cases on random plants and on the robustness plants, what
   identification costs, the reference checks that were missed);
+- ``adaptation`` from the same file: ``mpc`` against ``mpc-adaptive`` on the robustness
+  plants, whole episode and second half, and the Monte Carlo worst cases;
 - ``identification`` from ``docs/identify/report.json`` (``piezo identify --out docs/identify``).
 
 ``--check`` only compares (a test runs it).
@@ -102,7 +104,7 @@ def bad_news(data: dict[str, Any]) -> list[str]:
     episodes = aggregate(data["results"]["episodes"])
     news = []
     random = [e for e in episodes if e["plant"] == "random-plants"]
-    for row in ("mpc", "pid-ff"):
+    for row in ("mpc", "mpc-adaptive", "pid-ff"):
         worst = max((e for e in random if e["controller"] == row),
                     key=lambda e: e["rmse_percent"], default=None)
         if worst is not None and worst["rmse_percent"] > 1.0:
@@ -117,7 +119,7 @@ def bad_news(data: dict[str, Any]) -> list[str]:
         if e["plant"] in ("nominal", "random-plants") or e["rmse_percent"] <= 1.0:
             continue
         row = e["controller"]
-        if row in ("pid-notch", "pid-ff", "mpc", "nmpc") and (
+        if row in ("pid-notch", "pid-ff", "mpc", "mpc-adaptive", "nmpc") and (
             row not in worst or e["rmse_percent"] > worst[row]["rmse_percent"]
         ):
             worst[row] = e
@@ -167,6 +169,59 @@ def headline(data: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+ADAPTATION_REFERENCES = ("sine-10Hz", "sine-50Hz", "multisine")
+
+
+def adaptation(data: dict[str, Any]) -> str:
+    """``mpc`` against ``mpc-adaptive`` on every plant the model was not identified on: RMSE
+    over the whole episode and over its second half (after adaptation), and the Monte Carlo
+    worst cases."""
+    cells = {
+        (c["plant"], c["controller"], c["reference"]): c
+        for c in aggregate(data["results"]["episodes"])
+        if "draw" not in c
+    }
+    plants = [p for p in data["results"]["config"]["plants"] if p not in ("nominal",
+              "random-plants")]
+    plants = [p for p in plants if any((p, "mpc-adaptive", r) in cells
+                                       for r in ADAPTATION_REFERENCES)]
+    if not plants:
+        return "(`mpc-adaptive` was not run on a robustness plant in the committed run.)"
+    head = "| plant | " + " | ".join(f"{r}: mpc | {r}: adaptive (2nd half)"
+                                     for r in ADAPTATION_REFERENCES) + " |"
+    lines = [
+        "RMSE in % of the full stroke, committed run (generated from "
+        "[docs/benchmark/benchmark.json](docs/benchmark/benchmark.json)); `mpc` holds its "
+        "identified model, `mpc-adaptive` starts every episode from it:",
+        "",
+        head,
+        "|---|" + "---|" * (2 * len(ADAPTATION_REFERENCES)),
+    ]
+    for plant in ["nominal", *plants]:
+        row = [plant]
+        for ref in ADAPTATION_REFERENCES:
+            fixed, adaptive = cells.get((plant, "mpc", ref)), cells.get(
+                (plant, "mpc-adaptive", ref))
+            row.append("-" if fixed is None else f"{fixed['rmse_percent']:.3f}")
+            row.append("-" if adaptive is None else (
+                f"{adaptive['rmse_percent']:.3f} ({adaptive['rmse_second_half_percent']:.3f})"))
+        lines.append("| " + " | ".join(row) + " |")
+    random = [e for e in data["results"]["episodes"] if e["plant"] == "random-plants"]
+    worst = []
+    for ref in ADAPTATION_REFERENCES:
+        for row in ("mpc", "mpc-adaptive"):
+            members = [e for e in random if e["controller"] == row and e["reference"] == ref]
+            if members:
+                whole = max(e["rmse_percent"] for e in members)
+                half = max(e["rmse_second_half_percent"] for e in members)
+                worst.append(f"`{row}` {whole:.3g} % ({half:.3g} % over the second half) on "
+                             f"{ref}")
+    if worst:
+        lines += ["", f"Worst of the {len({e.get('draw') for e in random})} random plants: "
+                  + "; ".join(worst) + "."]
+    return "\n".join(lines)
+
+
 def identification(report: dict[str, Any]) -> str:
     """The identification figures of the committed ``piezo identify`` report."""
     validation, arx, inversion = report["validation"], report["arx"], report["inversion"]
@@ -212,6 +267,7 @@ def other_bender(data: dict[str, Any]) -> str:
 BLOCKS = {
     "headline": ("docs/benchmark/benchmark.json", headline),
     "headline-PL127": ("docs/benchmark-PL127/benchmark.json", other_bender),
+    "adaptation": ("docs/benchmark/benchmark.json", adaptation),
     "identification": ("docs/identify/report.json", identification),
 }
 """Marker name -> (the committed file it is generated from, the function that renders it)."""

@@ -181,6 +181,35 @@ def tracking_tables(
     return "\n".join(parts)
 
 
+def bench_gap_table(result: BenchmarkResult) -> str:
+    """What each controller loses from the nominal plant to the ``bench`` plant (RMSE, % of
+    the full stroke, and the factor), on the references both ran; empty without it."""
+    index = cell_index(result)
+    rows = [c for c in result.config.rows if any(k[:2] == ("bench", c) for k in index)]
+    refs = [r for r in result.config.references
+            if any(k[0] == "bench" and k[2] == r for k in index)]
+    if not rows or not refs:
+        return ""
+
+    def cell(row: str, ref: str) -> str:
+        nominal, bench = index.get(("nominal", row, ref)), index.get(("bench", row, ref))
+        if nominal is None or bench is None:
+            return "-"
+        a, b = nominal["rmse_percent"], bench["rmse_percent"]
+        return f"{a:.3f} -> {b:.3f} (x{b / a:.1f})" if a > 0 else f"{a:.3f} -> {b:.3f}"
+
+    return (
+        "### From the nominal plant to the bench\n\n"
+        "The `bench` plant drives the bender through a current-limited amplifier (a slew "
+        "limit), reads it through a sensor with a bandwidth, and has hysteresis whose loop "
+        "widens with the drive's rate (`benchmarks/plants.py`). The slew limit is a datasheet "
+        "value, not identified: the MPC holds it as a constraint on its moves and the PID as "
+        "an anti-windup on its voltage rate. RMSE (% of the full stroke), nominal -> bench:\n\n"
+        + _table(rows, refs, cell, "controller")
+        + "\n"
+    )
+
+
 def _effort_table(result: BenchmarkResult) -> str:
     nominal = [e for e in result.episodes if e["plant"] == "nominal"]
     rows = [c for c in result.config.rows if any(e["controller"] == c for e in nominal)]
@@ -356,6 +385,7 @@ def _markdown(
         "## Tracking",
         "",
         tracking_tables(result),
+        bench_gap_table(result),
         monte_carlo_table(result),
     ]
     steps = _step_table(result, meta["dt"])

@@ -293,14 +293,14 @@ class BenchmarkResult:
     timing: dict[str, float]
 
 
-def _make_env(config: BenchmarkConfig, plant: str) -> Any:
+def _make_env(config: BenchmarkConfig, plant: str, **extra: Any) -> Any:
     import gymnasium as gym
 
     return gym.make(
         "piezo_env:PiezoBender-v0",
         preview=config.preview,
         max_episode_steps=config.steps,
-        **PLANTS[plant](config.bender),
+        **{**PLANTS[plant](config.bender), **extra},
     )
 
 
@@ -309,11 +309,15 @@ def _build(controller: str, model_dir: str, plant_env: Any, config: BenchmarkCon
 
     Built against the nominal env, so a controller never learns a robustness plant's sensor
     noise or stroke: the same settings everywhere, only the oracle's model is the plant's own.
+    The one exception is a datasheet value of the bench: a plant driven through a
+    current-limited amplifier gives the controllers its slew limit (the nominal env with the
+    same amplifier), as a control engineer would read it off the amplifier's datasheet.
     """
     import controllers as ctl
 
     name = controller.removesuffix("-oracle")
-    nominal = _make_env(config, "nominal")
+    amplifier = plant_env.unwrapped.config.amplifier
+    nominal = _make_env(config, "nominal", **({"amplifier": amplifier} if amplifier else {}))
     if controller in config.entry_points:
         name, model = config.entry_points[controller], model_dir
     elif controller in config.policy_folders:

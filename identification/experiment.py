@@ -44,8 +44,11 @@ def collect(
     Returns
     -------
     u : numpy.ndarray, shape (T,)
-        The voltage the env applied, V: ``u`` clipped to the action space, as the amplifier
-        saturates.
+        The voltage the env applied, V (``info["voltage_V"]``): ``u`` clipped to the action
+        space, as the amplifier saturates, and with a current-limited amplifier
+        (``amplifier=...``) its slew-limited output, as an amplifier's voltage monitor reads
+        it: the model is identified from the voltage on the bender, not from the command. The
+        last sample, never applied, is the clipped command.
     y : numpy.ndarray, shape (T,)
         Measured tip deflection, um, ``y[t]`` before ``u[t]``.
 
@@ -61,15 +64,19 @@ def collect(
     obs, _ = env.reset(seed=seed)
     y = np.empty(len(u))
     y[0] = obs[0]
+    applied = np.clip(u, env.action_space.low[0], env.action_space.high[0])
+    slewed = getattr(env.unwrapped, "slew_limit", None) is not None
     for t in range(len(u) - 1):
-        obs, _, terminated, _, _ = env.step(np.array([u[t]], dtype=np.float32))
+        obs, _, terminated, _, info = env.step(np.array([u[t]], dtype=np.float32))
+        if slewed:
+            applied[t] = info["voltage_V"]
         if terminated:
             raise ValueError(
                 f"the env terminated at sample {t + 1} (deflection limit); identify on an env "
                 "without deflection_limit or with a smaller excitation"
             )
         y[t + 1] = obs[0]
-    return np.clip(u, env.action_space.low[0], env.action_space.high[0]), y
+    return applied, y
 
 
 def identification_env(config: IdentificationConfig) -> gym.Env:

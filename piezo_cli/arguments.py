@@ -38,6 +38,7 @@ _SHORT_NAMES = sorted({name.split(".")[0] for name in CATALOGUE})
 HYSTERESIS_CHOICES: dict[str, str | None] = {
     "bouc-wen": "bouc-wen",
     "prandtl-ishlinskii": "prandtl-ishlinskii",
+    "rate-dependent": "rate-dependent",
     "none": None,
 }
 """``--hysteresis`` words and the env's ``hysteresis`` argument each stands for."""

@@ -395,3 +395,18 @@ def test_smallest_slope_matches_the_hysteresis_closed_forms():
     pi = PrandtlIshlinskii.for_voltage(30.0)
     slope = smallest_slope(PlantHysteresis(pi, (-30.0, 30.0)), 2.0)
     assert slope == pytest.approx(pi.linear_weight, rel=1e-12)
+
+
+def test_identification_data_record_the_voltage_the_amplifier_applied():
+    """With a current-limited amplifier, ``collect`` returns the slew-limited voltage on the
+    bender (the amplifier's monitor output), not the command."""
+    from identification.experiment import collect
+
+    env = gym.make(
+        "piezo_env:PiezoBender-v0", reference=None, max_episode_steps=-1, amplifier=True
+    )
+    command = np.where(np.arange(200) % 40 < 20, 30.0, -30.0)
+    applied, _ = collect(env, command, seed=0)
+    step = env.unwrapped.slew_limit * env.unwrapped.model.dt
+    assert np.max(np.abs(np.diff(applied[:-1]))) <= step * (1 + 1e-6)
+    assert not np.array_equal(applied, command)
