@@ -18,6 +18,18 @@ longer. ``process_std`` (equivalent V) is input-referred model noise on x.
 
 The gain is the steady-state one (``scipy.linalg.solve_discrete_are``), so a step is two small
 matrix-vector products.
+
+What sets the noise an MPC passes (measured on the PL140, 2 s episodes, noise on). With an
+accurate identified model (output-error linear part of order 4, NLS from the decaying-multisine
+excitation) the MPC's RMSE at 1 Hz is 0.036 % with ``process_std`` 0.04, 0.025 % with 0.01 and
+0.022 % with 0: the input-referred process noise, not the model's noise structure, passes the
+sensor noise. The oracle (the plant's modal realization) reads 0.018 % whatever
+``process_std`` is, because the 1e-12 I term that keeps the Riccati equation well posed is in
+the state's units: for the plant's states in metres it is a large process noise on every mode
+and swamps ``process_std``. Made unit-consistent (scaled to the states' own process noise), the
+oracle reads 0.038 % and 0.022 % at ``process_std`` 0.04 and 0, the identified model's figures.
+Lowering ``process_std`` costs the robustness plants (Prandtl-Ishlinskii hysteresis, 50 Hz:
+0.45 % at 0.04, 0.75 % at 0.01), so the default stays.
 """
 
 from __future__ import annotations
