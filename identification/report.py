@@ -146,8 +146,9 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
     lines = [
         "## Output-error refinement of the linear part (step b')",
         "",
-        f"Method: {refinement['method']}; order {after['order']}, the smallest minimum "
-        "description length on the first three quarters of the PRBS record ("
+        f"Method: {refinement['method']}; order {after['order']}: the smallest minimum "
+        "description length on the first three quarters of the PRBS record, unless a smaller "
+        "order predicts the last quarter at least as well ("
         + ", ".join(f"n = {k}: {v:.1f}" for k, v in refinement["order_description_length"].items())
         + "); free-run RMS error on the last quarter (um): "
         + ", ".join(f"n = {k}: {v:.3f}" for k, v in refinement["order_scores_rms_um"].items())

@@ -240,8 +240,10 @@ def refine_linear_part(est: ArxEstimate, u: np.ndarray, y: np.ndarray) -> Linear
     N samples; Ljung 1999, sec. 16.4), wins: an extra order must cut V by about ln N / N per
     parameter, so an order that only fits noise, with the spurious pole-zero pairs the
     controllers would invert, loses, while the second bending mode (a few percent of V over
-    thousands of samples) wins. The free-run RMS error on the last quarter, unseen by the fits,
-    is reported for every order. The winner is then refined on the whole
+    thousands of samples) wins, unless the next smaller order predicts the last quarter,
+    unseen by the fits, at least as well (then that order, and so on down): near the MDL's
+    threshold an extra pole-zero pair must also pay on new data. The free-run RMS error on the
+    last quarter is reported for every order. The winner is then refined on the whole
     record, starting from its held-out refinement. Under the PRBS the nonlinearity is affine
     (Bai 2004), so ``u`` is the linear part's input up to the scale fixed in step b.
     """
@@ -271,6 +273,8 @@ def refine_linear_part(est: ArxEstimate, u: np.ndarray, y: np.ndarray) -> Linear
         )
     mdl = {n: split * math.log(v) + 2 * n * math.log(split) for n, v in estimation.items()}
     order = min(mdl, key=mdl.get)
+    while order - 1 in errors and errors[order - 1].mean() <= errors[order].mean():
+        order -= 1  # the larger order must also predict unseen data better
     scores = {n: float(np.sqrt(e.mean())) for n, e in errors.items()}
     fit = refine_output_error(refined[order], u, y)
     unrefined = float(np.sqrt(np.mean((y - est.model.simulate(u)) ** 2)))
