@@ -31,7 +31,7 @@ data that do not excite the frequencies where it acts, is an artefact that would
 the MPC can achieve), and its error is at least ``improvement`` (relative) below the current
 model's. Then the closed loop is watched: if the measured tracking error over the period after a
 swap is much larger than over the period before (``monitor_ratio``), the controller returns
-to the offline model at once and pauses the adaptation. The revert candidate watches a swap
+to the model before the swap at once and pauses the adaptation. The revert candidate watches a swap
 over longer times: if the data turn against it, the model before comes back by the
 validation rule. Adapting blindly is dangerous (a linear part that absorbs a hysteresis
 mismatch makes things worse); this gate is what should keep the adaptive controller at least
@@ -406,10 +406,11 @@ class AdaptiveMPC(LinearMPC):
         return self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
 
     def _undo_swap(self) -> None:
-        """Return to the offline model and pause the adaptation."""
+        """Return to the model in use before the last swap (it held the loop better) and
+        pause the adaptation; the failed model is not offered again as a revert."""
         self.stats.adaptation["reverted-closed-loop"] += 1
         self._failures += 1
-        self._swap(_Candidate("revert", self._offline_arx))
+        self._swap(_Candidate("revert", self._previous or self._offline_arx))
         self._previous = None
         self._swapped_at = None
         self._watch_limit = None
