@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="folder of an identified model (model.json + weights.npz); default: identify the "
-        "default PL140 first (its duration is in the report's time line; 15-20 s on 2 cores) "
+        "default PL140 first (its duration is in the report's time line; 10-20 s on 2 cores) "
         "and save it in OUT/model",
     )
     parser.add_argument(

@@ -53,6 +53,14 @@ def summary(report: dict) -> str:
         f"ARX order {arx['order']} (chosen by held-out free-run fit), static gain "
         f"{arx['static_gain_um_per_V']:.2f} um/V, estimated noise bound "
         f"{arx['noise_bound_um']:.2f} um (equation error: model error and sensor noise)",
+    ]
+    refined = (report.get("refinement") or {}).get("after")
+    if refined:
+        lines.append(
+            f"linear part refined by output error (step b'): order {refined['order']}, the "
+            "one the controllers use"
+        )
+    lines += [
         f"NLS memory features: {nls['features']} ({how})",
         f"validation on {validation['signal']}, free run:",
     ]
@@ -74,7 +82,7 @@ IDENTIFY = Subcommand(
         "PRBS excitation, ARX part by the uniform-noise Bayesian estimator, rich excitation, "
         "hidden signal by the inverse ARX model, neural nonlinearity, free-run validation. "
         "Writes the model (model/), report.json, report.md and figures into --out; takes "
-        "15-20 s on 2 cores, most of it the network's training."
+        "10-20 s on 2 cores, most of it the network's training."
     ),
     add_arguments=add_arguments,
     run=run,
