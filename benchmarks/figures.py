@@ -387,7 +387,7 @@ def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
         gains = np.r_[1.0, models[:, 1] / gain0, models[-1, 1] / gain0]
         resonances = np.r_[1.0, models[:, 2] / resonance0, models[-1, 2] / resonance0]
         true_gain, true_resonance = plant_ratios(plant, bender, times)
-        bottom.step(times, gains, where="post", color="C0", label="model DC gain")
+        bottom.step(times, gains, where="post", color="C0", lw=2.2, label="model DC gain")
         bottom.step(times, resonances, where="post", color="C3", label="model first resonance")
         bottom.plot(times, true_gain, "--", color="C0", lw=1, label="plant DC gain")
         bottom.plot(times, true_resonance, "--", color="C3", lw=1, label="plant resonance")

@@ -26,6 +26,7 @@ _KNOWN_ROWS = (
     "mpc-oracle",
     "nmpc-oracle",
     "nmpc-ipopt",
+    "mpc-adaptive",
 )
 _PALETTE = (
     "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#7f7f7f",
