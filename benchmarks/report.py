@@ -69,12 +69,26 @@ def monte_carlo_table(result: BenchmarkResult) -> str:
     } - {0}
     n = max(counts)
 
+    groups = seed_groups(rows)
+
+    def per_draw(row: str, ref: str) -> dict[Any, float]:
+        return {
+            e.get("draw"): e["rmse_percent"]
+            for e in draws
+            if (e["controller"], e["reference"]) == (row, ref)
+        }
+
     def cell(row: str, ref: str) -> str:
-        values = sorted(
-            e["rmse_percent"] for e in draws if (e["controller"], e["reference"]) == (row, ref)
-        )
+        members = groups.get(row.removesuffix(" (seeds)")) if row.endswith(" (seeds)") else None
+        if members:  # a recipe's seeds: each draw's RMSE is the mean over the seeds
+            runs = [per_draw(m, ref) for m in members]
+            shared = set.intersection(*(set(r) for r in runs))
+            values = sorted(float(np.mean([r[d] for r in runs])) for d in shared)
+        else:
+            values = sorted(per_draw(row, ref).values())
         return " / ".join(f"{v:.3f}" for v in _order_statistics(values))
 
+    rows = rows + [f"{name} (seeds)" for name in groups]
     head = (
         f"### Monte Carlo: {n} plants drawn from the datasheet tolerances, RMSE (% of the full "
         f"stroke): {_order_statistics_names(n)}\n\n"
