@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from identification.metrics import complex_response
+
 __all__ = ["write_figures"]
 
 
@@ -70,7 +72,7 @@ def _bode(data: dict, refined: Any, path: Path) -> Path:
     fig, (ax_m, ax_p, ax_e) = plt.subplots(3, 1, figsize=(8, 9), dpi=110, sharex=True)
     truth = None
     for label, system, gain, colour, style, width in curves:
-        response = control.frequency_response(system, w).complex.ravel() / gain
+        response = complex_response(system, w) / gain
         ax_m.loglog(f, np.abs(response), color=colour, ls=style, lw=width, label=label)
         ax_p.semilogx(
             f, np.degrees(np.unwrap(np.angle(response))), color=colour, ls=style, lw=width

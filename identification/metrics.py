@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-__all__ = ["fit_metrics", "fit_percent", "max_abs_error", "rmse"]
+__all__ = ["complex_response", "fit_metrics", "fit_percent", "max_abs_error", "rmse"]
 
 
 def _pair(y: ArrayLike, y_hat: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -133,3 +133,19 @@ def fit_metrics(y: ArrayLike, y_hat: ArrayLike, *, stroke: float | None = None) 
         result["rmse_percent_stroke"] = 100.0 * result["rmse"] / stroke_value
         result["max_abs_error_percent_stroke"] = 100.0 * result["max_abs_error"] / stroke_value
     return result
+
+
+def complex_response(system: object, omega: ArrayLike) -> np.ndarray:
+    """Complex frequency response of a SISO python-control system at ``omega`` (rad/s).
+
+    ``FrequencyResponseData.complex`` exists from python-control 0.10.1 on; the project's floor
+    (0.10.0) has only ``fresp``, which later releases deprecate. This reads whichever the
+    installed release has.
+    """
+    import control
+
+    response = control.frequency_response(system, np.asarray(omega, dtype=float))
+    values = getattr(response, "complex", None)
+    if values is None:
+        values = response.fresp
+    return np.asarray(values).ravel()

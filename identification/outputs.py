@@ -19,6 +19,7 @@ from identification.arx import ARXModel
 from identification.config import IdentificationConfig
 from identification.experiment import sample_time
 from identification.hammerstein import HammersteinModel
+from identification.metrics import complex_response
 from identification.steps import ArxEstimate, HiddenSignal, LinearRefinement, NlsFit, Validation
 
 __all__ = [
@@ -226,8 +227,8 @@ def relative_response_error(model: ARXModel, true: Any, frequencies_hz: Any) -> 
     import control
 
     w = 2.0 * np.pi * np.asarray(frequencies_hz, dtype=float)
-    g = control.frequency_response(model.to_state_space(), w).complex.ravel()
-    p = control.frequency_response(true, w).complex.ravel()
+    g = complex_response(model.to_state_space(), w)
+    p = complex_response(true, w)
     g = g / model.static_gain()
     p = p / float(np.real(control.dcgain(true)))
     return np.abs(g - p) / np.abs(p)
