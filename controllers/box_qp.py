@@ -1,8 +1,10 @@
 """The box-constrained QP both MPCs solve, set up once the way OSQP's MPC pattern asks.
 
-``min 1/2 v' P v + q' v  s.t.  lower <= v <= upper``: P's upper triangle as a sparse matrix (its
+``min 1/2 v' P v + q' v  s.t.  lower <= v <= upper`` (and, with a ``rate``, the rate rows
+``|v_k - v_k-1| <= rate`` of a slew limit): P's upper triangle as a sparse matrix (its
 pattern fixed, so that later updates of its values need no new set-up), the identity as the
-constraint matrix, and the options every MPC here uses: no polishing, warm starts on, and the
+constraint matrix (stacked on the first differences with a rate), and the options every MPC
+here uses: no polishing, warm starts on, and the
 termination checked every 5 iterations (OSQP's default of 25 wastes most of what a warm start
 saves). Each solve updates only what changed (q; the bounds or P's values when they change),
 warm-starts, and returns the solution only when OSQP says it is usable.
@@ -67,6 +69,8 @@ class BoxQP:
         OSQP tolerances.
     max_iter : int
         OSQP iteration cap.
+    rate : float, optional
+        Bound of ``|v_k - v_k-1|`` (k >= 1); the multipliers then cover the 2 n - 1 rows.
     """
 
     def __init__(
@@ -78,9 +82,11 @@ class BoxQP:
         eps_abs: float,
         eps_rel: float,
         max_iter: int,
+        rate: float | None = None,
     ) -> None:
         n = lower.size
         self.lower, self.upper = lower, upper
+        self._rate = None if rate is None else np.full(n - 1, rate)
         # Column-major order of the upper triangle: the order of OSQP's CSC P values.
         cols, rows = np.tril_indices(n)
         self._upper_triangle = (rows, cols)
@@ -89,13 +95,18 @@ class BoxQP:
             sparse = scipy.sparse.csc_matrix((pattern, (rows, cols)), shape=(n, n))
         else:
             sparse = scipy.sparse.csc_matrix(np.triu(hessian))
+        matrix = scipy.sparse.identity(n, format="csc")
+        if rate is not None:
+            difference = scipy.sparse.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], (n - 1, n))
+            matrix = scipy.sparse.vstack([matrix, difference], format="csc")
+        low, high = self._rows()
         self._solver = osqp.OSQP()
         self._solver.setup(
             P=sparse,
             q=np.zeros(n),
-            A=scipy.sparse.identity(n, format="csc"),
-            l=lower,
-            u=upper,
+            A=matrix,
+            l=low,
+            u=high,
             verbose=False,
             eps_abs=eps_abs,
             eps_rel=eps_rel,
@@ -121,7 +132,8 @@ class BoxQP:
         q : numpy.ndarray
             Linear term (n,).
         warm_x, warm_duals : numpy.ndarray
-            Warm start: a point inside the box and the bounds' multipliers (n,).
+            Warm start: a point inside the box and the constraints' multipliers (n, or
+            2 n - 1 with a rate).
         hessian : numpy.ndarray, optional
             A new dense P (only for a QP set up without one).
         bounds : (numpy.ndarray, numpy.ndarray), optional
@@ -130,7 +142,7 @@ class BoxQP:
         data = {"q": q}
         if bounds is not None:
             self.lower, self.upper = bounds
-            data.update(l=self.lower, u=self.upper)
+            data["l"], data["u"] = self._rows()
         if hessian is not None:
             data["Px"] = hessian[self._upper_triangle]
         self._solver.update(**data)
@@ -141,3 +153,9 @@ class BoxQP:
             return BoxQPSolution(None, None, status, iterations)
         x = np.clip(result.x, self.lower, self.upper)
         return BoxQPSolution(x, result.y, status, iterations)
+
+    def _rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of the constraint rows: the box, then the rate rows."""
+        if self._rate is None:
+            return self.lower, self.upper
+        return np.r_[self.lower, -self._rate], np.r_[self.upper, self._rate]

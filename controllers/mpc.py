@@ -49,14 +49,13 @@ from typing import Any
 
 import numpy as np
 import osqp
-import scipy.sparse
 
-from controllers.box_qp import BoxQP, BoxQPSolution, within
+from controllers.box_qp import BoxQP, within
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
-from controllers.settings import DISTURBANCE_STD, PROCESS_STD, USABLE_OSQP_STATUS, check_settings
+from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
 
-__all__ = ["LinearMPC", "MPCSettings", "RateQP", "qp_matrices", "smallest_slope"]
+__all__ = ["LinearMPC", "MPCSettings", "qp_matrices", "smallest_slope"]
 
 
 def qp_matrices(
@@ -176,19 +175,9 @@ class LinearMPC(PredictiveController):
             self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
             self._n_rows = 2 * settings.horizon - 1
 
-    def _setup_solver(self) -> BoxQP | RateQP:
+    def _setup_solver(self) -> BoxQP:
         """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
         s = self.settings
-        if self._slew_step is not None:
-            return RateQP(
-                self._lower,
-                self._upper,
-                self.z_rate,
-                hessian=self._hessian,
-                eps_abs=s.eps_abs,
-                eps_rel=s.eps_rel,
-                max_iter=s.max_iter,
-            )
         return BoxQP(
             self._lower,
             self._upper,
@@ -196,6 +185,7 @@ class LinearMPC(PredictiveController):
             eps_abs=s.eps_abs,
             eps_rel=s.eps_rel,
             max_iter=s.max_iter,
+            rate=None if self._slew_step is None else self.z_rate,
         )
 
     def _start(self, start: SteadyStart) -> None:
@@ -342,67 +332,3 @@ def smallest_slope(nonlinearity: Any, step: float, legs: int = 3) -> float:
             "it is not increasing, so the slew limit has no z rate equivalent"
         )
     return float(slope)
-
-
-class RateQP:
-    """OSQP for the MPC's QP with box bounds and z rate rows (slew limit; module docstring).
-
-    ``min 1/2 v' P v + q' v  s.t.  lower <= v <= upper,  |v_k - v_k-1| <= rate (k >= 1)``: the
-    constraint matrix [I; D] and P are set up (and factorised) once, with the options of
-    :class:`controllers.box_qp.BoxQP`; :meth:`solve` has its signature and returns its
-    :class:`controllers.box_qp.BoxQPSolution` (the duals of all 2N - 1 rows).
-    """
-
-    def __init__(
-        self,
-        lower: np.ndarray,
-        upper: np.ndarray,
-        rate: float,
-        *,
-        hessian: np.ndarray,
-        eps_abs: float,
-        eps_rel: float,
-        max_iter: int,
-    ) -> None:
-        n = lower.size
-        self.lower, self.upper = lower, upper
-        self._rate = np.full(n - 1, rate)
-        difference = scipy.sparse.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], (n - 1, n))
-        matrix = scipy.sparse.vstack([scipy.sparse.identity(n), difference], format="csc")
-        self._solver = osqp.OSQP()
-        self._solver.setup(
-            P=scipy.sparse.csc_matrix(np.triu(hessian)),
-            q=np.zeros(n),
-            A=matrix,
-            l=np.r_[lower, -self._rate],
-            u=np.r_[upper, self._rate],
-            verbose=False,
-            eps_abs=eps_abs,
-            eps_rel=eps_rel,
-            max_iter=max_iter,
-            check_termination=5,
-            polishing=False,
-            warm_starting=True,
-        )
-
-    def solve(
-        self,
-        q: np.ndarray,
-        warm_x: np.ndarray,
-        warm_duals: np.ndarray,
-        *,
-        bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> BoxQPSolution:
-        """Minimise over the box and the rate rows, warm-started (a usable solution or None)."""
-        data: dict[str, np.ndarray] = {"q": q}
-        if bounds is not None:
-            self.lower, self.upper = bounds
-            data.update(l=np.r_[self.lower, -self._rate], u=np.r_[self.upper, self._rate])
-        self._solver.update(**data)
-        self._solver.warm_start(x=warm_x, y=warm_duals)
-        result = self._solver.solve(raise_error=False)
-        status, iterations = result.info.status, int(result.info.iter)
-        if status not in USABLE_OSQP_STATUS or not np.all(np.isfinite(result.x)):
-            return BoxQPSolution(None, None, status, iterations)
-        x = np.clip(result.x, self.lower, self.upper)
-        return BoxQPSolution(x, result.y, status, iterations)
