@@ -7,6 +7,7 @@ import os
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -59,9 +60,12 @@ def write_result(name: str, lines: list[str]) -> Path:
     return path
 
 
-def single_env_step_times(env_id: str, steps: int, seed: int = 0) -> np.ndarray:
-    """Per-step wall times (s) of ``steps`` random-action steps through gym.make, with resets."""
-    env = gym.make(env_id)
+def single_env_step_times(
+    env_id: str, steps: int, seed: int = 0, **settings: Any
+) -> np.ndarray:
+    """Per-step wall times (s) of ``steps`` random-action steps through gym.make (with the
+    env's keyword ``settings``), with resets."""
+    env = gym.make(env_id, **settings)
     env.reset(seed=seed)
     env.action_space.seed(seed)
     actions = [env.action_space.sample() for _ in range(steps)]

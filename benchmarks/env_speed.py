@@ -39,35 +39,15 @@ def every_option() -> dict:
     }
 
 
-def step_times(settings: dict, steps: int, seed: int = 0) -> np.ndarray:
-    """Per-step wall times (s) of PiezoBender-v0 made with ``settings`` through gym.make, random
-    actions, resets included (as :func:`benchmarks._common.single_env_step_times`)."""
-    env = gym.make("PiezoBender-v0", **settings)
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
-    actions = [env.action_space.sample() for _ in range(steps)]
-    times = np.empty(steps)
-    clock = time.perf_counter
-    for i, action in enumerate(actions):
-        start = clock()
-        _, _, terminated, truncated, _ = env.step(action)
-        if terminated or truncated:
-            env.reset()
-        times[i] = clock() - start
-    env.close()
-    return times
-
-
 def option_ratio(rounds: int = ROUNDS) -> tuple[float, float, float]:
     """Median step times (s) of the default and the every-option env, and the median of their
     per-round ratios (the two alternate within each round)."""
-    pairs = [
-        (
-            float(np.median(step_times({}, OPTION_STEPS, seed=r))),
-            float(np.median(step_times(every_option(), OPTION_STEPS, seed=r))),
-        )
-        for r in range(rounds)
-    ]
+
+    def median(r: int, **settings: object) -> float:
+        times = single_env_step_times("PiezoBender-v0", OPTION_STEPS, r, **settings)
+        return float(np.median(times))
+
+    pairs = [(median(r), median(r, **every_option())) for r in range(rounds)]
     default, options = np.array(pairs).T
     return float(np.median(default)), float(np.median(options)), float(np.median(options / default))
 
