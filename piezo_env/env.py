@@ -214,17 +214,7 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         voltage, saturated = self._drive_voltage(action)
         deflection, u_eff, charge = self._plant.step(voltage)
-        self._t += 1
-        if self._t + self.preview >= len(self._ref_values) and self._reference is not None:
-            self._ref_values = self._window_values()
-        deflection_um = deflection * 1e6
-        error = deflection_um - self._reference_at(self._t)
-        reward = -((error / self._stroke) ** 2)
-        terminated = (
-            self.deflection_limit is not None and abs(deflection_um) > self.deflection_limit
-        )
-        if self._trace is not None:
-            self._trace[self._t % _TRACE] = deflection_um
+        deflection_um, reward, terminated = self._advance(deflection)
         observation = self._observe(deflection_um + self._next_noise())
         info = self._info(deflection_um, voltage, u_eff, charge * 1e6, saturated)
         if self.render_mode == "human":
@@ -242,17 +232,7 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         else:
             voltage, limited = amplifier.apply(command)
         deflection, u_eff, charge = self._plant.step(voltage)
-        self._t += 1
-        if self._t + self.preview >= len(self._ref_values) and self._reference is not None:
-            self._ref_values = self._window_values()
-        deflection_um = deflection * 1e6
-        error = deflection_um - self._reference_at(self._t)
-        reward = -((error / self._stroke) ** 2)
-        terminated = (
-            self.deflection_limit is not None and abs(deflection_um) > self.deflection_limit
-        )
-        if self._trace is not None:
-            self._trace[self._t % _TRACE] = deflection_um
+        deflection_um, reward, terminated = self._advance(deflection)
         sensor = self._sensor
         measured_um = deflection_um if sensor is None else sensor.measure(deflection_um)
         observation = self._observe(measured_um + self._next_noise())
@@ -264,6 +244,22 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode == "human":
             self.render()
         return observation, reward, terminated, False, info
+
+    def _advance(self, deflection: float) -> tuple[float, float, bool]:
+        """Move to the next sample after the plant reached ``deflection`` (m): the deflection
+        in um, the reward of the action, and whether the bender hit ``deflection_limit``."""
+        self._t += 1
+        if self._t + self.preview >= len(self._ref_values) and self._reference is not None:
+            self._ref_values = self._window_values()
+        deflection_um = deflection * 1e6
+        error = deflection_um - self._reference_at(self._t)
+        reward = -((error / self._stroke) ** 2)
+        terminated = (
+            self.deflection_limit is not None and abs(deflection_um) > self.deflection_limit
+        )
+        if self._trace is not None:
+            self._trace[self._t % _TRACE] = deflection_um
+        return deflection_um, reward, terminated
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:
