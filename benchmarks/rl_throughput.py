@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -88,16 +89,21 @@ def ppo_rate(kind: str, seed: int = 0) -> float:
 
 def raw_rate(kind: str, seed: int = 0) -> float:
     """Env-steps/s of the Gymnasium vector env alone, random actions, autoreset included."""
-    env = gym_vector(kind)
+    return _random_action_rate(gym_vector(kind), NUM_ENVS, RAW_BATCHES, seed)
+
+
+def _random_action_rate(env: Any, num_envs: int, batches: int, seed: int) -> float:
+    """Env-steps/s of ``batches`` steps of the vector env ``env`` under random actions in
+    [-1, 1] (autoreset included); closes ``env``."""
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
-    actions = rng.uniform(-1.0, 1.0, (64, NUM_ENVS, 1)).astype(np.float32)
+    actions = rng.uniform(-1.0, 1.0, (64, num_envs, 1)).astype(np.float32)
     start = time.perf_counter()
-    for i in range(RAW_BATCHES):
+    for i in range(batches):
         env.step(actions[i % 64])
     elapsed = time.perf_counter() - start
     env.close()
-    return RAW_BATCHES * NUM_ENVS / elapsed
+    return batches * num_envs / elapsed
 
 
 class _PhaseTimer(BaseCallback):
@@ -157,17 +163,8 @@ def recipe_phases(num_envs: int, n_steps: int, seed: int = 0) -> dict[str, float
 
 def recipe_raw_rate(num_envs: int, seed: int = 0) -> float:
     """Env-steps/s of the randomised env in observation version 2 alone, random actions."""
-    env = _randomized_env(num_envs)
-    env.reset(seed=seed)
-    rng = np.random.default_rng(seed)
-    actions = rng.uniform(-1.0, 1.0, (64, num_envs, 1)).astype(np.float32)
     batches = RAW_BATCHES * NUM_ENVS // num_envs
-    start = time.perf_counter()
-    for i in range(batches):
-        env.step(actions[i % 64])
-    elapsed = time.perf_counter() - start
-    env.close()
-    return batches * num_envs / elapsed
+    return _random_action_rate(_randomized_env(num_envs), num_envs, batches, seed)
 
 
 def _recipe_lines() -> list[str]:
