@@ -157,7 +157,9 @@ class TaskConfig:
                 "deflection_limit (um, or None)", self.deflection_limit, low=0.0, low_open=True
             )
         check_damping_ratio(self.damping_ratio)
-        object.__setattr__(self, "randomize", _check_randomize(self.randomize))
+        object.__setattr__(
+            self, "randomize", _check_option("randomize", self.randomize, DomainRandomization)
+        )
         object.__setattr__(self, "amplifier", _check_option("amplifier", self.amplifier, Amplifier))
         object.__setattr__(self, "sensor", _check_option("sensor", self.sensor, Sensor))
         object.__setattr__(self, "drift", _check_option("drift", self.drift, Drift))
@@ -205,18 +207,6 @@ def _same(a: object, b: object) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
         return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and np.array_equal(a, b)
     return a == b
-
-
-def _check_randomize(randomize: object) -> DomainRandomization | None:
-    if randomize is None or randomize is False:
-        return None
-    if randomize is True:
-        return DomainRandomization()
-    if isinstance(randomize, DomainRandomization):
-        return randomize
-    raise ValueError(
-        f"randomize must be True, False, None or a DomainRandomization, got {randomize!r}"
-    )
 
 
 def _check_option(name: str, value: object, kind: type) -> Any:
