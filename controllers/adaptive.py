@@ -351,10 +351,14 @@ class AdaptiveMPC(LinearMPC):
             self._next_review += self.settings.period
             self._review()
 
+    def _last(self, samples: int) -> np.ndarray:
+        """Buffer slots of the last ``samples`` samples, oldest first (fewer at the start)."""
+        samples = min(samples, self._step, self._buffer)
+        return np.arange(self._step - samples, self._step) % self._buffer
+
     def _recent(self, samples: int) -> tuple[np.ndarray, np.ndarray]:
         """The last ``samples`` samples (z, y), oldest first (fewer at the episode's start)."""
-        samples = min(samples, self._step, self._buffer)
-        index = np.arange(self._step - samples, self._step) % self._buffer
+        index = self._last(samples)
         return self._z[index], self._y[index]
 
     def _criterion(self, arx: ARXModel, z: np.ndarray, y: np.ndarray) -> float:
@@ -406,9 +410,8 @@ class AdaptiveMPC(LinearMPC):
     def _error_limit(self) -> float:
         """The measured error (um) that undoes a fresh swap at once: ``monitor_ratio``
         times the RMS of the last period plus five sensor noise bounds."""
-        period = min(self.settings.period, self._step)
-        index = np.arange(self._step - period, self._step) % self._buffer
-        rms = float(np.sqrt(np.mean(self._error[index] ** 2))) if period else 0.0
+        errors = self._error[self._last(self.settings.period)]
+        rms = float(np.sqrt(np.mean(errors**2))) if errors.size else 0.0
         return self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
 
     def _undo_swap(self) -> None:
@@ -468,8 +471,8 @@ class AdaptiveMPC(LinearMPC):
             return False
         if self._step < 2 * period:
             return False
-        index = np.arange(self._step - 2 * period, self._step) % self._buffer
-        before, after = np.mean(self._error[index].reshape(2, period) ** 2, axis=1)
+        errors = self._error[self._last(2 * period)]
+        before, after = np.mean(errors.reshape(2, period) ** 2, axis=1)
         noise_variance = self.task.noise_bound_um**2 / 3.0
         return bool(after > self.settings.monitor_ratio * before + 2.0 * noise_variance)
 
