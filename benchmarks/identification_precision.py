@@ -38,6 +38,17 @@ VARIANTS: dict[str, dict[str, str]] = {
 }
 """Identification settings compared: the earlier defaults (the paper's steps a-f with its SINE
 excitation), the new rich excitation alone, and the new defaults (that excitation and step b')."""
+COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("before", "before", "mpc"),
+    ("excitation only", "excitation only", "mpc"),
+    ("after, fixed observer", "after", "mpc-fixed"),
+    ("after", "after", "mpc"),
+)
+"""Column groups of the tables: (label, identification variant, mpc row). ``mpc-fixed`` is
+``mpc`` with the single-filter observer of the earlier default (``observer="fixed"``), the
+others the default observer bank; each is compared with the oracle of the same observer."""
+CONTROLLER_OPTIONS = {"mpc-fixed": ("mpc", {"observer": "fixed"})}
+"""Rows that are a registered controller with options: name -> (controller, options)."""
 REFERENCES = ("sine-1Hz", "sine-10Hz", "sine-50Hz", "sine-100Hz", "triangle-10Hz", "multisine")
 STEPS = 2000
 PREVIEW = 20
@@ -107,7 +118,8 @@ def control_task(bender: str, model: str, controllers: tuple[str, ...]) -> dict[
     env = _env(bender)
     with threadpool_limits(1):
         for name in controllers:
-            built = ctl.make(name, model, env)
+            base, options = CONTROLLER_OPTIONS.get(name, (name, {}))
+            built = ctl.make(base, model, env, **options)
             out[name] = {}
             for ref in REFERENCES:
                 reference = make_reference(
@@ -136,11 +148,18 @@ def run(cache: Path, jobs: int) -> dict[str, Any]:
         progress=_progress,
     )
     identify_s = time.perf_counter() - start
-    tasks = [(b, "plant", ("mpc",)) for b in BENDERS]
-    tasks += [(b, f"{folders[(b, s, r)]}/model", ("mpc", "pid-ff")) for b, s, r in runs]
+    tasks = [(b, "plant", ("mpc", "mpc-fixed")) for b in BENDERS]
+    tasks += [
+        (
+            b,
+            f"{folders[(b, s, r)]}/model",
+            ("mpc", "pid-ff", *(("mpc-fixed",) if r == "after" else ())),
+        )
+        for b, s, r in runs
+    ]
     labels = [f"oracle {b}" for b in BENDERS] + [f"control {b} seed {s} ({r})" for b, s, r in runs]
     outputs = run_tasks(control_task, tasks, jobs=jobs, labels=labels, progress=_progress)
-    oracle = {b: outputs[i]["mpc"] for i, b in enumerate(BENDERS)}
+    oracle = {b: outputs[i] for i, b in enumerate(BENDERS)}
     identified = dict(zip(runs, outputs[len(BENDERS) :], strict=True))
     return {
         "oracle": oracle,
@@ -163,26 +182,28 @@ def bender_section(results: dict[str, Any], bender: str) -> list[str]:
     oracle = results["oracle"][bender]
     rows = []
     for ref in REFERENCES:
-        row = [ref, f"{oracle[ref]:.4f}"]
-        for variant in VARIANTS:
-            mpc = _worst(results, bender, variant, "mpc", ref)
+        row = [ref, f"{oracle['mpc-fixed'][ref]:.4f}", f"{oracle['mpc'][ref]:.4f}"]
+        for _, variant, name in COLUMNS:
+            mpc = _worst(results, bender, variant, name, ref)
             pid = _worst(results, bender, variant, "pid-ff", ref)
             beats = sum(
-                results["identified"][(bender, s, variant)]["mpc"][ref]
+                results["identified"][(bender, s, variant)][name][ref]
                 < results["identified"][(bender, s, variant)]["pid-ff"][ref]
                 for s in SEEDS
             )
-            row += [f"{mpc:.4f}", _ratio(mpc / oracle[ref]), f"{pid:.4f}", f"{beats}/{len(SEEDS)}"]
+            ratio = _ratio(mpc / oracle[name][ref])
+            row += [f"{mpc:.4f}", ratio, f"{pid:.4f}", f"{beats}/{len(SEEDS)}"]
         rows.append(row)
-    head = ["reference", "mpc-oracle"]
-    for variant in VARIANTS:
-        head += [f"mpc {variant}", "ratio", "pid-ff", "mpc < pid-ff"]
+    head = ["reference", "mpc-oracle, fixed observer", "mpc-oracle"]
+    for label, _, _ in COLUMNS:
+        head += [f"mpc {label}", "ratio", "pid-ff", "mpc < pid-ff"]
     lines = [
         f"## {bender} (stroke {_stroke(bender):g} um)",
         "",
         "RMSE in % of the full stroke, worst over identification seeds "
         f"{SEEDS[0]}-{SEEDS[-1]}; ratio: identified mpc / mpc-oracle (bold above "
-        f"{TARGET_RATIO:g}); last columns: seeds on which mpc beats pid-ff.",
+        f"{TARGET_RATIO:g}) with the same observer; after each: the worst pid-ff and the seeds "
+        "on which mpc beats pid-ff.",
         "",
         markdown_table(head, rows),
         "",
@@ -198,7 +219,7 @@ def _ratio(value: float) -> str:
 def _seed_table(results: dict[str, Any], bender: str) -> list[str]:
     oracle = results["oracle"][bender]
     rows = []
-    for variant in VARIANTS:
+    for label, variant, name in COLUMNS:
         for s in SEEDS:
             run = results["identified"][(bender, s, variant)]
             summary = results["summaries"][(bender, s, variant)]
@@ -207,13 +228,13 @@ def _seed_table(results: dict[str, Any], bender: str) -> list[str]:
                 order = f"{order} -> {summary['refined_order']}"
             rows.append(
                 [
-                    variant,
+                    label,
                     str(s),
                     str(order),
                     f"{summary['linear_fit_percent']:.2f}",
                     f"{summary['hammerstein_fit_percent']:.2f}",
                     f"{summary['identify_s']:.1f}",
-                    " / ".join(f"{run['mpc'][r] / oracle[r]:.2f}" for r in REFERENCES),
+                    " / ".join(f"{run[name][r] / oracle[name][r]:.2f}" for r in REFERENCES),
                 ]
             )
     head = [
@@ -244,7 +265,11 @@ def report(results: dict[str, Any]) -> list[str]:
         "the new rich excitation (decaying multisine) but no refinement, *after* with the new "
         "defaults (that excitation and step b', the output-error refinement of the linear "
         "part). Controllers `mpc` and `pid-ff` on the identified model, `mpc-oracle` on the "
-        f"plant's own model; smooth references at the bender's stroke, {STEPS / 1000:g} s "
+        "plant's own model; `mpc` with its default observer (the bank of Kalman filters whose "
+        "noise levels the innovations choose, `controllers.observer.ObserverBank`), and on the "
+        "*after* models also with the single filter of the earlier default "
+        '(`observer="fixed"`); smooth references at the bender\'s stroke, '
+        f"{STEPS / 1000:g} s "
         f"episodes, preview {PREVIEW}, sensor noise on, eval seed {EVAL_SEED}, default "
         "controller settings.",
         "",

@@ -73,7 +73,7 @@ import numpy as np
 from controllers.base import ControllerStats
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.mpc import LinearMPC, MPCSettings, qp_matrices
-from controllers.observer import DisturbanceObserver
+from controllers.observer import DisturbanceObserver, ObserverBank, make_observer
 from controllers.prediction import PredictionModel
 from controllers.settings import check_settings, measurement_std
 from controllers.task import ControlTask
@@ -433,14 +433,25 @@ class AdaptiveMPC(LinearMPC):
         The unconstrained MPC is linear: ``z_t = K [x_hat; d_hat] + k z_t-1`` (the first row
         of its solution, feedforward left out) with the observer's correction and prediction,
         so the loop around ``plant`` is a linear system; its spectral radius must be < 1.
+        With the observer bank, the observer is the filter at the noise levels selected now.
         """
         s = self.settings
         a, b, c, _ = candidate.state_space_matrices()
         phi, gamma = prediction_matrices(a, b, c, s.horizon)
         hessian, q_matrix = qp_matrices(phi, gamma, self._rate_hessian, s)
         first = -np.linalg.solve(hessian, q_matrix)[0]
-        observer = DisturbanceObserver.for_controller(
-            dataclasses.replace(self._offline, a=a, b=b, c=c), self.task, s
+        if isinstance(self.observer, ObserverBank):
+            process_std, disturbance_std = self.observer.noise_levels[self.observer.prior]
+        else:
+            process_std, disturbance_std = s.process_std, s.disturbance_std
+        observer = DisturbanceObserver(
+            a,
+            b,
+            c,
+            measurement_std=measurement_std(s.measurement_std, self.task),
+            disturbance_std=disturbance_std,
+            process_std=process_std,
+            slope_std=s.slope_std,
         )
         m = observer.a_aug.shape[0]
         k_estimate, k_previous = first[:m], first[-1]
@@ -532,7 +543,16 @@ class AdaptiveMPC(LinearMPC):
         a, b, c, _ = candidate.arx.state_space_matrices()
         estimate_before = self.observer.estimate.copy()
         self._rebuild(dataclasses.replace(self._offline, a=a, b=b, c=c))
-        self.observer.reset(self._consistent_estimate(estimate_before, candidate.arx))
+        self._reset_observer(self._consistent_estimate(estimate_before, candidate.arx))
+
+    def _reset_observer(self, estimate: np.ndarray, selected: int | None = None) -> None:
+        """Set the observer's estimate; a bank keeps the noise levels the data chose."""
+        if isinstance(self.observer, ObserverBank):
+            self.observer.reset(
+                estimate, selected=self.observer.selected if selected is None else selected
+            )
+        else:
+            self.observer.reset(estimate)
 
     def _consistent_estimate(self, estimate: np.ndarray, arx: ARXModel) -> np.ndarray:
         """The observer estimate for ``arx`` at a swap: its own past outputs, same total.
@@ -566,11 +586,12 @@ class AdaptiveMPC(LinearMPC):
                 f"got {model.a.shape[0]}"
             )
         estimate = self.observer.estimate.copy()
+        selected = getattr(self.observer, "selected", None)
         self.model = model
         self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, settings.horizon)
         check_well_posed(self._gamma, settings.rate_weight, 1.0, name=self.name)
-        self.observer = DisturbanceObserver.for_controller(model, self.task, settings)
-        self.observer.reset(estimate)
+        self.observer = make_observer(model, self.task, settings)
+        self._reset_observer(estimate, selected)
         self._set_up()
         if hasattr(self, "_qp"):
             self._qp = self._setup_solver()

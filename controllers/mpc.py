@@ -100,20 +100,29 @@ class MPCSettings:
     measurement_std : float or None
         Sensor noise standard deviation (um) the observer assumes; None: noise bound / sqrt 3
         (uniform noise), at least 0.05 um.
+    observer : str
+        ``"bank"`` (default): a bank of steady-state Kalman filters under a grid of noise levels
+        scaled by the sensor noise, and the estimate of the one whose innovations are the most
+        likely over the last ``bank_memory`` samples
+        (:class:`controllers.observer.ObserverBank`); ``disturbance_std`` and ``process_std``
+        are then unused. ``"fixed"``: one filter with those two noise levels.
+    bank_memory : int
+        Samples over which the bank's likelihoods are averaged.
     disturbance_std : float
-        Random-walk step of the output disturbance (um per sample): the observer's speed (see
-        :mod:`controllers.observer`).
+        Random-walk step of the output disturbance (um per sample) of the fixed observer: its
+        speed (see :mod:`controllers.observer`).
     process_std : float
-        Input-referred process noise of the observer (equivalent V). Without it the observer
+        Input-referred process noise of the fixed observer (equivalent V). Without it the observer
         cannot correct the model's lightly damped resonance (its state would decay at the open
         loop's rate), and model error near the resonance (the 3rd harmonic of a 50 Hz
         reference) goes uncorrected.
 
-    The defaults are one tuning for every plant: on the nominal PL140 every smooth reference
-    stays at or below 0.05 % of the stroke, while a faster observer (disturbance_std 1-3) would
-    gain on plants whose hysteresis differs from the model (Prandtl-Ishlinskii: 0.12 against
-    0.14 % at 10 Hz) at the cost of the nominal 50 Hz sine (0.054-0.083 %), and a slower one
-    (0.3) the reverse (0.20 % at 10 Hz on the Prandtl-Ishlinskii plant).
+    The fixed observer's defaults are one tuning for every plant: on the nominal PL140 every
+    smooth reference stays at or below 0.05 % of the stroke, while a faster observer
+    (disturbance_std 1-3) would gain on plants whose hysteresis differs from the model
+    (Prandtl-Ishlinskii: 0.12 against 0.14 % at 10 Hz) at the cost of the nominal 50 Hz sine
+    (0.054-0.083 %), and a slower one (0.3) the reverse (0.20 % at 10 Hz on the
+    Prandtl-Ishlinskii plant). The bank takes each point where the data say it pays.
     slope_std : float
         0: the output disturbance is held constant over the horizon. > 0: it is modelled as
         drifting with an estimated slope (random walk of this step, um per sample^2) and
@@ -132,6 +141,8 @@ class MPCSettings:
     horizon: int = 20
     rate_weight: float = 1e-2
     measurement_std: float | None = None
+    observer: str = "bank"
+    bank_memory: int = 200
     disturbance_std: float = DISTURBANCE_STD
     process_std: float = PROCESS_STD
     slope_std: float = 0.0

@@ -87,10 +87,13 @@ class NMPCSettings:
     measurement_std : float or None
         Sensor noise standard deviation the observer assumes (um); None: noise bound /
         sqrt(3) (uniform noise), at least 0.05 um.
+    observer, bank_memory : str, int
+        The observer, as :class:`controllers.mpc.MPCSettings`' (default: the bank).
     disturbance_std : float
-        Random-walk step of the output disturbance (um per sample): the observer's speed.
+        Random-walk step of the output disturbance of the fixed observer (um per sample): its
+        speed.
     process_std : float
-        Input-referred process noise of the observer (equivalent V); with none the filter
+        Input-referred process noise of the fixed observer (equivalent V); with none the filter
         trusts the model near the resonance too much and a 150 Hz error builds up on a 50 Hz
         sine (0.17 % against 0.05 %). The observer defaults are the linear MPC's.
     jacobian : str
@@ -100,7 +103,9 @@ class NMPCSettings:
     eps_abs, eps_rel : float
         OSQP tolerances.
     max_qp_iterations : int
-        OSQP iteration cap per QP; reaching it is a fallback.
+        OSQP iteration cap per QP; reaching it is a fallback. 1000, as the linear MPC's: at
+        200, one QP of a step beyond the drive range (the bound binding over the horizon)
+        needed 290 iterations.
     shortcut : bool
         Try the unconstrained optimum of each QP first and skip OSQP when it lies inside the
         drive range (exact: see :mod:`controllers.box_qp`).
@@ -117,12 +122,14 @@ class NMPCSettings:
     tracking_weight: float = 1.0
     rate_weight: float = 1e-2
     measurement_std: float | None = None
+    observer: str = "bank"
+    bank_memory: int = 200
     disturbance_std: float = DISTURBANCE_STD
     process_std: float = PROCESS_STD
     jacobian: str = "auto"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
-    max_qp_iterations: int = 200
+    max_qp_iterations: int = 1000
     shortcut: bool = True
     ipopt_max_iter: int = 100
     ipopt_max_cpu_time: float = 1.0

@@ -22,7 +22,7 @@ import numpy as np
 
 from controllers.base import Controller
 from controllers.condensed import check_well_posed, prediction_matrices, rate_hessian
-from controllers.observer import DisturbanceObserver
+from controllers.observer import make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.task import ControlTask
 
@@ -70,7 +70,7 @@ class PredictiveController(Controller):
         self._rate_hessian = rate_hessian(n_hor, settings.rate_weight)
         weight = getattr(settings, "tracking_weight", 1.0)  # the linear MPC weighs error by 1
         check_well_posed(self._gamma, settings.rate_weight, weight, name=self.name)
-        self.observer = DisturbanceObserver.for_controller(model, task, settings)
+        self.observer = make_observer(model, task, settings)
         self._set_up()
         self._reset(None)
 

@@ -49,7 +49,8 @@ def check_settings(
     """Raise ValueError naming the first field of ``settings`` outside its domain.
 
     ``integers`` must be integers >= 1, ``non_negative`` finite numbers >= 0, ``positive``
-    finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um).
+    finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um),
+    an ``observer`` field ``"bank"`` or ``"fixed"``, a ``bank_memory`` field an integer >= 1.
     """
     for name in integers:
         require_int(name, getattr(settings, name))
@@ -61,6 +62,11 @@ def check_settings(
         value = getattr(settings, name)
         if not number_at_least(value, 0.0) or value == 0:
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    observer = getattr(settings, "observer", "fixed")
+    if observer not in ("bank", "fixed"):
+        raise ValueError(f"observer must be 'bank' or 'fixed', got {observer!r}")
+    if hasattr(settings, "bank_memory"):
+        require_int("bank_memory", settings.bank_memory)
     value = getattr(settings, "measurement_std", None)
     if value is not None and not (number_at_least(value, 0.0) and value > 0):
         raise ValueError(f"measurement_std must be > 0 um or None, got {value!r}")
