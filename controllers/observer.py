@@ -306,6 +306,7 @@ class ObserverBank:
                 ]
             )
         )
+        self._prior_filter = filters[self.prior]
         self.reset()
 
     @classmethod
@@ -364,9 +365,7 @@ class ObserverBank:
     def slowest_pole_hz(self, dt: float) -> float:
         """The prior filter's slowest-pole decay rate (Hz), for reports; see
         :meth:`DisturbanceObserver.slowest_pole_hz`."""
-        closed = self.a_aug - np.outer(self.a_aug @ self.gains[self.prior], self.c_aug)
-        radius = np.abs(np.linalg.eigvals(closed)).max()
-        return float(-np.log(max(radius, 1e-300)) / (2 * np.pi * dt))
+        return self._prior_filter.slowest_pole_hz(dt)
 
     def selection_summary(self, top: int = 3) -> list[dict[str, float]]:
         """The filters selected most often since the last reset, with their share of the
