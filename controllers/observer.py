@@ -46,6 +46,7 @@ observer can be slower than it.
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
@@ -55,7 +56,6 @@ from controllers.settings import measurement_std
 
 __all__ = [
     "DISTURBANCE_RATIOS",
-    "OBSERVERS",
     "PROCESS_RATIOS",
     "DisturbanceObserver",
     "ObserverBank",
@@ -273,6 +273,7 @@ class ObserverBank:
         dc_gain = abs((c @ np.linalg.solve(np.eye(n) - a, b)).item())
         if not (np.isfinite(dc_gain) and dc_gain > 0):
             raise ValueError(f"the model's DC gain must be finite and nonzero, got {dc_gain}")
+        ratios = list(itertools.product(process_ratios, disturbance_ratios))
         filters = [
             DisturbanceObserver(
                 a,
@@ -283,8 +284,7 @@ class ObserverBank:
                 process_std=rx * measurement_std / dc_gain,
                 slope_std=slope_std,
             )
-            for rx in process_ratios
-            for rd in disturbance_ratios
+            for rx, rd in ratios
         ]
         first = filters[0]
         self.n, self.n_disturbance = first.n, first.n_disturbance
@@ -296,7 +296,6 @@ class ObserverBank:
         self._half_inverse_var = 0.5 / variance
         self._half_log_var = 0.5 * np.log(variance)
         self._keep = 1.0 - 1.0 / memory
-        ratios = [(rx, rd) for rx in process_ratios for rd in disturbance_ratios]
         self.prior = int(
             np.argmin(
                 [
@@ -381,11 +380,6 @@ class ObserverBank:
             for k in order
             if self.selection_counts[k] > 0
         ]
-
-
-OBSERVERS = ("bank", "fixed")
-"""Observer choices of the model-based controllers: ``"bank"`` (:class:`ObserverBank`, the
-default) or ``"fixed"`` (one :class:`DisturbanceObserver` with the settings' noise levels)."""
 
 
 def make_observer(model: Any, task: Any, settings: Any) -> DisturbanceObserver | ObserverBank:

@@ -9,6 +9,7 @@ from piezo_env.checks import require_int
 
 __all__ = [
     "DISTURBANCE_STD",
+    "OBSERVERS",
     "PROCESS_STD",
     "USABLE_OSQP_STATUS",
     "check_settings",
@@ -21,6 +22,11 @@ USABLE_OSQP_STATUS = ("solved", "solved inaccurate")
 
 DISTURBANCE_STD = 0.8
 """The observer's default output-disturbance random-walk step (um per sample), both MPCs'."""
+
+OBSERVERS = ("bank", "fixed")
+"""Observer choices of the model-based controllers: ``"bank"``
+(:class:`controllers.observer.ObserverBank`, the default) or ``"fixed"`` (one
+:class:`controllers.observer.DisturbanceObserver` with the settings' noise levels)."""
 
 PROCESS_STD = 0.04
 """The observer's default input-referred process noise (equivalent V), both MPCs'.
@@ -63,7 +69,7 @@ def check_settings(
         if not number_at_least(value, 0.0) or value == 0:
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     observer = getattr(settings, "observer", "fixed")
-    if observer not in ("bank", "fixed"):
+    if observer not in OBSERVERS:
         raise ValueError(f"observer must be 'bank' or 'fixed', got {observer!r}")
     if hasattr(settings, "bank_memory"):
         require_int("bank_memory", settings.bank_memory)
