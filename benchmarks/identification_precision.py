@@ -32,15 +32,16 @@ from piezo_parallel import run_tasks
 BENDERS = ("PL140", "PL127", "PL122")
 SEEDS = (0, 1, 2, 3, 4)
 VARIANTS: dict[str, dict[str, str]] = {
-    "before": {"refinement": "none", "rich_signal": "sine"},
-    "excitation only": {"refinement": "none"},
+    "before": {"refinement": "none", "rich_signal": "sine", "nls_refinement": "none"},
+    "linear part refined": {"nls_refinement": "none"},
     "after": {},
 }
-"""Identification settings compared: the earlier defaults (the paper's steps a-f with its SINE
-excitation), the new rich excitation alone, and the new defaults (that excitation and step b')."""
+"""Identification settings compared: the paper's steps a-f with its SINE excitation; the rich
+excitation (decaying multisine) and step b' (the output-error refinement of the linear part);
+the defaults (that, and step e': the output-error refinement of the NLS)."""
 COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("before", "before", "mpc"),
-    ("excitation only", "excitation only", "mpc"),
+    ("linear part refined", "linear part refined", "mpc"),
     ("after, fixed observer", "after", "mpc-fixed"),
     ("after", "after", "mpc"),
 )
@@ -260,18 +261,18 @@ def report(results: dict[str, Any]) -> list[str]:
     lines = [
         *header("Identification precision in closed loop", "identification_precision.py"),
         'Each bender identified by `identify(env=gym.make("piezo_env:PiezoBender-v0", '
-        'bender=B), seed=s)`: *before* with the earlier defaults (`refinement="none", '
-        'rich_signal="sine"`: the paper\'s steps a-f and excitation), *excitation only* with '
-        "the new rich excitation (decaying multisine) but no refinement, *after* with the new "
-        "defaults (that excitation and step b', the output-error refinement of the linear "
-        "part). Controllers `mpc` and `pid-ff` on the identified model, `mpc-oracle` on the "
-        "plant's own model; `mpc` with its default observer (the bank of Kalman filters whose "
-        "noise levels the innovations choose, `controllers.observer.ObserverBank`), and on the "
-        "*after* models also with the single filter of the earlier default "
-        '(`observer="fixed"`); smooth references at the bender\'s stroke, '
-        f"{STEPS / 1000:g} s "
-        f"episodes, preview {PREVIEW}, sensor noise on, eval seed {EVAL_SEED}, default "
-        "controller settings.",
+        "bender=B), seed=s)`: *before* with the paper's steps a-f and its excitation "
+        '(`refinement="none", rich_signal="sine", nls_refinement="none"`), *linear part '
+        "refined* with the rich excitation (decaying multisine) and step b', the output-error "
+        'refinement of the linear part, but not step e\' (`nls_refinement="none"`), *after* '
+        "with the defaults (that, and step e', the output-error refinement of the NLS through "
+        "the linear part). Controllers `mpc` and `pid-ff` on the identified model, "
+        "`mpc-oracle` on the plant's own model; `mpc` with its default observer (the bank of "
+        "Kalman filters whose noise levels the innovations choose, "
+        "`controllers.observer.ObserverBank`), and on the *after* models also with the "
+        'single filter of the earlier default (`observer="fixed"`); smooth references at '
+        f"the bender's stroke, {STEPS / 1000:g} s episodes, preview {PREVIEW}, sensor noise "
+        f"on, eval seed {EVAL_SEED}, default controller settings.",
         "",
     ]
     for bender in BENDERS:

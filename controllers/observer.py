@@ -19,29 +19,24 @@ longer. ``process_std`` (equivalent V) is input-referred model noise on x.
 The gain is the steady-state one (``scipy.linalg.solve_discrete_are``), so a step is two small
 matrix-vector products.
 
-What sets the noise an MPC passes (measured on the PL140, 2 s episodes, noise on). With an
-accurate identified model (output-error linear part of order 4, NLS from the decaying-multisine
-excitation) the MPC's RMSE at 1 Hz is 0.036 % with ``process_std`` 0.04, 0.025 % with 0.01 and
-0.022 % with 0: the input-referred process noise, not the model's noise structure, passes the
-sensor noise. The oracle (the plant's modal realization) reads 0.018 % whatever
-``process_std`` is, because the 1e-12 I term that keeps the Riccati equation well posed is in
-the state's units: for the plant's states in metres it is a large process noise on every mode
-and swamps ``process_std``. Made unit-consistent (scaled to the states' own process noise), the
-oracle reads 0.038 % and 0.022 % at ``process_std`` 0.04 and 0, the identified model's figures.
-Lowering ``process_std`` costs the robustness plants (Prandtl-Ishlinskii hysteresis, 50 Hz:
-0.45 % at 0.04, 0.75 % at 0.01).
+What sets the noise an MPC passes (measured on the PL140, 2 s episodes, noise on): the
+input-referred process noise ``process_std``, not the model's noise structure. A small term
+keeps the Riccati equation well posed for delay states; it is scaled to each state's own
+variance under unit input (the diagonal of the controllability Gramian), so it means the same
+for a model whose states are in um (identified) and one whose states are in m (the plant's
+modal realization, the oracle). An identity in the states' units, as used before, was a large
+process noise on every mode of the oracle: it read 0.018 % whatever its settings, and
+identified models "beat" it. With the scaled term the oracle reads 0.005 % with the bank
+below and 0.038 % with the single filter (``process_std`` 0.04 V).
 
-So no single pair of noise levels is right: what the model gets wrong differs by reference and
-plant, and the best trade-off with it. The default observer of both MPCs is therefore a bank
-(:class:`ObserverBank`): the same filter under a grid of noise levels scaled by the sensor
-noise, the data choosing among them by the likelihood of their innovations. On the identified
-PL140 models (identification seeds 0-4, worst seed) it brings the MPC from 0.036-0.041 % to
-0.008-0.036 % on the smooth references, and every robustness plant gains too (Prandtl-Ishlinskii,
-50 Hz: 0.39 against 0.45 %; stiffness +20 %, 10 Hz: 0.26 against 0.44 %); the figures are in
-``benchmarks/results/identification_precision.md`` and the benchmark's tables. The oracle's
-filters all carry the large well-posedness term above, so its figure hardly moves (0.0175
-against 0.0178 %): it stays the yardstick, and identified models now beat it where their
-observer can be slower than it.
+No single pair of noise levels is right: what the model gets wrong differs by reference and
+plant, and the best trade-off with it (lowering ``process_std`` to 0.01 costs the
+Prandtl-Ishlinskii plant's 50 Hz sine 0.45 -> 0.75 %). The default observer of both MPCs is
+therefore a bank (:class:`ObserverBank`): the same filter under a grid of noise levels scaled
+by the sensor noise, the data choosing among them by the likelihood of their innovations. With
+a good model the data choose a slow filter that passes little noise, on a plant the model
+misses a fast one. The figures are in ``benchmarks/results/identification_precision.md`` and
+the benchmark's tables.
 """
 
 from __future__ import annotations
@@ -130,7 +125,7 @@ class DisturbanceObserver:
         q[n, n] = disturbance_std**2
         if nd == 2:
             q[n + 1, n + 1] = slope_std**2
-        q += 1e-12 * np.eye(m)  # keeps the Riccati equation well posed for delay states
+        q += 1e-12 * np.diag(np.r_[_state_scale(a, b[:, 0]), np.ones(nd)])
         r = np.array([[measurement_std**2]])
         p = scipy.linalg.solve_discrete_are(aa.T, ca.T, q, r)
         # Filter (current-estimate) gain: L = P C^T (C P C^T + R)^-1 on the predicted P.
@@ -204,6 +199,17 @@ DISTURBANCE_RATIOS = (1 / 27, 1 / 9, 1 / 3, 1.0, 3.0, 9.0)
 PRIOR_RATIOS = (1.0, 1.0)
 """(process, disturbance) ratio of the filter an episode starts with, until the data choose:
 close to the single filter's defaults on the PL140 (1.2 and 1.4)."""
+
+
+def _state_scale(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Each state's variance under unit white input (the controllability Gramian's diagonal,
+    floored at 1e-12 of its largest): the units of the Riccati equation's well-posedness term.
+    An unstable ``a`` (a candidate model the adaptive MPC is about to refuse) has no Gramian;
+    its states get unit scale, the identity of the states' own units."""
+    if np.max(np.abs(np.linalg.eigvals(a)), initial=0.0) >= 1.0:
+        return np.ones(a.shape[0])
+    variance = np.diag(scipy.linalg.solve_discrete_lyapunov(a, np.outer(b, b)))
+    return np.maximum(variance, 1e-12 * variance.max())
 
 
 class ObserverBank:

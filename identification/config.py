@@ -11,10 +11,13 @@ from piezo_env.checks import require_int, require_number
 from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 from piezo_env.task import TaskConfig
 
-__all__ = ["ORDER_TIE_PERCENT", "REFINEMENTS", "IdentificationConfig"]
+__all__ = ["NLS_REFINEMENTS", "ORDER_TIE_PERCENT", "REFINEMENTS", "IdentificationConfig"]
 
 REFINEMENTS = ("output-error", "none")
 """Choices of ``IdentificationConfig.refinement`` (step b')."""
+
+NLS_REFINEMENTS = ("output-error", "none")
+"""Choices of ``IdentificationConfig.nls_refinement`` (step e')."""
 
 ORDER_TIE_PERCENT = 0.25
 """Held-out fits (percentage points) this close to the best count as a tie between orders."""
@@ -65,6 +68,14 @@ class IdentificationConfig:
         Hidden layer widths of the NLS network (three tanh layers in the paper).
     max_epochs : int
         Training epochs at most (early stopping on a validation split).
+    nls_refinement : str
+        Step e' after the NLS training: ``"output-error"`` (default) refines the selected
+        network on the free-run output error of the PRBS and rich records through the fixed
+        linear part, and keeps it if the held-out selection record agrees
+        (:func:`identification.steps.refine_nonlinearity`); ``"none"`` keeps step e's network
+        (the paper's procedure).
+    nls_refinement_iterations : int
+        L-BFGS iterations of step e' at most.
     validation_amplitude : float
         RAND amplitude C_R (V) of the selection and validation records.
     validation_hold : int
@@ -87,6 +98,8 @@ class IdentificationConfig:
     features: str = "auto"
     hidden: tuple[int, ...] = (32, 32, 32)
     max_epochs: int = 200
+    nls_refinement: str = "output-error"
+    nls_refinement_iterations: int = 150
     validation_amplitude: float = 30.0
     validation_hold: int = 10
     validation_samples: int = 6000
@@ -98,6 +111,10 @@ class IdentificationConfig:
             )
         if self.refinement not in REFINEMENTS:
             raise ValueError(f"refinement must be one of {REFINEMENTS}, got {self.refinement!r}")
+        if self.nls_refinement not in NLS_REFINEMENTS:
+            raise ValueError(
+                f"nls_refinement must be one of {NLS_REFINEMENTS}, got {self.nls_refinement!r}"
+            )
         if not self.orders or not self.hidden:
             raise ValueError("orders and hidden must each list at least one value")
         for n in self.orders:
@@ -106,7 +123,7 @@ class IdentificationConfig:
             require_int("hidden width", width)
         for name in ("prbs_samples", "rich_samples", "validation_samples"):
             require_int(name, getattr(self, name), minimum=200)
-        for name in ("prbs_clock", "validation_hold", "max_epochs"):
+        for name in ("prbs_clock", "validation_hold", "max_epochs", "nls_refinement_iterations"):
             require_int(name, getattr(self, name))
         for name in ("prbs_amplitude", "rich_amplitude", "validation_amplitude"):
             require_number(name, getattr(self, name), low=0.0, low_open=True)

@@ -20,7 +20,14 @@ from identification.config import IdentificationConfig
 from identification.experiment import sample_time
 from identification.hammerstein import HammersteinModel
 from identification.metrics import complex_response
-from identification.steps import ArxEstimate, HiddenSignal, LinearRefinement, NlsFit, Validation
+from identification.steps import (
+    ArxEstimate,
+    HiddenSignal,
+    LinearRefinement,
+    NlsFit,
+    NlsRefinement,
+    Validation,
+)
 
 __all__ = [
     "IdentificationResult",
@@ -58,6 +65,7 @@ def model_metadata(
     features: str,
     hidden: HiddenSignal,
     refinement: LinearRefinement | None = None,
+    nls_refinement: NlsRefinement | None = None,
 ) -> dict[str, Any]:
     """What the model files record about their origin (JSON-safe): the bender (its datasheet
     values) and the task it was identified on, so that a controller can refuse another one;
@@ -71,6 +79,12 @@ def model_metadata(
             "order": refinement.order,
             "output_noise_std_um": refinement.fit.output_error_rms,
             "output_error_bound_um": refinement.fit.output_error_bound,
+        }
+    if nls_refinement is not None:
+        extra["nls_refinement"] = {
+            "method": "output-error (network and linear part)",
+            "accepted": nls_refinement.accepted,
+            "selection_rms_um": dict(nls_refinement.selection_rms_um),
         }
     return {
         **extra,
@@ -98,6 +112,7 @@ def build_report(
     val: Validation,
     timings: dict[str, float],
     refinement: LinearRefinement | None = None,
+    nls_refinement: NlsRefinement | None = None,
 ) -> dict[str, Any]:
     """The JSON report of a run (keys read by the CLI, the benchmarks and report.md).
 
@@ -121,12 +136,49 @@ def build_report(
         },
         "nls": {
             "features": nls.features,
-            "small_signal_gain": nls.small_signal_gain,
+            "small_signal_gain": (
+                nls.small_signal_gain
+                if nls_refinement is None
+                else nls_refinement.small_signal_gain
+            ),
             "selection_fit_percent": nls.selection_scores,
             "training": jsonable(getattr(nls.model.nls, "training", {})),
+            "output_error": _nls_refinement_section(env, nls_refinement),
         },
         "validation": _validation_section(config, val),
         "timings_s": timings,
+    }
+
+
+def _nls_refinement_section(
+    env: gym.Env, refinement: NlsRefinement | None
+) -> dict[str, Any] | None:
+    """Step e' before and after (None when the run skipped it); the kept linear part against
+    the true plant's, as in step b' (report only, never for fitting)."""
+    if refinement is None:
+        return None
+    arx = refinement.model.arx
+    true = env.unwrapped.model.state_space()
+    return {
+        "method": "free-run output error of network and linear part together, L-BFGS from "
+        "steps e and b', then the gain moved to keep the network's unit small-signal gain",
+        "accepted": refinement.accepted,
+        "refusal": refinement.refusal,
+        "training_rms_um": dict(refinement.training_rms_um),
+        "selection_rms_um": dict(refinement.selection_rms_um),
+        "iterations": refinement.iterations,
+        "evaluations": refinement.evaluations,
+        "small_signal_gain": refinement.small_signal_gain,
+        "wall_time_s": refinement.wall_time_s,
+        "linear_part": {
+            "order": arx.na,
+            "a": arx.a.tolist(),
+            "b": arx.b.tolist(),
+            "zeros": complex_list(arx.zeros()),
+            "poles": complex_list(arx.poles()),
+            "frequencies_hz": list(BODE_CHECK_HZ),
+            "response_error_vs_plant": relative_response_error(arx, true, BODE_CHECK_HZ).tolist(),
+        },
     }
 
 

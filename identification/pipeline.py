@@ -18,6 +18,13 @@ d) :func:`estimate_hidden_signal`: estimate the hidden signal z_t by inverting t
    not minimum-phase (:mod:`identification.inversion`);
 e) :func:`fit_nonlinearity`: fit the neural NLS to (u_t, z_hat_t), choosing its memory features
    on a separate selection record;
+e') :func:`refine_nonlinearity`: refine the selected network and the linear part together on
+   the free-run output error of the PRBS and rich records (``config.nls_refinement``, default
+   ``"output-error"``; ``"none"`` skips it), kept if the held-out selection record agrees. Step
+   e's loss weighs an error of z the same at every frequency, while the deflection sees it
+   through the linear part, amplified near the first bending mode; z_hat carries the equation
+   error filtered by 1/B; and the linear part saw only the +-1 V PRBS
+   (:mod:`identification.nls.output_error`);
 f) :func:`validate`: validate the Hammerstein model by free-run simulation on fresh RAND data.
 
 The steps and their results live in :mod:`identification.steps`, the experiments on the
@@ -56,6 +63,7 @@ from identification.steps import (
     HiddenSignal,
     LinearRefinement,
     NlsFit,
+    NlsRefinement,
     Validation,
     estimate_arx,
     estimate_hidden_signal,
@@ -63,6 +71,7 @@ from identification.steps import (
     excite_rich,
     fit_nonlinearity,
     refine_linear_part,
+    refine_nonlinearity,
     step_seeds,
     validate,
 )
@@ -117,15 +126,25 @@ def identify(
     log("d_inverse_arx", _hidden_line(hidden))
     u_train, z_train = np.r_[u_prbs, u_rich], np.r_[hidden.z_prbs, hidden.z_rich]
     nls = fit_nonlinearity(env, linear, u_train, z_train, config, seeds, say=log.say)
-    nls.model.metadata.update(model_metadata(env, config, nls.features, hidden, refinement))
     log("e_nls_training", _gain_line(nls))
-    val = validate(env, nls.model, config, seeds, unrefined=est.model)
+    nls_refinement = None
+    if config.nls_refinement == "output-error":
+        records = [(u_prbs, y_prbs), (u_rich, y_rich)]
+        nls_refinement = refine_nonlinearity(nls, records, config)
+        log("e2_nls_output_error", _nls_refinement_line(nls_refinement))
+    model = nls.model if nls_refinement is None else nls_refinement.model
+    model.metadata.update(
+        model_metadata(env, config, nls.features, hidden, refinement, nls_refinement)
+    )
+    val = validate(env, model, config, seeds, unrefined=est.model, unrefined_nls=nls.model)
     log("f_validation", _validation_line(config, val))
 
-    report = build_report(env, config, est, hidden, nls, val, log.timings(), refinement)
-    data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, nls.model, val, est.model)
+    report = build_report(
+        env, config, est, hidden, nls, val, log.timings(), refinement, nls_refinement
+    )
+    data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, model, val, est.model)
     data["plant_linear"] = env.unwrapped.model.state_space()  # the report's Bode figure only
-    return IdentificationResult(model=nls.model, report=jsonable(report), data=data)
+    return IdentificationResult(model=model, report=jsonable(report), data=data)
 
 
 def _prbs_line(config: IdentificationConfig, y_prbs: np.ndarray) -> str:
@@ -171,6 +190,20 @@ def _gain_line(nls: NlsFit) -> str:
     return (
         f"   NLS small-signal gain on the PRBS record: {nls.small_signal_gain:.3f} "
         "(1 by construction)"
+    )
+
+
+def _nls_refinement_line(refinement: NlsRefinement) -> str:
+    training, selection = refinement.training_rms_um, refinement.selection_rms_um
+    held_out = f"{selection['before']:.3f}"
+    if "after" in selection:
+        held_out += f" -> {selection['after']:.3f}"
+    verdict = "kept" if refinement.accepted else f"not kept: {refinement.refusal}"
+    return (
+        f"e') output-error refinement of network and linear part ({refinement.iterations} "
+        f"L-BFGS iterations, {refinement.wall_time_s:.1f} s): free-run RMS on the training "
+        f"records {training['before']:.3f} -> {training['after']:.3f} um, on the held-out "
+        f"selection record {held_out} um ({verdict})"
     )
 
 

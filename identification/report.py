@@ -62,9 +62,12 @@ def _validation_section(val: dict[str, Any]) -> list[str]:
     ]
     for name, key in (
         ("Hammerstein (free run)", "hammerstein"),
+        ("Hammerstein before step e' (free run)", "hammerstein_unrefined_nls"),
         ("linear ARX (free run)", "linear_arx"),
         ("Hammerstein (one step ahead)", "hammerstein_one_step"),
     ):
+        if key not in val:  # step e' skipped, or a report made before it existed
+            continue
         m = val[key]
         lines.append(
             _row(
@@ -198,7 +201,64 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
     ]
 
 
+def _nls_refinement_section(refinement: dict[str, Any] | None) -> list[str]:
+    """Step e': the model before and after the output-error refinement of both blocks."""
+    if refinement is None:
+        return []
+    training, selection = refinement["training_rms_um"], refinement["selection_rms_um"]
+    verdict = "kept" if refinement["accepted"] else f"not kept ({refinement['refusal']})"
+    rows = [
+        _row(["free-run RMS output error (um)", "before (steps b', e)", "after (step e')"]),
+        _row(["---"] * 3),
+        _row(
+            [
+                "training records (PRBS and rich)",
+                *(f"{training[k]:.3f}" for k in ("before", "after")),
+            ]
+        ),
+        _row(
+            [
+                "held-out selection record",
+                f"{selection['before']:.3f}",
+                f"{selection['after']:.3f}" if "after" in selection else "n/a",
+            ]
+        ),
+    ]
+    linear = refinement["linear_part"]
+    errors = ", ".join(
+        f"{f:g} Hz: {100 * e:.2f} %"
+        for f, e in zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True)
+    )
+    return [
+        "### Output-error refinement of the whole model (step e')",
+        "",
+        f"Method: {refinement['method']}; {refinement['iterations']} iterations "
+        f"({refinement['evaluations']} evaluations), {refinement['wall_time_s']:.1f} s; "
+        f"{verdict}. Small-signal gain of the network: {refinement['small_signal_gain']:.3f}.",
+        "",
+        *rows,
+        "",
+        f"The model's linear part after it: zeros {_roots(linear['zeros'])}; poles "
+        f"{_roots(linear['poles'])}; response error against the true plant's linear part "
+        f"(as in step b'): {errors}.",
+        "",
+        "Step e fits z_hat, which weighs an error of z the same at every frequency; the "
+        "deflection sees it through the linear part, most near the first bending mode, where "
+        "the third harmonic of a 50 Hz reference falls; and step b' saw only the +-1 V PRBS. "
+        "Step e' minimises the deflection's error itself, over both blocks. The sensor noise "
+        "alone gives r/sqrt(3) RMS (0.577 um at r = 1 um).",
+        "",
+    ]
+
+
 def _nls_section(nls: dict[str, Any]) -> list[str]:
+    return [
+        *_nls_section_head(nls),
+        *_nls_refinement_section(nls.get("output_error")),
+    ]
+
+
+def _nls_section_head(nls: dict[str, Any]) -> list[str]:
     return [
         "## NLS",
         "",

@@ -23,6 +23,7 @@ from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
+from identification.nls.output_error import free_run_rms, move_gain, refine_nls_output_error
 from identification.refine import OutputErrorFit, refine_output_error
 from piezo_env.signals import make_signal
 
@@ -31,6 +32,7 @@ __all__ = [
     "HiddenSignal",
     "LinearRefinement",
     "NlsFit",
+    "NlsRefinement",
     "Validation",
     "estimate_arx",
     "estimate_hidden_signal",
@@ -39,6 +41,7 @@ __all__ = [
     "fit_nonlinearity",
     "rand_signal",
     "refine_linear_part",
+    "refine_nonlinearity",
     "step_seeds",
     "validate",
 ]
@@ -140,12 +143,53 @@ class NlsFit:
         Free-run fit (%) on the selection record of every candidate feature set.
     small_signal_gain : float
         Slope of z against u on the PRBS record (1 by the scale convention).
+    selection_record : tuple of numpy.ndarray
+        The selection record (u V, y um), held out from the training; step e' is judged on it.
     """
 
     model: HammersteinModel
     features: str
     selection_scores: dict[str, float]
     small_signal_gain: float
+    selection_record: tuple[np.ndarray, np.ndarray]
+
+
+@dataclass
+class NlsRefinement:
+    """Result of step e': the output-error refinement of the whole Hammerstein model.
+
+    Attributes
+    ----------
+    model : HammersteinModel
+        The refined model (network and linear part), or step e's unchanged when the refinement
+        was refused (``accepted`` False, ``refusal`` says why).
+    accepted : bool
+        Whether the refined model was kept.
+    refusal : str or None
+        Why it was not: a linear part that lost stability or minimum phase, or no gain on the
+        held-out selection record.
+    training_rms_um : dict
+        Free-run RMS output error on the training records (PRBS and rich), um, ``before`` and
+        ``after``.
+    selection_rms_um : dict
+        The same on the held-out selection record, um: the acceptance test.
+    iterations, evaluations : int
+        L-BFGS iterations and objective evaluations.
+    small_signal_gain : float
+        Slope of the kept model's z against u on the PRBS record (1 after :func:`move_gain`).
+    wall_time_s : float
+        Time of the refinement, s.
+    """
+
+    model: HammersteinModel
+    accepted: bool
+    refusal: str | None
+    training_rms_um: dict[str, float]
+    selection_rms_um: dict[str, float]
+    iterations: int
+    evaluations: int
+    small_signal_gain: float
+    wall_time_s: float
 
 
 @dataclass
@@ -160,7 +204,8 @@ class Validation:
         Hammerstein free run, linear ARX free run, Hammerstein one step ahead (um).
     metrics : dict
         ``hammerstein``, ``linear_arx``, ``hammerstein_one_step``: :func:`fit_metrics` dicts;
-        with an unrefined model given, also ``linear_arx_unrefined`` (its free run).
+        with an unrefined model given, also ``linear_arx_unrefined`` (its free run); with
+        step e's model given, ``hammerstein_unrefined_nls``.
     """
 
     u: np.ndarray
@@ -344,9 +389,60 @@ def fit_nonlinearity(
         say(f"e) NLS with {features} features: selection fit {scores[features]:.2f} %")
     best = max(scores, key=scores.get)
     model = HammersteinModel(fitted[best], arx)
-    n_prbs = config.prbs_samples
-    gain = float(np.polyfit(u_train[:n_prbs], model.nls_output(u_train[:n_prbs]), 1)[0])
-    return NlsFit(model, best, scores, gain)
+    gain = _small_signal_gain(model, u_train[: config.prbs_samples])
+    return NlsFit(model, best, scores, gain, (u_sel, y_sel))
+
+
+def refine_nonlinearity(
+    nls: NlsFit,
+    records: list[tuple[np.ndarray, np.ndarray]],
+    config: IdentificationConfig,
+) -> NlsRefinement:
+    """Step e': refine the network and the linear part together on the free-run output error of
+    ``records`` (the PRBS record first, then the rich record; u V, y um), then move the gain so
+    that the network keeps unit small-signal gain on the PRBS record
+    (:mod:`identification.nls.output_error`).
+
+    The refined model is kept only if its linear part is stable, minimum-phase when step e's
+    was (the inverse of step d and the feedforward invert B), and its free-run error on the
+    held-out selection record is lower; otherwise step e's model stays and ``refusal`` says why.
+    """
+    start = nls.model
+    fit = refine_nls_output_error(
+        start.nls, start.arx, records, max_iterations=config.nls_refinement_iterations
+    )
+    selection = {"before": free_run_rms(start.nls, start.arx, [nls.selection_record])}
+    refusal = None
+    if not fit.arx.is_stable():
+        refusal = "the refined linear part is unstable"
+    elif start.arx.is_minimum_phase() and not fit.arx.is_minimum_phase():
+        refusal = "the refined linear part is not minimum-phase"
+    model = start
+    if refusal is None:
+        refined = HammersteinModel(fit.nls, fit.arx)
+        gain = _small_signal_gain(refined, records[0][0])
+        refined = HammersteinModel(*move_gain(fit.nls, fit.arx, gain))
+        selection["after"] = free_run_rms(refined.nls, refined.arx, [nls.selection_record])
+        if selection["after"] < selection["before"]:
+            model = refined
+        else:
+            refusal = "no lower free-run error on the held-out selection record"
+    return NlsRefinement(
+        model=model,
+        accepted=refusal is None,
+        refusal=refusal,
+        training_rms_um={"before": fit.rms_before, "after": fit.rms_after},
+        selection_rms_um=selection,
+        iterations=fit.iterations,
+        evaluations=fit.evaluations,
+        small_signal_gain=_small_signal_gain(model, records[0][0]),
+        wall_time_s=fit.wall_time_s,
+    )
+
+
+def _small_signal_gain(model: HammersteinModel, u_prbs: np.ndarray) -> float:
+    """Slope of z against u on the PRBS record (1 by the scale convention)."""
+    return float(np.polyfit(u_prbs, model.nls_output(u_prbs), 1)[0])
 
 
 def validate(
@@ -356,10 +452,12 @@ def validate(
     seeds: dict[str, int],
     *,
     unrefined: ARXModel | None = None,
+    unrefined_nls: HammersteinModel | None = None,
 ) -> Validation:
     """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data.
 
-    ``unrefined``: the step b estimate when step b' replaced it, run free as well.
+    ``unrefined``: the step b estimate when step b' replaced it, run free as well;
+    ``unrefined_nls``: step e's model when step e' replaced it, run free as well.
     """
     record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
     u, y = collect(env, record, seed=seeds["env"] + 3)
@@ -372,6 +470,10 @@ def validate(
     }
     if unrefined is not None and unrefined is not model.arx:
         metrics["linear_arx_unrefined"] = fit_metrics(y, unrefined.simulate(u), stroke=stroke)
+    if unrefined_nls is not None and unrefined_nls is not model:
+        metrics["hammerstein_unrefined_nls"] = fit_metrics(
+            y, unrefined_nls.simulate(u), stroke=stroke
+        )
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
 
 

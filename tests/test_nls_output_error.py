@@ -1,0 +1,163 @@
+"""Output-error refinement of the NLS through a fixed linear part (step e' of identify)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.signal
+
+from identification.arx import ARXModel
+from identification.config import IdentificationConfig
+from identification.features import PastInputFeatures
+from identification.nls import NLS
+from identification.nls.output_error import (
+    _free_run,
+    free_run_rms,
+    move_gain,
+    refine_nls_output_error,
+)
+
+# A lightly damped resonance (|p| = 0.97 at 50 Hz for dt = 1 ms) with a zero at -0.6: the
+# bender's first mode in miniature, y = B/F z + v, with z = NLS(u) a static nonlinearity.
+POLE = 0.97 * np.exp(2j * np.pi * 50e-3)
+F_TRUE = np.array([2 * POLE.real, -(abs(POLE) ** 2)])
+B_TRUE = np.array([0.05, 0.03])
+U_MAX = 30.0
+NOISE = 1.0  # sensor noise half-width (um): uniform, standard deviation 1/sqrt(3)
+
+
+def _nls(params: dict[str, np.ndarray]) -> NLS:
+    return NLS(PastInputFeatures(n_past=2), params, u_range=(-U_MAX, U_MAX))
+
+
+def _true_params() -> dict[str, np.ndarray]:
+    """z = u + 30 * 0.1 * w^T tanh(W x + c): the identity plus a smooth nonlinearity of a few
+    volts that depends on the current and the two past inputs."""
+    rng = np.random.default_rng(0)
+    return {
+        "feature_mean": np.zeros(3),
+        "feature_scale": np.full(3, U_MAX),
+        "z_mean": np.array(0.0),
+        "z_scale": np.array(U_MAX),
+        "layer0_weight": rng.normal(0.0, 1.5, (8, 3)),
+        "layer0_bias": rng.normal(0.0, 0.5, 8),
+        "out_weight": 0.1 * rng.normal(0.0, 1.0, 8),
+        "out_bias": np.array(0.0),
+        "skip_weight": np.array([1.0, 0.0, 0.0]),
+        "skip_bias": np.array(0.0),
+    }
+
+
+def _record(nls: NLS, n: int, seed: int, noise: float = NOISE) -> tuple[np.ndarray, np.ndarray]:
+    """A random-hold input over the full range, and the output of the true Hammerstein
+    system (scipy's filter, not the code under test) plus white uniform sensor noise."""
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-U_MAX, U_MAX, n // 5 + 1), 5)[:n]
+    y0 = scipy.signal.lfilter(np.r_[0.0, B_TRUE], np.r_[1.0, -F_TRUE], nls.evaluate(u))
+    return u, y0 + noise * rng.uniform(-1.0, 1.0, n)
+
+
+def _perturbed(params: dict[str, np.ndarray], scale: float, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    out = {}
+    for key, value in params.items():
+        trainable = key not in ("feature_mean", "feature_scale", "z_mean", "z_scale")
+        out[key] = value + scale * rng.normal(0.0, 1.0, np.shape(value)) if trainable else value
+    return out
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    """The true system's records; the start: the network perturbed, and the linear part with
+    its resonance moved from 50 to 50.3 Hz, its damping and its gain changed (the size of the
+    errors step b' leaves)."""
+    true = _nls(_true_params())
+    arx = ARXModel(F_TRUE, B_TRUE, dt=1e-3)
+    records = [_record(true, 3000, seed) for seed in (1, 2)]
+    start = _nls(_perturbed(_true_params(), 0.05, seed=3))
+    pole = 0.969 * np.exp(2j * np.pi * 50.3e-3)
+    start_arx = ARXModel([2 * pole.real, -(abs(pole) ** 2)], B_TRUE * 1.01, dt=1e-3)
+    fixed = refine_nls_output_error(start, arx, records, max_iterations=200, refine_linear=False)
+    joint = refine_nls_output_error(start, start_arx, records, max_iterations=200)
+    return true, arx, records, start, start_arx, fixed, joint
+
+
+def test_the_free_run_is_the_arx_recursion_from_rest():
+    """The spectral free run the refinement differentiates is scipy's filter B/(1 - A) from
+    rest, to rounding, on a record much longer than the resonance's decay."""
+    torch = pytest.importorskip("torch")
+    z = np.random.default_rng(4).normal(0.0, 10.0, 5000)
+    expected = scipy.signal.lfilter(np.r_[0.0, B_TRUE], np.r_[1.0, -F_TRUE], z)
+    got = _free_run(
+        torch.from_numpy(z), torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE), torch
+    ).numpy()
+    np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
+    np.testing.assert_allclose(ARXModel(F_TRUE, B_TRUE).simulate(z), expected, atol=1e-9)
+
+
+def test_refinement_recovers_the_true_hammerstein_output_to_the_noise_level(synthetic):
+    """From a perturbed network (and, jointly, a perturbed resonance), the output-error fit
+    brings the residual down to the sensor noise (uniform +-1 um: RMS 1/sqrt(3)) and the
+    noise-free output on fresh input to well under it: the maximum-likelihood estimate of an
+    output-error model with white noise."""
+    true, arx, _records, start, start_arx, fixed, joint = synthetic
+    noise_rms = NOISE / np.sqrt(3.0)
+    fresh = _record(true, 3000, seed=9, noise=0.0)
+    assert fixed.rms_before > 3 * noise_rms
+    assert joint.rms_before > 4 * noise_rms
+    assert free_run_rms(start, start_arx, [fresh]) > 4 * noise_rms
+    for fit in (fixed, joint):
+        assert fit.rms_after == pytest.approx(noise_rms, rel=0.03)
+        assert free_run_rms(fit.nls, fit.arx, [fresh]) < 0.2 * noise_rms
+        assert fit.iterations >= 1 and fit.evaluations >= fit.iterations
+    assert fixed.arx is arx
+    # the resonance itself is recovered (the gain split between the blocks is not identifiable)
+    np.testing.assert_allclose(
+        np.sort_complex(joint.arx.poles()),
+        np.sort_complex(ARXModel(F_TRUE, B_TRUE).poles()),
+        atol=1e-4,
+    )
+
+
+def test_moving_the_gain_between_the_blocks_leaves_the_output(synthetic):
+    true, arx, records, *_ = synthetic
+    u = records[0][0]
+    scaled, linear = move_gain(true, arx, 1.7)
+    np.testing.assert_allclose(scaled.evaluate(u), true.evaluate(u) / 1.7, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        linear.simulate(scaled.evaluate(u)), arx.simulate(true.evaluate(u)), atol=1e-9
+    )
+    with pytest.raises(ValueError, match="gain"):
+        move_gain(true, arx, 0.0)
+
+
+def test_the_refinement_leaves_its_start_alone_and_repeats_bitwise(synthetic):
+    _true, arx, records, start, _start_arx, fixed, _joint = synthetic
+    perturbed = _perturbed(_true_params(), 0.05, seed=3)
+    for key, value in start.arrays().items():
+        np.testing.assert_array_equal(value, perturbed[key])
+    again = refine_nls_output_error(start, arx, records, max_iterations=200, refine_linear=False)
+    for key, value in fixed.nls.arrays().items():
+        np.testing.assert_array_equal(again.nls.arrays()[key], value)
+    assert fixed.nls.feature_map == start.feature_map
+    assert fixed.nls.u_range == start.u_range
+
+
+def test_bad_input_is_refused_with_the_reason():
+    true = _nls(_true_params())
+    arx = ARXModel(F_TRUE, B_TRUE, dt=1e-3)
+    u, y = _record(true, 200, seed=1)
+    with pytest.raises(ValueError, match="unstable"):
+        refine_nls_output_error(true, ARXModel([1.5], [1.0]), [(u, y)])
+    with pytest.raises(ValueError, match="same length"):
+        refine_nls_output_error(true, arx, [(u, y[:-1])])
+    with pytest.raises(ValueError, match="non-finite"):
+        refine_nls_output_error(true, arx, [(u, np.r_[y[:-1], np.nan])])
+    with pytest.raises(ValueError, match="at least one"):
+        refine_nls_output_error(true, arx, [])
+    with pytest.raises(ValueError, match="max_iterations"):
+        refine_nls_output_error(true, arx, [(u, y)], max_iterations=0)
+    with pytest.raises(ValueError, match="nls_refinement"):
+        IdentificationConfig(nls_refinement="joint")
+    with pytest.raises(ValueError, match="nls_refinement_iterations"):
+        IdentificationConfig(nls_refinement_iterations=0)
