@@ -225,8 +225,10 @@ def adaptation(data: dict[str, Any]) -> str:
 def identification(report: dict[str, Any]) -> str:
     """The identification figures of the committed ``piezo identify`` report."""
     validation, arx, inversion = report["validation"], report["arx"], report["inversion"]
-    rows = [("Hammerstein (identified)", validation["hammerstein"]),
-            ("linear ARX alone", validation["linear_arx"])]
+    rows = [("Hammerstein (identified)", validation["hammerstein"])]
+    if "hammerstein_unrefined_nls" in validation:
+        rows.append(("Hammerstein before step e'", validation["hammerstein_unrefined_nls"]))
+    rows.append(("linear ARX alone", validation["linear_arx"]))
     table = ["| model | fit % | RMSE (um) | max error (um) |", "|---|---|---|---|"]
     table += [f"| {name} | {m['fit_percent']:.2f} | {m['rmse']:.1f} | {m['max_abs_error']:.1f} |"
               for name, m in rows]
@@ -236,16 +238,31 @@ def identification(report: dict[str, Any]) -> str:
         "",
         *table,
         "",
-        f"ARX order {arx['order']} (chosen by held-out free-run fit). Under white PRBS the ARX "
+        f"ARX order {arx['order']} (chosen by held-out free-run fit{_refined_order(report)}). "
+        "Under white PRBS the ARX "
         "equation error is dominated by the unmodelled higher bending modes, so the estimated "
         f"noise bound r_hat ({arx['noise_bound_um']:.2f} um against "
         f"{report['config']['env_kwargs']['noise_bound']:g} um of sensor noise) measures model "
         "error more than sensor noise. The hidden signal z_hat of step d) carries that error "
         f"filtered by 1/B: at most r_hat ||1/B||_1 = {inversion['z_error_bound_V']:.2f} V, RMS "
         f"r_hat / sqrt(3) ||1/B||_2 = {inversion['z_error_rms_V']:.2f} V for independent "
-        "uniform noise (equivalent V). Identification took "
-        f"{report['timings_s']['total']:.0f} s, most of it the network's training.",
+        f"uniform noise (equivalent V). {_identification_time(report['timings_s'])}",
     ])
+
+
+def _refined_order(report: dict[str, Any]) -> str:
+    refinement = report.get("refinement")
+    if refinement is None:
+        return ""
+    return f"; order {refinement['after']['order']} after the output-error refinement of step b'"
+
+
+def _identification_time(timings: dict[str, float]) -> str:
+    text = f"Identification took {timings['total']:.0f} s: the network's training "
+    text += f"{timings['e_nls_training']:.0f} s"
+    if "e2_nls_output_error" in timings:
+        text += f", step e' {timings['e2_nls_output_error']:.0f} s"
+    return text + "."
 
 
 def other_bender(data: dict[str, Any]) -> str:

@@ -24,7 +24,7 @@ def _pyplot():
 def write_figures(result: Any, out: str | Path) -> list[Path]:
     """Write the figures of an :class:`IdentificationResult` into ``out``; return their paths.
 
-    Four always; a fifth, the Bode plot of the linear part before and after step b' against the
+    Four always; a fifth, the Bode plot of the linear part after steps b, b' and e' against the
     true plant's, when the run refined it and its data hold the plant's linear part.
     """
     out = Path(out)
@@ -41,8 +41,9 @@ def write_figures(result: Any, out: str | Path) -> list[Path]:
 
 
 def _bode(data: dict, refined: Any, path: Path) -> Path:
-    """Frequency response of the step b estimate and the refined linear part against the true
-    plant's linear part, each normalised to its static gain (z is in equivalent volts)."""
+    """Frequency response of the step b estimate, the step b' refinement and the model's linear
+    part (after step e', when it refined it further) against the true plant's linear part, each
+    normalised to its static gain (z is in equivalent volts)."""
     import control
 
     plt = _pyplot()
@@ -60,15 +61,21 @@ def _bode(data: dict, refined: Any, path: Path) -> Path:
             "--",
             1.2,
         ),
-        (
-            "step b': output-error refinement",
-            refined.to_state_space(),
-            refined.static_gain(),
-            "tab:red",
-            "-.",
-            1.2,
-        ),
     )
+    step_b2 = data.get("arx_step_b2")
+    if step_b2 is not None and step_b2 is not refined:
+        curves += (
+            (
+                "step b': output-error refinement",
+                step_b2.to_state_space(),
+                step_b2.static_gain(),
+                "tab:red",
+                "-.",
+                1.2,
+            ),
+        )
+    label = "step e': refined with the network" if len(curves) == 3 else "step b': output error"
+    curves += ((label, refined.to_state_space(), refined.static_gain(), "tab:green", "-", 1.2),)
     fig, (ax_m, ax_p, ax_e) = plt.subplots(3, 1, figsize=(8, 9), dpi=110, sharex=True)
     truth = None
     for label, system, gain, colour, style, width in curves:
@@ -91,7 +98,7 @@ def _bode(data: dict, refined: Any, path: Path) -> Path:
     for ax in (ax_m, ax_p, ax_e):
         ax.grid(alpha=0.3, which="both")
         ax.set_xlim(f[0], f[-1])
-    fig.suptitle("Linear part before and after the output-error refinement, against the plant")
+    fig.suptitle("Linear part before and after the output-error refinements, against the plant")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

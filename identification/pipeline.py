@@ -143,6 +143,7 @@ def identify(
         env, config, est, hidden, nls, val, log.timings(), refinement, nls_refinement
     )
     data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, model, val, est.model)
+    data["arx_step_b2"] = linear if refinement is not None else None
     data["plant_linear"] = env.unwrapped.model.state_space()  # the report's Bode figure only
     return IdentificationResult(model=model, report=jsonable(report), data=data)
 

@@ -79,10 +79,11 @@ IDENTIFY = Subcommand(
     help="identify the Hammerstein model of the bender (paper 3.4, steps a-f)",
     description=(
         "Identify a Hammerstein model of the simulated bender as in section 3.4 of the paper: "
-        "PRBS excitation, ARX part by the uniform-noise Bayesian estimator, rich excitation, "
-        "hidden signal by the inverse ARX model, neural nonlinearity, free-run validation. "
+        "PRBS excitation, ARX part by the uniform-noise Bayesian estimator (then refined by "
+        "output error), rich excitation, hidden signal by the inverse ARX model, neural "
+        "nonlinearity (then the whole model refined by output error), free-run validation. "
         "Writes the model (model/), report.json, report.md and figures into --out; takes "
-        "10-20 s on 2 cores, most of it the network's training."
+        "10-20 s on 2 cores, most of it the network's training and refinement."
     ),
     add_arguments=add_arguments,
     run=run,
