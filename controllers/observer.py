@@ -204,11 +204,14 @@ close to the single filter's defaults on the PL140 (1.2 and 1.4)."""
 def _state_scale(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Each state's variance under unit white input (the controllability Gramian's diagonal,
     floored at 1e-12 of its largest): the units of the Riccati equation's well-posedness term.
-    An unstable ``a`` (a candidate model the adaptive MPC is about to refuse) has no Gramian;
-    its states get unit scale, the identity of the states' own units."""
+    An unstable ``a`` (a candidate model the adaptive MPC is about to refuse) has no Gramian,
+    and a zero ``b`` a zero one; their states get unit scale (the identity in the states' own
+    units)."""
     if np.max(np.abs(np.linalg.eigvals(a)), initial=0.0) >= 1.0:
         return np.ones(a.shape[0])
     variance = np.diag(scipy.linalg.solve_discrete_lyapunov(a, np.outer(b, b)))
+    if not variance.max() > 0:  # no input path (b = 0): nothing to scale by
+        return np.ones(a.shape[0])
     return np.maximum(variance, 1e-12 * variance.max())
 
 

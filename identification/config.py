@@ -70,12 +70,12 @@ class IdentificationConfig:
         Training epochs at most (early stopping on a validation split).
     nls_refinement : str
         Step e' after the NLS training: ``"output-error"`` (default) refines the selected
-        network on the free-run output error of the PRBS and rich records through the fixed
-        linear part, and keeps it if the held-out selection record agrees
-        (:func:`identification.steps.refine_nonlinearity`); ``"none"`` keeps step e's network
-        (the paper's procedure).
+        network, then the network and the linear part together, on the free-run output error
+        of the PRBS and rich records, and keeps the result if the held-out selection record
+        agrees (:func:`identification.steps.refine_nonlinearity`); ``"none"`` keeps step e's
+        model (the paper's procedure).
     nls_refinement_iterations : int
-        L-BFGS iterations of step e' at most.
+        L-BFGS iterations at most of each of step e''s two stages.
     validation_amplitude : float
         RAND amplitude C_R (V) of the selection and validation records.
     validation_hold : int

@@ -74,7 +74,9 @@ def _bode(data: dict, refined: Any, path: Path) -> Path:
                 1.2,
             ),
         )
-    label = "step e': refined with the network" if len(curves) == 3 else "step b': output error"
+    label = "step b': output-error refinement"
+    if data.get("linear_refined_by_e2"):
+        label = "step e': refined with the network"
     curves += ((label, refined.to_state_space(), refined.static_gain(), "tab:green", "-", 1.2),)
     fig, (ax_m, ax_p, ax_e) = plt.subplots(3, 1, figsize=(8, 9), dpi=110, sharex=True)
     truth = None

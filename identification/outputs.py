@@ -69,12 +69,15 @@ def model_metadata(
 ) -> dict[str, Any]:
     """What the model files record about their origin (JSON-safe): the bender (its datasheet
     values) and the task it was identified on, so that a controller can refuse another one;
-    with step b', how the linear part was refined and the output noise it identified (a model
-    saved before step b' existed has no ``linear_part`` entry and loads as before)."""
+    with step b', how the linear part was refined and the output noise it identified on the
+    PRBS record (a model saved before step b' existed has no ``linear_part`` entry and loads as
+    before); with step e', whether it refined the model further and the free-run error it left
+    on the training records (``nls_refinement``)."""
     plant = env.unwrapped.model
     extra = {}
     if refinement is not None:
         extra["linear_part"] = {
+            "step": "b'",
             "method": refinement.model.method,
             "order": refinement.order,
             "output_noise_std_um": refinement.fit.output_error_rms,
@@ -82,8 +85,11 @@ def model_metadata(
         }
     if nls_refinement is not None:
         extra["nls_refinement"] = {
-            "method": "output-error (network and linear part)",
+            "step": "e'",
+            "method": "output-error (network, then network and linear part)",
             "accepted": nls_refinement.accepted,
+            "linear_part_refined": nls_refinement.accepted and nls_refinement.note is None,
+            "training_rms_um": dict(nls_refinement.training_rms_um),
             "selection_rms_um": dict(nls_refinement.selection_rms_um),
         }
     return {
@@ -153,23 +159,14 @@ def build_report(
 def _nls_refinement_section(
     env: gym.Env, refinement: NlsRefinement | None
 ) -> dict[str, Any] | None:
-    """Step e' before and after (None when the run skipped it); the kept linear part against
+    """Step e' before and after (None when the run skipped it); the model's linear part against
     the true plant's, as in step b' (report only, never for fitting)."""
     if refinement is None:
         return None
     arx = refinement.model.arx
     true = env.unwrapped.model.state_space()
     return {
-        "method": "free-run output error of network and linear part together, L-BFGS from "
-        "steps e and b', then the gain moved to keep the network's unit small-signal gain",
-        "accepted": refinement.accepted,
-        "refusal": refinement.refusal,
-        "training_rms_um": dict(refinement.training_rms_um),
-        "selection_rms_um": dict(refinement.selection_rms_um),
-        "iterations": refinement.iterations,
-        "evaluations": refinement.evaluations,
-        "small_signal_gain": refinement.small_signal_gain,
-        "wall_time_s": refinement.wall_time_s,
+        **refinement.record(),
         "linear_part": {
             "order": arx.na,
             "a": arx.a.tolist(),
@@ -248,7 +245,7 @@ def _refinement_section(
     }
     validation_fit = {
         "before": val.metrics.get("linear_arx_unrefined", val.metrics["linear_arx"]),
-        "after": val.metrics["linear_arx"],
+        "after": val.metrics.get("linear_arx_before_e2", val.metrics["linear_arx"]),
     }
     for key, model in models.items():
         error = relative_response_error(model, true, BODE_CHECK_HZ)
@@ -259,6 +256,7 @@ def _refinement_section(
             "zeros": complex_list(model.zeros()),
             "poles": complex_list(model.poles()),
             "static_gain_um_per_V": model.static_gain(),
+            "noise_bound_um": model.noise_bound,
             "prbs_free_run_rms_um": prbs_rms[key],
             "validation_linear_fit_percent": validation_fit[key]["fit_percent"],
             "response_error_vs_plant": error.tolist(),

@@ -144,6 +144,7 @@ def identify(
     )
     data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, model, val, est.model)
     data["arx_step_b2"] = linear if refinement is not None else None
+    data["linear_refined_by_e2"] = model.arx is not nls.model.arx
     data["plant_linear"] = env.unwrapped.model.state_space()  # the report's Bode figure only
     return IdentificationResult(model=model, report=jsonable(report), data=data)
 
@@ -196,15 +197,20 @@ def _gain_line(nls: NlsFit) -> str:
 
 def _nls_refinement_line(refinement: NlsRefinement) -> str:
     training, selection = refinement.training_rms_um, refinement.selection_rms_um
+    if not training:
+        return f"e') output-error refinement not run: {refinement.refusal}"
     held_out = f"{selection['before']:.3f}"
     if "after" in selection:
         held_out += f" -> {selection['after']:.3f}"
     verdict = "kept" if refinement.accepted else f"not kept: {refinement.refusal}"
+    if refinement.note:
+        verdict += f"; {refinement.note}"
     return (
-        f"e') output-error refinement of network and linear part ({refinement.iterations} "
-        f"L-BFGS iterations, {refinement.wall_time_s:.1f} s): free-run RMS on the training "
-        f"records {training['before']:.3f} -> {training['after']:.3f} um, on the held-out "
-        f"selection record {held_out} um ({verdict})"
+        f"e') output-error refinement of the network, then of network and linear part "
+        f"({' + '.join(str(stage['iterations']) for stage in refinement.stages)} L-BFGS "
+        f"iterations, {refinement.wall_time_s:.1f} s): free-run RMS on the training records "
+        f"{training['before']:.3f} -> {training['after']:.3f} um, on the held-out selection "
+        f"record {held_out} um ({verdict})"
     )
 
 

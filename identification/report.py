@@ -38,7 +38,7 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         *_validation_section(report["validation"]),
         *_arx_section(report["arx"], report["inversion"]),
         *_refinement_section(report.get("refinement")),
-        *_nls_section(report["nls"]),
+        *_nls_section(report["nls"], env["noise_bound_um"]),
         "## Timings (s)",
         "",
         ", ".join(f"{k}: {v}" for k, v in report["timings_s"].items()),
@@ -201,60 +201,65 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
     ]
 
 
-def _nls_refinement_section(refinement: dict[str, Any] | None) -> list[str]:
+def _nls_refinement_section(refinement: dict[str, Any] | None, noise_bound: float) -> list[str]:
     """Step e': the model before and after the output-error refinement of both blocks."""
     if refinement is None:
         return []
     training, selection = refinement["training_rms_um"], refinement["selection_rms_um"]
-    verdict = "kept" if refinement["accepted"] else f"not kept ({refinement['refusal']})"
+    if refinement["accepted"]:
+        verdict = "kept"
+    else:
+        verdict = f"not kept ({refinement['refusal']}): step e's model stays"
+    stages = " and ".join(
+        f"{stage['iterations']} iterations ({stage['evaluations']} evaluations"
+        + (", stopped at the cap)" if stage["capped"] else ", converged)")
+        for stage in refinement["stages"]
+    )
     rows = [
         _row(["free-run RMS output error (um)", "before (steps b', e)", "after (step e')"]),
         _row(["---"] * 3),
-        _row(
-            [
-                "training records (PRBS and rich)",
-                *(f"{training[k]:.3f}" for k in ("before", "after")),
-            ]
-        ),
-        _row(
-            [
-                "held-out selection record",
-                f"{selection['before']:.3f}",
-                f"{selection['after']:.3f}" if "after" in selection else "n/a",
-            ]
-        ),
+        _row(["training records (PRBS and rich)", *_um_pair(training)]),
+        _row(["held-out selection record", *_um_pair(selection)]),
     ]
     linear = refinement["linear_part"]
     errors = ", ".join(
         f"{f:g} Hz: {100 * e:.2f} %"
         for f, e in zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True)
     )
+    note = f" {refinement['note'].capitalize()}." if refinement.get("note") else ""
     return [
         "### Output-error refinement of the whole model (step e')",
         "",
-        f"Method: {refinement['method']}; {refinement['iterations']} iterations "
-        f"({refinement['evaluations']} evaluations), {refinement['wall_time_s']:.1f} s; "
-        f"{verdict}. Small-signal gain of the network: {refinement['small_signal_gain']:.3f}.",
+        f"Method: {refinement['method']}. Stages: {stages or 'none run'}; "
+        f"{refinement['wall_time_s']:.1f} s; {verdict}.{note} Small-signal gain of the "
+        f"model's network: {refinement['small_signal_gain']:.3f}.",
         "",
         *rows,
         "",
-        f"The model's linear part after it: zeros {_roots(linear['zeros'])}; poles "
+        f"The model's linear part: zeros {_roots(linear['zeros'])}; poles "
         f"{_roots(linear['poles'])}; response error against the true plant's linear part "
         f"(as in step b'): {errors}.",
         "",
-        "Step e fits z_hat, which weighs an error of z the same at every frequency; the "
-        "deflection sees it through the linear part, most near the first bending mode, where "
-        "the third harmonic of a 50 Hz reference falls; and step b' saw only the +-1 V PRBS. "
-        "Step e' minimises the deflection's error itself, over both blocks. The sensor noise "
-        "alone gives r/sqrt(3) RMS (0.577 um at r = 1 um).",
+        "Step e fits z_hat, which weighs an error of z the same at every frequency, while the "
+        "deflection sees it through the linear part, most where a reference's harmonics meet "
+        "the first bending mode; and step b' saw only the +-1 V PRBS. Step e' minimises the "
+        "deflection's error itself, over both blocks. The sensor noise alone gives "
+        f"r/sqrt(3) = {noise_bound / 3**0.5:.3f} um RMS.",
         "",
     ]
 
 
-def _nls_section(nls: dict[str, Any]) -> list[str]:
+def _um_pair(values: dict[str, float | None]) -> list[str]:
+    """``before`` and ``after`` in um, "n/a" where absent (not run, or not finite)."""
+    return [
+        "n/a" if values.get(key) is None else f"{values[key]:.3f}" for key in ("before", "after")
+    ]
+
+
+def _nls_section(nls: dict[str, Any], noise_bound: float) -> list[str]:
     return [
         *_nls_section_head(nls),
-        *_nls_refinement_section(nls.get("output_error")),
+        *_nls_refinement_section(nls.get("output_error"), noise_bound),
     ]
 
 

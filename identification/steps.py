@@ -166,15 +166,19 @@ class NlsRefinement:
     accepted : bool
         Whether the refined model was kept.
     refusal : str or None
-        Why it was not: a linear part that lost stability or minimum phase, or no gain on the
-        held-out selection record.
+        Why it was not: no lower error on the held-out selection record, a refined network
+        without a positive small-signal gain, or an unstable step e linear part.
+    note : str or None
+        Why the joint stage's linear part was dropped for the network-only stage (it lost
+        stability or minimum phase); None when it was kept.
     training_rms_um : dict
         Free-run RMS output error on the training records (PRBS and rich), um, ``before`` and
-        ``after``.
+        ``after`` (empty when the refinement did not run).
     selection_rms_um : dict
-        The same on the held-out selection record, um: the acceptance test.
-    iterations, evaluations : int
-        L-BFGS iterations and objective evaluations.
+        The same on the held-out selection record, um: the acceptance test (``after`` absent
+        when there was no refined model to score).
+    stages : tuple of dict
+        L-BFGS ``iterations``, ``evaluations`` and ``capped`` of each stage.
     small_signal_gain : float
         Slope of the kept model's z against u on the PRBS record (1 after :func:`move_gain`).
     wall_time_s : float
@@ -184,12 +188,33 @@ class NlsRefinement:
     model: HammersteinModel
     accepted: bool
     refusal: str | None
+    note: str | None
     training_rms_um: dict[str, float]
     selection_rms_um: dict[str, float]
-    iterations: int
-    evaluations: int
+    stages: tuple[dict, ...]
     small_signal_gain: float
     wall_time_s: float
+
+    @property
+    def iterations(self) -> int:
+        """L-BFGS iterations over both stages."""
+        return sum(stage["iterations"] for stage in self.stages)
+
+    def record(self) -> dict:
+        """JSON-safe summary (for the report and the refined network's training record)."""
+        return {
+            "method": "free-run output error: the network, then network and linear part, "
+            "L-BFGS from steps e and b'; the gain then moved to keep the network's unit "
+            "small-signal gain",
+            "accepted": self.accepted,
+            "refusal": self.refusal,
+            "note": self.note,
+            "training_rms_um": dict(self.training_rms_um),
+            "selection_rms_um": dict(self.selection_rms_um),
+            "stages": [dict(stage) for stage in self.stages],
+            "small_signal_gain": self.small_signal_gain,
+            "wall_time_s": self.wall_time_s,
+        }
 
 
 @dataclass
@@ -205,7 +230,8 @@ class Validation:
     metrics : dict
         ``hammerstein``, ``linear_arx``, ``hammerstein_one_step``: :func:`fit_metrics` dicts;
         with an unrefined model given, also ``linear_arx_unrefined`` (its free run); with
-        step e's model given, ``hammerstein_unrefined_nls``.
+        step e's model given, ``hammerstein_unrefined_nls`` and, when step e' changed the
+        linear part, ``linear_arx_before_e2`` (step e's linear part alone).
     """
 
     u: np.ndarray
@@ -398,46 +424,60 @@ def refine_nonlinearity(
     records: list[tuple[np.ndarray, np.ndarray]],
     config: IdentificationConfig,
 ) -> NlsRefinement:
-    """Step e': refine the network and the linear part together on the free-run output error of
-    ``records`` (the PRBS record first, then the rich record; u V, y um), then move the gain so
-    that the network keeps unit small-signal gain on the PRBS record
-    (:mod:`identification.nls.output_error`).
+    """Step e': refine the network, then the network and the linear part together, on the
+    free-run output error of ``records`` (the PRBS record first, then the rich record; u V,
+    y um), then move the gain so that the network keeps unit small-signal gain on the PRBS
+    record (:mod:`identification.nls.output_error`).
 
-    The refined model is kept only if its linear part is stable, minimum-phase when step e's
-    was (the inverse of step d and the feedforward invert B), and its free-run error on the
-    held-out selection record is lower; otherwise step e's model stays and ``refusal`` says why.
+    The refined model is kept only if its free-run error on the held-out selection record is
+    lower than step e's; otherwise step e's model stays and ``refusal`` says why (so it does
+    when step e's linear part is unstable and has no free run to refine). A joint stage that
+    ends at an unstable or no longer minimum-phase linear part (the inverse of step d and the
+    feedforward invert B) is dropped for the network-only stage, and ``note`` says so.
     """
     start = nls.model
+    selection = {"before": free_run_rms(start.nls, start.arx, [nls.selection_record])}
+    if not start.arx.is_stable():
+        return NlsRefinement(
+            model=start,
+            accepted=False,
+            refusal="step e's linear part is unstable: it has no free run to refine",
+            note=None,
+            training_rms_um={},
+            selection_rms_um=selection,
+            stages=(),
+            small_signal_gain=_small_signal_gain(start, records[0][0]),
+            wall_time_s=0.0,
+        )
     fit = refine_nls_output_error(
         start.nls, start.arx, records, max_iterations=config.nls_refinement_iterations
     )
-    selection = {"before": free_run_rms(start.nls, start.arx, [nls.selection_record])}
-    refusal = None
-    if not fit.arx.is_stable():
-        refusal = "the refined linear part is unstable"
-    elif start.arx.is_minimum_phase() and not fit.arx.is_minimum_phase():
-        refusal = "the refined linear part is not minimum-phase"
-    model = start
-    if refusal is None:
-        refined = HammersteinModel(fit.nls, fit.arx)
-        gain = _small_signal_gain(refined, records[0][0])
+    refined = HammersteinModel(fit.nls, fit.arx)
+    gain = _small_signal_gain(refined, records[0][0])
+    model, refusal = start, None
+    if not (np.isfinite(gain) and gain > 0):
+        refusal = f"the refined network's small-signal gain is {gain:.3g}, not positive"
+    else:
         refined = HammersteinModel(*move_gain(fit.nls, fit.arx, gain))
         selection["after"] = free_run_rms(refined.nls, refined.arx, [nls.selection_record])
         if selection["after"] < selection["before"]:
             model = refined
         else:
             refusal = "no lower free-run error on the held-out selection record"
-    return NlsRefinement(
+    result = NlsRefinement(
         model=model,
         accepted=refusal is None,
         refusal=refusal,
+        note=fit.linear_note,
         training_rms_um={"before": fit.rms_before, "after": fit.rms_after},
         selection_rms_um=selection,
-        iterations=fit.iterations,
-        evaluations=fit.evaluations,
+        stages=fit.stages,
         small_signal_gain=_small_signal_gain(model, records[0][0]),
         wall_time_s=fit.wall_time_s,
     )
+    if result.accepted:  # the saved network's training record tells what was done to it
+        model.nls.training["output_error_refinement"] = result.record()
+    return result
 
 
 def _small_signal_gain(model: HammersteinModel, u_prbs: np.ndarray) -> float:
@@ -474,6 +514,10 @@ def validate(
         metrics["hammerstein_unrefined_nls"] = fit_metrics(
             y, unrefined_nls.simulate(u), stroke=stroke
         )
+        if unrefined_nls.arx is not model.arx:
+            metrics["linear_arx_before_e2"] = fit_metrics(
+                y, unrefined_nls.arx.simulate(u), stroke=stroke
+            )
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
 
 

@@ -55,10 +55,12 @@ def summary(report: dict) -> str:
         f"{arx['noise_bound_um']:.2f} um (equation error: model error and sensor noise)",
     ]
     refined = (report.get("refinement") or {}).get("after")
+    again = (report["nls"].get("output_error") or {}).get("accepted", False)
     if refined:
         lines.append(
-            f"linear part refined by output error (step b'): order {refined['order']}, the "
-            "one the controllers use"
+            f"linear part refined by output error (step b'): order {refined['order']}"
+            + (", then with the network (step e')" if again else "")
+            + ": the one the controllers use"
         )
     lines += [
         f"NLS memory features: {nls['features']} ({how})",

@@ -1,4 +1,5 @@
-"""Output-error refinement of the NLS through a fixed linear part (step e' of identify)."""
+"""Output-error refinement of the Hammerstein model: its network, then network and linear part
+together (step e' of identify)."""
 
 from __future__ import annotations
 
@@ -120,7 +121,8 @@ def test_refinement_recovers_the_true_hammerstein_output_to_the_noise_level(synt
 
 
 def test_moving_the_gain_between_the_blocks_leaves_the_output(synthetic):
-    true, arx, records, *_ = synthetic
+    _true, arx, records, *_ = synthetic
+    true = _nls({**_true_params(), "z_mean": np.array(2.5)})  # an offset scales with the gain
     u = records[0][0]
     scaled, linear = move_gain(true, arx, 1.7)
     np.testing.assert_allclose(scaled.evaluate(u), true.evaluate(u) / 1.7, rtol=1e-12, atol=1e-12)
@@ -132,15 +134,51 @@ def test_moving_the_gain_between_the_blocks_leaves_the_output(synthetic):
 
 
 def test_the_refinement_leaves_its_start_alone_and_repeats_bitwise(synthetic):
-    _true, arx, records, start, _start_arx, fixed, _joint = synthetic
+    _true, _arx, records, start, start_arx, _fixed, joint = synthetic
     perturbed = _perturbed(_true_params(), 0.05, seed=3)
     for key, value in start.arrays().items():
         np.testing.assert_array_equal(value, perturbed[key])
-    again = refine_nls_output_error(start, arx, records, max_iterations=200, refine_linear=False)
-    for key, value in fixed.nls.arrays().items():
+    again = refine_nls_output_error(start, start_arx, records, max_iterations=200)
+    for key, value in joint.nls.arrays().items():
         np.testing.assert_array_equal(again.nls.arrays()[key], value)
-    assert fixed.nls.feature_map == start.feature_map
-    assert fixed.nls.u_range == start.u_range
+    np.testing.assert_array_equal(again.arx.theta, joint.arx.theta)
+    assert joint.nls.feature_map == start.feature_map
+    assert joint.nls.u_range == start.u_range
+    assert [stage["iterations"] for stage in joint.stages] == [
+        stage["iterations"] for stage in again.stages
+    ]
+    assert joint.linear_note is None
+    # the refined linear part's r_hat is its own largest equation error, not the start's
+    assert joint.arx.noise_bound != start_arx.noise_bound
+
+
+def test_a_refusal_is_reported_not_raised():
+    """Step e' on a model whose linear part is unstable has no free run to refine: it is
+    refused with the reason, step e's model stays, and the markdown report renders it."""
+    from identification.hammerstein import HammersteinModel
+    from identification.report import _nls_refinement_section
+    from identification.steps import NlsFit, refine_nonlinearity
+
+    true = _nls(_true_params())
+    unstable = ARXModel([1.5], [1.0], dt=1e-3)
+    u, y = _record(true, 400, seed=1)
+    fit = NlsFit(HammersteinModel(true, unstable), "past-inputs", {}, 1.0, (u, y))
+    refinement = refine_nonlinearity(fit, [(u, y)], IdentificationConfig())
+    assert not refinement.accepted and "unstable" in refinement.refusal
+    assert refinement.model is fit.model and refinement.stages == ()
+    record = {
+        **refinement.record(),
+        "linear_part": {
+            "zeros": [],
+            "poles": [[1.5, 0.0]],
+            "frequencies_hz": [1.0],
+            "response_error_vs_plant": [0.0],
+        },
+    }
+    text = "\n".join(_nls_refinement_section(record, noise_bound=1.0))
+    assert "not kept" in text and "unstable" in text and "n/a" in text
+    record["training_rms_um"] = {"before": 1.0, "after": None}  # an infinite error in JSON
+    assert "n/a" in "\n".join(_nls_refinement_section(record, noise_bound=1.0))
 
 
 def test_bad_input_is_refused_with_the_reason():

@@ -207,8 +207,7 @@ def test_report_and_metadata_carry_the_z_error_bound(short_default_run):
     inversion = short_default_run.report["inversion"]
     # step d inverts step b''s linear part (step e' refines it afterwards)
     step_b2 = short_default_run.report["refinement"]["after"]
-    noise_bound = short_default_run.model.arx.noise_bound
-    arx = ARXModel(step_b2["a"], step_b2["b"], noise_bound=noise_bound)
+    arx = ARXModel(step_b2["a"], step_b2["b"], noise_bound=step_b2["noise_bound_um"])
     expected = inverse_error_bounds(arx)
     assert inversion["z_error_bound_V"] == pytest.approx(expected["z_error_bound_V"])
     assert inversion["z_error_rms_V"] == pytest.approx(expected["z_error_rms_V"])

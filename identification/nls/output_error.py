@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.signal
 
 from identification.arx import ARXModel
 from identification.nls.network import NLS
@@ -54,7 +55,8 @@ class NlsOutputErrorFit:
     nls : NLS
         The refined network (same features, widths and input range as the start).
     arx : ARXModel
-        The refined linear part (the start's when ``refine_linear`` was False).
+        The refined linear part, its ``noise_bound`` the largest equation error over the
+        records (the start's when ``refine_linear`` was False or its joint stage was refused).
     rms_before, rms_after : float
         Free-run RMS output error over all the records, um, at the start and at the end (by the
         ARX recursion).
@@ -64,6 +66,12 @@ class NlsOutputErrorFit:
         Objective and gradient evaluations (line search included).
     wall_time_s : float
         Time of the refinement, s.
+    stages : tuple of dict
+        Per stage (network; then network and linear part): ``iterations``, ``evaluations`` and
+        ``capped`` (stopped at ``max_iterations``, not converged).
+    linear_note : str or None
+        Why the joint stage's linear part was not kept (unstable, or no longer minimum-phase
+        when the start was); its network-only stage is returned then. None otherwise.
     """
 
     nls: NLS
@@ -73,6 +81,8 @@ class NlsOutputErrorFit:
     iterations: int
     evaluations: int
     wall_time_s: float
+    stages: tuple[dict, ...] = ()
+    linear_note: str | None = None
 
 
 def free_run_rms(
@@ -165,8 +175,8 @@ def refine_nls_output_error(
         outputs = [torch.from_numpy(y) for _, y in data]
         count = sum(y.size for _, y in data)
         module = TorchNLS.from_params(nls.arrays())
-        a = torch.tensor(arx.a, dtype=torch.float64, requires_grad=refine_linear)
-        b = torch.tensor(arx.b, dtype=torch.float64, requires_grad=refine_linear)
+        a = torch.tensor(arx.a, dtype=torch.float64)
+        b = torch.tensor(arx.b, dtype=torch.float64)
 
         def objective() -> object:
             total = 0
@@ -178,33 +188,71 @@ def refine_nls_output_error(
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
         # L-BFGS meets the network's and the poles' very different curvatures and stalls.
-        stages = [list(module.parameters())]
+        stages = [_lbfgs(list(module.parameters()), objective, int(max_iterations), torch)]
+        network_only = TorchNLS.to_params(module)
         if refine_linear:
-            stages.append([*module.parameters(), a, b])
-        iterations = evaluations = 0
-        for parameters in stages:
-            done = _lbfgs(parameters, objective, int(max_iterations), torch)
-            iterations, evaluations = iterations + done[0], evaluations + done[1]
+            a.requires_grad_(True)
+            b.requires_grad_(True)
+            stages.append(_lbfgs([*module.parameters(), a, b], objective, max_iterations, torch))
         params = TorchNLS.to_params(module)
         a_new, b_new = a.detach().numpy().copy(), b.detach().numpy().copy()
-    refined = NLS(nls.feature_map, params, u_range=nls.u_range, training=nls.training)
-    linear = arx
+    linear, linear_note = arx, None
     if refine_linear:
-        linear = ARXModel(a_new, b_new, noise_bound=arx.noise_bound, dt=arx.dt, method=arx.method)
-    after = free_run_rms(refined, linear, data) if linear.is_stable() else float("inf")
+        candidate = ARXModel(
+            a_new, b_new, noise_bound=arx.noise_bound, dt=arx.dt, method=arx.method
+        )
+        linear_note = _linear_refusal(arx, candidate)
+        if linear_note is None:
+            linear = _with_equation_error_bound(candidate, params, nls, data)
+        else:  # the free-run objective has no stability barrier: keep the first stage
+            params = network_only
+    refined = NLS(nls.feature_map, params, u_range=nls.u_range, training=nls.training)
     return NlsOutputErrorFit(
         nls=refined,
         arx=linear,
         rms_before=free_run_rms(nls, arx, data),
-        rms_after=after,
-        iterations=iterations,
-        evaluations=evaluations,
+        rms_after=free_run_rms(refined, linear, data),
+        iterations=sum(stage["iterations"] for stage in stages),
+        evaluations=sum(stage["evaluations"] for stage in stages),
         wall_time_s=time.perf_counter() - start,
+        stages=tuple(stages),
+        linear_note=linear_note,
     )
 
 
-def _lbfgs(parameters: list, objective: Callable[[], object], max_iterations: int, torch: object):
-    """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``; (iterations, evaluations)."""
+def _linear_refusal(start: ARXModel, candidate: ARXModel) -> str | None:
+    """Why the jointly refined linear part cannot be kept (None: it can)."""
+    if not candidate.is_stable():
+        return "the joint stage ended at an unstable linear part; its network-only stage is kept"
+    if start.is_minimum_phase() and not candidate.is_minimum_phase():
+        return (
+            "the joint stage ended at a non-minimum-phase linear part; its network-only stage "
+            "is kept"
+        )
+    return None
+
+
+def _with_equation_error_bound(
+    arx: ARXModel, params: dict, nls: NLS, data: list[tuple[np.ndarray, np.ndarray]]
+) -> ARXModel:
+    """``arx`` with its ``noise_bound`` re-estimated as the largest equation error over the
+    records (the step b and b' meaning of r_hat), with the refined network's z."""
+    network = NLS(nls.feature_map, params, u_range=nls.u_range)
+    skip = max(arx.na, arx.nb)
+    bound = 0.0
+    for u, y in data:
+        z = network.evaluate(u)
+        error = scipy.signal.lfilter(np.r_[1.0, -arx.a], [1.0], y)
+        error -= scipy.signal.lfilter(np.r_[0.0, arx.b], [1.0], z)
+        bound = max(bound, float(np.max(np.abs(error[skip:]))))
+    return ARXModel(arx.a, arx.b, noise_bound=bound, dt=arx.dt, method=arx.method)
+
+
+def _lbfgs(
+    parameters: list, objective: Callable[[], object], max_iterations: int, torch: object
+) -> dict[str, int | bool]:
+    """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``: its iterations,
+    evaluations, and whether it stopped at the iteration cap rather than by converging."""
     optimiser = torch.optim.LBFGS(
         parameters,
         lr=1.0,
@@ -223,7 +271,12 @@ def _lbfgs(parameters: list, objective: Callable[[], object], max_iterations: in
 
     optimiser.step(closure)
     state = optimiser.state[parameters[0]]
-    return int(state.get("n_iter", 0)), int(state.get("func_evals", 0))
+    iterations = int(state.get("n_iter", 0))
+    return {
+        "iterations": iterations,
+        "evaluations": int(state.get("func_evals", 0)),
+        "capped": iterations >= max_iterations,
+    }
 
 
 def _free_run(z: object, a: object, b: object, torch: object) -> object:
