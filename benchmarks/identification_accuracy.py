@@ -176,11 +176,17 @@ def _setup_lines(auto, base: IdentificationConfig, stroke: float) -> list[str]:
         f"Default bender: {environment['bender']}, dt = {environment['dt_s'] * 1e3:g} ms, "
         f"{environment['hysteresis']} hysteresis, +-{environment['noise_bound_um']:g} um sensor "
         f"noise, stroke {stroke:.0f} um; drive +-30 V. Identification seed {SEED} (pipeline "
-        f"defaults: PRBS +-{base.prbs_amplitude:g} V x {base.prbs_samples}, rich SINE "
-        f"{base.rich_signal_params().get('frequency', '-')} Hz {base.rich_amplitude:g} V x "
-        f"{base.rich_samples}).",
+        f"defaults: PRBS +-{base.prbs_amplitude:g} V x {base.prbs_samples}, step b' "
+        f"{base.refinement}, rich {base.rich_signal} {_signal_params(base)}"
+        f"{base.rich_amplitude:g} V x {base.rich_samples}, step e' {base.nls_refinement}).",
         "",
     ]
+
+
+def _signal_params(config: IdentificationConfig) -> str:
+    """The rich signal's parameters as text (``"frequency 5 Hz, "``), empty without any."""
+    params = config.rich_signal_params()
+    return "".join(f"{key} {value}, " for key, value in params.items())
 
 
 def _timing_section(runs: dict, tests: dict) -> list[str]:

@@ -31,7 +31,10 @@ data that do not excite the frequencies where it acts, is an artefact that would
 the MPC can achieve), and its error is at least ``improvement`` (relative) below the current
 model's. Then the closed loop is watched: if the measured tracking error over the period after a
 swap is much larger than over the period before (``monitor_ratio``), the controller returns
-to the model before the swap at once and pauses the adaptation. The revert candidate watches a swap
+to the model before the swap at once and pauses the adaptation; and if, at any later time, it
+grows beyond ``monitor_ratio`` times (in RMS) that before the swap, the controller returns to the
+identified model, at once when a single sample's error exceeds twice the one-period watch's
+limit. The revert candidate watches a swap
 over longer times: if the data turn against it, the model before comes back by the
 validation rule. Adapting blindly is dangerous (a linear part that absorbs a hysteresis
 mismatch makes things worse); this gate is what should keep the adaptive controller at least
@@ -311,6 +314,8 @@ class AdaptiveMPC(LinearMPC):
         self._y = np.zeros(self._buffer)
         self._error = np.zeros(self._buffer)  # measured tracking error y_t - r_t (um)
         self._swapped_at: int | None = None
+        self._baseline_mse: float | None = None  # the period before the last swap away
+        self._standing_limit: float | None = None  # a per-sample error that returns at once
         self._watch_limit: float | None = None
         self._failures = 0
         self._paused_until = 0
@@ -347,6 +352,9 @@ class AdaptiveMPC(LinearMPC):
         self._step += 1
         if self._watch_limit is not None and abs(error_t) > self._watch_limit:
             self._undo_swap()
+        elif self._standing_limit is not None and abs(error_t) > self._standing_limit:
+            self._previous = None  # diverging long after the swap: back to the identified model
+            self._undo_swap()
         if self._step >= self._next_review:
             self._next_review += self.settings.period
             self._review()
@@ -370,6 +378,9 @@ class AdaptiveMPC(LinearMPC):
         since their proposal, then propose new ones."""
         self._watch_limit = None  # the per-sample watch covers one period after a swap
         if self._swap_failed():
+            self._undo_swap()
+        elif self._diverged():
+            self._previous = None  # the model before may be no better: the identified one
             self._undo_swap()
         winners: list[_Candidate] = []
         if self._pending and self._step >= self._paused_until:
@@ -474,6 +485,19 @@ class AdaptiveMPC(LinearMPC):
         loop[-1, :n_p], loop[-1, n_p : n_p + m], loop[-1, -1] = kx, kxi, k_previous
         return bool(np.max(np.abs(np.linalg.eigvals(loop))) < 1.0)
 
+    def _diverged(self) -> bool:
+        """True when, at any time after a swap away from the identified model, the measured
+        tracking error over the last period is more than ``monitor_ratio`` times (in RMS) the
+        error of the period before that swap: a loop that drifts to instability long after
+        the one-period watch of :meth:`_swap_failed`."""
+        period = self.settings.period
+        if self._arx is self._offline_arx or self._baseline_mse is None:
+            return False
+        errors = self._error[self._last(period)]
+        noise_variance = self.task.noise_bound_um**2 / 3.0
+        limit = self.settings.monitor_ratio**2 * self._baseline_mse + 2.0 * noise_variance
+        return bool(np.mean(errors**2) > limit)
+
     def _swap_failed(self) -> bool:
         """True when the measured tracking error got much worse in the period after the last
         swap than in the period before it."""
@@ -535,6 +559,14 @@ class AdaptiveMPC(LinearMPC):
     def _swap(self, candidate: _Candidate) -> None:
         """Predict with the candidate's linear part from now on (see the module docstring)."""
         self._watch_limit = self._error_limit()
+        errors = self._error[self._last(self.settings.period)]
+        away = candidate.arx is not self._offline_arx and errors.size > 0
+        self._baseline_mse = float(np.mean(errors**2)) if away else None
+        self._standing_limit = None
+        if self._baseline_mse is not None:  # twice the one-period watch's ratio, in amplitude
+            rms = math.sqrt(self._baseline_mse)
+            limit = 2.0 * self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
+            self._standing_limit = limit
         self._previous = self._arx
         self._arx = candidate.arx
         self._swapped_at = self._step
