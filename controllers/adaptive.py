@@ -32,9 +32,10 @@ the MPC can achieve), and its error is at least ``improvement`` (relative) below
 model's. Then the closed loop is watched: if the measured tracking error over the period after a
 swap is much larger than over the period before (``monitor_ratio``), the controller returns
 to the model before the swap at once and pauses the adaptation; and if, at any later time, it
-grows beyond ``monitor_ratio`` times (in RMS) that before the swap, the controller returns to the
-identified model, at once when a single sample's error exceeds twice the one-period watch's
-limit. The revert candidate watches a swap
+grows beyond ``monitor_ratio`` times (in RMS) the error of the identified model's last period
+before the adaptation left it, the controller returns to the identified model (at once when a
+single sample's error exceeds twice the one-period watch's limit). A loop the identified model
+did not hold is never handed back to it by this guard. The revert candidate watches a swap
 over longer times: if the data turn against it, the model before comes back by the
 validation rule. Adapting blindly is dangerous (a linear part that absorbs a hysteresis
 mismatch makes things worse); this gate is what should keep the adaptive controller at least
@@ -314,7 +315,7 @@ class AdaptiveMPC(LinearMPC):
         self._y = np.zeros(self._buffer)
         self._error = np.zeros(self._buffer)  # measured tracking error y_t - r_t (um)
         self._swapped_at: int | None = None
-        self._baseline_mse: float | None = None  # the period before the last swap away
+        self._baseline_mse: float | None = None  # the identified model's last period
         self._standing_limit: float | None = None  # a per-sample error that returns at once
         self._watch_limit: float | None = None
         self._failures = 0
@@ -486,10 +487,10 @@ class AdaptiveMPC(LinearMPC):
         return bool(np.max(np.abs(np.linalg.eigvals(loop))) < 1.0)
 
     def _diverged(self) -> bool:
-        """True when, at any time after a swap away from the identified model, the measured
+        """True when, at any time after the adaptation left the identified model, the measured
         tracking error over the last period is more than ``monitor_ratio`` times (in RMS) the
-        error of the period before that swap: a loop that drifts to instability long after
-        the one-period watch of :meth:`_swap_failed`."""
+        error of the identified model's last period: a loop that drifts to instability long
+        after the one-period watch of :meth:`_swap_failed`."""
         period = self.settings.period
         if self._arx is self._offline_arx or self._baseline_mse is None:
             return False
@@ -560,13 +561,16 @@ class AdaptiveMPC(LinearMPC):
         """Predict with the candidate's linear part from now on (see the module docstring)."""
         self._watch_limit = self._error_limit()
         errors = self._error[self._last(self.settings.period)]
-        away = candidate.arx is not self._offline_arx and errors.size > 0
-        self._baseline_mse = float(np.mean(errors**2)) if away else None
-        self._standing_limit = None
-        if self._baseline_mse is not None:  # twice the one-period watch's ratio, in amplitude
+        if candidate.arx is self._offline_arx:  # back on the identified model: nothing to guard
+            self._baseline_mse = self._standing_limit = None
+        elif self._arx is self._offline_arx and errors.size > 0:
+            # leaving the identified model: how well it held the loop is the standing bar
+            # (a loop the identified model could not hold is never handed back to it)
+            self._baseline_mse = float(np.mean(errors**2))
             rms = math.sqrt(self._baseline_mse)
-            limit = 2.0 * self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
-            self._standing_limit = limit
+            self._standing_limit = (
+                2.0 * self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
+            )
         self._previous = self._arx
         self._arx = candidate.arx
         self._swapped_at = self._step
