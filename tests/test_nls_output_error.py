@@ -12,7 +12,7 @@ from identification.config import IdentificationConfig
 from identification.features import PastInputFeatures
 from identification.nls import NLS
 from identification.nls.output_error import (
-    _free_run,
+    _FreeRunGrid,
     free_run_rms,
     move_gain,
     refine_nls_output_error,
@@ -89,8 +89,9 @@ def test_the_free_run_is_the_arx_recursion_from_rest():
     torch = pytest.importorskip("torch")
     z = np.random.default_rng(4).normal(0.0, 10.0, 5000)
     expected = scipy.signal.lfilter(np.r_[0.0, B_TRUE], np.r_[1.0, -F_TRUE], z)
-    got = _free_run(
-        torch.from_numpy(z), torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE), torch
+    grid = _FreeRunGrid(z.size, F_TRUE.size, B_TRUE.size, torch)
+    got = grid.free_run(
+        torch.from_numpy(z), torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE)
     ).numpy()
     np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
     np.testing.assert_allclose(ARXModel(F_TRUE, B_TRUE).simulate(z), expected, atol=1e-9)

@@ -36,7 +36,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.signal
 
 from identification.arx import ARXModel
 from identification.nls.network import NLS
@@ -60,10 +59,9 @@ class NlsOutputErrorFit:
     rms_before, rms_after : float
         Free-run RMS output error over all the records, um, at the start and at the end (by the
         ARX recursion).
-    iterations : int
-        L-BFGS iterations run.
-    evaluations : int
-        Objective and gradient evaluations (line search included).
+    iterations, evaluations : int
+        L-BFGS iterations and objective evaluations over the stages (properties, from
+        ``stages``).
     wall_time_s : float
         Time of the refinement, s.
     stages : tuple of dict
@@ -78,11 +76,19 @@ class NlsOutputErrorFit:
     arx: ARXModel
     rms_before: float
     rms_after: float
-    iterations: int
-    evaluations: int
     wall_time_s: float
     stages: tuple[dict, ...] = ()
     linear_note: str | None = None
+
+    @property
+    def iterations(self) -> int:
+        """L-BFGS iterations over the stages."""
+        return sum(stage["iterations"] for stage in self.stages)
+
+    @property
+    def evaluations(self) -> int:
+        """Objective and gradient evaluations over the stages (line search included)."""
+        return sum(stage["evaluations"] for stage in self.stages)
 
 
 def free_run_rms(
@@ -173,6 +179,7 @@ def refine_nls_output_error(
     with torch_threads(num_threads):
         features = [torch.from_numpy(nls.features(u)[0]) for u, _ in data]
         outputs = [torch.from_numpy(y) for _, y in data]
+        grids = [_FreeRunGrid(y.size, arx.na, arx.nb, torch) for _, y in data]
         count = sum(y.size for _, y in data)
         module = TorchNLS.from_params(nls.arrays())
         a = torch.tensor(arx.a, dtype=torch.float64)
@@ -180,8 +187,8 @@ def refine_nls_output_error(
 
         def objective() -> object:
             total = 0
-            for f, y in zip(features, outputs, strict=True):
-                error = _free_run(module(f), a, b, torch) - y
+            for f, y, grid in zip(features, outputs, grids, strict=True):
+                error = grid.free_run(module(f), a, b) - y
                 total = total + (error * error).sum()
             return total / count
 
@@ -212,8 +219,6 @@ def refine_nls_output_error(
         arx=linear,
         rms_before=free_run_rms(nls, arx, data),
         rms_after=free_run_rms(refined, linear, data),
-        iterations=sum(stage["iterations"] for stage in stages),
-        evaluations=sum(stage["evaluations"] for stage in stages),
         wall_time_s=time.perf_counter() - start,
         stages=tuple(stages),
         linear_note=linear_note,
@@ -241,9 +246,7 @@ def _with_equation_error_bound(
     skip = max(arx.na, arx.nb)
     bound = 0.0
     for u, y in data:
-        z = network.evaluate(u)
-        error = scipy.signal.lfilter(np.r_[1.0, -arx.a], [1.0], y)
-        error -= scipy.signal.lfilter(np.r_[0.0, arx.b], [1.0], z)
+        error = y - arx.predict(network.evaluate(u), y)
         bound = max(bound, float(np.max(np.abs(error[skip:]))))
     return ARXModel(arx.a, arx.b, noise_bound=bound, dt=arx.dt, method=arx.method)
 
@@ -279,19 +282,27 @@ def _lbfgs(
     }
 
 
-def _free_run(z: object, a: object, b: object, torch: object) -> object:
-    """The ARX part's free run from rest on ``z``: ``irfft(Z * B / (1 - A))`` on a zero-padded
-    grid of at least twice the record's length (linear convolution; the IIR tail wraps around
-    by ``|p|^T`` only)."""
-    n = z.shape[0]
-    size = 1 << (2 * n).bit_length()
-    omega = torch.arange(size // 2 + 1, dtype=torch.float64) * (2.0 * math.pi / size)
-    lags_a = torch.arange(1, a.shape[0] + 1, dtype=torch.float64)
-    lags_b = torch.arange(1, b.shape[0] + 1, dtype=torch.float64)
-    numerator = torch.exp(-1j * torch.outer(omega, lags_b)) @ b.to(torch.complex128)
-    denominator = 1.0 - torch.exp(-1j * torch.outer(omega, lags_a)) @ a.to(torch.complex128)
-    spectrum = torch.fft.rfft(z, size) * numerator / denominator
-    return torch.fft.irfft(spectrum, size)[:n]
+class _FreeRunGrid:
+    """The ARX part's free run from rest on a record of ``n`` samples, as a product of spectra:
+    ``irfft(Z * B / (1 - A))`` on a zero-padded grid of at least twice the record's length
+    (linear convolution; the IIR tail wraps around by ``|p|^n`` only). The Fourier bases of the
+    lags are the same at every evaluation and are built once."""
+
+    def __init__(self, n: int, na: int, nb: int, torch: object) -> None:
+        self.n, self.size, self.torch = n, 1 << (2 * n).bit_length(), torch
+        omega = torch.arange(self.size // 2 + 1, dtype=torch.float64) * (2.0 * math.pi / self.size)
+        lags_a = torch.arange(1, na + 1, dtype=torch.float64)
+        lags_b = torch.arange(1, nb + 1, dtype=torch.float64)
+        self.basis_a = torch.exp(-1j * torch.outer(omega, lags_a))
+        self.basis_b = torch.exp(-1j * torch.outer(omega, lags_b))
+
+    def free_run(self, z: object, a: object, b: object) -> object:
+        """The free run (um) of ``z`` (equivalent V) through ``B / (1 - A)``."""
+        torch = self.torch
+        numerator = self.basis_b @ b.to(torch.complex128)
+        denominator = 1.0 - self.basis_a @ a.to(torch.complex128)
+        spectrum = torch.fft.rfft(z, self.size) * numerator / denominator
+        return torch.fft.irfft(spectrum, self.size)[: self.n]
 
 
 def _check_records(
