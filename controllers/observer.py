@@ -55,6 +55,7 @@ __all__ = [
     "DisturbanceObserver",
     "ObserverBank",
     "make_observer",
+    "state_scale_of",
 ]
 
 
@@ -77,6 +78,10 @@ class DisturbanceObserver:
         ``[x; d; s]`` and predictions extrapolate ``d_t+k = d_t + k s_t``: a disturbance that
         changes at the reference's frequency (hysteresis the model gets wrong) is then
         followed to second order instead of lagging a sample behind.
+    state_scale : numpy.ndarray, optional
+        Each state's variance under unit input, the units of the Riccati equation's
+        well-posedness term (default: from ``a`` and ``b``, see :func:`state_scale_of`; a bank of
+        filters of one model passes it once for all).
 
     Attributes
     ----------
@@ -99,6 +104,7 @@ class DisturbanceObserver:
         disturbance_std: float,
         process_std: float = 0.0,
         slope_std: float = 0.0,
+        state_scale: np.ndarray | None = None,
     ) -> None:
         if not (
             measurement_std > 0 and disturbance_std > 0 and process_std >= 0 and slope_std >= 0
@@ -125,7 +131,8 @@ class DisturbanceObserver:
         q[n, n] = disturbance_std**2
         if nd == 2:
             q[n + 1, n + 1] = slope_std**2
-        q += 1e-12 * np.diag(np.r_[_state_scale(a, b[:, 0]), np.ones(nd)])
+        scale = state_scale_of(a, b[:, 0]) if state_scale is None else state_scale
+        q += 1e-12 * np.diag(np.r_[scale, np.ones(nd)])
         r = np.array([[measurement_std**2]])
         p = scipy.linalg.solve_discrete_are(aa.T, ca.T, q, r)
         # Filter (current-estimate) gain: L = P C^T (C P C^T + R)^-1 on the predicted P.
@@ -201,7 +208,7 @@ PRIOR_RATIOS = (1.0, 1.0)
 close to the single filter's defaults on the PL140 (1.2 and 1.4)."""
 
 
-def _state_scale(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def state_scale_of(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Each state's variance under unit white input (the controllability Gramian's diagonal,
     floored at 1e-12 of its largest): the units of the Riccati equation's well-posedness term.
     An unstable ``a`` (a candidate model the adaptive MPC is about to refuse) has no Gramian,
@@ -283,6 +290,7 @@ class ObserverBank:
         if not (np.isfinite(dc_gain) and dc_gain > 0):
             raise ValueError(f"the model's DC gain must be finite and nonzero, got {dc_gain}")
         ratios = list(itertools.product(process_ratios, disturbance_ratios))
+        scale = state_scale_of(a, b[:, 0])  # the same for every filter: solved once
         filters = [
             DisturbanceObserver(
                 a,
@@ -292,6 +300,7 @@ class ObserverBank:
                 disturbance_std=rd * measurement_std,
                 process_std=rx * measurement_std / dc_gain,
                 slope_std=slope_std,
+                state_scale=scale,
             )
             for rx, rd in ratios
         ]
