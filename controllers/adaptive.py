@@ -419,12 +419,19 @@ class AdaptiveMPC(LinearMPC):
         self._swap(chosen)
         return []
 
-    def _error_limit(self) -> float:
-        """The measured error (um) that undoes a fresh swap at once: ``monitor_ratio``
-        times the RMS of the last period plus five sensor noise bounds."""
+    def _error_limit(self, factor: float = 1.0) -> float:
+        """The measured error (um) that undoes a swap at once: ``factor`` times
+        ``monitor_ratio`` times the RMS of the last period, plus five sensor noise bounds
+        (``factor`` 1: the watch of a fresh swap; 2: the standing guard)."""
         errors = self._error[self._last(self.settings.period)]
         rms = float(np.sqrt(np.mean(errors**2))) if errors.size else 0.0
-        return self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
+        return factor * self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
+
+    def _much_worse(self, mse: float, baseline_mse: float, ratio: float) -> bool:
+        """Whether a period's mean squared tracking error (um^2) exceeds ``ratio`` times a
+        baseline's, beyond twice the sensor noise variance."""
+        noise_variance = self.task.noise_bound_um**2 / 3.0
+        return bool(mse > ratio * baseline_mse + 2.0 * noise_variance)
 
     def _undo_swap(self) -> None:
         """Return to the model in use before the last swap (it held the loop better) and
@@ -491,13 +498,11 @@ class AdaptiveMPC(LinearMPC):
         tracking error over the last period is more than ``monitor_ratio`` times (in RMS) the
         error of the identified model's last period: a loop that drifts to instability long
         after the one-period watch of :meth:`_swap_failed`."""
-        period = self.settings.period
         if self._arx is self._offline_arx or self._baseline_mse is None:
             return False
-        errors = self._error[self._last(period)]
-        noise_variance = self.task.noise_bound_um**2 / 3.0
-        limit = self.settings.monitor_ratio**2 * self._baseline_mse + 2.0 * noise_variance
-        return bool(np.mean(errors**2) > limit)
+        errors = self._error[self._last(self.settings.period)]
+        ratio = self.settings.monitor_ratio**2
+        return self._much_worse(float(np.mean(errors**2)), self._baseline_mse, ratio)
 
     def _swap_failed(self) -> bool:
         """True when the measured tracking error got much worse in the period after the last
@@ -509,8 +514,7 @@ class AdaptiveMPC(LinearMPC):
             return False
         errors = self._error[self._last(2 * period)]
         before, after = np.mean(errors.reshape(2, period) ** 2, axis=1)
-        noise_variance = self.task.noise_bound_um**2 / 3.0
-        return bool(after > self.settings.monitor_ratio * before + 2.0 * noise_variance)
+        return self._much_worse(after, before, self.settings.monitor_ratio)
 
     def _propose(self) -> list[_Candidate]:
         s = self.settings
@@ -560,17 +564,14 @@ class AdaptiveMPC(LinearMPC):
     def _swap(self, candidate: _Candidate) -> None:
         """Predict with the candidate's linear part from now on (see the module docstring)."""
         self._watch_limit = self._error_limit()
-        errors = self._error[self._last(self.settings.period)]
         if candidate.arx is self._offline_arx:  # back on the identified model: nothing to guard
             self._baseline_mse = self._standing_limit = None
-        elif self._arx is self._offline_arx and errors.size > 0:
+        elif self._arx is self._offline_arx and self._step > 0:
             # leaving the identified model: how well it held the loop is the standing bar
             # (a loop the identified model could not hold is never handed back to it)
+            errors = self._error[self._last(self.settings.period)]
             self._baseline_mse = float(np.mean(errors**2))
-            rms = math.sqrt(self._baseline_mse)
-            self._standing_limit = (
-                2.0 * self.settings.monitor_ratio * rms + 5.0 * self.task.noise_bound_um
-            )
+            self._standing_limit = self._error_limit(2.0)
         self._previous = self._arx
         self._arx = candidate.arx
         self._swapped_at = self._step
