@@ -163,19 +163,12 @@ def _nls_refinement_section(
     the true plant's, as in step b' (report only, never for fitting)."""
     if refinement is None:
         return None
-    arx = refinement.model.arx
     true = env.unwrapped.model.state_space()
     return {
         **refinement.record(),
-        "linear_part": {
-            "order": arx.na,
-            "a": arx.a.tolist(),
-            "b": arx.b.tolist(),
-            "zeros": complex_list(arx.zeros()),
-            "poles": complex_list(arx.poles()),
-            "frequencies_hz": list(BODE_CHECK_HZ),
-            "response_error_vs_plant": relative_response_error(arx, true, BODE_CHECK_HZ).tolist(),
-        },
+        "linear_part": _linear_part_entry(
+            refinement.model.arx, true, frequencies_hz=list(BODE_CHECK_HZ)
+        ),
     }
 
 
@@ -248,20 +241,29 @@ def _refinement_section(
         "after": val.metrics.get("linear_arx_before_e2", val.metrics["linear_arx"]),
     }
     for key, model in models.items():
-        error = relative_response_error(model, true, BODE_CHECK_HZ)
-        section[key] = {
-            "order": model.na,
-            "a": model.a.tolist(),
-            "b": model.b.tolist(),
-            "zeros": complex_list(model.zeros()),
-            "poles": complex_list(model.poles()),
-            "static_gain_um_per_V": model.static_gain(),
-            "noise_bound_um": model.noise_bound,
-            "prbs_free_run_rms_um": prbs_rms[key],
-            "validation_linear_fit_percent": validation_fit[key]["fit_percent"],
-            "response_error_vs_plant": error.tolist(),
-        }
+        section[key] = _linear_part_entry(
+            model,
+            true,
+            static_gain_um_per_V=model.static_gain(),
+            noise_bound_um=model.noise_bound,
+            prbs_free_run_rms_um=prbs_rms[key],
+            validation_linear_fit_percent=validation_fit[key]["fit_percent"],
+        )
     return section
+
+
+def _linear_part_entry(model: ARXModel, true: Any, **extra: Any) -> dict[str, Any]:
+    """A linear part in the report: order, coefficients, zeros and poles, ``extra``, and its
+    response error against the true plant's at :data:`BODE_CHECK_HZ`."""
+    return {
+        "order": model.na,
+        "a": model.a.tolist(),
+        "b": model.b.tolist(),
+        "zeros": complex_list(model.zeros()),
+        "poles": complex_list(model.poles()),
+        **extra,
+        "response_error_vs_plant": relative_response_error(model, true, BODE_CHECK_HZ).tolist(),
+    }
 
 
 def _ss_zeros(system: Any) -> np.ndarray:
