@@ -320,9 +320,12 @@ def _disclosure_lines(result: BenchmarkResult) -> list[str]:
         "exact beam; its z is the plant's effective voltage).",
         "",
         "Tuning disclosure: the controllers' defaults were chosen on this benchmark's "
-        "references (the MPC observer speed on the nominal 50 Hz sine against the "
-        "Prandtl-Ishlinskii plant's 10 Hz sine; the narrow feedforward notch of `pid-ff` on the "
-        "50 Hz sine); the PID gains come from a tuning rule on the identified model alone.",
+        "references (the span of the MPC observer bank's noise levels and its 200-sample "
+        "memory on the nominal PL140's references and the Prandtl-Ishlinskii plant, the "
+        "single filter's noise levels, `observer=\"fixed\"`, on the nominal 50 Hz sine "
+        "against the Prandtl-Ishlinskii plant's 10 Hz sine; the narrow feedforward notch of "
+        "`pid-ff` on the 50 Hz sine); the PID gains come from a tuning rule on the identified "
+        "model alone.",
         "",
     ]
 

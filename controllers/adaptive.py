@@ -75,8 +75,9 @@ from typing import Any
 import numpy as np
 
 from controllers.base import ControllerStats
-from controllers.condensed import check_well_posed, prediction_matrices
-from controllers.mpc import LinearMPC, MPCSettings, qp_matrices
+from controllers.condensed import check_well_posed, prediction_matrices, qp_matrices
+from controllers.loop import closed_loop_matrix, feedback_law, output_feedback
+from controllers.mpc import LinearMPC, MPCSettings
 from controllers.observer import DisturbanceObserver, ObserverBank, make_observer
 from controllers.prediction import PredictionModel
 from controllers.settings import check_settings, measurement_std
@@ -449,16 +450,16 @@ class AdaptiveMPC(LinearMPC):
         """True if the unconstrained MPC and observer built on ``candidate`` stabilise
         ``plant`` (the model in use, which the closed loop has been running on).
 
-        The unconstrained MPC is linear: ``z_t = K [x_hat; d_hat] + k z_t-1`` (the first row
-        of its solution, feedforward left out) with the observer's correction and prediction,
-        so the loop around ``plant`` is a linear system; its spectral radius must be < 1.
-        With the observer bank, the observer is the filter at the noise levels selected now.
+        The unconstrained MPC with its observer is a linear controller from y to z
+        (:func:`controllers.loop.output_feedback`), so the loop around ``plant`` is a linear
+        system; its spectral radius must be < 1. With the observer bank, the observer is the
+        filter at the bank's prior noise levels.
         """
         s = self.settings
         a, b, c, _ = candidate.state_space_matrices()
         phi, gamma = prediction_matrices(a, b, c, s.horizon)
-        hessian, q_matrix = qp_matrices(phi, gamma, self._rate_hessian, s)
-        first = -np.linalg.solve(hessian, q_matrix)[0]
+        slope = s.slope_std > 0
+        hessian, q_matrix = qp_matrices(phi, gamma, self._rate_hessian, s.rate_weight, slope=slope)
         if isinstance(self.observer, ObserverBank):
             process_std, disturbance_std = self.observer.noise_levels[self.observer.prior]
         else:
@@ -472,25 +473,12 @@ class AdaptiveMPC(LinearMPC):
             process_std=process_std,
             slope_std=s.slope_std,
         )
-        m = observer.a_aug.shape[0]
-        k_estimate, k_previous = first[:m], first[-1]
-        ap, bp, cp, _ = plant.state_space_matrices()
-        n_p = ap.shape[0]
-        correct_x = np.outer(observer.gain, cp[0])  # xi+ = (I - L c) xi- + L C x
-        correct_xi = np.eye(m) - np.outer(observer.gain, observer.c_aug)
-        # z = kx x + kxi xi- + kz z_prev
-        kx, kxi = k_estimate @ correct_x, k_estimate @ correct_xi
-        size = n_p + m + 1
-        loop = np.zeros((size, size))
-        loop[:n_p, :n_p] = ap + np.outer(bp[:, 0], kx)
-        loop[:n_p, n_p : n_p + m] = np.outer(bp[:, 0], kxi)
-        loop[:n_p, -1] = bp[:, 0] * k_previous
-        loop[n_p : n_p + m, :n_p] = observer.a_aug @ correct_x + np.outer(observer.b_aug, kx)
-        loop[n_p : n_p + m, n_p : n_p + m] = observer.a_aug @ correct_xi + np.outer(
-            observer.b_aug, kxi
+        k_estimate, k_previous = feedback_law(hessian, q_matrix, observer.a_aug.shape[0])
+        controller = output_feedback(
+            observer.a_aug, observer.b_aug, observer.c_aug, observer.gain, k_estimate, k_previous
         )
-        loop[n_p : n_p + m, -1] = observer.b_aug * k_previous
-        loop[-1, :n_p], loop[-1, n_p : n_p + m], loop[-1, -1] = kx, kxi, k_previous
+        ap, bp, cp, _ = plant.state_space_matrices()
+        loop = closed_loop_matrix(controller, ap, bp, cp)
         return bool(np.max(np.abs(np.linalg.eigvals(loop))) < 1.0)
 
     def _diverged(self) -> bool:

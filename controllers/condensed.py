@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["check_well_posed", "prediction_matrices", "rate_hessian"]
+__all__ = ["check_well_posed", "prediction_matrices", "qp_matrices", "rate_hessian"]
 
 
 def prediction_matrices(
@@ -50,6 +50,44 @@ def rate_hessian(horizon: int, rate_weight: float) -> np.ndarray:
     """
     diff = np.eye(horizon) - np.eye(horizon, k=-1)
     return rate_weight * diff.T @ diff
+
+
+def qp_matrices(
+    phi: np.ndarray,
+    gamma: np.ndarray,
+    rate_hessian: np.ndarray,
+    rate_weight: float,
+    *,
+    slope: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Hessian P (N, N) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
+
+    The QP ``min_v v^T P v / 2 + q^T v`` of the tracking cost ``sum_k (y_t+k - r_t+k)^2 +
+    lambda sum_k (v_t+k - v_t+k-1)^2`` with the output disturbance d held over the horizon
+    (``slope``: extrapolated as ``d_t+k = d_t + k s_t``). Scaled so that the largest Hessian
+    entry is 1: OSQP's absolute tolerances then mean the same thing for any bender and unit
+    (the minimiser does not change).
+
+    Parameters
+    ----------
+    phi, gamma : numpy.ndarray
+        The condensed prediction (:func:`prediction_matrices`).
+    rate_hessian : numpy.ndarray
+        ``lambda D^T D`` (:func:`rate_hessian`).
+    rate_weight : float
+        lambda, the same as in ``rate_hessian``: the rate penalty's link to v_t-1.
+    slope : bool
+        Whether the estimate holds a disturbance slope s.
+    """
+    n_hor = gamma.shape[0]
+    hessian = gamma.T @ gamma + rate_hessian
+    previous_move = np.zeros((n_hor, 1))  # the rate penalty's link to z_t-1
+    previous_move[0, 0] = -rate_weight
+    columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
+    if slope:  # d_t+k = d_t + k s_t
+        columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
+    scale = 1.0 / float(np.max(np.diag(hessian)))
+    return hessian * scale, scale * np.hstack([*columns, -gamma.T, previous_move])
 
 
 def check_well_posed(

@@ -51,38 +51,12 @@ import numpy as np
 import osqp
 
 from controllers.box_qp import BoxQP, within
+from controllers.condensed import qp_matrices
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
 from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
 
 __all__ = ["LinearMPC", "MPCSettings", "qp_matrices", "smallest_slope"]
-
-
-def qp_matrices(
-    phi: np.ndarray, gamma: np.ndarray, rate_hessian: np.ndarray, settings: MPCSettings
-) -> tuple[np.ndarray, np.ndarray]:
-    """Hessian P (N, N) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
-
-    Scaled so that the largest Hessian entry is 1: OSQP's absolute tolerances then mean the
-    same thing for any bender and unit (the minimiser does not change).
-
-    Parameters
-    ----------
-    phi, gamma : numpy.ndarray
-        The condensed prediction (:func:`controllers.condensed.prediction_matrices`).
-    rate_hessian : numpy.ndarray
-        ``lambda D^T D`` (:func:`controllers.condensed.rate_hessian`).
-    settings : MPCSettings
-    """
-    n_hor = settings.horizon
-    hessian = gamma.T @ gamma + rate_hessian
-    previous_move = np.zeros((n_hor, 1))  # the rate penalty's link to z_t-1
-    previous_move[0, 0] = -settings.rate_weight
-    columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
-    if settings.slope_std > 0:  # d_t+k = d_t + k s_t
-        columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
-    scale = 1.0 / float(np.max(np.diag(hessian)))
-    return hessian * scale, scale * np.hstack([*columns, -gamma.T, previous_move])
 
 
 @dataclass(frozen=True)
@@ -173,7 +147,11 @@ class LinearMPC(PredictiveController):
     def _set_up(self) -> None:
         settings = self.settings
         self._hessian, self._q_matrix = qp_matrices(
-            self._phi, self._gamma, self._rate_hessian, settings
+            self._phi,
+            self._gamma,
+            self._rate_hessian,
+            settings.rate_weight,
+            slope=settings.slope_std > 0,
         )
         self._unconstrained = -np.linalg.solve(self._hessian, self._q_matrix)
         self._vector = np.zeros(self._q_matrix.shape[1])
@@ -305,6 +283,7 @@ class LinearMPC(PredictiveController):
             "settings": asdict(self.settings),
             "z_bounds": list(self.model.z_bounds),
             "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
+            "observer": self.observer_description(),
             "qp_solver": f"osqp {osqp.__version__}",
             "native": self.native_code(),
         }

@@ -352,5 +352,6 @@ class NonlinearMPC(PredictiveController):
             "jacobian": f"{type(self.horizon).__name__}: {self.horizon.backend}",
             "solver": solver,
             "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
+            "observer": self.observer_description(),
             "native": self.native_code(),
         }

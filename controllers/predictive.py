@@ -21,8 +21,14 @@ from typing import Any, ClassVar
 import numpy as np
 
 from controllers.base import Controller
-from controllers.condensed import check_well_posed, prediction_matrices, rate_hessian
-from controllers.observer import make_observer
+from controllers.condensed import (
+    check_well_posed,
+    prediction_matrices,
+    qp_matrices,
+    rate_hessian,
+)
+from controllers.loop import feedback_law, modulus_margins
+from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.task import ControlTask
 
@@ -84,6 +90,48 @@ class PredictiveController(Controller):
         self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
         self._memory = start.memory
         self._start(start)
+
+    def feedback_law(self) -> tuple[np.ndarray, float]:
+        """``(k_e, k_z)``: the unconstrained first move's gains on the observer's estimate and
+        on the previous move (:func:`controllers.loop.feedback_law`).
+
+        For the nonlinear MPC this is its law linearised at unit slope of the nonlinearity
+        (dz/du = 1, the network's small-signal gain on the identification data): the tracking
+        weight w and the rate penalty in volts then act as the linear MPC's with
+        ``rate_weight / w``.
+        """
+        s = self.settings
+        weight = getattr(s, "tracking_weight", 1.0)
+        slope = getattr(s, "slope_std", 0.0) > 0
+        hessian, q_matrix = qp_matrices(
+            self._phi, self._gamma, self._rate_hessian / weight, s.rate_weight / weight, slope=slope
+        )
+        return feedback_law(hessian, q_matrix, self.model.a.shape[0] + (2 if slope else 1))
+
+    def observer_description(self) -> dict:
+        """Modulus margin of the loop this controller closes around its own model, unconstrained
+        (:mod:`controllers.loop`): the single filter's, or the bank's range over its filters and
+        its prior filter's (JSON-safe)."""
+        observer = self.observer
+        k_e, k_z = self.feedback_law()
+        if isinstance(observer, ObserverBank):
+            margins = modulus_margins(
+                observer.a_aug,
+                observer.b_aug,
+                observer.c_aug,
+                observer.gains,
+                k_e,
+                k_z,
+                n=observer.n,
+            )
+            return {
+                "modulus_margin_range": [float(margins.min()), float(margins.max())],
+                "modulus_margin_prior": float(margins[observer.prior]),
+            }
+        margin = modulus_margins(
+            observer.a_aug, observer.b_aug, observer.c_aug, observer.gain, k_e, k_z, n=observer.n
+        )
+        return {"modulus_margin": float(margin[0])}
 
     def _set_up(self) -> None:
         """Build what stays fixed over episodes (called once, before the first reset)."""

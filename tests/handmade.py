@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from controllers import PredictionModel
+from controllers.prediction import InverseResult
+from identification.arx import ARXModel
 from identification.features import PastInputFeatures
 from identification.nls import NLS
 
@@ -26,3 +29,29 @@ def handmade_nls(out_weight: float) -> NLS:
         "skip_bias": np.array(0.0),
     }
     return NLS(PastInputFeatures(n_past=1), params, u_range=(-5.0, 5.0))
+
+
+class AffineNonlinearity:
+    """z = 2 u + 1 with a memory-free state: its exact inverse is u = (z - 1) / 2."""
+
+    u_range = (-30.0, 30.0)
+
+    def initial_state(self) -> np.ndarray:
+        return np.zeros(1)
+
+    def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
+        return 2.0 * u + 1.0, np.array([u])
+
+    def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
+        u = min(max((z_target - 1.0) / 2.0, -30.0), 30.0)
+        status = "ok" if u == (z_target - 1.0) / 2.0 else "out-of-range"
+        return InverseResult(u, 2.0 * u + 1.0, status, np.array([u]))
+
+    def reachable(self, state: np.ndarray) -> tuple[float, float]:
+        return -59.0, 61.0
+
+
+def synthetic_model() -> PredictionModel:
+    arx = ARXModel([1.2, -0.5], [2.0, 1.0], dt=1e-3)  # poles 0.6 +- 0.37j, zero at -0.5
+    a, b, c, _ = arx.state_space_matrices()
+    return PredictionModel(a, b, c, 1e-3, AffineNonlinearity(), "identified", (-59.0, 61.0))

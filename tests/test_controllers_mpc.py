@@ -9,40 +9,13 @@ import numpy as np
 import pytest
 import scipy.optimize
 import scipy.signal
+from handmade import AffineNonlinearity, synthetic_model
 
 import controllers
 from controllers import ControlTask, PredictionModel
 from controllers.mpc import LinearMPC, MPCSettings
-from controllers.prediction import InverseResult
-from identification.arx import ARXModel
 
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
-
-
-class AffineNonlinearity:
-    """z = 2 u + 1 with a memory-free state: its exact inverse is u = (z - 1) / 2."""
-
-    u_range = (-30.0, 30.0)
-
-    def initial_state(self) -> np.ndarray:
-        return np.zeros(1)
-
-    def step(self, u: float, state: np.ndarray) -> tuple[float, np.ndarray]:
-        return 2.0 * u + 1.0, np.array([u])
-
-    def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
-        u = min(max((z_target - 1.0) / 2.0, -30.0), 30.0)
-        status = "ok" if u == (z_target - 1.0) / 2.0 else "out-of-range"
-        return InverseResult(u, 2.0 * u + 1.0, status, np.array([u]))
-
-    def reachable(self, state: np.ndarray) -> tuple[float, float]:
-        return -59.0, 61.0
-
-
-def synthetic_model() -> PredictionModel:
-    arx = ARXModel([1.2, -0.5], [2.0, 1.0], dt=1e-3)  # poles 0.6 +- 0.37j, zero at -0.5
-    a, b, c, _ = arx.state_space_matrices()
-    return PredictionModel(a, b, c, 1e-3, AffineNonlinearity(), "identified", (-59.0, 61.0))
 
 
 TASK = ControlTask(dt=1e-3, u_max=30.0, stroke_um=100.0, preview=10, noise_bound_um=0.0)

@@ -1,0 +1,181 @@
+"""The unconstrained MPC with its observer as one linear controller, and the loop it closes.
+
+Away from its bounds the linear MPC's first move is linear in what it knows::
+
+    z_t = k_e [x_hat; d_hat (; s_hat)]_t|t + k_z z_t-1 + (feedforward of the previewed targets)
+
+(the first row of ``-P^-1 G``, :func:`controllers.condensed.qp_matrices`), and the observer
+(:class:`controllers.observer.DisturbanceObserver`, gain L) is linear in y and z. The feedback
+part, from the measured deflection y (um) to z (equivalent V), is therefore a linear controller
+K(q) of the state ``[e; z_t-1]``, e the observer's predicted estimate::
+
+    f_t = (I - L c) e_t + L y_t                 (correction)
+    z_t = k_e f_t + k_z z_t-1
+    e_t+1 = A f_t + B z_t                      (prediction)
+
+Closed around a linear part G (z -> y, strictly proper: ``y_t = c x_t``), the loop is
+``y = G z, z = K y``; its return difference is ``1 - G K`` and its modulus margin
+``min_w |1 - G K(e^jw)|``, the distance of the Nyquist curve from the critical point
+(Astrom & Murray, *Feedback Systems*, 2nd ed., sec. 10.3; the inverse of the sensitivity peak
+Ms). :meth:`controllers.adaptive.AdaptiveMPC.stabilises` closes this loop around a candidate
+model (:func:`closed_loop_matrix`), and the MPCs report the margin of their loop around their
+own model (``describe()["observer"]``).
+
+What the margin does not decide: which filter of the observer bank may run. A screen that kept
+only the bank's filters with a margin of at least 0.5 (Ms <= 2, the textbook bound) was
+measured on the robustness plants (1 noise seed, ``mpc``): it holds the PL127 with a damping
+ratio of 0.04 on the steps reference, where the fastest filters put the loop's pole at Nyquist
+outside the unit circle (41.6 % of the stroke without it, 0.85 % with it; 0.95 % at a bound
+of 0.4), but every bender 20 % softer then diverges (PL140: 0.32 -> 937 % on the 10 Hz sine,
+PL127: 0.87 -> 1003 %), and the Prandtl-Ishlinskii plant's 50 Hz sine loses 0.39 -> 1.08 %.
+The softer bender's resonance moves by 10 %, a relative model error far above 1 near a
+lightly damped mode, which no margin on the model covers; there the fast filters, which
+re-estimate the modal state from the data, are what keeps the loop. The plants need opposite
+filters, so the choice stays the data's (the likelihood), and the damped PL127's steps are a
+known failure of the bank (see ``benchmarks/results/tracking-PL127.md``).
+
+The frequency responses of all filters of a bank are computed together: they share A, B, c
+and the feedback law, and differ only by L, so with ``R(q) = (qI - A)^-1`` (one inverse per
+frequency for the whole bank) the correction's rank-one term is folded in by the
+Sherman-Morrison formula, leaving two dot products per filter and frequency::
+
+    (qI - A + L c A)^-1 = S = R - R L (c A R) / (1 + c A R L)
+    K(q) = q k_e S L / (1 - k_z / q - k_e S (I - L c) B)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "OutputFeedback",
+    "closed_loop_matrix",
+    "feedback_law",
+    "modulus_margins",
+    "output_feedback",
+]
+
+FREQUENCY_POINTS = 1024
+"""Frequencies on (0, pi] (rad per sample, Nyquist included) at which margins are evaluated."""
+
+
+@dataclass(frozen=True)
+class OutputFeedback:
+    """A linear controller from y (um) to z (equivalent V): ``xi_t+1 = a xi_t + b y_t``,
+    ``z_t = c xi_t + d y_t``, with ``xi = [e; z_t-1]`` (see the module docstring)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    d: float
+
+
+def feedback_law(
+    hessian: np.ndarray, q_matrix: np.ndarray, n_estimate: int
+) -> tuple[np.ndarray, float]:
+    """``(k_e, k_z)``: the unconstrained first move's gains on the estimate and on z_t-1.
+
+    Parameters
+    ----------
+    hessian, q_matrix : numpy.ndarray
+        P and G of :func:`controllers.condensed.qp_matrices` (``q = G [x; d (; s); r; z_prev]``).
+    n_estimate : int
+        Size of the observer's estimate ``[x; d (; s)]``.
+    """
+    first = -np.linalg.solve(hessian, q_matrix)[0]
+    return first[:n_estimate], float(first[-1])
+
+
+def output_feedback(
+    a_aug: np.ndarray,
+    b_aug: np.ndarray,
+    c_aug: np.ndarray,
+    gain: np.ndarray,
+    k_estimate: np.ndarray,
+    k_previous: float,
+) -> OutputFeedback:
+    """The observer (augmented model ``a_aug, b_aug, c_aug``, filter gain L = ``gain``) with
+    the feedback law ``(k_estimate, k_previous)`` as one controller from y to z."""
+    m = a_aug.shape[0]
+    correct = np.eye(m) - np.outer(gain, c_aug)  # f = correct e + L y
+    k_e = k_estimate @ correct
+    a = np.zeros((m + 1, m + 1))
+    a[:m, :m] = a_aug @ correct + np.outer(b_aug, k_e)
+    a[:m, m] = b_aug * k_previous
+    a[m, :m], a[m, m] = k_e, k_previous
+    direct = float(k_estimate @ gain)
+    b = np.r_[a_aug @ gain + b_aug * direct, direct]
+    return OutputFeedback(a=a, b=b, c=np.r_[k_e, k_previous], d=direct)
+
+
+def closed_loop_matrix(
+    controller: OutputFeedback, a: np.ndarray, b: np.ndarray, c: np.ndarray
+) -> np.ndarray:
+    """State matrix of the loop ``z = K y`` around ``x_t+1 = a x_t + b z_t, y_t = c x_t``;
+    the loop is stable when its spectral radius is below 1."""
+    n, k = a.shape[0], controller.a.shape[0]
+    b, c = b.reshape(n), c.reshape(n)
+    loop = np.zeros((n + k, n + k))
+    loop[:n, :n] = a + controller.d * np.outer(b, c)
+    loop[:n, n:] = np.outer(b, controller.c)
+    loop[n:, :n] = np.outer(controller.b, c)
+    loop[n:, n:] = controller.a
+    return loop
+
+
+def modulus_margins(
+    a_aug: np.ndarray,
+    b_aug: np.ndarray,
+    c_aug: np.ndarray,
+    gains: np.ndarray,
+    k_estimate: np.ndarray,
+    k_previous: float,
+    n: int,
+    points: int = FREQUENCY_POINTS,
+) -> np.ndarray:
+    """Modulus margin of each filter's loop around the observer's own model (0 when that loop
+    is unstable: its margin then means nothing).
+
+    Parameters
+    ----------
+    a_aug, b_aug, c_aug : numpy.ndarray
+        The observer's augmented model; its ``[x]`` block is the model the loop closes around.
+    gains : numpy.ndarray
+        Filter gains, one row per filter.
+    k_estimate, k_previous
+        The feedback law (:func:`feedback_law`).
+    n : int
+        Number of model states (the leading block of the augmented model).
+    points : int
+        Frequencies on (0, pi], Nyquist included.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``min_w |1 - G K(e^jw)|`` per filter (dimensionless).
+    """
+    gains = np.atleast_2d(gains)
+    m = a_aug.shape[0]
+    q = np.exp(1j * np.linspace(np.pi / points, np.pi, points))
+    resolvent = np.linalg.inv(q[:, None, None] * np.eye(m) - a_aug)  # R(q), (F, m, m)
+    r_b = resolvent @ b_aug  # (F, m)
+    model = r_b @ c_aug  # G(q) = c R B: the disturbance rows of B are zero
+    u_r = np.einsum("i,fij->fj", c_aug @ a_aug, resolvent)  # c A R
+    k_r = np.einsum("i,fij->fj", k_estimate, resolvent)  # k_e R
+    u_b, c_b, k_b = u_r @ b_aug, c_aug @ b_aug, k_r @ b_aug
+    u_l = u_r @ gains.T  # c A R L, (F, filters)
+    k_l = k_r @ gains.T  # k_e R L
+    k_s_l = k_l / (1.0 + u_l)  # k_e S L
+    # k_e S (I - L c) B = k_e R B - k_e S L (c A R B + c B)
+    k_s_b = k_b[:, None] - k_s_l * (u_b[:, None] + c_b)
+    controller = q[:, None] * k_s_l / (1.0 - k_previous / q[:, None] - k_s_b)
+    margins = np.min(np.abs(1.0 - model[:, None] * controller), axis=0)
+    a, b, c = a_aug[:n, :n], b_aug[:n], c_aug[:n]
+    for k, gain in enumerate(gains):
+        feedback = output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
+        loop = closed_loop_matrix(feedback, a, b, c)
+        if np.max(np.abs(np.linalg.eigvals(loop))) >= 1.0:
+            margins[k] = 0.0
+    return margins
