@@ -459,7 +459,7 @@ class AdaptiveMPC(LinearMPC):
         a, b, c, _ = candidate.state_space_matrices()
         phi, gamma = prediction_matrices(a, b, c, s.horizon)
         slope = s.slope_std > 0
-        hessian, q_matrix = qp_matrices(phi, gamma, self._rate_hessian, s.rate_weight, slope=slope)
+        hessian, q_matrix = qp_matrices(phi, gamma, s.rate_weight, slope=slope)
         if isinstance(self.observer, ObserverBank):
             process_std, disturbance_std = self.observer.noise_levels[self.observer.prior]
         else:

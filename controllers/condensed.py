@@ -53,12 +53,7 @@ def rate_hessian(horizon: int, rate_weight: float) -> np.ndarray:
 
 
 def qp_matrices(
-    phi: np.ndarray,
-    gamma: np.ndarray,
-    rate_hessian: np.ndarray,
-    rate_weight: float,
-    *,
-    slope: bool = False,
+    phi: np.ndarray, gamma: np.ndarray, rate_weight: float, *, slope: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Hessian P (N, N) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
 
@@ -72,15 +67,14 @@ def qp_matrices(
     ----------
     phi, gamma : numpy.ndarray
         The condensed prediction (:func:`prediction_matrices`).
-    rate_hessian : numpy.ndarray
-        ``lambda D^T D`` (:func:`rate_hessian`).
     rate_weight : float
-        lambda, the same as in ``rate_hessian``: the rate penalty's link to v_t-1.
+        lambda ((um / unit of v)^2): the rate penalty, ``lambda D^T D`` (:func:`rate_hessian`)
+        in P and its link to v_t-1 in G.
     slope : bool
         Whether the estimate holds a disturbance slope s.
     """
     n_hor = gamma.shape[0]
-    hessian = gamma.T @ gamma + rate_hessian
+    hessian = gamma.T @ gamma + rate_hessian(n_hor, rate_weight)
     previous_move = np.zeros((n_hor, 1))  # the rate penalty's link to z_t-1
     previous_move[0, 0] = -rate_weight
     columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]

@@ -80,9 +80,17 @@ def feedback_law(
     Parameters
     ----------
     hessian, q_matrix : numpy.ndarray
-        P and G of :func:`controllers.condensed.qp_matrices` (``q = G [x; d (; s); r; z_prev]``).
+        P (N, N) and G of :func:`controllers.condensed.qp_matrices`
+        (``q = G [x; d (; s); r; z_prev]``).
     n_estimate : int
-        Size of the observer's estimate ``[x; d (; s)]``.
+        Size m of the observer's estimate ``[x; d (; s)]``.
+
+    Returns
+    -------
+    k_e : numpy.ndarray
+        (m,) gains on the estimate (equivalent V per um; per um/sample for a slope s).
+    k_z : float
+        Gain on z_t-1 (dimensionless).
     """
     first = -np.linalg.solve(hessian, q_matrix)[0]
     return first[:n_estimate], float(first[-1])
@@ -96,8 +104,23 @@ def output_feedback(
     k_estimate: np.ndarray,
     k_previous: float,
 ) -> OutputFeedback:
-    """The observer (augmented model ``a_aug, b_aug, c_aug``, filter gain L = ``gain``) with
-    the feedback law ``(k_estimate, k_previous)`` as one controller from y to z."""
+    """The observer with the feedback law as one controller from y (um) to z (equivalent V).
+
+    Parameters
+    ----------
+    a_aug, b_aug, c_aug : numpy.ndarray
+        The observer's augmented model ((m, m), (m,), (m,); see
+        :class:`controllers.observer.DisturbanceObserver`).
+    gain : numpy.ndarray
+        (m,) its filter gain L (the current-estimate form: ``f = e + L (y - c e)``).
+    k_estimate, k_previous
+        The feedback law (:func:`feedback_law`).
+
+    Returns
+    -------
+    OutputFeedback
+        State ``[e; z_t-1]`` (m + 1), e the predicted estimate.
+    """
     m = a_aug.shape[0]
     correct = np.eye(m) - np.outer(gain, c_aug)  # f = correct e + L y
     k_e = k_estimate @ correct
@@ -113,8 +136,22 @@ def output_feedback(
 def closed_loop_matrix(
     controller: OutputFeedback, a: np.ndarray, b: np.ndarray, c: np.ndarray
 ) -> np.ndarray:
-    """State matrix of the loop ``z = K y`` around ``x_t+1 = a x_t + b z_t, y_t = c x_t``;
-    the loop is stable when its spectral radius is below 1."""
+    """State matrix of the loop ``z = K y`` around ``x_t+1 = a x_t + b z_t, y_t = c x_t``.
+
+    Parameters
+    ----------
+    controller : OutputFeedback
+        K (:func:`output_feedback`).
+    a, b, c : numpy.ndarray
+        The linear part the loop closes around ((n, n), (n, 1) or (n,), (1, n) or (n,); um
+        per equivalent V), the controller's own model or another.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n + m + 1, n + m + 1) over ``[x; e; z_t-1]``: the loop is stable when its spectral
+        radius is below 1.
+    """
     n, k = a.shape[0], controller.a.shape[0]
     b, c = b.reshape(n), c.reshape(n)
     loop = np.zeros((n + k, n + k))

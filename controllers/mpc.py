@@ -147,11 +147,7 @@ class LinearMPC(PredictiveController):
     def _set_up(self) -> None:
         settings = self.settings
         self._hessian, self._q_matrix = qp_matrices(
-            self._phi,
-            self._gamma,
-            self._rate_hessian,
-            settings.rate_weight,
-            slope=settings.slope_std > 0,
+            self._phi, self._gamma, settings.rate_weight, slope=settings.slope_std > 0
         )
         self._unconstrained = -np.linalg.solve(self._hessian, self._q_matrix)
         self._vector = np.zeros(self._q_matrix.shape[1])

@@ -98,20 +98,27 @@ class PredictiveController(Controller):
         For the nonlinear MPC this is its law linearised at unit slope of the nonlinearity
         (dz/du = 1, the network's small-signal gain on the identification data): the tracking
         weight w and the rate penalty in volts then act as the linear MPC's with
-        ``rate_weight / w``.
+        ``rate_weight / w``. Where the slope m differs (along a major loop, or the oracle's
+        hysteresis, which has no unit-gain convention) its rate penalty in z is
+        ``rate_weight / (w m^2)``, so its reported margin is an approximation.
+
+        Returns
+        -------
+        k_e : numpy.ndarray
+            Gains on ``[x; d (; s)]`` (equivalent V per um; per um/sample for s).
+        k_z : float
+            Gain on z_t-1 (dimensionless).
         """
         s = self.settings
         weight = getattr(s, "tracking_weight", 1.0)
         slope = getattr(s, "slope_std", 0.0) > 0
-        hessian, q_matrix = qp_matrices(
-            self._phi, self._gamma, self._rate_hessian / weight, s.rate_weight / weight, slope=slope
-        )
+        hessian, q_matrix = qp_matrices(self._phi, self._gamma, s.rate_weight / weight, slope=slope)
         return feedback_law(hessian, q_matrix, self.model.a.shape[0] + (2 if slope else 1))
 
-    def observer_description(self) -> dict:
+    def observer_description(self) -> dict[str, Any]:
         """Modulus margin of the loop this controller closes around its own model, unconstrained
         (:mod:`controllers.loop`): the single filter's, or the bank's range over its filters and
-        its prior filter's (JSON-safe)."""
+        its prior filter's (JSON-safe; dimensionless, 0 when that loop is unstable)."""
         observer = self.observer
         k_e, k_z = self.feedback_law()
         if isinstance(observer, ObserverBank):

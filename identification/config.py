@@ -75,13 +75,14 @@ class IdentificationConfig:
         agrees (:func:`identification.steps.refine_nonlinearity`); ``"none"`` keeps step e's
         model (the paper's procedure).
     nls_refinement_iterations : int
-        L-BFGS iterations at most of each of step e''s two stages. 100: on five identification
-        seeds of the PL140 and the PL122, 150 gave the same worst closed-loop errors on the
-        precision benchmark's references (PL140 50 Hz: 0.0129 against 0.0140 %, 100 Hz:
-        0.0134 against 0.0142 %; PL122 50 Hz: 0.0244 against 0.0213 %) and the same
-        validation fits, at 1.5x the time (20-23 s against 13-16 s per identification on a
-        2-core AMD EPYC, two at a time); the training error is at the sensor-noise floor
-        well before either cap.
+        L-BFGS iterations at most of each of step e''s two stages. 100 rather than 150: on
+        identification seeds 0-4 of the PL140, PL127 and PL122 the worst closed-loop errors of
+        the precision benchmark's ``mpc`` moved by no more than the seeds' spread (50 Hz sine,
+        150 -> 100 iterations: PL140 0.0129 -> 0.0140 %, PL127 0.0152 -> 0.0154 %, PL122
+        0.0244 -> 0.0213 %; 100 Hz: PL140 0.0134 -> 0.0142 %) and the validation fits not at
+        all (PL140 99.92-99.95 %), at two thirds of the time (13-16 s against 20-23 s per
+        identification on a 2-core AMD EPYC, two at a time); the training error reaches the
+        sensor-noise floor before either cap.
     validation_amplitude : float
         RAND amplitude C_R (V) of the selection and validation records.
     validation_hold : int

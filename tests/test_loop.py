@@ -9,7 +9,12 @@ import pytest
 from handmade import synthetic_model
 
 from controllers import ControlTask
-from controllers.loop import closed_loop_matrix, modulus_margins, output_feedback
+from controllers.loop import (
+    OutputFeedback,
+    closed_loop_matrix,
+    modulus_margins,
+    output_feedback,
+)
 from controllers.mpc import LinearMPC, MPCSettings
 from controllers.observer import ObserverBank
 
@@ -21,7 +26,7 @@ def _observation(y: float) -> np.ndarray:
     return np.r_[y, np.zeros(TASK.preview + 1)]
 
 
-def _controller_ss(feedback) -> control.StateSpace:
+def _controller_ss(feedback: OutputFeedback) -> control.StateSpace:
     return control.ss(feedback.a, feedback.b[:, None], feedback.c[None, :], feedback.d, TASK.dt)
 
 
@@ -74,7 +79,7 @@ def test_modulus_margins_are_python_controls_stability_margin() -> None:
     margins = modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, k_e, k_z, n=bank.n)
     plant = control.ss(model.a, model.b, model.c, 0.0, TASK.dt)
     assert margins.max() > 0.9 and margins.min() < 0.6  # the grid spans slow and fast loops
-    for k in range(0, len(margins), 5):
+    for k in range(len(margins)):
         feedback = output_feedback(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains[k], k_e, k_z)
         loop = -control.series(_controller_ss(feedback), plant)  # negative-feedback convention
         reference = control.stability_margins(loop)[2]
