@@ -32,7 +32,13 @@ The softer bender's resonance moves by 10 %, a relative model error far above 1 
 lightly damped mode, which no margin on the model covers; there the fast filters, which
 re-estimate the modal state from the data, are what keeps the loop. The plants need opposite
 filters, so the choice stays the data's (the likelihood), and the damped PL127's steps are a
-known failure of the bank (see ``benchmarks/results/tracking-PL127.md``).
+known failure of the bank (see ``benchmarks/results/tracking-PL127.md``). Nor did an online
+consistency gate hold up: returning the bank to its prior filter for the rest of the episode
+once the most likely filter's normalised innovation squared, averaged over its memory, passed
+a gate G (41.6 % there without it) gave 4.5 % at G = 25, 5.9 % at 50 and 6.9 % at 100, cost
+the stiffer and softer PL140 up to 55 % on the 100 Hz sine at every G, and on the one random
+plant the bank loses (19.5 % on the 10 Hz sine) gave 2.1 % at G = 25 but 65 % at 50 and 100:
+a switch that late moves a loop that is already running away.
 
 The frequency responses of all filters of a bank are computed together: they share A, B, c
 and the feedback law, and differ only by L, so with ``R(q) = (qI - A)^-1`` (one inverse per
