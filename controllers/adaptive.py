@@ -76,7 +76,7 @@ import numpy as np
 
 from controllers.base import ControllerStats
 from controllers.condensed import check_well_posed, prediction_matrices, qp_matrices
-from controllers.loop import closed_loop_matrix, feedback_law, output_feedback
+from controllers.loop import feedback_law, loop_is_stable, output_feedback
 from controllers.mpc import LinearMPC, MPCSettings
 from controllers.observer import DisturbanceObserver, ObserverBank, make_observer
 from controllers.prediction import PredictionModel
@@ -478,8 +478,7 @@ class AdaptiveMPC(LinearMPC):
             observer.a_aug, observer.b_aug, observer.c_aug, observer.gain, k_estimate, k_previous
         )
         ap, bp, cp, _ = plant.state_space_matrices()
-        loop = closed_loop_matrix(controller, ap, bp, cp)
-        return bool(np.max(np.abs(np.linalg.eigvals(loop))) < 1.0)
+        return loop_is_stable(controller, ap, bp, cp)
 
     def _diverged(self) -> bool:
         """True when, at any time after the adaptation left the identified model, the measured

@@ -18,7 +18,7 @@ Closed around a linear part G (z -> y, strictly proper: ``y_t = c x_t``), the lo
 ``min_w |1 - G K(e^jw)|``, the distance of the Nyquist curve from the critical point
 (Astrom & Murray, *Feedback Systems*, 2nd ed., sec. 10.3; the inverse of the sensitivity peak
 Ms). :meth:`controllers.adaptive.AdaptiveMPC.stabilises` closes this loop around a candidate
-model (:func:`closed_loop_matrix`), and the MPCs report the margin of their loop around their
+model (:func:`loop_is_stable`), and the MPCs report the margin of their loop around their
 own model (``describe()["observer"]``).
 
 What the margin does not decide: which filter of the observer bank may run. A screen that kept
@@ -59,6 +59,7 @@ __all__ = [
     "OutputFeedback",
     "closed_loop_matrix",
     "feedback_law",
+    "loop_is_stable",
     "modulus_margins",
     "output_feedback",
 ]
@@ -168,6 +169,11 @@ def closed_loop_matrix(
     return loop
 
 
+def loop_is_stable(controller: OutputFeedback, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> bool:
+    """True if the loop of :func:`closed_loop_matrix` has every pole inside the unit circle."""
+    return bool(np.max(np.abs(np.linalg.eigvals(closed_loop_matrix(controller, a, b, c)))) < 1.0)
+
+
 def modulus_margins(
     a_aug: np.ndarray,
     b_aug: np.ndarray,
@@ -218,7 +224,6 @@ def modulus_margins(
     a, b, c = a_aug[:n, :n], b_aug[:n], c_aug[:n]
     for k, gain in enumerate(gains):
         feedback = output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
-        loop = closed_loop_matrix(feedback, a, b, c)
-        if np.max(np.abs(np.linalg.eigvals(loop))) >= 1.0:
+        if not loop_is_stable(feedback, a, b, c):
             margins[k] = 0.0
     return margins

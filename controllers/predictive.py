@@ -113,32 +113,28 @@ class PredictiveController(Controller):
         weight = getattr(s, "tracking_weight", 1.0)
         slope = getattr(s, "slope_std", 0.0) > 0
         hessian, q_matrix = qp_matrices(self._phi, self._gamma, s.rate_weight / weight, slope=slope)
-        return feedback_law(hessian, q_matrix, self.model.a.shape[0] + (2 if slope else 1))
+        return feedback_law(hessian, q_matrix, self.observer.n + self.observer.n_disturbance)
 
     def observer_description(self) -> dict[str, Any]:
         """Modulus margin of the loop this controller closes around its own model, unconstrained
         (:mod:`controllers.loop`): the single filter's, or the bank's range over its filters and
         its prior filter's (JSON-safe; dimensionless, 0 when that loop is unstable)."""
         observer = self.observer
-        k_e, k_z = self.feedback_law()
-        if isinstance(observer, ObserverBank):
-            margins = modulus_margins(
-                observer.a_aug,
-                observer.b_aug,
-                observer.c_aug,
-                observer.gains,
-                k_e,
-                k_z,
-                n=observer.n,
-            )
-            return {
-                "modulus_margin_range": [float(margins.min()), float(margins.max())],
-                "modulus_margin_prior": float(margins[observer.prior]),
-            }
-        margin = modulus_margins(
-            observer.a_aug, observer.b_aug, observer.c_aug, observer.gain, k_e, k_z, n=observer.n
+        bank = isinstance(observer, ObserverBank)
+        margins = modulus_margins(
+            observer.a_aug,
+            observer.b_aug,
+            observer.c_aug,
+            observer.gains if bank else observer.gain,
+            *self.feedback_law(),
+            n=observer.n,
         )
-        return {"modulus_margin": float(margin[0])}
+        if not bank:
+            return {"modulus_margin": float(margins[0])}
+        return {
+            "modulus_margin_range": [float(margins.min()), float(margins.max())],
+            "modulus_margin_prior": float(margins[observer.prior]),
+        }
 
     def _set_up(self) -> None:
         """Build what stays fixed over episodes (called once, before the first reset)."""
