@@ -2,13 +2,17 @@
 
 For each bender (PL140, PL127, PL122) and identification seed (0-4), the bender is identified
 as a new user would, ``identify(env=gym.make("piezo_env:PiezoBender-v0", bender=B), seed=s)``,
-with the earlier defaults (the paper's steps a-f and SINE excitation), with the new rich
-excitation alone, and with the new defaults (that excitation and the output-error refinement
-of the linear part, step b'); see :data:`VARIANTS`. Each
-model then drives ``mpc`` and ``pid-ff`` on the benchmark's smooth references at the bender's
-stroke (2 s episodes, preview 20, sensor noise on, eval seed 0), with ``mpc-oracle`` (the MPC
-predicting with the plant's own model) as the yardstick. The tables give the identified/oracle
-RMSE ratio per reference, worst over the identification seeds, before and after.
+with the paper's steps a-f as they are, with the rich excitation and the output-error
+refinement of the linear part (step b'), and with the defaults (that and step e'); see
+:data:`VARIANTS`. Each model then drives ``mpc`` and ``pid-ff`` on the benchmark's smooth
+references at the bender's stroke (2 s episodes, preview 20, sensor noise on, eval seed 0), with
+``mpc-oracle`` (the MPC predicting with the plant's own model) as the yardstick. The tables give
+the identified/oracle RMSE ratio per reference, worst over the identification seeds.
+
+A last section repeats the defaults on the PL140 without hysteresis (:data:`LINEAR`): there the
+model class holds the plant exactly (the network needs only an affine map), so the ratio left
+is what estimation from the identification records costs, apart from what the network's
+hysteresis costs on the real bender.
 
 Writes ``benchmarks/results/identification_precision.md``. Run:
 ``python -m benchmarks.identification_precision [--jobs 2] [--cache DIR]`` (about 10 minutes on
@@ -31,14 +35,27 @@ from piezo_parallel import run_tasks
 
 BENDERS = ("PL140", "PL127", "PL122")
 SEEDS = (0, 1, 2, 3, 4)
-VARIANTS: dict[str, dict[str, str]] = {
-    "before": {"refinement": "none", "rich_signal": "sine", "nls_refinement": "none"},
+VARIANTS: dict[str, dict[str, Any]] = {
+    "before": {
+        "refinement": "none",
+        "rich_signal": "sine",
+        "nls_refinement": "none",
+        "prbs_amplitude": 1.0,
+    },
     "linear part refined": {"nls_refinement": "none"},
     "after": {},
 }
-"""Identification settings compared: the paper's steps a-f with its SINE excitation; the rich
-excitation (decaying multisine) and step b' (the output-error refinement of the linear part);
-the defaults (that, and step e': the output-error refinement of the whole model)."""
+"""Identification settings compared: the paper's steps a-f with its +-1 V PRBS and SINE
+excitation; the defaults without step e' (the +-2 V PRBS, the rich excitation, a decaying
+multisine, and step b', the output-error refinement of the linear part); the defaults (that,
+and step e': the output-error refinement of the whole model)."""
+LINEAR = "PL140 without hysteresis"
+"""The diagnostic plant: the PL140 with ``hysteresis=None``, identified with the defaults."""
+PLANT_KWARGS: dict[str, dict[str, Any]] = {
+    **{bender: {"bender": bender} for bender in BENDERS},
+    LINEAR: {"bender": "PL140", "hysteresis": None},
+}
+"""PiezoBender-v0 keyword arguments of each plant label."""
 COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("before", "before", "mpc"),
     ("linear part refined", "linear part refined", "mpc"),
@@ -57,23 +74,24 @@ EVAL_SEED = 0
 TARGET_RATIO = 1.5
 
 
-def _env(bender: str) -> Any:
+def _env(plant: str) -> Any:
     import gymnasium as gym
 
     return gym.make(
-        "piezo_env:PiezoBender-v0", bender=bender, preview=PREVIEW, max_episode_steps=STEPS
+        "piezo_env:PiezoBender-v0", **PLANT_KWARGS[plant], preview=PREVIEW, max_episode_steps=STEPS
     )
 
 
-def _stroke(bender: str) -> float:
+def _stroke(plant: str) -> float:
     from piezo_env import get_datasheet
 
-    return get_datasheet(bender).free_deflection * 1e6
+    return get_datasheet(PLANT_KWARGS[plant]["bender"]).free_deflection * 1e6
 
 
-def identify_task(bender: str, seed: int, variant: str, folder: str) -> dict[str, Any]:
-    """Identify ``bender`` with default settings (one BLAS and torch thread); save the model
-    in ``folder`` unless it is there already. Returns the run's summary."""
+def identify_task(plant: str, seed: int, variant: str, folder: str) -> dict[str, Any]:
+    """Identify ``plant`` (a label of :data:`PLANT_KWARGS`) with the settings of ``variant``
+    (one BLAS and torch thread); save the model in ``folder`` unless it is there already.
+    Returns the run's summary."""
     import gymnasium as gym
     import torch
     from threadpoolctl import threadpool_limits
@@ -87,7 +105,7 @@ def identify_task(bender: str, seed: int, variant: str, folder: str) -> dict[str
     torch.set_num_threads(1)
     with threadpool_limits(1):
         result = identify(
-            env=gym.make("piezo_env:PiezoBender-v0", bender=bender),
+            env=gym.make("piezo_env:PiezoBender-v0", **PLANT_KWARGS[plant]),
             seed=seed,
             **VARIANTS[variant],
         )
@@ -106,17 +124,18 @@ def identify_task(bender: str, seed: int, variant: str, folder: str) -> dict[str
     return summary
 
 
-def control_task(bender: str, model: str, controllers: tuple[str, ...]) -> dict[str, Any]:
-    """RMSE (% of the full stroke) of each controller on each reference; ``model`` is a model
-    folder or ``"plant"`` (the oracle). One BLAS thread, as in the benchmark's loop."""
+def control_task(plant: str, model: str, controllers: tuple[str, ...]) -> dict[str, Any]:
+    """RMSE (% of the full stroke) of each controller on each reference on ``plant`` (a label
+    of :data:`PLANT_KWARGS`); ``model`` is a model folder or ``"plant"`` (the oracle). One
+    BLAS thread, as in the benchmark's loop."""
     from threadpoolctl import threadpool_limits
 
     import controllers as ctl
     from benchmarks.references import make_reference
 
-    stroke = _stroke(bender)
+    stroke = _stroke(plant)
     out: dict[str, dict[str, float]] = {}
-    env = _env(bender)
+    env = _env(plant)
     with threadpool_limits(1):
         for name in controllers:
             base, options = CONTROLLER_OPTIONS.get(name, (name, {}))
@@ -135,10 +154,13 @@ def control_task(bender: str, model: str, controllers: tuple[str, ...]) -> dict[
 
 
 def run(cache: Path, jobs: int) -> dict[str, Any]:
-    """Identify every (bender, seed, refinement) and run the controllers; every figure."""
+    """Identify every (plant, seed, refinement) and run the controllers; every figure."""
     runs = [(b, s, v) for b in BENDERS for s in SEEDS for v in VARIANTS]
+    runs += [(LINEAR, s, "after") for s in SEEDS]
+    plants = (*BENDERS, LINEAR)
     folders = {
-        run: str(cache / "-".join([run[0], f"seed{run[1]}", *run[2].split()])) for run in runs
+        run: str(cache / "-".join([*run[0].split(), f"seed{run[1]}", *run[2].split()]))
+        for run in runs
     }
     start = time.perf_counter()
     summaries = run_tasks(
@@ -149,19 +171,19 @@ def run(cache: Path, jobs: int) -> dict[str, Any]:
         progress=_progress,
     )
     identify_s = time.perf_counter() - start
-    tasks = [(b, "plant", ("mpc", "mpc-fixed")) for b in BENDERS]
+    tasks = [(b, "plant", ("mpc", "mpc-fixed")) for b in plants]
     tasks += [
         (
             b,
             f"{folders[(b, s, r)]}/model",
-            ("mpc", "pid-ff", *(("mpc-fixed",) if r == "after" else ())),
+            ("mpc", "pid-ff", *(("mpc-fixed",) if r == "after" and b != LINEAR else ())),
         )
         for b, s, r in runs
     ]
-    labels = [f"oracle {b}" for b in BENDERS] + [f"control {b} seed {s} ({r})" for b, s, r in runs]
+    labels = [f"oracle {b}" for b in plants] + [f"control {b} seed {s} ({r})" for b, s, r in runs]
     outputs = run_tasks(control_task, tasks, jobs=jobs, labels=labels, progress=_progress)
-    oracle = {b: outputs[i] for i, b in enumerate(BENDERS)}
-    identified = dict(zip(runs, outputs[len(BENDERS) :], strict=True))
+    oracle = {b: outputs[i] for i, b in enumerate(plants)}
+    identified = dict(zip(runs, outputs[len(plants) :], strict=True))
     return {
         "oracle": oracle,
         "identified": identified,
@@ -256,14 +278,55 @@ def _seed_table(results: dict[str, Any], bender: str) -> list[str]:
     ]
 
 
+def linear_section(results: dict[str, Any]) -> list[str]:
+    """The defaults on the PL140 without hysteresis: what estimation alone costs."""
+    oracle = results["oracle"][LINEAR]["mpc"]
+    runs = {s: results["identified"][(LINEAR, s, "after")] for s in SEEDS}
+    rows = []
+    for ref in REFERENCES:
+        ratios = [runs[s]["mpc"][ref] / oracle[ref] for s in SEEDS]
+        beats = sum(runs[s]["mpc"][ref] < runs[s]["pid-ff"][ref] for s in SEEDS)
+        rows.append(
+            [
+                ref,
+                f"{oracle[ref]:.4f}",
+                f"{max(runs[s]['mpc'][ref] for s in SEEDS):.4f}",
+                " / ".join(f"{r:.2f}" for r in ratios),
+                _ratio(max(ratios)),
+                f"{beats}/{len(SEEDS)}",
+            ]
+        )
+    fits = [results["summaries"][(LINEAR, s, "after")]["hammerstein_fit_percent"] for s in SEEDS]
+    head = [
+        "reference",
+        "mpc-oracle",
+        "worst mpc",
+        f"mpc / oracle, seeds {SEEDS[0]}-{SEEDS[-1]}",
+        "worst ratio",
+        "mpc < pid-ff",
+    ]
+    return [
+        f"## {LINEAR} (stroke {_stroke(LINEAR):g} um)",
+        "",
+        "The same bender with `hysteresis=None`, identified with the defaults (validation "
+        f"fits {min(fits):.2f}-{max(fits):.2f} %). The model class holds this plant exactly, so"
+        " the ratios measure what estimation from the identification records costs. RMSE in "
+        "% of the full stroke; ratio per identification seed.",
+        "",
+        markdown_table(head, rows),
+        "",
+    ]
+
+
 def report(results: dict[str, Any]) -> list[str]:
     """The Markdown lines of the result file."""
     lines = [
         *header("Identification precision in closed loop", "identification_precision.py"),
         'Each bender identified by `identify(env=gym.make("piezo_env:PiezoBender-v0", '
         "bender=B), seed=s)`: *before* with the paper's steps a-f and its excitation "
-        '(`refinement="none", rich_signal="sine", nls_refinement="none"`), *linear part '
-        "refined* with the rich excitation (decaying multisine) and step b', the output-error"
+        '(`refinement="none", rich_signal="sine", nls_refinement="none", prbs_amplitude=1.0`),'
+        " *linear part refined* with the +-2 V PRBS, the rich excitation (decaying multisine) "
+        "and step b', the output-error"
         ' refinement of the linear part, but not step e\' (`nls_refinement="none"`), *after* '
         "with the defaults (that, and step e', the output-error refinement of the whole "
         "model: the network, then network and linear part). Controllers `mpc` and `pid-ff` on"
@@ -284,6 +347,7 @@ def report(results: dict[str, Any]) -> list[str]:
     ]
     for bender in BENDERS:
         lines += bender_section(results, bender)
+    lines += linear_section(results)
     wall = results["wall_s"]
     lines += [
         f"Wall time: identification {wall['identification']:.0f} s, total {wall['total']:.0f} s.",

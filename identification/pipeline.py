@@ -23,7 +23,7 @@ e') :func:`refine_nonlinearity`: refine the selected network and the linear part
    ``"output-error"``; ``"none"`` skips it), kept if the held-out selection record agrees. Step
    e's loss weighs an error of z the same at every frequency, while the deflection sees it
    through the linear part, amplified near the first bending mode; z_hat carries the equation
-   error filtered by 1/B; and the linear part saw only the +-1 V PRBS
+   error filtered by 1/B; and the linear part saw only the small PRBS
    (:mod:`identification.nls.output_error`);
 f) :func:`validate`: validate the Hammerstein model by free-run simulation on fresh RAND data.
 

@@ -242,7 +242,7 @@ def _nls_refinement_section(refinement: dict[str, Any] | None, noise_bound: floa
         "",
         "Step e fits z_hat, which weighs an error of z the same at every frequency, while the "
         "deflection sees it through the linear part, most where a reference's harmonics meet "
-        "the first bending mode; and step b' saw only the +-1 V PRBS. Step e' minimises the "
+        "the first bending mode; and step b' saw only the small PRBS. Step e' minimises the "
         "deflection's error itself, over both blocks. The sensor noise alone gives "
         f"r/sqrt(3) = {noise_bound / 3**0.5:.3f} um RMS.",
         "",

@@ -250,6 +250,33 @@ def test_collect_aligns_y_before_u_as_simulate_does():
         collect(env, [0.0, np.nan], seed=0)
 
 
+@pytest.mark.parametrize("bender", ["PL112", "PL122", "PL127", "PL128", "PL140"])
+def test_default_prbs_stays_within_the_rated_stroke_and_sees_the_hysteresis_as_affine(bender):
+    """Step a's level is bounded by the stroke alone: the white PRBS rings the first bending
+    mode, and under a two-level input a rate-independent hysteresis is affine (Bai 2004), so
+    after its first reversals the effective voltage is a line in u."""
+    import gymnasium as gym
+
+    from identification.steps import excite_prbs, step_seeds
+    from piezo_env import get_datasheet
+
+    config = IdentificationConfig(seed=0)
+    env = gym.make("piezo_env:PiezoBender-v0", bender=bender)
+    _, y = excite_prbs(env, config, step_seeds(config.seed))
+    stroke_um = get_datasheet(bender).free_deflection * 1e6
+    assert np.max(np.abs(y)) < 0.9 * stroke_um
+
+    quiet = gym.make(
+        "piezo_env:PiezoBender-v0", bender=bender, noise_bound=0.0, max_episode_steps=None
+    )
+    quiet.reset(seed=0)
+    u = np.where(np.random.default_rng(1).random(2000) < 0.5, -1.0, 1.0) * config.prbs_amplitude
+    v = np.array([quiet.step(np.array([x]))[4]["effective_voltage_V"] for x in u])
+    line = np.c_[u, np.ones_like(u)][200:]
+    coef, *_ = np.linalg.lstsq(line, v[200:], rcond=None)
+    assert np.max(np.abs(v[200:] - line @ coef)) < 1e-3 * config.prbs_amplitude
+
+
 def test_bad_configuration_is_rejected():
     with pytest.raises(ValueError, match="features"):
         IdentificationConfig(features="spline")

@@ -5,7 +5,7 @@ Step e fits the network to ``z_hat``, the hidden signal recovered by inverting t
 error in ``z`` the same at every frequency, although the deflection sees it through the linear
 part: an error at 150 Hz reaches the tip amplified by the first bending mode (about 160 Hz on a
 PL140), an error at 1 Hz at the static gain. The linear part, for its part, was fitted on the
-+-1 V PRBS alone. Step e' therefore continues from both and minimises the error that matters,
+small PRBS alone. Step e' therefore continues from both and minimises the error that matters,
 the free-run output error of the whole model on every record,
 
     J(theta, a, b) = sum_t (y_t - (G_ab * NLS_theta(u))_t)^2,
