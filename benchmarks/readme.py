@@ -239,15 +239,20 @@ def identification(report: dict[str, Any]) -> str:
         *table,
         "",
         f"ARX order {arx['order']} (chosen by held-out free-run fit{_refined_order(report)}). "
-        "Under white PRBS the ARX "
-        "equation error is dominated by the unmodelled higher bending modes, so the estimated "
-        f"noise bound r_hat ({arx['noise_bound_um']:.2f} um against "
-        f"{report['config']['env_kwargs']['noise_bound']:g} um of sensor noise) measures model "
-        "error more than sensor noise. The hidden signal z_hat of step d) carries that error "
+        "The ARX equation error A(q) y - B(q) u holds the sensor noise filtered by A(q), up to "
+        f"1 + sum |a_i| = {1 + sum(abs(a) for a in arx['a']):.2f} times its bound, and what the "
+        f"model misses, so the estimated noise bound r_hat ({arx['noise_bound_um']:.2f} um "
+        f"against {_sensor_bound(report):g} um of sensor noise) exceeds the sensor's. The "
+        "hidden signal z_hat of step d) carries that error "
         f"filtered by 1/B: at most r_hat ||1/B||_1 = {inversion['z_error_bound_V']:.2f} V, RMS "
         f"r_hat / sqrt(3) ||1/B||_2 = {inversion['z_error_rms_V']:.2f} V for independent "
         f"uniform noise (equivalent V). {_identification_time(report['timings_s'])}",
     ])
+
+
+def _sensor_bound(report: dict[str, Any]) -> float:
+    """The sensor noise bound r (um) of the identified env."""
+    return float(report["config"]["env_kwargs"]["noise_bound"])
 
 
 def _refined_order(report: dict[str, Any]) -> str:

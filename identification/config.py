@@ -43,9 +43,10 @@ class IdentificationConfig:
         the rich signal's tones, so its level sets the signal-to-noise ratio there. Measured on
         identification seeds 0-4 (``benchmarks/identification_precision.py``, worst closed-loop
         ratio of ``mpc`` to the oracle, 1 V -> 2 V): 100 Hz sine PL140 2.96 -> 1.95, PL122
-        1.69 -> 1.42, PL127 1.31 -> 1.37; 50 Hz sine 2.93 -> 2.77, 1.33 -> 1.18, 1.30 -> 1.22.
-        The price is on the references the network's hysteresis decides: 10 Hz sine and
-        triangle 3-6 % worse on every bender (PL140 1.80 -> 1.87 and 2.06 -> 2.19).
+        1.69 -> 1.42, but PL127 1.31 -> 1.37; 50 Hz sine PL140 2.93 -> 2.77, PL122 1.33 -> 1.18,
+        PL127 1.30 -> 1.22. The 10 Hz sine and the triangle, where the network's hysteresis sets
+        the gap (the PL140 without hysteresis is at 1.06 and 1.08 there), are 3-6 % worse on
+        every bender (PL140 1.80 -> 1.87 and 2.06 -> 2.19).
     prbs_clock : int
         PRBS clock period (samples).
     prbs_samples : int

@@ -192,8 +192,9 @@ def _arx_section(est: ArxEstimate) -> dict[str, Any]:
         "b": arx.b.tolist(),
         "noise_bound_um": arx.noise_bound,
         "noise_bound_note": (
-            "r_hat bounds the ARX equation error: unmodelled bending modes and the sensor "
-            "noise together, so it measures model error more than sensor noise"
+            "r_hat bounds the ARX equation error A(q) y - B(q) u: the sensor noise filtered by "
+            "A(q) (up to 1 + sum |a_i| times its bound) and what the model misses, so it "
+            "exceeds the sensor's bound even for an exact model"
         ),
         "static_gain_um_per_V": arx.static_gain(),
         "poles": complex_list(arx.poles()),

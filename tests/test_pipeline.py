@@ -251,30 +251,41 @@ def test_collect_aligns_y_before_u_as_simulate_does():
 
 
 @pytest.mark.parametrize("bender", ["PL112", "PL122", "PL127", "PL128", "PL140"])
-def test_default_prbs_stays_within_the_rated_stroke_and_sees_the_hysteresis_as_affine(bender):
-    """Step a's level is bounded by the stroke alone: the white PRBS rings the first bending
-    mode, and under a two-level input a rate-independent hysteresis is affine (Bai 2004), so
-    after its first reversals the effective voltage is a line in u."""
+def test_default_prbs_stays_within_the_rated_stroke(bender):
+    """Step a's white PRBS rings the first bending mode: at the default level its peak stays
+    below 0.9 of the rated deflection on every catalogue bender, for seeds 0-4."""
     import gymnasium as gym
 
     from identification.steps import excite_prbs, step_seeds
     from piezo_env import get_datasheet
 
-    config = IdentificationConfig(seed=0)
-    env = gym.make("piezo_env:PiezoBender-v0", bender=bender)
-    _, y = excite_prbs(env, config, step_seeds(config.seed))
     stroke_um = get_datasheet(bender).free_deflection * 1e6
-    assert np.max(np.abs(y)) < 0.9 * stroke_um
+    env = gym.make("piezo_env:PiezoBender-v0", bender=bender)
+    for seed in range(5):
+        config = IdentificationConfig(seed=seed)
+        _, y = excite_prbs(env, config, step_seeds(seed))
+        assert np.max(np.abs(y)) < 0.9 * stroke_um, seed
 
-    quiet = gym.make(
-        "piezo_env:PiezoBender-v0", bender=bender, noise_bound=0.0, max_episode_steps=None
-    )
-    quiet.reset(seed=0)
-    u = np.where(np.random.default_rng(1).random(2000) < 0.5, -1.0, 1.0) * config.prbs_amplitude
-    v = np.array([quiet.step(np.array([x]))[4]["effective_voltage_V"] for x in u])
-    line = np.c_[u, np.ones_like(u)][200:]
-    coef, *_ = np.linalg.lstsq(line, v[200:], rcond=None)
-    assert np.max(np.abs(v[200:] - line @ coef)) < 1e-3 * config.prbs_amplitude
+
+@pytest.mark.parametrize("level", [1.0, IdentificationConfig().prbs_amplitude, 10.0])
+def test_a_two_level_input_wipes_the_hysteresis_memory(level):
+    """Bai (2004): under a two-level input the hysteresis's output, which depends on the input's
+    history, becomes a function of the present input alone after the first reversals (two
+    values, so the nonlinearity is affine there), at any level: step a's level is bounded by
+    the stroke, not by the hysteresis."""
+    import gymnasium as gym
+
+    env = gym.make("piezo_env:PiezoBender-v0", noise_bound=0.0, max_episode_steps=None)
+    env.reset(seed=0)
+    u = np.where(np.random.default_rng(1).random(2000) < 0.5, -level, level)
+    v = np.array([env.step(np.array([x]))[4]["effective_voltage_V"] for x in u])
+    settled = slice(200, None)
+    for sign in (-1.0, 1.0):
+        values = v[settled][u[settled] == sign * level]
+        assert np.ptp(values) < 1e-3 * level
+    # while the first reversals still depend on the history
+    first = v[:50][u[:50] == level]
+    assert np.ptp(first) > 10 * np.ptp(v[settled][u[settled] == level])
 
 
 def test_bad_configuration_is_rejected():

@@ -134,7 +134,9 @@ def test_refined_pl140_linear_part_fits_fresh_prbs_data_at_least_as_well():
     u, y = excite_prbs(env, config, seeds)
     est = estimate_arx(u, y, config, dt=1e-3)
     refinement = refine_linear_part(est, u, y)
-    fresh = make_signal("prbs", 3000, dt=1e-3, rng=np.random.default_rng(11), amplitude=1.0)
+    fresh = make_signal(
+        "prbs", 3000, dt=1e-3, rng=np.random.default_rng(11), amplitude=config.prbs_amplitude
+    )
     u_val, y_val = collect(env, fresh, seed=12)
     before = fit_percent(y_val, est.model.simulate(u_val))
     after = fit_percent(y_val, refinement.model.simulate(u_val))
