@@ -97,8 +97,6 @@ def cache_folder(cache: Path, plant: str, seed: int, variant: str) -> str:
     """The folder of one identification in ``cache``: its labels and a digest of the plant's
     keyword arguments and the whole identification configuration, so that a changed default
     is identified again instead of read from an older run."""
-    from identification.config import IdentificationConfig
-
     settings = {
         "plant": PLANT_KWARGS[plant],
         "config": dataclasses.asdict(IdentificationConfig(seed=seed, **VARIANTS[variant])),
@@ -347,8 +345,7 @@ def report(results: dict[str, Any]) -> list[str]:
         "bender=B), seed=s)`: *before* with the paper's steps a-f and its excitation "
         '(`refinement="none", rich_signal="sine", nls_refinement="none", prbs_amplitude=1.0`),'
         f" *linear part refined* with the +-{IdentificationConfig().prbs_amplitude:g} V PRBS,"
-        " the rich excitation (decaying multisine) "
-        "and step b', the output-error"
+        " the rich excitation (decaying multisine) and step b', the output-error"
         ' refinement of the linear part, but not step e\' (`nls_refinement="none"`), *after* '
         "with the defaults (that, and step e', the output-error refinement of the whole "
         "model: the network, then network and linear part). Controllers `mpc` and `pid-ff` on"

@@ -75,7 +75,7 @@ from typing import Any
 import numpy as np
 
 from controllers.base import ControllerStats
-from controllers.condensed import check_well_posed, prediction_matrices, qp_matrices
+from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.loop import feedback_law, loop_is_stable, output_feedback
 from controllers.mpc import LinearMPC, MPCSettings
 from controllers.observer import DisturbanceObserver, ObserverBank, make_observer
@@ -458,8 +458,7 @@ class AdaptiveMPC(LinearMPC):
         s = self.settings
         a, b, c, _ = candidate.state_space_matrices()
         phi, gamma = prediction_matrices(a, b, c, s.horizon)
-        slope = s.slope_std > 0
-        hessian, q_matrix = qp_matrices(phi, gamma, s.rate_weight, slope=slope)
+        hessian, q_matrix = self._qp_matrices(phi, gamma)
         if isinstance(self.observer, ObserverBank):
             process_std, disturbance_std = self.observer.noise_levels[self.observer.prior]
         else:

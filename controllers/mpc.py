@@ -51,12 +51,11 @@ import numpy as np
 import osqp
 
 from controllers.box_qp import BoxQP, within
-from controllers.condensed import qp_matrices
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
 from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
 
-__all__ = ["LinearMPC", "MPCSettings", "qp_matrices", "smallest_slope"]
+__all__ = ["LinearMPC", "MPCSettings", "smallest_slope"]
 
 
 @dataclass(frozen=True)
@@ -146,9 +145,7 @@ class LinearMPC(PredictiveController):
 
     def _set_up(self) -> None:
         settings = self.settings
-        self._hessian, self._q_matrix = qp_matrices(
-            self._phi, self._gamma, settings.rate_weight, slope=settings.slope_std > 0
-        )
+        self._hessian, self._q_matrix = self._qp_matrices(self._phi, self._gamma)
         self._unconstrained = -np.linalg.solve(self._hessian, self._q_matrix)
         self._vector = np.zeros(self._q_matrix.shape[1])
         z_min, z_max = self.model.z_bounds

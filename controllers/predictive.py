@@ -109,11 +109,17 @@ class PredictiveController(Controller):
         k_z : float
             Gain on z_t-1 (dimensionless).
         """
+        hessian, q_matrix = self._qp_matrices(self._phi, self._gamma)
+        return feedback_law(hessian, q_matrix, self.observer.n + self.observer.n_disturbance)
+
+    def _qp_matrices(self, phi: np.ndarray, gamma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The settings' QP (:func:`controllers.condensed.qp_matrices`) on the condensed
+        prediction ``(phi, gamma)``: the rate penalty over the tracking weight (1 for the linear
+        MPC), and the disturbance slope when ``slope_std`` > 0."""
         s = self.settings
         weight = getattr(s, "tracking_weight", 1.0)
         slope = getattr(s, "slope_std", 0.0) > 0
-        hessian, q_matrix = qp_matrices(self._phi, self._gamma, s.rate_weight / weight, slope=slope)
-        return feedback_law(hessian, q_matrix, self.observer.n + self.observer.n_disturbance)
+        return qp_matrices(phi, gamma, s.rate_weight / weight, slope=slope)
 
     def observer_description(self) -> dict[str, Any]:
         """Modulus margin of the loop this controller closes around its own model, unconstrained
