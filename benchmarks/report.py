@@ -195,6 +195,33 @@ def tracking_tables(
     return "\n".join(parts)
 
 
+def observer_fallback_section(result: BenchmarkResult) -> str:
+    """Where a model-based controller's observer bank detected a runaway loop and fell back to
+    its most robust filter (:class:`controllers.observer.ObserverBank`), and at which step:
+    those cells' RMSE is the guard's, not the likelihood's choice."""
+    fired: dict[tuple, list[int]] = {}
+    for e in result.episodes:
+        step = e.get("observer_fallback_step")
+        if step is not None:
+            key = (e["controller"], e["plant"], e["reference"], e.get("draw"))
+            fired.setdefault(key, []).append(int(step))
+    head = "### Runaway guard of the observer bank\n\n"
+    if not fired:
+        return head + "It did not fire in any episode.\n"
+    lines = [
+        head + "The episodes where it fired: the bank's likelihood had chosen a filter whose loop "
+        "oscillated and grew on this plant, and the controller then read the bank's most robust "
+        "filter for the rest of the episode (`controllers.observer.ObserverBank`).\n",
+        "| controller | plant | reference | step of the fall-back, per episode |",
+        "|---|---|---|---|",
+    ]
+    for (controller, plant, reference, draw), steps in fired.items():
+        where = plant if draw is None else f"{plant} (draw {draw})"
+        when = ", ".join(str(step) for step in steps)
+        lines.append(f"| {controller} | {where} | {reference} | {when} |")
+    return "\n".join(lines) + "\n"
+
+
 def bench_gap_table(result: BenchmarkResult) -> str:
     """What each controller loses from the nominal plant to the ``bench`` plant (RMSE, % of
     the full stroke, and the factor), on the references both ran; empty without it."""
@@ -323,9 +350,10 @@ def _disclosure_lines(result: BenchmarkResult) -> list[str]:
         "references (the span of the MPC observer bank's noise levels and its 200-sample "
         "memory on the nominal PL140's references and the Prandtl-Ishlinskii plant, the "
         "single filter's noise levels, `observer=\"fixed\"`, on the nominal 50 Hz sine "
-        "against the Prandtl-Ishlinskii plant's 10 Hz sine; the narrow feedforward notch of "
-        "`pid-ff` on the 50 Hz sine); the PID gains come from a tuning rule on the identified "
-        "model alone.",
+        "against the Prandtl-Ishlinskii plant's 10 Hz sine; the two thresholds of the bank's "
+        "runaway guard on the robustness plants of the PL127 and the PL140; the narrow "
+        "feedforward notch of `pid-ff` on the 50 Hz sine); the PID gains come from a tuning "
+        "rule on the identified model alone.",
         "",
     ]
 
@@ -404,6 +432,7 @@ def _markdown(
         tracking_tables(result),
         bench_gap_table(result),
         monte_carlo_table(result),
+        observer_fallback_section(result),
     ]
     steps = _step_table(result, meta["dt"])
     if steps:

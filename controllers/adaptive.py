@@ -568,14 +568,19 @@ class AdaptiveMPC(LinearMPC):
         self._rebuild(dataclasses.replace(self._offline, a=a, b=b, c=c))
         self._reset_observer(self._consistent_estimate(estimate_before, candidate.arx))
 
-    def _reset_observer(self, estimate: np.ndarray, selected: int | None = None) -> None:
-        """Set the observer's estimate; a bank keeps the noise levels the data chose."""
-        if isinstance(self.observer, ObserverBank):
-            self.observer.reset(
-                estimate, selected=self.observer.selected if selected is None else selected
-            )
+    def _reset_observer(
+        self, estimate: np.ndarray, selected: int | None = None, runaway_at: int | None = None
+    ) -> None:
+        """Set the observer's estimate; a bank keeps the noise levels the data chose and its
+        runaway guard's decision (``runaway_at``: that of the bank it replaces)."""
+        observer = self.observer
+        if isinstance(observer, ObserverBank):
+            runaway_at = observer.runaway_at if runaway_at is None else runaway_at
+            observer.reset(estimate, selected=observer.selected if selected is None else selected)
+            if runaway_at is not None:
+                observer.fall_back(runaway_at)
         else:
-            self.observer.reset(estimate)
+            observer.reset(estimate)
 
     def _consistent_estimate(self, estimate: np.ndarray, arx: ARXModel) -> np.ndarray:
         """The observer estimate for ``arx`` at a swap: its own past outputs, same total.
@@ -610,11 +615,12 @@ class AdaptiveMPC(LinearMPC):
             )
         estimate = self.observer.estimate.copy()
         selected = getattr(self.observer, "selected", None)
+        runaway_at = getattr(self.observer, "runaway_at", None)
         self.model = model
         self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, settings.horizon)
         check_well_posed(self._gamma, settings.rate_weight, 1.0, name=self.name)
         self.observer = make_observer(model, self.task, settings)
-        self._reset_observer(estimate, selected)
+        self._reset_observer(estimate, selected, runaway_at)
         self._set_up()
         if hasattr(self, "_qp"):
             self._qp = self._setup_solver()

@@ -46,6 +46,10 @@ class ControllerStats:
         Steps where the controller used its fallback input instead of a solution.
     saturated : int
         Steps whose computed voltage was clipped to the drive range.
+    observer_fallback_step : int or None
+        Step (from 0) at which a model-based controller's observer bank detected a runaway loop
+        and fell back to its most robust filter (:class:`controllers.observer.ObserverBank`);
+        None if it did not.
     """
 
     compute_s: list[float] = field(default_factory=list)
@@ -54,6 +58,7 @@ class ControllerStats:
     inverse: Counter = field(default_factory=Counter)
     fallbacks: int = 0
     saturated: int = 0
+    observer_fallback_step: int | None = None
 
     def summary(self) -> dict[str, Any]:
         """Median, p99 and max compute time (s), status counts, iterations and fallbacks."""
@@ -68,6 +73,7 @@ class ControllerStats:
             "mean_iterations": float(np.mean(self.iterations)) if self.iterations else 0.0,
             "fallbacks": self.fallbacks,
             "saturated": self.saturated,
+            "observer_fallback_step": self.observer_fallback_step,
         }
 
 

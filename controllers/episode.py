@@ -34,7 +34,9 @@ class Episode:
     reward : ndarray
         The env's reward of each action.
     metrics : dict
-        :func:`controllers.metrics.tracking_metrics` of the episode.
+        :func:`controllers.metrics.tracking_metrics` of the episode, and
+        ``observer_fallback_step``: the step at which the controller's observer bank fell back
+        to its most robust filter (None if it did not, or has no bank).
     controller : dict
         The controller's :meth:`~controllers.base.Controller.describe` and stats summary.
     """
@@ -102,6 +104,8 @@ def run_episode(
         fallbacks=int(getattr(stats, "fallbacks", 0)),
         dt=float(env.unwrapped.model.dt),
     )
+    # A model-based controller's observer that fell back to its most robust filter: when.
+    metrics["observer_fallback_step"] = getattr(stats, "observer_fallback_step", None)
     describe = getattr(controller, "describe", dict)()
     summary = stats.summary() if hasattr(stats, "summary") else {}
     return Episode(

@@ -31,14 +31,18 @@ PL127: 0.87 -> 1003 %), and the Prandtl-Ishlinskii plant's 50 Hz sine loses 0.39
 The softer bender's resonance moves by 10 %, a relative model error far above 1 near a
 lightly damped mode, which no margin on the model covers; there the fast filters, which
 re-estimate the modal state from the data, are what keeps the loop. The plants need opposite
-filters, so the choice stays the data's (the likelihood), and the damped PL127's steps are a
-known failure of the bank (see ``benchmarks/results/tracking-PL127.md``). Nor did an online
-consistency gate hold up: returning the bank to its prior filter for the rest of the episode
-once the most likely filter's normalised innovation squared, averaged over its memory, passed
-a gate G (41.6 % there without it) gave 4.5 % at G = 25, 5.9 % at 50 and 6.9 % at 100, cost
-the stiffer and softer PL140 up to 55 % on the 100 Hz sine at every G, and on the one random
-plant the bank loses (19.5 % on the 10 Hz sine) gave 2.1 % at G = 25 but 65 % at 50 and 100:
-a switch that late moves a loop that is already running away.
+filters, so the choice stays the data's (the likelihood), watched by an online guard
+(:class:`controllers.observer.ObserverBank`). What the guard tests, and where it falls back to,
+was measured too (1 noise seed, ``mpc``, the PL127 with damping 0.04 on the steps at 41.6 %
+without a guard). A gate on the size of the selected filter's innovations alone (normalised
+innovation squared over the memory above G) that returned to the prior filter gave 4.5 % at
+G = 25, because the prior filter's loop is itself unstable on that plant; falling back to the
+filter of the largest margin instead gave 2.4 %, but the gate also fired where the loop is
+stable and the model error large, and cost the PL140 20 % softer 7.2 -> 17.3 % on the 100 Hz
+sine. A guard on the drive sitting at its limits fired only on runaways, but late: 9.4 %.
+Adding to the size test that the innovations alternate in sign (an oscillation above a quarter
+of the sampling rate, which the runaways near Nyquist are and model error at a reference's
+harmonics is not) fires early and only on runaways: 1.5 % there, no stable row changed.
 
 The frequency responses of all filters of a bank are computed together: they share A, B, c
 and the feedback law, and differ only by L, so with ``R(q) = (qI - A)^-1`` (one inverse per

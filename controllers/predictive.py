@@ -91,6 +91,16 @@ class PredictiveController(Controller):
         self._memory = start.memory
         self._start(start)
 
+    def act(self, observation: Any) -> np.ndarray:
+        """The base class's step, and the step at which the observer bank's runaway guard fell
+        back, recorded in :attr:`stats` (``observer_fallback_step``)."""
+        action = super().act(observation)
+        stats = self.stats
+        if stats.observer_fallback_step is None:
+            if getattr(self.observer, "runaway_at", None) is not None:
+                stats.observer_fallback_step = len(stats.compute_s) - 1
+        return action
+
     def feedback_law(self) -> tuple[np.ndarray, float]:
         """``(k_e, k_z)``: the unconstrained first move's gains on the observer's estimate and
         on the previous move (:func:`controllers.loop.feedback_law`).

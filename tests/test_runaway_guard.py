@@ -1,0 +1,127 @@
+"""The observer bank's runaway guard: it falls back to its most robust filter on an oscillation
+that grows near the Nyquist frequency, not on model error at a reference's harmonics."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import scipy.signal
+
+import controllers as ctl
+from benchmarks.plants import PLANTS
+from benchmarks.references import make_reference
+from controllers import loop
+from controllers.observer import RUNAWAY_NIS, ObserverBank
+from piezo_env import get_datasheet
+
+SIGMA = 0.5  # sensor noise (um)
+DT = 1e-3
+
+
+def _mode() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bender-like first mode: 160 Hz, damping 0.02, 16 um/V static, exact ZOH."""
+    w, zeta, gain = 2 * np.pi * 160.0, 0.02, 16.0
+    a_c = np.array([[0.0, 1.0], [-(w**2), -2 * zeta * w]])
+    b_c = np.array([[0.0], [gain * w**2]])
+    c_c = np.array([[1.0, 0.0]])
+    a, b, c, _, _ = scipy.signal.cont2discrete((a_c, b_c, c_c, np.zeros((1, 1))), DT)
+    return a, b, c
+
+
+def _feed(bank: ObserverBank, z: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Run the bank on (z, y); the innovations of the filter it read at each sample."""
+    innovations = np.empty(z.size)
+    for t in range(z.size):
+        innovations[t] = y[t] - bank.c_aug @ bank.estimate
+        bank.correct(y[t])
+        bank.predict(z[t])
+    return innovations
+
+
+def _response(a, b, c, z) -> np.ndarray:
+    return scipy.signal.dlsim((a, b, c, np.zeros((1, 1)), DT), z)[1][:, 0]
+
+
+@pytest.mark.parametrize("frequency_hz", [10.0, 100.0])
+def test_large_model_error_at_a_references_frequency_is_not_a_runaway(frequency_hz) -> None:
+    """A plant 30 % stiffer in gain than the model: innovations far beyond the noise (a gate
+    on their size alone would fire), but they follow the reference, so the guard does not."""
+    a, b, c = _mode()
+    rng = np.random.default_rng(3)
+    z = 10 * np.sin(2 * np.pi * frequency_hz * DT * np.arange(3000))
+    y = 1.3 * _response(a, b, c, z) + SIGMA * rng.standard_normal(z.size)
+    bank = ObserverBank(a, b, c, measurement_std=SIGMA)
+    innovations = _feed(bank, z, y)
+    assert np.mean(innovations**2) > RUNAWAY_NIS * SIGMA**2
+    assert bank.runaway_at is None
+
+
+def test_an_oscillation_growing_near_nyquist_makes_it_fall_back_for_good() -> None:
+    a, b, c = _mode()
+    rng = np.random.default_rng(4)
+    t = np.arange(3000)
+    z = 3 * np.sin(2 * np.pi * 10 * DT * t)
+    growing = np.where(t > 500, SIGMA * 1.01 ** (t - 500).clip(max=400), 0.0) * np.cos(
+        2 * np.pi * 470 * DT * t
+    )
+    y = _response(a, b, c, z) + growing + SIGMA * rng.standard_normal(t.size)
+    bank = ObserverBank(a, b, c, measurement_std=SIGMA)
+    _feed(bank, z[:500], y[:500])
+    assert bank.runaway_at is None  # the model's own data: nothing to guard against
+    _feed(bank, z[500:], y[500:])
+    assert bank.runaway_at is not None and 500 < bank.runaway_at < 900
+    assert bank.selected == bank.fallback
+    chosen = bank.selection_counts[bank.fallback]
+    assert chosen >= t.size - bank.runaway_at  # every sample since
+    bank.reset()
+    assert bank.runaway_at is None and bank.selected == bank.prior
+
+
+@pytest.mark.parametrize("bender", ["PL140", "PL127", "PL122"])
+def test_the_fallback_filter_has_the_largest_modulus_margin(bender) -> None:
+    """Against the margins of every filter's loop (controllers.loop), on the bender's plant."""
+    env = gym.make("piezo_env:PiezoBender-v0", bender=bender)
+    mpc = ctl.make("mpc", "plant", env)
+    bank = mpc.observer
+    margins = loop.modulus_margins(
+        bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *mpc.feedback_law(), n=bank.n
+    )
+    assert bank.noise_levels[bank.fallback][0] == 0.0
+    assert margins[bank.fallback] == pytest.approx(margins.max())
+
+
+def _episode(bender: str, plant: str, reference: str, steps: int):
+    stroke = get_datasheet(bender).free_deflection * 1e6
+    env = gym.make(
+        "piezo_env:PiezoBender-v0", preview=20, max_episode_steps=steps, **PLANTS[plant](bender)
+    )
+    nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
+    model = "docs/benchmark-PL127/model" if bender == "PL127" else "docs/benchmark/model"
+    mpc = ctl.make("mpc", model, nominal)
+    r = make_reference(reference, steps + 21, dt=DT, seed=0, stroke_um=stroke)
+    return ctl.run_episode(env, mpc, seed=0, reference=r, stroke_um=stroke)
+
+
+def test_the_damped_pl127_no_longer_runs_away_on_steps() -> None:
+    """Twice the damping of the PL127's datasheet: the fast filters' loops oscillate at Nyquist
+    (41.6 % of the stroke over 2 s without the guard). With it the loop holds."""
+    episode = _episode("PL127", "damping-0.04", "steps", 1000)
+    assert episode.metrics["observer_fallback_step"] is not None
+    error = episode.deflection_um[-300:] - episode.reference_um[-300:]
+    assert np.sqrt(np.mean(error**2)) < 5.0  # um; a runaway swings hundreds
+
+
+@pytest.mark.parametrize("reference", ["steps", "sine-100Hz"])
+def test_the_guard_stays_quiet_on_the_nominal_bender(reference) -> None:
+    episode = _episode("PL140", "nominal", reference, 1000)
+    assert episode.metrics["observer_fallback_step"] is None
+    assert episode.controller["stats"]["observer_fallback_step"] is None
+
+
+def test_the_adaptive_mpc_keeps_the_guards_decision_across_a_rebuild() -> None:
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender="PL140")
+    mpc = ctl.make("mpc-adaptive", "docs/benchmark/model", env)
+    obs, _ = env.reset(seed=0)
+    mpc.reset(obs)
+    mpc.observer.fall_back(7)
+    mpc._rebuild(mpc.model)
+    assert mpc.observer.runaway_at == 7 and mpc.observer.selected == mpc.observer.fallback
