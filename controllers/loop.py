@@ -33,16 +33,23 @@ lightly damped mode, which no margin on the model covers; there the fast filters
 re-estimate the modal state from the data, are what keeps the loop. The plants need opposite
 filters, so the choice stays the data's (the likelihood), watched by an online guard
 (:class:`controllers.observer.ObserverBank`). What the guard tests, and where it falls back to,
-was measured too (1 noise seed, ``mpc``, the PL127 with damping 0.04 on the steps at 41.6 %
-without a guard). A gate on the size of the selected filter's innovations alone (normalised
-innovation squared over the memory above G) that returned to the prior filter gave 4.5 % at
-G = 25, because the prior filter's loop is itself unstable on that plant; falling back to the
-filter of the largest margin instead gave 2.4 %, but the gate also fired where the loop is
-stable and the model error large, and cost the PL140 20 % softer 7.2 -> 17.3 % on the 100 Hz
-sine. A guard on the drive sitting at its limits fired only on runaways, but late: 9.4 %.
-Adding to the size test that the innovations alternate in sign (an oscillation above a quarter
-of the sampling rate, which the runaways near Nyquist are and model error at a reference's
-harmonics is not) fires early and only on runaways: 1.5 % there, no stable row changed.
+was measured too (1 noise seed; the PL127 with damping 0.04 on the steps, 41.6 % of the stroke
+for ``mpc`` without a guard). A gate on the size of the selected filter's innovations alone
+(normalised innovation squared over the memory above G) that returned to the prior filter gave
+4.5 % at G = 25, because the prior filter's loop is itself unstable on that plant; falling back
+to the filter of the largest margin instead gave 2.4 %, but the gate also fired where the loop
+is stable and the model error large, and cost the PL140 20 % softer 7.2 -> 17.3 % on the
+100 Hz sine. A guard on the drive sitting at its limits fired only on runaways, but late
+(9.4 %; 20-30 % on the PL127's random plants, against 3-6 % for an early guard). Adding to the
+size test that the innovations alternate in sign (lag-one correlation below -0.3) fired early
+and, for ``mpc``, only on runaways (1.5 %), but also on ``nmpc``'s ringing after the jumps of
+the steps on the PL140 20 % stiffer, which settles (2.8 -> 5.0 %). Its correlation stays at
+-0.3, the runaways' at -0.8 to -0.98 (near-Nyquist oscillations), so the guard asks for -0.5:
+the runaways are caught as early (1.5 %) and no stable row of ``mpc``, ``nmpc`` or
+``mpc-adaptive`` changes. Asking also that the oscillation grow before falling back was
+measured and left: over a 10- or 50-sample window it lets the fast runaways of the PL127 (loop
+poles at 1.3-1.4) swing the drive into saturation first (20 % stiffer: 22 -> 100-210 %; random
+plants 3-4 -> 10-15 %), and over a few samples any abrupt onset looks like growth.
 
 The frequency responses of all filters of a bank are computed together: they share A, B, c
 and the feedback law, and differ only by L, so with ``R(q) = (qI - A)^-1`` (one inverse per
