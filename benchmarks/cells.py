@@ -38,6 +38,9 @@ def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for key, value in members[0].items():
             if key in KEYS or key == "seed_index":
                 continue
+            if key == "observer_fallback_step":  # a step per episode: count the episodes
+                cell["observer_fallbacks"] = sum(m.get(key) is not None for m in members)
+                continue
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
             values = [m[key] for m in members if m.get(key) is not None] if numeric else []
             cell[key] = float(np.mean(values)) if numeric and values else value

@@ -197,28 +197,30 @@ def tracking_tables(
 
 def observer_fallback_section(result: BenchmarkResult) -> str:
     """Where a model-based controller's observer bank detected a runaway loop and fell back to
-    its most robust filter (:class:`controllers.observer.ObserverBank`), and at which step:
-    those cells' RMSE is the guard's, not the likelihood's choice."""
-    fired: dict[tuple, list[int]] = {}
+    its most robust filter (:class:`controllers.observer.ObserverBank`): in how many of the
+    cell's episodes, and at which step. Those cells' RMSE is the guard's, not the likelihood's
+    choice."""
+    episodes: dict[tuple, list[int | None]] = {}
     for e in result.episodes:
-        step = e.get("observer_fallback_step")
-        if step is not None:
-            key = (e["controller"], e["plant"], e["reference"], e.get("draw"))
-            fired.setdefault(key, []).append(int(step))
+        key = (e["controller"], e["plant"], e["reference"], e.get("draw"))
+        episodes.setdefault(key, []).append(e.get("observer_fallback_step"))
+    fired = {k: v for k, v in episodes.items() if any(step is not None for step in v)}
     head = "### Runaway guard of the observer bank\n\n"
     if not fired:
         return head + "It did not fire in any episode.\n"
     lines = [
-        head + "The episodes where it fired: the bank's likelihood had chosen a filter whose loop "
-        "oscillated and grew on this plant, and the controller then read the bank's most robust "
-        "filter for the rest of the episode (`controllers.observer.ObserverBank`).\n",
-        "| controller | plant | reference | step of the fall-back, per episode |",
-        "|---|---|---|---|",
+        head + "The cells where it fired: the most likely filter's innovations were far beyond "
+        "the sensor noise and alternated in sign (an oscillation near the Nyquist frequency), "
+        "and the controller read the bank's most robust filter for the rest of the episode "
+        "(`controllers.observer.ObserverBank`).\n",
+        "| controller | plant | reference | episodes | step of the fall-back, per episode |",
+        "|---|---|---|---|---|",
     ]
     for (controller, plant, reference, draw), steps in fired.items():
         where = plant if draw is None else f"{plant} (draw {draw})"
-        when = ", ".join(str(step) for step in steps)
-        lines.append(f"| {controller} | {where} | {reference} | {when} |")
+        count = f"{sum(step is not None for step in steps)} of {len(steps)}"
+        when = ", ".join("-" if step is None else str(step) for step in steps)
+        lines.append(f"| {controller} | {where} | {reference} | {count} | {when} |")
     return "\n".join(lines) + "\n"
 
 

@@ -453,14 +453,17 @@ class AdaptiveMPC(LinearMPC):
         The unconstrained MPC with its observer is a linear controller from y to z
         (:func:`controllers.loop.output_feedback`), so the loop around ``plant`` is a linear
         system; its spectral radius must be < 1. With the observer bank, the observer is the
-        filter at the bank's prior noise levels.
+        filter at the bank's prior noise levels, or at its fallback's once the bank's runaway
+        guard has fallen back (the filter the loop then runs with).
         """
         s = self.settings
         a, b, c, _ = candidate.state_space_matrices()
         phi, gamma = prediction_matrices(a, b, c, s.horizon)
         hessian, q_matrix = self._qp_matrices(phi, gamma)
-        if isinstance(self.observer, ObserverBank):
-            process_std, disturbance_std = self.observer.noise_levels[self.observer.prior]
+        bank = self.observer
+        if isinstance(bank, ObserverBank):
+            index = bank.prior if bank.runaway_at is None else bank.fallback
+            process_std, disturbance_std = bank.noise_levels[index]
         else:
             process_std, disturbance_std = s.process_std, s.disturbance_std
         observer = DisturbanceObserver(

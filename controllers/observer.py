@@ -211,9 +211,9 @@ close to the single filter's defaults on the PL140 (1.2 and 1.4)."""
 
 
 RUNAWAY_NIS = 9.0
-"""Normalised innovation squared of the selected filter, averaged over the bank's memory, above
-which the bank suspects a runaway loop (innovations three standard deviations beyond what the
-filter expects)."""
+"""Normalised innovation squared of the most likely filter, averaged over the bank's memory,
+above which the bank suspects a runaway loop (an RMS innovation three times the one the filter
+expects)."""
 
 RUNAWAY_CORRELATION = -0.5
 """Lag-one correlation of those innovations (over their mean square) below which, with
@@ -265,19 +265,19 @@ class ObserverBank:
     (the PL127's 420 Hz at 1 kHz, moved by +-20 % or damped twice as much), the fast filters' loops
     are unstable, their growing innovations make them still more likely, and the loop runs into the
     drive limits (the damped PL127's steps reached 41.6 % of the stroke, half of its random plants
-    55-2600 %). The bank therefore watches the selected filter: when its normalised innovation
+    55-2600 %). The bank therefore watches the most likely filter: when its normalised innovation
     squared, averaged over the memory, exceeds :data:`RUNAWAY_NIS` while its innovations alternate
     in sign (lag-one correlation below :data:`RUNAWAY_CORRELATION` of their mean square: an
-    oscillation above a third of the sampling rate, which model error at a reference's harmonics is
-    not), it falls back, for the rest of the episode, to its :attr:`fallback` filter: no process
-    noise and the slowest disturbance, the filter that trusts the model's dynamics most and corrects
-    only a slow output offset, whose loop has the largest modulus margin of the bank on every
-    catalogue bender (tested). The step is kept in :attr:`runaway_at`, and the benchmark reports it.
-    The thresholds were chosen on the benchmark's robustness plants of the PL127 and the PL140
-    (``benchmarks/results``) so that no stable row changes; the measured alternatives are in
-    :mod:`controllers.loop`. In the runaways measured there the correlation was -0.8 to -0.98; the
-    nonlinear MPC's loop on the PL140 20 % stiffer rings after a jump at the drive limit with a
-    correlation of -0.3 and settles.
+    oscillation above a third of the sampling rate, which the model error at the benchmark's
+    references was not), it falls back, for the rest of the episode, to its :attr:`fallback` filter:
+    the least process noise (none on the default grid) and the slowest disturbance, the filter that
+    trusts the model's dynamics most and corrects only a slow output offset, whose loop has the
+    largest modulus margin of the bank on every catalogue bender (tested on all five). The step is
+    kept in :attr:`runaway_at`, and the benchmark reports it. The thresholds were chosen on the
+    benchmark's robustness plants of the PL127 and the PL140 (``benchmarks/results``) so that no
+    stable row changes; the measured alternatives are in :mod:`controllers.loop`. In the runaways
+    measured there the correlation was -0.8 to -0.98; the nonlinear MPC's loop on the PL140 20 %
+    stiffer rings after a jump at the drive limit with a correlation of -0.3 and settles.
 
     Parameters
     ----------
@@ -302,10 +302,11 @@ class ObserverBank:
     selection_counts : numpy.ndarray
         Samples each filter was selected since the last reset.
     fallback : int
-        Index of the filter the runaway guard falls back to (no process noise, the smallest
-        disturbance step).
+        Index of the filter the runaway guard falls back to (the smallest process noise of the
+        grid, then the smallest disturbance step).
     runaway_at : int or None
-        Sample (counted from the last reset) at which the guard fell back; None if it has not.
+        Sample (from 0, counted from the last reset) at which the guard fell back; None if it
+        has not.
     """
 
     def __init__(
@@ -408,11 +409,20 @@ class ObserverBank:
         self._samples = 0
         self.runaway_at: int | None = None
 
+    @property
+    def guard_statistics(self) -> tuple[float, float]:
+        """What the runaway guard reads for the most likely filter: its normalised innovation
+        squared averaged over the memory, and the lag-one correlation of its innovations over
+        their mean square (dimensionless; 0 and 0 before the first sample)."""
+        best = int(np.argmax(self._score))
+        nis = float(self._mean_nis[best])
+        return nis, float(self._mean_lag[best] / nis) if nis > 0 else 0.0
+
     def fall_back(self, at: int | None = None) -> None:
         """Read the :attr:`fallback` filter for the rest of the episode, as the runaway guard
-        does; ``at`` is the sample recorded in :attr:`runaway_at` (default: the current one).
-        The adaptive MPC calls it on a rebuilt bank to keep the guard's decision."""
-        self.runaway_at = self._samples if at is None else int(at)
+        does; ``at`` is the sample recorded in :attr:`runaway_at` (default: the last corrected
+        one). The adaptive MPC calls it on a rebuilt bank to keep the guard's decision."""
+        self.runaway_at = max(self._samples - 1, 0) if at is None else int(at)
         self.selected = self.fallback
 
     def correct(self, y_measured: float) -> np.ndarray:
@@ -431,7 +441,11 @@ class ObserverBank:
         if self.runaway_at is None:
             best = int(np.argmax(self._score))
             nis = self._mean_nis[best]
-            if nis > RUNAWAY_NIS and self._mean_lag[best] < RUNAWAY_CORRELATION * nis:
+            if (
+                best != self.fallback  # reading the fallback already: nothing to fall back to
+                and nis > RUNAWAY_NIS
+                and self._mean_lag[best] < RUNAWAY_CORRELATION * nis
+            ):
                 self.fall_back()
             else:
                 self.selected = best
