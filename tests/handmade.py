@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.signal
 
 from controllers import PredictionModel
 from controllers.prediction import InverseResult
@@ -55,3 +56,25 @@ def synthetic_model() -> PredictionModel:
     arx = ARXModel([1.2, -0.5], [2.0, 1.0], dt=1e-3)  # poles 0.6 +- 0.37j, zero at -0.5
     a, b, c, _ = arx.state_space_matrices()
     return PredictionModel(a, b, c, 1e-3, AffineNonlinearity(), "identified", (-59.0, 61.0))
+
+
+def first_mode(dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bender-like first mode: 160 Hz, damping 0.02, 16 um/V static, exact ZOH at ``dt``
+    (s): ``(a, b, c)`` of ``x_t+1 = a x_t + b z_t, y_t = c x_t``."""
+    w, zeta, gain = 2 * np.pi * 160.0, 0.02, 16.0
+    a_c = np.array([[0.0, 1.0], [-(w**2), -2 * zeta * w]])
+    b_c = np.array([[0.0], [gain * w**2]])
+    c_c = np.array([[1.0, 0.0]])
+    a, b, c, _, _ = scipy.signal.cont2discrete((a_c, b_c, c_c, np.zeros((1, 1))), dt)
+    return a, b, c
+
+
+def run_observer(observer, z: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Run an observer (or bank) on (z, y); the innovations of the estimate it read at each
+    sample (um)."""
+    innovations = np.empty(z.size)
+    for t in range(z.size):
+        innovations[t] = y[t] - observer.c_aug @ observer.estimate
+        observer.correct(y[t])
+        observer.predict(z[t])
+    return innovations

@@ -4,22 +4,12 @@ data show, and the likelihood picks the noise levels the data were made with."""
 import gymnasium as gym
 import numpy as np
 import pytest
-import scipy.signal
+from handmade import first_mode, run_observer
 
 import controllers as ctl
 from controllers.observer import DisturbanceObserver, ObserverBank
 
 SIGMA = 0.5  # sensor noise (um)
-
-
-def _mode(dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A bender-like first mode: 160 Hz, damping 0.02, 16 um/V static, exact ZOH."""
-    w, zeta, gain = 2 * np.pi * 160.0, 0.02, 16.0
-    a_c = np.array([[0.0, 1.0], [-(w**2), -2 * zeta * w]])
-    b_c = np.array([[0.0], [gain * w**2]])
-    c_c = np.array([[1.0, 0.0]])
-    a, b, c, _, _ = scipy.signal.cont2discrete((a_c, b_c, c_c, np.zeros((1, 1))), dt)
-    return a, b, c
 
 
 def _simulate(a, b, c, z, rng, *, process_std=0.0, disturbance_std=0.0):
@@ -35,17 +25,8 @@ def _simulate(a, b, c, z, rng, *, process_std=0.0, disturbance_std=0.0):
     return y
 
 
-def _run(observer, z, y):
-    innovations = np.empty(z.size)
-    for t in range(z.size):
-        innovations[t] = y[t] - observer.c_aug @ observer.estimate
-        observer.correct(y[t])
-        observer.predict(z[t])
-    return innovations
-
-
 def test_a_one_filter_bank_is_the_fixed_observer() -> None:
-    a, b, c = _mode()
+    a, b, c = first_mode()
     rng = np.random.default_rng(0)
     z = rng.uniform(-5, 5, 500)
     y = _simulate(a, b, c, z, rng, process_std=0.05, disturbance_std=0.3)
@@ -66,14 +47,14 @@ def test_a_one_filter_bank_is_the_fixed_observer() -> None:
 def test_innovation_variance_is_what_the_data_show(process_std, disturbance_std) -> None:
     """The Riccati solution's C P C^T + R against the empirical variance of the innovations
     on data made with the filter's own noise model (Monte Carlo, 40,000 samples)."""
-    a, b, c = _mode()
+    a, b, c = first_mode()
     rng = np.random.default_rng(1)
     z = rng.uniform(-5, 5, 40_000)
     y = _simulate(a, b, c, z, rng, process_std=process_std, disturbance_std=disturbance_std)
     observer = DisturbanceObserver(
         a, b, c, measurement_std=SIGMA, process_std=process_std, disturbance_std=disturbance_std
     )
-    innovations = _run(observer, z, y)[1000:]
+    innovations = run_observer(observer, z, y)[1000:]
     assert np.var(innovations) == pytest.approx(observer.innovation_var, rel=0.04)
     # and they are white, as the innovations of the optimal filter are
     lag1 = np.corrcoef(innovations[:-1], innovations[1:])[0, 1]
@@ -84,19 +65,19 @@ def test_innovation_variance_is_what_the_data_show(process_std, disturbance_std)
 def test_the_likelihood_picks_the_noise_the_data_were_made_with(
     disturbance_std, expected_ratio
 ) -> None:
-    a, b, c = _mode()
+    a, b, c = first_mode()
     rng = np.random.default_rng(2)
     z = 3 * np.sin(2 * np.pi * 10 * 1e-3 * np.arange(6000))
     y = _simulate(a, b, c, z, rng, disturbance_std=disturbance_std)
     bank = ObserverBank(a, b, c, measurement_std=SIGMA, memory=1000)
-    _run(bank, z, y)
+    run_observer(bank, z, y)
     process, disturbance = bank.noise_levels[int(np.argmax(bank.selection_counts))]
     assert disturbance == pytest.approx(expected_ratio * SIGMA)
     assert process <= 0.25 * SIGMA / 16.0  # no process noise was made: little is chosen
 
 
 def test_reset_returns_to_the_prior_and_forgets() -> None:
-    a, b, c = _mode()
+    a, b, c = first_mode()
     bank = ObserverBank(a, b, c, measurement_std=SIGMA)
     assert bank.noise_level == pytest.approx((SIGMA / 16.0, SIGMA), rel=1e-9)
     for _ in range(50):
@@ -114,6 +95,6 @@ def test_bad_observer_settings_are_refused() -> None:
         ctl.make("mpc", "plant", env, observer="kalman")
     with pytest.raises(ValueError, match="bank_memory"):
         ctl.make("mpc", "plant", env, bank_memory=0)
-    a, b, c = _mode()
+    a, b, c = first_mode()
     with pytest.raises(ValueError, match="memory must be an integer"):
         ObserverBank(a, b, c, measurement_std=SIGMA, memory=0)

@@ -5,6 +5,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import scipy.signal
+from handmade import first_mode, run_observer
 
 import controllers as ctl
 from benchmarks.plants import PLANTS
@@ -17,26 +18,6 @@ SIGMA = 0.5  # sensor noise (um)
 DT = 1e-3
 
 
-def _mode() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A bender-like first mode: 160 Hz, damping 0.02, 16 um/V static, exact ZOH."""
-    w, zeta, gain = 2 * np.pi * 160.0, 0.02, 16.0
-    a_c = np.array([[0.0, 1.0], [-(w**2), -2 * zeta * w]])
-    b_c = np.array([[0.0], [gain * w**2]])
-    c_c = np.array([[1.0, 0.0]])
-    a, b, c, _, _ = scipy.signal.cont2discrete((a_c, b_c, c_c, np.zeros((1, 1))), DT)
-    return a, b, c
-
-
-def _feed(bank: ObserverBank, z: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Run the bank on (z, y); the innovations of the filter it read at each sample."""
-    innovations = np.empty(z.size)
-    for t in range(z.size):
-        innovations[t] = y[t] - bank.c_aug @ bank.estimate
-        bank.correct(y[t])
-        bank.predict(z[t])
-    return innovations
-
-
 def _response(a, b, c, z) -> np.ndarray:
     return scipy.signal.dlsim((a, b, c, np.zeros((1, 1)), DT), z)[1][:, 0]
 
@@ -45,18 +26,18 @@ def _response(a, b, c, z) -> np.ndarray:
 def test_large_model_error_at_a_references_frequency_is_not_a_runaway(frequency_hz) -> None:
     """A plant 30 % stiffer in gain than the model: innovations far beyond the noise (a gate
     on their size alone would fire), but they follow the reference, so the guard does not."""
-    a, b, c = _mode()
+    a, b, c = first_mode()
     rng = np.random.default_rng(3)
     z = 10 * np.sin(2 * np.pi * frequency_hz * DT * np.arange(3000))
     y = 1.3 * _response(a, b, c, z) + SIGMA * rng.standard_normal(z.size)
     bank = ObserverBank(a, b, c, measurement_std=SIGMA)
-    innovations = _feed(bank, z, y)
+    innovations = run_observer(bank, z, y)
     assert np.mean(innovations**2) > RUNAWAY_NIS * SIGMA**2
     assert bank.runaway_at is None
 
 
 def test_an_oscillation_growing_near_nyquist_makes_it_fall_back_for_good() -> None:
-    a, b, c = _mode()
+    a, b, c = first_mode()
     rng = np.random.default_rng(4)
     t = np.arange(3000)
     z = 3 * np.sin(2 * np.pi * 10 * DT * t)
@@ -65,9 +46,9 @@ def test_an_oscillation_growing_near_nyquist_makes_it_fall_back_for_good() -> No
     )
     y = _response(a, b, c, z) + growing + SIGMA * rng.standard_normal(t.size)
     bank = ObserverBank(a, b, c, measurement_std=SIGMA)
-    _feed(bank, z[:500], y[:500])
+    run_observer(bank, z[:500], y[:500])
     assert bank.runaway_at is None  # the model's own data: nothing to guard against
-    _feed(bank, z[500:], y[500:])
+    run_observer(bank, z[500:], y[500:])
     assert bank.runaway_at is not None and 500 < bank.runaway_at < 900
     assert bank.guard_statistics[0] > RUNAWAY_NIS
     assert bank.selected == bank.fallback
@@ -81,7 +62,7 @@ def test_ringing_below_a_third_of_the_sampling_rate_is_not_a_runaway() -> None:
     """A large 300 Hz ringing after a jump (lag-one correlation about -0.3, as the nonlinear
     MPC's loop on the PL140 20 % stiffer shows): far beyond the noise, so the size test is
     passed, but not the near-Nyquist oscillation of a runaway."""
-    a, b, c = _mode()
+    a, b, c = first_mode()
     rng = np.random.default_rng(5)
     t = np.arange(2000)
     z = 3 * np.sin(2 * np.pi * 10 * DT * t)
