@@ -53,7 +53,9 @@ __all__ = [
     "DISTURBANCE_RATIOS",
     "PROCESS_RATIOS",
     "RUNAWAY_CORRELATION",
+    "RUNAWAY_MEMORY",
     "RUNAWAY_NIS",
+    "RUNAWAY_PERSISTENCE",
     "DisturbanceObserver",
     "ObserverBank",
     "make_observer",
@@ -211,14 +213,35 @@ close to the single filter's defaults on the PL140 (1.2 and 1.4)."""
 
 
 RUNAWAY_NIS = 9.0
-"""Normalised innovation squared of the most likely filter, averaged over the bank's memory,
-above which the bank suspects a runaway loop (an RMS innovation three times the one the filter
-expects)."""
+"""Normalised innovation squared of the most likely filter, averaged over
+:data:`RUNAWAY_MEMORY` samples, above which the bank suspects a runaway loop (an RMS innovation
+three times the one the filter expects)."""
 
 RUNAWAY_CORRELATION = -0.5
 """Lag-one correlation of those innovations (over their mean square) below which, with
 :data:`RUNAWAY_NIS`, the bank suspects a runaway: they alternate in sign, an oscillation above a
 third of the sampling rate (a sinusoid at f has the correlation cos(2 pi f dt))."""
+
+RUNAWAY_MEMORY = 35
+"""Samples over which the guard averages its two statistics (exponential forgetting 1 - 1/35).
+A runaway grows within tens of samples: over the bank's 200-sample memory of likelihoods the
+average crossed :data:`RUNAWAY_NIS` when the drive had swung between its limits for tens of
+samples already. Measured on the benchmark's robustness plants (1 noise seed, with
+:data:`RUNAWAY_PERSISTENCE`): the damped PL127's steps 1.51 -> 0.88 % of the stroke (the single
+filter of the earlier default: 0.98 %), its 20 % stiffer plant 19-35 -> 13-29 %, its random
+plants' second worst 4.4 -> 3.0 %, and no stable row changed. Over 25 samples the guard also
+fired on a stable loop (a random PL140 at 50 Hz, 0.68 -> 0.72 %)."""
+
+RUNAWAY_PERSISTENCE = 3
+"""Consecutive samples over which both tests must hold before the guard falls back. Over the
+first samples of an abrupt oscillation the lag-one correlation is whatever their phases make
+it: a 250-330 Hz ringing appearing at 200 times the noise, lag-one correlation -0.5 or above
+in the steady state, read below -0.5 for one or two samples and tripped a single-sample test
+in 25 of 60 trials (5 noise seeds, 4 onsets, 3 frequencies) with the bank's 200-sample memory,
+35 of 60 with 50 samples, and none with three samples. A runaway costs those two samples: the
+PL127's fastest (loop poles at 1.3-1.4 per sample) end at 13-15 % of the stroke instead of
+9-10 % when the guard falls back two samples sooner."""
+
 
 def state_scale_of(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Each state's variance under unit white input (the controllability Gramian's diagonal,
@@ -266,18 +289,19 @@ class ObserverBank:
     are unstable, their growing innovations make them still more likely, and the loop runs into the
     drive limits (the damped PL127's steps reached 41.6 % of the stroke, half of its random plants
     55-2600 %). The bank therefore watches the most likely filter: when its normalised innovation
-    squared, averaged over the memory, exceeds :data:`RUNAWAY_NIS` while its innovations alternate
-    in sign (lag-one correlation below :data:`RUNAWAY_CORRELATION` of their mean square: an
-    oscillation above a third of the sampling rate, which the model error at the benchmark's
-    references was not), it falls back, for the rest of the episode, to its :attr:`fallback` filter:
-    the least process noise (none on the default grid) and the slowest disturbance, the filter that
-    trusts the model's dynamics most and corrects only a slow output offset, whose loop has the
-    largest modulus margin of the bank on every catalogue bender (tested on all five). The step is
-    kept in :attr:`runaway_at`, and the benchmark reports it. The thresholds were chosen on the
-    benchmark's robustness plants of the PL127 and the PL140 (``benchmarks/results``) so that no
-    stable row changes; the measured alternatives are in :mod:`controllers.loop`. In the runaways
-    measured there the correlation was -0.8 to -0.98; the nonlinear MPC's loop on the PL140 20 %
-    stiffer rings after a jump at the drive limit with a correlation of -0.3 and settles.
+    squared, averaged over :data:`RUNAWAY_MEMORY` samples, exceeds :data:`RUNAWAY_NIS` while its
+    innovations alternate in sign (lag-one correlation below :data:`RUNAWAY_CORRELATION` of their
+    mean square: an oscillation above a third of the sampling rate, which the model error at the
+    benchmark's references was not), for :data:`RUNAWAY_PERSISTENCE` samples in a row, it falls
+    back, for the rest of the episode, to its :attr:`fallback` filter: the least process noise (none
+    on the default grid) and the slowest disturbance, the filter that trusts the model's dynamics
+    most and corrects only a slow output offset, whose loop has the largest modulus margin of the
+    bank on every catalogue bender (tested on all five). The step is kept in :attr:`runaway_at`, and
+    the benchmark reports it. The thresholds were chosen on the benchmark's robustness plants of the
+    PL127 and the PL140 (``benchmarks/results``) so that no stable row changes; the measured
+    alternatives are in :mod:`controllers.loop`. In the runaways measured there the correlation was
+    -0.8 to -0.98; the nonlinear MPC's loop on the PL140 20 % stiffer rings after a jump at the
+    drive limit with a correlation of -0.3 and settles.
 
     Parameters
     ----------
@@ -352,6 +376,7 @@ class ObserverBank:
         self._half_inverse_var = 0.5 / variance
         self._half_log_var = 0.5 * np.log(variance)
         self._keep = 1.0 - 1.0 / memory
+        self._guard_keep = 1.0 - 1.0 / RUNAWAY_MEMORY
         self.prior = int(
             np.argmin(
                 [
@@ -407,13 +432,14 @@ class ObserverBank:
         self._mean_lag = np.zeros(count)
         self._last_innovation = np.zeros(count)
         self._samples = 0
+        self._suspect_run = 0  # consecutive samples on which both guard tests held
         self.runaway_at: int | None = None
 
     @property
     def guard_statistics(self) -> tuple[float, float]:
         """What the runaway guard reads for the most likely filter: its normalised innovation
-        squared averaged over the memory, and the lag-one correlation of its innovations over
-        their mean square (dimensionless; 0 and 0 before the first sample)."""
+        squared averaged over :data:`RUNAWAY_MEMORY` samples, and the lag-one correlation of its
+        innovations over their mean square (dimensionless; 0 and 0 before the first sample)."""
         best = int(np.argmax(self._score))
         nis = float(self._mean_nis[best])
         return nis, float(self._mean_lag[best] / nis) if nis > 0 else 0.0
@@ -434,6 +460,7 @@ class ObserverBank:
         keep, new = self._keep, 1.0 - self._keep
         self._score = keep * self._score + new * log_likelihood
         normalised = 2.0 * self._half_inverse_var * innovation
+        keep, new = self._guard_keep, 1.0 - self._guard_keep
         self._mean_nis = keep * self._mean_nis + new * normalised * innovation
         self._mean_lag = keep * self._mean_lag + new * normalised * self._last_innovation
         self._last_innovation = innovation
@@ -441,11 +468,13 @@ class ObserverBank:
         if self.runaway_at is None:
             best = int(np.argmax(self._score))
             nis = self._mean_nis[best]
-            if (
+            suspect = (
                 best != self.fallback  # reading the fallback already: nothing to fall back to
                 and nis > RUNAWAY_NIS
                 and self._mean_lag[best] < RUNAWAY_CORRELATION * nis
-            ):
+            )
+            self._suspect_run = self._suspect_run + 1 if suspect else 0
+            if self._suspect_run >= RUNAWAY_PERSISTENCE:
                 self.fall_back()
             else:
                 self.selected = best

@@ -1,6 +1,8 @@
 """The observer bank's runaway guard: it falls back to its most robust filter on an oscillation
 that grows near the Nyquist frequency, not on model error at a reference's harmonics."""
 
+import itertools
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ import controllers as ctl
 from benchmarks.plants import PLANTS
 from benchmarks.references import make_reference
 from controllers import loop
-from controllers.observer import RUNAWAY_NIS, ObserverBank
+from controllers.observer import RUNAWAY_CORRELATION, RUNAWAY_NIS, ObserverBank
 from piezo_env import get_datasheet
 
 SIGMA = 0.5  # sensor noise (um)
@@ -58,29 +60,35 @@ def test_an_oscillation_growing_near_nyquist_makes_it_fall_back_for_good() -> No
     assert bank.runaway_at is None and bank.selected == bank.prior
 
 
-def test_ringing_below_a_third_of_the_sampling_rate_is_not_a_runaway() -> None:
-    """A large 300 Hz ringing after a jump (lag-one correlation about -0.3, as the nonlinear
-    MPC's loop on the PL140 20 % stiffer shows): far beyond the noise, so the size test is
-    passed, but not the near-Nyquist oscillation of a runaway."""
+@pytest.mark.parametrize("frequency_hz", [250.0, 300.0, 320.0])
+def test_ringing_below_a_third_of_the_sampling_rate_is_not_a_runaway(frequency_hz) -> None:
+    """A large ringing that appears within one sample (200 times the noise) and decays, at a
+    steady lag-one correlation of cos(2 pi f dt) >= -0.5 (the nonlinear MPC's loop on the
+    PL140 20 % stiffer rings at about -0.3): far beyond the noise, so the size test is passed.
+    Over its first samples the correlation reads whatever their phases make it, below -0.5 for a
+    sample or two; the guard asks for three in a row (a single-sample test fired on some of
+    these onsets and noise seeds, at 300 and 320 Hz)."""
     a, b, c = first_mode()
-    rng = np.random.default_rng(5)
-    t = np.arange(2000)
+    t = np.arange(1000)
     z = 3 * np.sin(2 * np.pi * 10 * DT * t)
-    ringing = np.where(t > 300, 200 * SIGMA * 0.99 ** (t - 300), 0.0) * np.cos(
-        2 * np.pi * 300 * DT * t
-    )
-    y = _response(a, b, c, z) + ringing + SIGMA * rng.standard_normal(t.size)
-    bank = ObserverBank(a, b, c, measurement_std=SIGMA)
-    seen = []
-    for k in range(t.size):
-        bank.correct(y[k])
-        bank.predict(z[k])
-        seen.append(bank.guard_statistics)
-    nis, correlation = np.array(seen).T
-    passed_size = nis > RUNAWAY_NIS
-    assert passed_size.any()
-    assert np.all(correlation[passed_size] < 0)  # alternating, though not enough
-    assert bank.runaway_at is None
+    clean = _response(a, b, c, z)
+    for onset, seed in itertools.product((300, 301, 302, 303), range(5)):
+        rng = np.random.default_rng(seed)
+        ringing = np.where(t >= onset, 200 * SIGMA * 0.99 ** (t - onset), 0.0) * np.cos(
+            2 * np.pi * frequency_hz * DT * t
+        )
+        y = clean + ringing + SIGMA * rng.standard_normal(t.size)
+        bank = ObserverBank(a, b, c, measurement_std=SIGMA)
+        seen = []
+        for k in range(t.size):
+            bank.correct(y[k])
+            bank.predict(z[k])
+            seen.append(bank.guard_statistics)
+        nis, correlation = np.array(seen).T
+        passed_size = nis > RUNAWAY_NIS
+        assert passed_size.any()
+        assert np.median(correlation[passed_size]) > RUNAWAY_CORRELATION  # not a runaway's
+        assert bank.runaway_at is None, (onset, seed, bank.runaway_at)
 
 
 @pytest.mark.parametrize("bender", ["PL112", "PL122", "PL127", "PL128", "PL140"])
@@ -123,6 +131,32 @@ def test_the_damped_pl127_no_longer_runs_away_on_steps(name) -> None:
     again, _ = _episode("PL127", "nominal", "steps", 300, controller=controller)
     assert again.metrics["observer_fallback_step"] is None
     assert controller.observer.runaway_at is None
+
+
+def test_on_the_damped_pl127_the_bank_is_no_worse_than_the_single_filter() -> None:
+    """The single filter of the earlier default holds the damped PL127 (0.98 % of the stroke
+    over the benchmark's 2 s of steps); the bank's fast filters run away there, and the guard
+    has to catch them soon enough that the episode is no worse (1.51 % when it averaged over
+    the bank's 200 samples, 0.88 % over its own 35)."""
+    bender, plant, steps = "PL127", "damping-0.04", 2000
+    nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
+    model = "docs/benchmark-PL127/model"
+    error = {}
+    for observer in ("bank", "fixed"):
+        mpc = ctl.make("mpc", model, nominal, observer=observer)
+        episode, _ = _episode(bender, plant, "steps", steps, controller=mpc)
+        error[observer] = episode.metrics["rmse_percent"]
+    assert episode.metrics["observer_fallback_step"] is None  # the single filter: no guard
+    assert error["bank"] <= error["fixed"]
+
+
+def test_the_guard_stays_quiet_after_a_jump_on_the_softer_pl140() -> None:
+    """The PL140 20 % softer rings after the first jump of the steps with innovations far
+    beyond the noise, and its lag-one correlation crosses -0.5 for single samples (a guard
+    without the persistence test fired there: 3.3 -> 12.5 % of the stroke); that plant needs
+    the fast filters the fallback would drop."""
+    episode, _ = _episode("PL140", "stiffness-20%", "steps", 400)
+    assert episode.metrics["observer_fallback_step"] is None
 
 
 @pytest.mark.parametrize("reference", ["steps", "sine-100Hz"])
