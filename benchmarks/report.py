@@ -22,6 +22,7 @@ from benchmarks.reference_checks import (
 from benchmarks.rows import seed_groups
 from benchmarks.runner import MONTE_CARLO, BenchmarkResult
 from benchmarks.verdict import cell_index, tie_rule, verdict, winners
+from controllers.observer import RUNAWAY_MEMORY, RUNAWAY_PERSISTENCE
 
 __all__ = [
     "SCHEMA",
@@ -210,7 +211,8 @@ def observer_fallback_section(result: BenchmarkResult) -> str:
         return head + "It did not fire in any episode.\n"
     lines = [
         head + "The cells where it fired: the most likely filter's innovations were far beyond "
-        "the sensor noise and alternated in sign (an oscillation near the Nyquist frequency), "
+        "the sensor noise and alternated in sign (an oscillation near the Nyquist frequency) "
+        f"for {RUNAWAY_PERSISTENCE} samples in a row, "
         "and the controller read the bank's most robust filter for the rest of the episode "
         "(`controllers.observer.ObserverBank`).\n",
         "| controller | plant | reference | episodes | step of the fall-back, per episode |",
@@ -353,7 +355,9 @@ def _disclosure_lines(result: BenchmarkResult) -> list[str]:
         "memory on the nominal PL140's references and the Prandtl-Ishlinskii plant, the "
         "single filter's noise levels, `observer=\"fixed\"`, on the nominal 50 Hz sine "
         "against the Prandtl-Ishlinskii plant's 10 Hz sine; the two thresholds of the bank's "
-        "runaway guard on the robustness plants of the PL127 and the PL140; the narrow "
+        f"runaway guard, the {RUNAWAY_MEMORY} samples it averages over and the "
+        f"{RUNAWAY_PERSISTENCE} it asks in a row, on the "
+        "robustness plants of the PL127 and the PL140; the narrow "
         "feedforward notch of `pid-ff` on the 50 Hz sine); the PID gains come from a tuning "
         "rule on the identified model alone.",
         "",
