@@ -54,7 +54,7 @@ How fast the guard reads was measured last (1 noise seed, both benders' robustne
 ``mpc``, ``nmpc``, ``mpc-adaptive``). Averaged over the bank's 200-sample memory, it fell back at
 the damped PL127's step 299, tens of samples into the runaway (1.51 %). Over 50 samples: 0.94 %,
 the 20 % stiffer PL127 19-35 -> 9-28 %, no stable row changed; over 35 it also fired on the
-softer PL140's first jump (3.3 -> 12.5 %), and over 25 with a size threshold of 4 on five stable
+softer PL140's first jump (3.3 -> 12.5 %), and over 25 with a size threshold of 4 on seven stable
 cells. A correlation threshold of -0.7 over 50 samples cost one or two samples on the fastest
 runaways (stiffer PL127, 50 Hz: 9.3 -> 13.1 %). The false trips and a synthetic ringing (250-330
 Hz, 200 times the noise, appearing within a sample: 25 of 60 onsets and seeds tripped the
