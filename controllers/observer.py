@@ -240,7 +240,7 @@ in the steady state, read below -0.5 for one or two samples and tripped a single
 in 25 of 60 trials (5 noise seeds, 4 onsets, 3 frequencies) with the bank's 200-sample memory,
 35 of 60 with 50 samples, and none with three samples. A runaway costs those two samples: the
 PL127's fastest (loop poles at 1.3-1.4 per sample) end at 13-15 % of the stroke instead of
-9-10 % when the guard falls back two samples sooner."""
+8.7-10 % when the guard falls back two samples sooner."""
 
 
 def state_scale_of(a: np.ndarray, b: np.ndarray) -> np.ndarray:
