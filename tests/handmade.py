@@ -69,12 +69,17 @@ def first_mode(dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return a, b, c
 
 
-def run_observer(observer, z: np.ndarray, y: np.ndarray) -> np.ndarray:
+def run_observer(
+    observer, z: np.ndarray, y: np.ndarray, *, guard: list | None = None
+) -> np.ndarray:
     """Run an observer (or bank) on (z, y); the innovations of the estimate it read at each
-    sample (um)."""
+    sample (um). ``guard``: a list to which a bank's ``guard_statistics`` after each
+    measurement update are appended."""
     innovations = np.empty(z.size)
     for t in range(z.size):
         innovations[t] = y[t] - observer.c_aug @ observer.estimate
         observer.correct(y[t])
+        if guard is not None:
+            guard.append(observer.guard_statistics)
         observer.predict(z[t])
     return innovations

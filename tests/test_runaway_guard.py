@@ -79,11 +79,8 @@ def test_ringing_below_a_third_of_the_sampling_rate_is_not_a_runaway(frequency_h
         )
         y = clean + ringing + SIGMA * rng.standard_normal(t.size)
         bank = ObserverBank(a, b, c, measurement_std=SIGMA)
-        seen = []
-        for k in range(t.size):
-            bank.correct(y[k])
-            bank.predict(z[k])
-            seen.append(bank.guard_statistics)
+        seen: list[tuple[float, float]] = []
+        run_observer(bank, z, y, guard=seen)
         nis, correlation = np.array(seen).T
         passed_size = nis > RUNAWAY_NIS
         assert passed_size.any()
@@ -104,7 +101,9 @@ def test_the_fallback_filter_has_the_largest_modulus_margin(bender) -> None:
     assert margins[bank.fallback] == pytest.approx(margins.max())
 
 
-def _episode(bender: str, plant: str, reference: str, steps: int, controller=None, name="mpc"):
+def _episode(
+    bender: str, plant: str, reference: str, steps: int, controller=None, name="mpc", seed=0
+):
     stroke = get_datasheet(bender).free_deflection * 1e6
     env = gym.make(
         "piezo_env:PiezoBender-v0", preview=20, max_episode_steps=steps, **PLANTS[plant](bender)
@@ -113,8 +112,8 @@ def _episode(bender: str, plant: str, reference: str, steps: int, controller=Non
         nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
         model = "docs/benchmark-PL127/model" if bender == "PL127" else "docs/benchmark/model"
         controller = ctl.make(name, model, nominal)
-    r = make_reference(reference, steps + 21, dt=DT, seed=0, stroke_um=stroke)
-    return ctl.run_episode(env, controller, seed=0, reference=r, stroke_um=stroke), controller
+    r = make_reference(reference, steps + 21, dt=DT, seed=seed, stroke_um=stroke)
+    return ctl.run_episode(env, controller, seed=seed, reference=r, stroke_um=stroke), controller
 
 
 @pytest.mark.parametrize("name", ["mpc", "mpc-adaptive"])
@@ -170,18 +169,7 @@ def test_the_guard_stays_quiet_on_the_nominal_bender(reference) -> None:
 def test_the_guard_stays_quiet_on_nmpc_ringing_after_a_jump(seed) -> None:
     """The nonlinear MPC on the PL140 20 % stiffer rings for about 90 samples after the first
     jump of the steps, at a lag-one correlation near -0.3, and settles: a stable loop."""
-    bender, steps = "PL140", 300
-    stroke = get_datasheet(bender).free_deflection * 1e6
-    env = gym.make(
-        "piezo_env:PiezoBender-v0",
-        preview=20,
-        max_episode_steps=steps,
-        **PLANTS["stiffness+20%"](bender),
-    )
-    nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
-    nmpc = ctl.make("nmpc", "docs/benchmark/model", nominal)
-    r = make_reference("steps", steps + 21, dt=DT, seed=seed, stroke_um=stroke)
-    episode = ctl.run_episode(env, nmpc, seed=seed, reference=r, stroke_um=stroke)
+    episode, _ = _episode("PL140", "stiffness+20%", "steps", 300, name="nmpc", seed=seed)
     assert episode.metrics["observer_fallback_step"] is None
 
 
