@@ -228,7 +228,8 @@ def main() -> None:
         "",
         f"The numpy method makes {mean_passes:.2f} batched network passes per call on average "
         "(a grid pass for the reachable range and the bracket, then Newton passes of two "
-        f"rows); one two-row pass (features + 3 x 32 tanh network in numpy) costs "
+        "rows); one two-row pass (features + "
+        f"{' x '.join(map(str, nls.hidden))} tanh network in numpy) costs "
         f"{pass_time * 1e6:.1f} us here, so numpy's per-call overhead on these tiny arrays, not "
         "the algorithm, sets its floor near two such passes plus the final state update.",
         "",

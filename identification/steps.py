@@ -406,6 +406,7 @@ def fit_nonlinearity(
             z_train,
             features=features,
             hidden=config.hidden,
+            n_bouc_wen=config.n_bouc_wen,
             seed=seeds["nls"] % 2**31,
             max_epochs=config.max_epochs,
             u_range=(-u_max, u_max),

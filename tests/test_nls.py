@@ -438,7 +438,7 @@ def test_from_dict_reports_problems(trained):
         NLS.from_dict({**nls.to_dict(), "version": 99}, arrays)
     with pytest.raises(ValueError, match="missing array"):
         NLS.from_dict(nls.to_dict(), {k: v for k, v in arrays.items() if k != "out_bias"})
-    bad = dict(arrays, layer1_weight=arrays["layer1_weight"][:, :5])
+    bad = dict(arrays, layer1_weight=arrays["layer1_weight"][:, :-1])
     with pytest.raises(ValueError, match="layer1_weight"):
         NLS.from_dict(nls.to_dict(), bad)
     with pytest.raises(ValueError, match="hidden widths"):

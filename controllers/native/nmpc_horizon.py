@@ -14,10 +14,12 @@ triangular Jacobian ``J[k, j] = dz_t+k / du_t+j``. Three ways to get them:
     working compiler the same casadi Function runs in casadi's virtual machine.
 ``GenericHorizon`` (any nonlinearity with ``casadi_step``)
     casadi's Jacobian of the unrolled horizon ``(u, s_t) -> z``: simple and general, but for
-    the 3 x 32 network it differentiates the network N times over (about 1.1 M instructions
+    a 3 x 32 network it differentiates the network N times over (about 1.1 M instructions
     at N = 20).
 
-Measured in one process on the shipped model (N = 20, one BLAS thread, median per call):
+Measured in one process on a model with a 3 x 32 network (the default until the network's
+size was measured in closed loop, see :class:`identification.config.IdentificationConfig`;
+the 3 x 4 default costs less; N = 20, one BLAS thread, median per call):
 
 ==============================================================  ===============
 casadi Jacobian of the unrolled horizon (SX virtual machine)      1 800-3 600 us

@@ -42,7 +42,9 @@ class TrainingSettings:
     levels : sequence of float, optional
         Explicit Bouc-Wen saturation levels, V (overrides ``n_bouc_wen``).
     hidden : tuple of int
-        Hidden-layer widths, at least one (three tanh layers in the paper).
+        Hidden-layer widths, at least one (three tanh layers in the paper; the defaults of
+        ``n_bouc_wen`` and ``hidden`` are :func:`identification.identify`'s, whose
+        :class:`~identification.config.IdentificationConfig` gives the measurements).
     u_range : (float, float), optional
         Input range, V, for the play radii and as the inverse's default search range.
         Default: ``(min(u), max(u))`` of the training record.
@@ -81,9 +83,9 @@ class TrainingSettings:
     n_play: int = 10
     radii: Sequence[float] | None = None
     n_past: int = 5
-    n_bouc_wen: int = 8
+    n_bouc_wen: int = 16
     levels: Sequence[float] | None = None
-    hidden: Sequence[int] = (32, 32, 32)
+    hidden: Sequence[int] = (4, 4, 4)
     u_range: Sequence[float] | None = None
     initial_input: float = 0.0
     seed: int = 0
