@@ -58,9 +58,9 @@ VARIANTS: dict[str, dict[str, Any]] = {
     WIDE: WIDE_SETTINGS,
 }
 """Identification settings compared: the paper's steps a-f with its +-1 V PRBS and SINE
-excitation (and the earlier network, :data:`WIDE`); the defaults without step e' (the default
-PRBS level, the rich excitation, a decaying multisine, and step b', the output-error refinement
-of the linear part); the defaults (that, and step e': the output-error refinement of the whole
+excitation (and the earlier network, :data:`WIDE_SETTINGS`); the defaults without step e' (the
+default PRBS level, the rich excitation, RAND, and step b', the output-error refinement of the
+linear part); the defaults (that, and step e': the output-error refinement of the whole
 model)."""
 LINEAR = "PL140 without hysteresis"
 """The diagnostic plant: the PL140 with ``hysteresis=None``, identified with the defaults."""
@@ -371,7 +371,7 @@ def report(results: dict[str, Any]) -> list[str]:
         '(`refinement="none", rich_signal="sine", nls_refinement="none", prbs_amplitude=1.0`)'
         " and the earlier 3 x 32 network with 8 Bouc-Wen operators,"
         f" *linear part refined* with the +-{IdentificationConfig().prbs_amplitude:g} V PRBS,"
-        " the rich excitation (decaying multisine) and step b', the output-error"
+        " the default rich excitation (RAND +-30 V, hold 10) and step b', the output-error"
         ' refinement of the linear part, but not step e\' (`nls_refinement="none"`), *after* '
         "with the defaults (that, and step e', the output-error refinement of the whole "
         "model: the network, then network and linear part). Controllers `mpc` and `pid-ff` on"

@@ -11,13 +11,23 @@ from piezo_env.checks import require_int, require_number
 from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 from piezo_env.task import TaskConfig
 
-__all__ = ["NLS_REFINEMENTS", "ORDER_TIE_PERCENT", "REFINEMENTS", "IdentificationConfig"]
+__all__ = [
+    "NLS_REFINEMENTS",
+    "ORDER_TIE_PERCENT",
+    "REFINEMENTS",
+    "RICH_DEFAULTS",
+    "IdentificationConfig",
+]
 
 REFINEMENTS = ("output-error", "none")
 """Choices of ``IdentificationConfig.refinement`` (step b')."""
 
 NLS_REFINEMENTS = ("output-error", "none")
 """Choices of ``IdentificationConfig.nls_refinement`` (step e')."""
+
+RICH_DEFAULTS: dict[str, dict[str, float]] = {"random": {"hold": 10}, "sine": {"frequency": 5.0}}
+"""Parameters of the rich signal when ``rich_params`` is None: RAND with the hold of the paper's
+validation signal (samples), the paper's 5 Hz sine (Hz)."""
 
 ORDER_TIE_PERCENT = 0.25
 """Held-out fits (percentage points) this close to the best count as a tie between orders."""
@@ -39,14 +49,13 @@ class IdentificationConfig:
         only by the stroke: the white PRBS rings the first bending mode (a +-30 V PRBS would
         drive a PL140 to ~11x its rated deflection), and at 2 V its peak stays within 0.19-0.83
         of the rated deflection on every catalogue bender (PL112 0.19, PL140 0.68, PL127 0.83;
-        seeds 0-4), against 0.10-0.42 at 1 V. The PRBS is the linear part's only record above
-        the rich signal's tones, so its level sets the signal-to-noise ratio there. Measured on
-        identification seeds 0-4 (``benchmarks/identification_precision.py``, worst closed-loop
-        ratio of ``mpc`` to the oracle, 1 V -> 2 V): 100 Hz sine PL140 2.96 -> 1.95, PL122
-        1.69 -> 1.42, but PL127 1.31 -> 1.37; 50 Hz sine PL140 2.93 -> 2.77, PL122 1.33 -> 1.18,
-        PL127 1.30 -> 1.22. The 10 Hz sine and the triangle, where the network's hysteresis sets
-        the gap (the PL140 without hysteresis is at 1.06 and 1.08 there), are 3-6 % worse on
-        every bender (PL140 1.80 -> 1.87 and 2.06 -> 2.19).
+        seeds 0-4), against 0.10-0.42 at 1 V. It sets the signal-to-noise ratio of steps b and
+        b' (the linear part alone), and above the rich record's band (about 100 Hz) of step
+        e'. Measured with the earlier defaults (3 x 32 network, decaying-multisine rich
+        record; ``benchmarks/identification_precision.py``, worst closed-loop ratio of ``mpc``
+        to the oracle over identification seeds 0-4, 1 V -> 2 V): 100 Hz sine PL140 2.96 ->
+        1.95, PL122 1.69 -> 1.42, but PL127 1.31 -> 1.37; 50 Hz sine PL140 2.93 -> 2.77, PL122
+        1.33 -> 1.18, PL127 1.30 -> 1.22.
     prbs_clock : int
         PRBS clock period (samples).
     prbs_samples : int
@@ -60,16 +69,26 @@ class IdentificationConfig:
         (:func:`identification.steps.refine_linear_part`); ``"none"`` keeps the step b
         estimate (the paper's procedure as it is).
     rich_signal : str
-        Rich excitation for the NLS: ``"decaying-multisine"`` (default: 1, 3 and 7 Hz under a
-        decaying envelope, so that the bender traces nested minor loops at every amplitude up
-        to ``rich_amplitude``), ``"sine"`` (the paper's, one major loop: an NLS trained on it
-        errs most on loops of half the stroke, where tracking references live), ``"random"``,
-        ``"multisine"``, ...
+        Rich excitation for the NLS and for step e': ``"random"`` (default: RAND, a new level
+        drawn uniformly in +-``rich_amplitude`` every 10 samples, the paper's validation signal;
+        the bender traces random loops at every amplitude, and the record carries large-signal
+        power up to about 100 Hz), ``"decaying-multisine"`` (1, 3 and 7 Hz under a decaying
+        envelope: nested minor loops at every amplitude), ``"sine"`` (the paper's, one major
+        loop: an NLS trained on it errs most on loops of half the stroke, where tracking
+        references live), ``"multisine"``, ... Step e' estimates the linear part from the PRBS
+        and this record together, and the +-2 V PRBS alone leaves it uncertain by a few 1e-4
+        between 50 and 100 Hz, which the MPC pays at those frequencies. Measured on
+        identification seeds 0-4 (worst ratio of the precision benchmark's ``mpc`` to the
+        oracle at 10 / 50 / 100 Hz, triangle, multisine), decaying multisine -> RAND: PL140
+        1.20 / 1.77 / 1.66 / 1.35 / 1.12 -> 1.16 / 1.43 / 1.30 / 1.37 / 1.16, PL127 1.04 /
+        1.08 / 1.05 / 1.03 / 1.05 -> 1.02 / 1.03 / 1.08 / 1.02 / 1.05, PL122 1.04 / 1.08 / 1.14
+        / 1.04 / 1.04 -> 1.03 / 1.03 / 1.13 / 1.03 / 1.05; identification 8-11 s against 6-8 s.
+        (A 16000-sample PRBS instead: PL140 1.16 / 1.64 / 1.45 / 1.34 / 1.11.)
     rich_amplitude : float
         Its amplitude (V).
     rich_params : dict or None
-        Further parameters of the rich signal (e.g. frequency, Hz); None: 5 Hz for the sine,
-        ``piezo_env.signals.SIGNAL_DEFAULTS`` for the others.
+        Further parameters of the rich signal (e.g. frequency, Hz); None: :data:`RICH_DEFAULTS`
+        for the random signal and the sine, ``piezo_env.signals.SIGNAL_DEFAULTS`` for the others.
     rich_samples : int
         Length of the rich record.
     features : str
@@ -126,7 +145,7 @@ class IdentificationConfig:
     prbs_samples: int = 8000
     orders: tuple[int, ...] = (2, 3, 4, 5, 6)
     refinement: str = "output-error"
-    rich_signal: str = "decaying-multisine"
+    rich_signal: str = "random"
     rich_amplitude: float = 30.0
     rich_params: dict | None = None
     rich_samples: int = 12000
@@ -186,6 +205,6 @@ class IdentificationConfig:
         """Parameters of the rich signal besides its amplitude."""
         if self.rich_params is not None:
             return dict(self.rich_params)
-        if self.rich_signal == "sine":
-            return {"frequency": 5.0}
+        if self.rich_signal in RICH_DEFAULTS:
+            return dict(RICH_DEFAULTS[self.rich_signal])
         return dict(SIGNAL_DEFAULTS.get(self.rich_signal, {}))

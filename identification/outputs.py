@@ -248,7 +248,9 @@ def _refinement_section(
             static_gain_um_per_V=model.static_gain(),
             noise_bound_um=model.noise_bound,
             prbs_free_run_rms_um=prbs_rms[key],
-            validation_linear_fit_percent=validation_fit[key]["fit_percent"],
+            validation_linear_fit_percent=(
+                None if validation_fit[key] is None else validation_fit[key]["fit_percent"]
+            ),
         )
     return section
 

@@ -11,8 +11,9 @@ b') :func:`refine_linear_part`: refine the linear part by output error, started 
    (mostly in the zeros, which the inverse of step d and the MPC invert); the prediction-error
    estimate of the output-error model is not (:mod:`identification.refine`). Its order is chosen
    again, by minimum description length. Steps d-f use the refined linear part;
-c) :func:`excite_rich`: excite it with a rich signal (a decaying multisine by default: nested
-   minor loops at every amplitude; the paper's SINE is ``rich_signal="sine"``);
+c) :func:`excite_rich`: excite it with a rich signal (RAND +-30 V, hold 10, by default: random
+   loops at every amplitude and large-signal power up to about 100 Hz for the linear part in
+   step e'; the paper's SINE is ``rich_signal="sine"``);
 d) :func:`estimate_hidden_signal`: estimate the hidden signal z_t by inverting the ARX model
    (eq. 25), or by a regularised least-squares deconvolution when the estimated B polynomial is
    not minimum-phase (:mod:`identification.inversion`);
@@ -58,6 +59,7 @@ from identification.outputs import (
     model_metadata,
     write_outputs,
 )
+from identification.report import format_free_run
 from identification.steps import (
     ArxEstimate,
     HiddenSignal,
@@ -170,8 +172,9 @@ def _refinement_line(refinement: LinearRefinement) -> str:
     return (
         f"b') output-error refinement: order {refinement.order} (held-out free-run RMS "
         + ", ".join(f"n={k}: {v:.3f}" for k, v in refinement.order_scores.items())
-        + f" um); free-run RMS on the PRBS record {refinement.unrefined_output_error_rms:.3f} -> "
-        f"{fit.output_error_rms:.3f} um, zeros "
+        + " um); free-run RMS on the PRBS record "
+        + format_free_run(refinement.unrefined_output_error_rms, ".3f")
+        + f" -> {fit.output_error_rms:.3f} um, zeros "
         + ", ".join(f"{z:.3f}" for z in refinement.model.zeros())
     )
 

@@ -51,6 +51,11 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
     return "\n".join(lines)
 
 
+def format_free_run(value: float | None, spec: str) -> str:
+    """A free-run figure, or why there is none (an unstable estimate)."""
+    return "unstable (no free run)" if value is None else format(value, spec)
+
+
 def _validation_section(val: dict[str, Any]) -> list[str]:
     lines = [
         "## Validation (free run on fresh data)",
@@ -165,15 +170,15 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
         _row(
             [
                 "free-run RMS on the PRBS record (um)",
-                f"{before['prbs_free_run_rms_um']:.3f}",
-                f"{after['prbs_free_run_rms_um']:.3f}",
+                format_free_run(before["prbs_free_run_rms_um"], ".3f"),
+                format_free_run(after["prbs_free_run_rms_um"], ".3f"),
             ]
         ),
         _row(
             [
                 "linear free-run fit on the validation record (%)",
-                f"{before['validation_linear_fit_percent']:.2f}",
-                f"{after['validation_linear_fit_percent']:.2f}",
+                format_free_run(before["validation_linear_fit_percent"], ".2f"),
+                format_free_run(after["validation_linear_fit_percent"], ".2f"),
             ]
         ),
         _row(["zeros", _roots(before["zeros"]), _roots(after["zeros"])]),

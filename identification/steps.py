@@ -95,9 +95,10 @@ class LinearRefinement:
     description_length : dict
         Minimum description length of every candidate order on the estimation part (the
         smallest wins).
-    unrefined_output_error_rms : float
+    unrefined_output_error_rms : float or None
         Free-run RMS error (um) of the step b estimate on the whole PRBS record, for comparison
-        with ``fit.output_error_rms``.
+        with ``fit.output_error_rms``; None when that estimate is unstable (it has no free run:
+        seen on the PL140 with identification seed 9, where step b' then gives a stable model).
     """
 
     model: ARXModel
@@ -105,7 +106,7 @@ class LinearRefinement:
     fit: OutputErrorFit
     order_scores: dict[int, float]
     description_length: dict[int, float]
-    unrefined_output_error_rms: float
+    unrefined_output_error_rms: float | None
 
 
 @dataclass
@@ -348,7 +349,9 @@ def refine_linear_part(est: ArxEstimate, u: np.ndarray, y: np.ndarray) -> Linear
         order -= 1  # the larger order must also predict unseen data better
     scores = {n: float(np.sqrt(e.mean())) for n, e in errors.items()}
     fit = refine_output_error(refined[order], u, y)
-    unrefined = float(np.sqrt(np.mean((y - est.model.simulate(u)) ** 2)))
+    unrefined = None
+    if est.model.is_stable():
+        unrefined = float(np.sqrt(np.mean((y - est.model.simulate(u)) ** 2)))
     return LinearRefinement(fit.model, order, fit, scores, mdl, unrefined)
 
 
@@ -497,8 +500,9 @@ def validate(
 ) -> Validation:
     """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data.
 
-    ``unrefined``: the step b estimate when step b' replaced it, run free as well;
-    ``unrefined_nls``: step e's model when step e' replaced it, run free as well.
+    ``unrefined``: the step b estimate when step b' replaced it, run free as well (its metrics
+    are None when it is unstable: it has no free run); ``unrefined_nls``: step e's model when
+    step e' replaced it, run free as well.
     """
     record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
     u, y = collect(env, record, seed=seeds["env"] + 3)
@@ -510,7 +514,9 @@ def validate(
         "hammerstein_one_step": fit_metrics(y, y_pred, stroke=stroke),
     }
     if unrefined is not None and unrefined is not model.arx:
-        metrics["linear_arx_unrefined"] = fit_metrics(y, unrefined.simulate(u), stroke=stroke)
+        metrics["linear_arx_unrefined"] = (
+            fit_metrics(y, unrefined.simulate(u), stroke=stroke) if unrefined.is_stable() else None
+        )
     if unrefined_nls is not None and unrefined_nls is not model:
         metrics["hammerstein_unrefined_nls"] = fit_metrics(
             y, unrefined_nls.simulate(u), stroke=stroke

@@ -118,6 +118,40 @@ def test_order_selection_prefers_the_true_order_over_larger_ones():
     assert refinement.fit.output_error_rms <= refinement.unrefined_output_error_rms
 
 
+def test_an_unstable_step_b_estimate_is_reported_without_a_free_run():
+    """Step b's equation-error estimate can come out unstable (seen on the PL140 with seed 9);
+    step b' still refines its stable candidates, and the step b model's free-run figures are
+    None (no free run), not an overflow that stops the identification."""
+    from identification.report import format_free_run
+    from identification.steps import validate
+
+    u, _, y = _oe_record(4000, 0.3, seed=6)
+    candidates = {2: fit_arx(u[:3000], y[:3000], na=2, nb=2, method="least-squares")}
+    unstable = ARXModel([2.1, -1.0], [1.0, 0.5])
+    assert not unstable.is_stable()
+    est = ArxEstimate(unstable, 2, {}, unstable, unstable, candidates)
+    refinement = refine_linear_part(est, u, y)
+    assert refinement.unrefined_output_error_rms is None
+    np.testing.assert_allclose(refinement.model.theta, np.r_[F_TRUE, B_TRUE], atol=0.02)
+    assert format_free_run(refinement.unrefined_output_error_rms, ".3f") == (
+        "unstable (no free run)"
+    )
+
+    import gymnasium as gym
+
+    from identification.hammerstein import HammersteinModel
+    from identification.nls import fit_nls
+
+    env = gym.make("piezo_env:PiezoBender-v0")
+    ramp = np.linspace(-30.0, 30.0, 400)
+    nls = fit_nls(ramp, ramp, features="past-inputs", max_epochs=0, u_range=(-30.0, 30.0))
+    model = HammersteinModel(nls, ARXModel([0.5], [1.0], dt=1e-3))
+    config = IdentificationConfig(validation_samples=400)
+    val = validate(env, model, config, {"validation": 1, "env": 2}, unrefined=unstable)
+    assert val.metrics["linear_arx_unrefined"] is None
+    assert np.isfinite(val.metrics["hammerstein"]["fit_percent"])
+
+
 def test_refined_pl140_linear_part_fits_fresh_prbs_data_at_least_as_well():
     """On the default PL140 (sensor noise on), the refined linear part's free-run fit on a
     fresh PRBS record (the linear regime: under a two-level input the hysteresis is affine) is
