@@ -349,7 +349,7 @@ def seed_section(results: dict[str, Any], plant: str, variant: str, text: str) -
 
 WIDE_TEXT = (
     "The defaults with the NLS network of the earlier default, 3 x 32 tanh units and 8 "
-    "Bouc-Wen operators ({fits}, {orders}, {times}), against the defaults' 3 x 4 and 16 "
+    "Bouc-Wen operators ({fits}, {orders}, {times}), against the defaults' 3 x 2 and 16 "
     "operators above. The wider network fits the validation record no better, but its "
     "errors of about 1e-4 of the stroke change from seed to seed and the MPC, which trusts "
     "its model, pays for them."

@@ -19,7 +19,7 @@ triangular Jacobian ``J[k, j] = dz_t+k / du_t+j``. Three ways to get them:
 
 Measured in one process on a model with a 3 x 32 network (the default until the network's
 size was measured in closed loop, see :class:`identification.config.IdentificationConfig`;
-the 3 x 4 default costs less; N = 20, one BLAS thread, median per call):
+the 3 x 2 default costs less; N = 20, one BLAS thread, median per call):
 
 ==============================================================  ===============
 casadi Jacobian of the unrolled horizon (SX virtual machine)      1 800-3 600 us

@@ -19,7 +19,7 @@ the residual. Consequences:
 Run time
 --------
 After training the numpy arrays are the source of truth: the NLS evaluates in numpy (a 3 x 32
-MLP step costs ~10 us, the default 3 x 4 less), exports to a pure-numpy evaluator
+MLP step costs ~10 us, the default 3 x 2 less), exports to a pure-numpy evaluator
 (:meth:`NLS.to_numpy`) and to casadi (:meth:`NLS.to_casadi`, :meth:`NLS.to_casadi_step`), and
 builds a torch module only for training (:meth:`NLS.to_torch`). Nothing here needs torch at
 run time except :func:`fit_nls`.

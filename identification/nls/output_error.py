@@ -37,8 +37,8 @@ concentrated out (``sum_r N_r log SSE_r``, which weighs the small PRBS up) 2.14 
 1.87 / 2.89 / 1.83 / 2.28 / 2.01. The single seeds moved by up to 0.5 either way: what limits
 those ratios is the estimate's spread from seed to seed, not the weighting. That spread came
 from the wide network and from stopping the search at its cap; with the defaults of
-:class:`identification.config.IdentificationConfig` (3 x 4 network, RAND rich record, 300
-iterations) the same ratios are 1.04 / 1.21 / 1.02 / 1.09 / 1.12.
+:class:`identification.config.IdentificationConfig` (3 x 2 network, RAND rich record, 300
+iterations) the same ratios are 1.06 / 1.21 / 1.02 / 1.08 / 1.06.
 """
 
 from __future__ import annotations
