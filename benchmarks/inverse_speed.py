@@ -36,6 +36,13 @@ ROUNDS = 5
 CARTPOLE_STEPS = 4000  # per round
 
 
+def _network_size(hidden: tuple[int, ...]) -> str:
+    """``3 x 32`` for three layers of 32, ``16-8`` for unequal widths."""
+    if len(set(hidden)) == 1:
+        return f"{len(hidden)} x {hidden[0]}"
+    return "-".join(map(str, hidden))
+
+
 def old_solve_inverse(nls, target: float, state: np.ndarray, n_grid: int = 65):
     """The previous method: grid over the range, Brent's method in each sign change.
 
@@ -229,7 +236,7 @@ def main() -> None:
         f"The numpy method makes {mean_passes:.2f} batched network passes per call on average "
         "(a grid pass for the reachable range and the bracket, then Newton passes of two "
         "rows); one two-row pass (features + "
-        f"{' x '.join(map(str, nls.hidden))} tanh network in numpy) costs "
+        f"{_network_size(nls.hidden)} tanh network in numpy) costs "
         f"{pass_time * 1e6:.1f} us here, so numpy's per-call overhead on these tiny arrays, not "
         "the algorithm, sets its floor near two such passes plus the final state update.",
         "",

@@ -39,6 +39,7 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         *_arx_section(report["arx"], report["inversion"]),
         *_refinement_section(report.get("refinement")),
         *_nls_section(report["nls"], env["noise_bound_um"]),
+        *_scope_section(report),
         "## Timings (s)",
         "",
         ", ".join(f"{k}: {v}" for k, v in report["timings_s"].items()),
@@ -49,6 +50,77 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _final_linear_part(report: dict[str, Any]) -> dict[str, Any] | None:
+    """The linear part the model ships (after step e' when it was kept, else after b')."""
+    refined = (report["nls"].get("output_error") or {}).get("linear_part")
+    if refined is not None and report["nls"]["output_error"].get("accepted"):
+        return refined
+    refinement = report.get("refinement")
+    return None if refinement is None else refinement["after"]
+
+
+def _scope_section(report: dict[str, Any]) -> list[str]:
+    """What the identified model is good for and what not, from this run's own figures."""
+    config, val, env = report["config"], report["validation"], report["environment"]
+    noise_rms = env["noise_bound_um"] / 3**0.5  # uniform sensor noise
+    fit, rmse = val["hammerstein"]["fit_percent"], val["hammerstein"]["rmse"]
+    rich = config["rich_signal"]
+    band = ""
+    if rich == "random":
+        hold = (config.get("rich_params") or {}).get("hold", 10)
+        band = f" and references up to about {1.0 / (hold * env['dt_s']):.0f} Hz (its band)"
+    loops = {
+        "random": "loops of every size",
+        "decaying-multisine": "nested loops of every size",
+        "sine": "one major loop only",
+    }.get(rich, "what that record drew")
+    if rmse <= 1.1 * noise_rms:
+        check = "what a measurement can check of it, it predicts"
+    else:
+        check = "the model misses part of what the sensor sees"
+    good = [
+        f"- **Good for** model-based control of this bender (MPC, feedforward) with drive "
+        f"voltages within +-{config['rich_amplitude']:g} V, the range of the rich record"
+        f"{band}: the network saw {loops} there ({rich} record). On fresh data (RAND "
+        f"+-{config['validation_amplitude']:g} V) the free run errs by {rmse:.2f} um RMS (fit "
+        f"{fit:.2f} %), against {noise_rms:.2f} um RMS of sensor noise: {check}. What it costs "
+        "an MPC against the plant's own model is measured in "
+        "`benchmarks/results/identification_precision.md`.",
+    ]
+    linear = _final_linear_part(report)
+    if linear is not None:
+        pairs = list(zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True))
+        band = [e for f, e in pairs if f <= 100.0]
+        above = [f"{100 * e:.2f} % at {f:g} Hz" for f, e in pairs if f > 100.0]
+        good.append(
+            f"- Its linear part (order {linear['order']}) follows the plant's within "
+            f"{100 * max(band):.3f} % up to 100 Hz (response shape against the true plant, "
+            "simulation only); above, where only the small PRBS informed it, "
+            + (", ".join(above) if above else "nothing was checked")
+            + "."
+        )
+    one_step = val.get("hammerstein_one_step", {}).get("fit_percent")
+    not_good = [
+        "- **Not good for** voltages beyond the identified range (the network continues along "
+        "its affine part: the physics of small signals, not of saturation or depolarisation);",
+        "- rate-dependent hysteresis or creep: the memory features are rate-independent, and "
+        "records of seconds do not show a drift over minutes;",
+    ]
+    if one_step is not None:
+        not_good.append(
+            "- one-step-ahead prediction with the ARX part's own noise model (fit "
+            f"{one_step:.2f} %, below the free run's {fit:.2f} %): its equation error is not the "
+            "sensor's output noise, so an observer should be designed for output noise, as the "
+            "MPC's is (`controllers.observer`);"
+        )
+    not_good.append(
+        "- another bender of the family, or this one after its parameters moved (temperature, "
+        "load, ageing): the model is fixed; the robustness rows of `piezo benchmark` measure "
+        "what that costs, and `mpc-adaptive` re-estimates the linear part online."
+    )
+    return ["## What this model is good for, and what not", "", *good, *not_good, ""]
 
 
 def format_free_run(value: float | None, spec: str) -> str:

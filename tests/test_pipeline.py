@@ -233,6 +233,38 @@ def test_markdown_report_names_only_existing_repository_files(short_default_run)
     assert "z_error_bound" not in text and "r_hat ||1/B||_1" in text
 
 
+def test_markdown_report_says_what_the_model_is_good_for_from_its_own_figures(short_default_run):
+    """The scope section quotes this run's free-run error against the sensor noise and the
+    shipped linear part's order and response error, and turns its verdict when the free run
+    errs well above the noise."""
+    import copy
+
+    from identification.report import markdown_report
+
+    report = short_default_run.report
+    text = markdown_report(report, [])
+    section = text[text.index("## What this model is good for") :]
+    section = section[: section.index("\n## ", 1)]
+    rmse = report["validation"]["hammerstein"]["rmse"]
+    assert f"errs by {rmse:.2f} um RMS" in section
+    noise_rms = report["environment"]["noise_bound_um"] / np.sqrt(3.0)
+    assert f"against {noise_rms:.2f} um RMS of sensor noise" in section
+    linear = report["nls"]["output_error"]["linear_part"]
+    assert f"linear part (order {linear['order']})" in section
+    shipped = [
+        e
+        for f, e in zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True)
+        if f <= 100
+    ]
+    assert f"within {100 * max(shipped):.3f} % up to 100 Hz" in section
+    assert "**Not good for**" in section
+    verdict = "what a measurement can check of it, it predicts"
+    assert (verdict in section) == (rmse <= 1.1 * noise_rms)
+    worse = copy.deepcopy(report)
+    worse["validation"]["hammerstein"]["rmse"] = 3 * noise_rms
+    assert "the model misses part of what the sensor sees" in markdown_report(worse, [])
+
+
 def test_collect_aligns_y_before_u_as_simulate_does():
     """y[t] from collect is the deflection before u[t]: the model predicts it from u[:t]."""
     import gymnasium as gym
