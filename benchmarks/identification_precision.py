@@ -303,7 +303,7 @@ def _seed_table(results: dict[str, Any], bender: str) -> list[str]:
 
 def seed_section(results: dict[str, Any], plant: str, variant: str, text: str) -> list[str]:
     """Per-seed ratios of one (plant, variant) with ``mpc`` only; ``text`` introduces them
-    (``{fits}`` and ``{orders}`` are filled in)."""
+    (``{fits}``, ``{orders}`` and ``{times}`` are filled in)."""
     oracle = results["oracle"][plant]["mpc"]
     runs = {s: results["identified"][(plant, s, variant)] for s in SEEDS}
     rows = []

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from identification.config import RICH_DEFAULTS
+
 __all__ = ["markdown_report"]
 
 
@@ -69,7 +71,7 @@ def _scope_section(report: dict[str, Any]) -> list[str]:
     rich = config["rich_signal"]
     band = ""
     if rich == "random":
-        hold = (config.get("rich_params") or {}).get("hold", 10)
+        hold = (config.get("rich_params") or RICH_DEFAULTS["random"])["hold"]
         band = f" and references up to about {1.0 / (hold * env['dt_s']):.0f} Hz (its band)"
     loops = {
         "random": "loops of every size",
@@ -92,11 +94,11 @@ def _scope_section(report: dict[str, Any]) -> list[str]:
     linear = _final_linear_part(report)
     if linear is not None:
         pairs = list(zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True))
-        band = [e for f, e in pairs if f <= 100.0]
+        within = [e for f, e in pairs if f <= 100.0]
         above = [f"{100 * e:.2f} % at {f:g} Hz" for f, e in pairs if f > 100.0]
         good.append(
             f"- Its linear part (order {linear['order']}) follows the plant's within "
-            f"{100 * max(band):.3f} % up to 100 Hz (response shape against the true plant, "
+            f"{100 * max(within):.3f} % up to 100 Hz (response shape against the true plant, "
             "simulation only); above, where only the small PRBS informed it, "
             + (", ".join(above) if above else "nothing was checked")
             + "."
