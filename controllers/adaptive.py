@@ -339,7 +339,8 @@ class AdaptiveMPC(LinearMPC):
 
     def _act(self, observation: np.ndarray) -> float:
         u = super()._act(observation)
-        self._record(self._z_prev, float(observation[0]), float(observation[0] - observation[1]))
+        y = float(observation[0])
+        self._record(self._z_applied, y, y - float(observation[1]))
         return u
 
     # -- adaptation -----------------------------------------------------------------------------
@@ -567,9 +568,15 @@ class AdaptiveMPC(LinearMPC):
         if candidate.correction is not None:
             self._correction = candidate.correction
         a, b, c, _ = candidate.arx.state_space_matrices()
+        # The candidate was fit on the applied z, so it carries the gain the MPC had learned:
+        # back to the applied scale, and the gain is learned afresh around the new model.
+        self.observer.rescale_input(1.0 / self._g)
+        self._plan = self._plan / self._g
+        self._z_prev = self._z_applied
         estimate_before = self.observer.estimate.copy()
         self._rebuild(dataclasses.replace(self._offline, a=a, b=b, c=c))
         self._reset_observer(self._consistent_estimate(estimate_before, candidate.arx))
+        self._restart_gain(self.observer.estimate[: self.observer.n])
 
     def _reset_observer(
         self, estimate: np.ndarray, selected: int | None = None, runaway_at: int | None = None

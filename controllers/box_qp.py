@@ -154,6 +154,13 @@ class BoxQP:
         x = np.clip(result.x, self.lower, self.upper)
         return BoxQPSolution(x, result.y, status, iterations)
 
+    def set_rate(self, rate: float) -> None:
+        """A new rate bound (QP set up with a rate); it takes effect at the next
+        :meth:`solve` with ``bounds``."""
+        if self._rate is None:
+            raise ValueError("this QP was set up without rate rows; pass rate= to BoxQP")
+        self._rate[:] = rate
+
     def _rows(self) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of the constraint rows: the box, then the rate rows."""
         if self._rate is None:

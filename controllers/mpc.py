@@ -51,9 +51,16 @@ import numpy as np
 import osqp
 
 from controllers.box_qp import BoxQP, within
+from controllers.gain import GainEstimate
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
-from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
+from controllers.settings import (
+    DISTURBANCE_STD,
+    GAIN_TOLERANCE,
+    PROCESS_STD,
+    check_settings,
+    measurement_std,
+)
 
 __all__ = ["LinearMPC", "MPCSettings", "smallest_slope"]
 
@@ -109,6 +116,11 @@ class MPCSettings:
         approximation (see :mod:`controllers.box_qp`). Smooth references rarely touch the
         bounds, so most steps cost one matrix-vector product; OSQP (warm-started) solves the
         others.
+    gain_tolerance : float
+        Relative half-width w (-) of the plant's static gain around the model's: the MPC
+        learns the gain inside [1 - w, 1 + w] from the first sample and predicts with the
+        point of its 95 % credible set nearest the model's (:mod:`controllers.gain`). Default:
+        the datasheet's +-20 % on the free deflection. 0: predict with the model's gain.
     """
 
     horizon: int = 20
@@ -123,14 +135,19 @@ class MPCSettings:
     eps_rel: float = 1e-6
     max_iter: int = 1000
     shortcut: bool = True
+    gain_tolerance: float = GAIN_TOLERANCE
 
     def __post_init__(self) -> None:
         check_settings(
             self,
             integers=("horizon", "max_iter"),
-            non_negative=("rate_weight", "process_std", "slope_std"),
+            non_negative=("rate_weight", "process_std", "slope_std", "gain_tolerance"),
             positive=("disturbance_std", "eps_abs", "eps_rel"),
         )
+        if not self.gain_tolerance < 1.0:
+            raise ValueError(
+                f"gain_tolerance must be < 1 (a relative half-width), got {self.gain_tolerance!r}"
+            )
 
 
 class LinearMPC(PredictiveController):
@@ -153,6 +170,15 @@ class LinearMPC(PredictiveController):
         self._upper = np.full(settings.horizon, z_max)
         self._slew_step = self.task.slew_step
         self._n_rows = settings.horizon
+        self._gain: GainEstimate | None = None
+        if settings.gain_tolerance > 0:
+            self._gain = GainEstimate(
+                self.model.a,
+                self.model.b,
+                self.model.c,
+                tolerance=settings.gain_tolerance,
+                noise_std=measurement_std(settings.measurement_std, self.task),
+            )
         if self._slew_step is not None:
             self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
             self._n_rows = 2 * settings.horizon - 1
@@ -174,12 +200,48 @@ class LinearMPC(PredictiveController):
         self._qp = self._setup_solver()
         self._plan = np.full(self.settings.horizon, start.z)
         self._duals: np.ndarray | None = None
-        self._z_prev = start.z
+        self._z_prev = start.z  # the model's input (g z, equivalent V)
+        self._z_applied = start.z  # the nonlinearity's output (equivalent V)
         self._u_prev = float(np.float32(start.u))
+        self._restart_gain(start.x)
+
+    def _restart_gain(self, x0: np.ndarray) -> None:
+        """The gain back at the model's (1), learned afresh from the model's state ``x0``."""
+        self._g = 1.0
+        if self._gain is not None:
+            self._gain.reset(x0)
+
+    @property
+    def gain(self) -> float:
+        """The plant's gain relative to the model the MPC predicts with now (-)."""
+        return self._g
+
+    @property
+    def gain_set(self) -> tuple[float, float]:
+        """The gain's 95 % credible set within the datasheet's (-, relative to the model)."""
+        return (1.0, 1.0) if self._gain is None else self._gain.set
+
+    def _update_gain(self, y: float) -> None:
+        """Learn the gain from the measurement y (um); on a change, carry the plan, the last
+        input and the observer's state to the new input scale g z."""
+        if self._gain is None:
+            return
+        g = self._gain.update(y)
+        if g != self._g:
+            ratio = g / self._g
+            self.observer.rescale_input(ratio)
+            self._plan = self._plan * ratio
+            self._z_prev *= ratio
+            self._g = g
+            if self._slew_step is not None:
+                self._qp.set_rate(g * self.z_rate)
 
     def _act(self, observation: np.ndarray) -> float:
-        estimate = self.observer.correct(float(observation[0]))
-        z_target = self._solve(estimate, self.task.targets(observation, self.settings.horizon))
+        y = float(observation[0])
+        self._update_gain(y)
+        estimate = self.observer.correct(y)
+        z_model = self._solve(estimate, self.task.targets(observation, self.settings.horizon))
+        z_target = z_model / self._g
         if self._slew_step is not None:
             return self._act_slewing(z_target)
         inverse = self.model.nonlinearity.inverse(z_target, self._memory)
@@ -188,9 +250,16 @@ class LinearMPC(PredictiveController):
         # the inverse's own tolerance, so the memory state and z of the inverse stand.
         u = float(np.float32(inverse.u))
         z, self._memory = inverse.z, inverse.state
-        self.observer.predict(z)
-        self._z_prev = z
+        self._applied(z)
         return u
+
+    def _applied(self, z: float) -> None:
+        """Time updates with the hidden signal z the nonlinearity produced (equivalent V)."""
+        if self._gain is not None:
+            self._gain.advance(z)
+        self._z_applied = z
+        self._z_prev = self._g * z
+        self.observer.predict(self._z_prev)
 
     def _slew_window(self) -> tuple[float, float]:
         """Voltages (V) reachable this sample: u_t-1 +- S dt within the drive range."""
@@ -211,13 +280,13 @@ class LinearMPC(PredictiveController):
             u = min(max(u, low), high)
             z, self._memory = nonlinearity.step(u, self._memory)
             self.stats.inverse["slew-window"] += 1
-        self.observer.predict(z)
-        self._z_prev = z
+        self._applied(z)
         self._u_prev = u
         return u
 
     def _solve(self, estimate: np.ndarray, targets: np.ndarray) -> float:
-        """First move z_t (equivalent V) of the QP for the estimate [x; d] and targets (um)."""
+        """First move of the model's input g z_t (equivalent V) of the QP for the estimate
+        [x; d] and targets (um); the bounds are the nonlinearity's times the gain g."""
         n = estimate.size
         stacked = self._vector  # [x; d; r_t+1 .. r_t+N; z_t-1]: q = G stacked
         stacked[:n] = estimate
@@ -227,7 +296,10 @@ class LinearMPC(PredictiveController):
             low, high = self.model.nonlinearity.reachable(self._memory)
         else:
             low, high = self._reachable_in_window()
-        self._lower[0], self._upper[0] = low, high
+        g = self._g
+        z_min, z_max = self.model.z_bounds
+        self._lower[1:], self._upper[1:] = g * z_min, g * z_max
+        self._lower[0], self._upper[0] = g * low, g * high
         if self.settings.shortcut:
             plan = self._unconstrained @ stacked
             if within(plan, self._lower, self._upper) and self._rates_within(plan):
@@ -262,7 +334,7 @@ class LinearMPC(PredictiveController):
         limit)."""
         if self._slew_step is None:
             return True
-        return bool(np.all(np.abs(np.diff(plan)) <= self.z_rate))
+        return bool(np.all(np.abs(np.diff(plan)) <= self._g * self.z_rate))
 
     def describe(self) -> dict:
         """Settings, model source and observer speed (JSON-safe)."""

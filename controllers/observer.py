@@ -59,6 +59,7 @@ __all__ = [
     "DisturbanceObserver",
     "ObserverBank",
     "make_observer",
+    "rescale_states",
     "state_scale_of",
 ]
 
@@ -184,6 +185,12 @@ class DisturbanceObserver:
     def predict(self, z: float) -> None:
         """Time update with the hidden input z actually applied (equivalent V)."""
         self.estimate = self.a_aug @ self.estimate + self.b_aug * z
+
+    def rescale_input(self, ratio: float) -> None:
+        """The model's input is now ``ratio`` times the old one (a new gain estimate,
+        :mod:`controllers.gain`): x scales with it, and d takes the difference so that the
+        output estimate C x + d, which the measurements set, stays where it is."""
+        rescale_states(self.estimate[None, :], self.c_aug, self.n, ratio)
 
     def slowest_pole_hz(self, dt: float) -> float:
         """Decay rate of the slowest observer pole, -ln|p| / (2 pi dt) (Hz), for reports.
@@ -485,6 +492,10 @@ class ObserverBank:
         """Time update of every filter with the hidden input z actually applied (equivalent V)."""
         self._estimates = self._estimates @ self._a_aug_t + self.b_aug * z
 
+    def rescale_input(self, ratio: float) -> None:
+        """Every filter's :meth:`DisturbanceObserver.rescale_input`."""
+        rescale_states(self._estimates, self.c_aug, self.n, ratio)
+
     def slowest_pole_hz(self, dt: float) -> float:
         """The prior filter's slowest-pole decay rate (Hz), for reports; see
         :meth:`DisturbanceObserver.slowest_pole_hz`."""
@@ -504,6 +515,13 @@ class ObserverBank:
             for k in order
             if self.selection_counts[k] > 0
         ]
+
+
+def rescale_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: float) -> None:
+    """In place, on rows ``[x; d (; s)]``: x times ``ratio``, d less the change of C x."""
+    output = estimates[:, :n] @ c_aug[:n]
+    estimates[:, :n] *= ratio
+    estimates[:, n] -= (ratio - 1.0) * output
 
 
 def make_observer(model: Any, task: Any, settings: Any) -> DisturbanceObserver | ObserverBank:

@@ -6,9 +6,11 @@ import math
 
 from controllers.task import ControlTask
 from piezo_env.checks import require_int
+from piezo_env.randomization import DomainRandomization
 
 __all__ = [
     "DISTURBANCE_STD",
+    "GAIN_TOLERANCE",
     "OBSERVERS",
     "PROCESS_STD",
     "USABLE_OSQP_STATUS",
@@ -27,6 +29,10 @@ OBSERVERS = ("bank", "fixed")
 """Observer choices of the model-based controllers: ``"bank"``
 (:class:`controllers.observer.ObserverBank`, the default) or ``"fixed"`` (one
 :class:`controllers.observer.DisturbanceObserver` with the settings' noise levels)."""
+
+GAIN_TOLERANCE = DomainRandomization().free_deflection
+"""Relative half-width of the bender's static gain the MPCs allow for (-): the datasheet's
+tolerance of the free deflection (deflection per volt), +-20 % (:mod:`controllers.gain`)."""
 
 PROCESS_STD = 0.04
 """The observer's default input-referred process noise (equivalent V), both MPCs'.

@@ -123,6 +123,8 @@ def test_a_swap_continues_exactly_as_a_fresh_controller_on_the_swapped_model(nom
     fresh._plan = controller._plan.copy()
     fresh._duals = None if controller._duals is None else controller._duals.copy()
     fresh._z_prev = controller._z_prev
+    fresh._z_applied = controller._z_applied
+    fresh._restart_gain(controller.observer.estimate[: controller.observer.n])
     obs = env.unwrapped._observe(env.unwrapped._plant.deflection * 1e6)
     for _ in range(200):
         a1, a2 = controller.act(obs), fresh.act(obs)
@@ -135,13 +137,13 @@ def test_adaptation_finds_a_stiffer_bender_and_tracks_it(nominal):
     """On a bender 20 % stiffer (gain / 1.2, resonance x 1.2) the model in use ends with the
     plant's DC gain ratio within 6 % (measured 0.800 against 1 / 1.2 = 0.833: the hidden
     signal z is the identified nonlinearity's, whose scale is not the plant's), and the second
-    half tracks at least 5x better than the fixed-model MPC (measured: 0.07 against 0.44 % of
-    the stroke)."""
+    half tracks at least 5x better than the MPC that holds the identified model, gain included
+    (measured: 0.07 against 0.44 % of the stroke)."""
     env = env_for("stiffness+20%")
     controller = adaptive(nominal)
     offline_gain = controller.dc_gain
     _, errors = drive(env, controller, 1200)
-    _, fixed = drive(env, controllers.make("mpc", MODEL_DIR, nominal), 1200)
+    _, fixed = drive(env, controllers.make("mpc", MODEL_DIR, nominal, gain_tolerance=0.0), 1200)
     assert controller.dc_gain / offline_gain == pytest.approx(1 / 1.2, rel=0.06)
     assert 100.0 < controller.resonance_hz < 250.0  # a bending mode, read at any time
     rms = np.sqrt(np.mean(errors[600:] ** 2))
