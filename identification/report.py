@@ -167,12 +167,20 @@ def _validation_section(val: dict[str, Any]) -> list[str]:
     ]
 
 
+def _scores(scores: dict[str, float | None], spec: str, unit: str = "") -> str:
+    """``n = 2: 97.10 %, n = 4: unstable``: an order whose score is not finite (an unstable
+    candidate, stored as null in report.json) is named so instead of formatted."""
+    return ", ".join(
+        f"n = {k}: " + ("unstable" if v is None else f"{v:{spec}}{unit}") for k, v in scores.items()
+    )
+
+
 def _arx_section(arx: dict[str, Any], inversion: dict[str, Any]) -> list[str]:
     lines = [
         "## ARX part",
         "",
         f"Order ARX({arx['order']},{arx['order']}), chosen by held-out PRBS free-run fit: "
-        + ", ".join(f"n = {k}: {v:.2f} %" for k, v in arx["order_scores_fit_percent"].items())
+        + _scores(arx["order_scores_fit_percent"], ".2f", " %")
         + ".",
         "",
         _row(["", "bayes-uniform", "chebyshev (exact MAP)", "least squares"]),
@@ -231,9 +239,9 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
         f"Method: {refinement['method']}; order {after['order']}: the smallest minimum "
         "description length on the first three quarters of the PRBS record, unless a smaller "
         "order predicts the last quarter at least as well ("
-        + ", ".join(f"n = {k}: {v:.1f}" for k, v in refinement["order_description_length"].items())
+        + _scores(refinement["order_description_length"], ".1f")
         + "); free-run RMS error on the last quarter (um): "
-        + ", ".join(f"n = {k}: {v:.3f}" for k, v in refinement["order_scores_rms_um"].items())
+        + _scores(refinement["order_scores_rms_um"], ".3f")
         + ". Identified output noise: white, RMS "
         f"{refinement['output_noise_std_um']:.3f} um, largest "
         f"{refinement['output_error_bound_um']:.3f} um on the PRBS record.",

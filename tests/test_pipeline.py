@@ -366,3 +366,23 @@ def test_public_names_import_from_the_package_and_the_old_paths():
     assert write_outputs is write_home is pipeline.write_outputs
     assert pipeline.IdentificationConfig is identification.IdentificationConfig
     assert pipeline.collect is collect and pipeline.identify is identification.identify
+
+
+def test_markdown_report_names_an_unstable_order_instead_of_failing(short_default_run):
+    """An order whose candidate was unstable scores -inf, stored as null in report.json (as at
+    a sample time of 0.1 ms); the report says 'unstable' for it."""
+    import copy
+    import json
+
+    from identification.outputs import jsonable
+    from identification.report import markdown_report
+
+    report = copy.deepcopy(short_default_run.report)
+    order = next(iter(report["arx"]["order_scores_fit_percent"]))
+    report["arx"]["order_scores_fit_percent"][order] = -np.inf
+    refinement = report.get("refinement")
+    if refinement is not None:
+        refinement["order_scores_rms_um"][next(iter(refinement["order_scores_rms_um"]))] = np.inf
+    stored = json.loads(json.dumps(jsonable(report)))
+    text = markdown_report(stored, [])
+    assert f"n = {order}: unstable" in text
