@@ -3,18 +3,15 @@ credible set's coverage, and the MPC that uses it on the corners of the datashee
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
-
 import gymnasium as gym
 import numpy as np
 import pytest
 
 import controllers as ctl
+from benchmarks.corners import VERTICES, vertex_env
 from controllers.gain import CREDIBLE_Z, GainEstimate
 from controllers.loop import closed_loop_matrix, output_feedback
 from controllers.mpc import MPCSettings
-from piezo_env import get_datasheet
 
 FIRST_ORDER = (np.array([[0.9]]), np.array([[1.0]]), np.array([[1.0]]))
 """A first-order lag, DC gain 10 um per equivalent V: a simple linear part."""
@@ -97,27 +94,6 @@ def test_a_bad_tolerance_or_noise_is_refused():
         MPCSettings(gain_tolerance=1.5)
 
 
-def _corner_env(free_deflection: float, resonance: float, damping: float) -> gym.Env:
-    sheet = get_datasheet("PL140")
-    sheet = dataclasses.replace(
-        sheet,
-        free_deflection=sheet.free_deflection * free_deflection,
-        resonance=sheet.resonance * resonance,
-    )
-    return gym.make(
-        "piezo_env:PiezoBender-v0",
-        bender=sheet,
-        damping_ratio=damping,
-        preview=20,
-        max_episode_steps=2000,
-    )
-
-
-VERTICES = list(itertools.product((0.8, 1.2), (0.8, 1.2), (0.01, 0.04)))
-"""The datasheet box's vertices that move the tip's response: free deflection (static gain),
-first resonance, first-mode damping (the blocking force changes nothing there)."""
-
-
 @pytest.mark.parametrize("vertex", VERTICES)
 def test_the_loop_with_the_learned_gain_is_stable_on_every_vertex(vertex):
     """The argument behind the learned gain: the unconstrained MPC with its observer (the
@@ -129,7 +105,7 @@ def test_the_loop_with_the_learned_gain_is_stable_on_every_vertex(vertex):
     bank = controller.observer
     law = controller.feedback_law()
     loop = output_feedback(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains[bank.prior], *law)
-    a, b, c, _ = _corner_env(*vertex).unwrapped.model.state_space_matrices()
+    a, b, c, _ = vertex_env(vertex).unwrapped.model.state_space_matrices()
     radius = np.max(np.abs(np.linalg.eigvals(closed_loop_matrix(loop, a, b / vertex[0], c))))
     assert radius < 1.0
 
@@ -152,7 +128,7 @@ def test_the_mpc_learns_a_softer_benders_gain(tolerance, limit):
     controller = ctl.make(
         "mpc", ctl.PredictionModel.from_plant(nominal.unwrapped.model), nominal, **options
     )
-    env = _corner_env(1.2, 0.8, 0.04)
+    env = vertex_env((1.2, 0.8, 0.04))
     reference = make_reference("sine-10Hz", 2001, dt=1e-3, seed=0)
     episode = ctl.run_episode(env, controller, seed=0, reference=reference)
     if limit is None:
