@@ -51,16 +51,37 @@ CREDIBLE_Z = 1.959963984540054
 
 
 class GainEstimate:
-    """Recursive Bayesian estimate of the plant's gain relative to the model (module docstring).
+    """Recursive Bayesian estimates of the plant's gain relative to each of K linear parts
+    (module docstring), run side by side on the same data.
+
+    One linear part (K = 1) is what :class:`controllers.mpc.LinearMPC` learns; the adaptive
+    MPC runs one per model of its set (:mod:`controllers.adaptive`), and their misfits tell
+    the models apart.
 
     Parameters
     ----------
     a, b, c : numpy.ndarray
-        The nominal linear part ``x_t+1 = a x_t + b z_t``, ``s_t = c x_t`` (um per equivalent V).
+        The linear parts ``x_t+1 = a x_t + b z_t``, ``s_t = c x_t`` (um per equivalent V):
+        shapes (n, n), (n, 1) or (n,), (1, n) or (n,) for one; (K, n, n), (K, n), (K, n)
+        for K of the same state size.
     tolerance : float
         Relative half-width w of the datasheet's gain interval (-), in (0, 1).
     noise_std : float
         Standard deviation of the sensor noise (um), > 0: the floor of the residual's.
+
+    Attributes
+    ----------
+    mean, std : numpy.ndarray
+        (K,) posterior mean and standard deviation of each gain (-).
+    low, high : numpy.ndarray
+        (K,) each gain's 95 % credible set within the datasheet interval (-).
+    value : numpy.ndarray
+        (K,) the point of each set nearest 1: the gain a controller predicts with (-).
+    misfit : numpy.ndarray
+        (K,) mean squared residual ``y - mean s`` over the samples so far (um^2): how well
+        each linear part, at its estimated gain, explains the measurements.
+    count : int
+        Samples taken.
     """
 
     def __init__(
@@ -70,43 +91,70 @@ class GainEstimate:
             raise ValueError(f"tolerance must lie in (0, 1) (relative), got {tolerance!r}")
         if not noise_std > 0.0:
             raise ValueError(f"noise_std must be > 0 um, got {noise_std!r}")
-        self._a, self._b, self._c = np.asarray(a), np.asarray(b)[:, 0], np.asarray(c)[0]
-        self.low, self.high = 1.0 - tolerance, 1.0 + tolerance
+        a = np.asarray(a, dtype=float)
+        batch = a.ndim == 3
+        self._a = a if batch else a[None]
+        k, n = self._a.shape[0], self._a.shape[1]
+        self._b = np.asarray(b, dtype=float).reshape(k, n)
+        self._c = np.asarray(c, dtype=float).reshape(k, n)
+        self.bounds = (1.0 - tolerance, 1.0 + tolerance)
         self._prior_precision = 3.0 / tolerance**2
         self._floor = noise_std**2
-        self.reset(np.zeros(self._a.shape[0]))
+        self.reset(np.zeros(n))
+
+    @property
+    def size(self) -> int:
+        """K, the number of linear parts."""
+        return self._a.shape[0]
 
     def reset(self, x0: np.ndarray) -> None:
-        """Start an episode from the nominal model's state ``x0`` (the prior: g = 1)."""
-        self._x = np.array(x0, dtype=float)
-        self._s_ss = 0.0  # sum s^2
-        self._s_sy = 0.0  # sum s y
-        self._s_ee = 0.0  # sum of squared a-priori residuals
-        self._count = 0
-        self.mean = 1.0
-        self.std = 1.0 / math.sqrt(self._prior_precision)
-        self.value = 1.0
-        self.set = (self.low, self.high)
+        """Start an episode from the state ``x0`` ((n,) shared or (K, n)); the prior: g = 1."""
+        k = self.size
+        self._x = np.array(np.broadcast_to(x0, self._b.shape), dtype=float)
+        self._s_ss = np.zeros(k)  # sum s^2
+        self._s_sy = np.zeros(k)  # sum s y
+        self._s_ee = np.zeros(k)  # sum of squared a-priori residuals
+        self._s_yy = 0.0
+        self._s_lag = np.zeros(k)  # sum of products of successive a-priori residuals
+        self._residual = np.zeros(k)
+        self.count = 0
+        self.mean = np.ones(k)
+        self.std = np.full(k, 1.0 / math.sqrt(self._prior_precision))
+        self.low, self.high = np.full(k, self.bounds[0]), np.full(k, self.bounds[1])
+        self.value = np.ones(k)
+        self.misfit = np.zeros(k)
 
-    def update(self, y: float) -> float:
-        """Take the measurement y (um) of the present sample; returns the gain to predict with."""
-        s = float(self._c @ self._x)
+    def update(self, y: float) -> np.ndarray:
+        """Take the measurement y (um) of the present sample; returns :attr:`value`."""
+        s = np.einsum("kn,kn->k", self._c, self._x)
         residual = y - self.mean * s
         self._s_ee += residual * residual
-        self._count += 1
+        self._s_lag += residual * self._residual
+        self._residual = residual
+        self.count += 1
         self._s_ss += s * s
         self._s_sy += s * y
-        variance = max(self._s_ee / self._count, self._floor)
+        self._s_yy += y * y
+        variance = np.maximum(self._s_ee / self.count, self._floor)
         precision = self._prior_precision + self._s_ss / variance
-        self.mean = (self._prior_precision + self._s_sy / variance) / precision
-        self.std = 1.0 / math.sqrt(precision)
+        self.mean = mean = (self._prior_precision + self._s_sy / variance) / precision
+        self.std = 1.0 / np.sqrt(precision)
         half = CREDIBLE_Z * self.std
-        low = min(max(self.mean - half, self.low), self.high)
-        high = max(min(self.mean + half, self.high), self.low)
-        self.set = (low, high)
-        self.value = min(max(1.0, low), high)
+        low, high = self.bounds
+        self.low = np.clip(mean - half, low, high)
+        self.high = np.clip(mean + half, low, high)
+        self.value = np.clip(1.0, self.low, self.high)
+        self.misfit = (self._s_yy - 2.0 * mean * self._s_sy + mean * mean * self._s_ss) / self.count
         return self.value
+
+    @property
+    def independent_fraction(self) -> np.ndarray:
+        """(K,) the fraction of the samples that count as independent in a test on the
+        misfits: ``(1 - rho) / (1 + rho)``, rho the lag-one autocorrelation of each part's
+        residuals (the variance inflation of a mean of AR(1) errors), rho clipped to [0, 1)."""
+        rho = np.clip(self._s_lag / np.maximum(self._s_ee, 1e-300), 0.0, 1.0 - 1e-12)
+        return (1.0 - rho) / (1.0 + rho)
 
     def advance(self, z: float) -> None:
         """Time update with the hidden signal z applied this sample (equivalent V)."""
-        self._x = self._a @ self._x + self._b * z
+        self._x = np.einsum("kij,kj->ki", self._a, self._x) + self._b * z

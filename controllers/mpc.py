@@ -170,26 +170,19 @@ class LinearMPC(PredictiveController):
         self._upper = np.full(settings.horizon, z_max)
         self._slew_step = self.task.slew_step
         self._n_rows = settings.horizon
-        self._gain: GainEstimate | None = None
-        if settings.gain_tolerance > 0:
-            self._gain = GainEstimate(
-                self.model.a,
-                self.model.b,
-                self.model.c,
-                tolerance=settings.gain_tolerance,
-                noise_std=measurement_std(settings.measurement_std, self.task),
-            )
+        self._gain = self._gain_estimate()
         if self._slew_step is not None:
             self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
             self._n_rows = 2 * settings.horizon - 1
 
-    def _setup_solver(self) -> BoxQP:
-        """OSQP set up (and factorised) afresh: no adapted step size or duals carry over."""
+    def _setup_solver(self, hessian: np.ndarray | None = None) -> BoxQP:
+        """OSQP set up (and factorised) afresh for ``hessian`` (default: the model's in use):
+        no adapted step size or duals carry over."""
         s = self.settings
         return BoxQP(
             self._lower,
             self._upper,
-            hessian=self._hessian,
+            hessian=self._hessian if hessian is None else hessian,
             eps_abs=s.eps_abs,
             eps_rel=s.eps_rel,
             max_iter=s.max_iter,
@@ -205,9 +198,23 @@ class LinearMPC(PredictiveController):
         self._u_prev = float(np.float32(start.u))
         self._restart_gain(start.x)
 
+    def _gain_estimate(self) -> GainEstimate | None:
+        """The gain estimate of the model (None with ``gain_tolerance`` 0)."""
+        settings = self.settings
+        if settings.gain_tolerance == 0:
+            return None
+        return GainEstimate(
+            self.model.a,
+            self.model.b,
+            self.model.c,
+            tolerance=settings.gain_tolerance,
+            noise_std=measurement_std(settings.measurement_std, self.task),
+        )
+
     def _restart_gain(self, x0: np.ndarray) -> None:
         """The gain back at the model's (1), learned afresh from the model's state ``x0``."""
         self._g = 1.0
+        self._member = 0  # which linear part of the gain estimate the MPC predicts with
         if self._gain is not None:
             self._gain.reset(x0)
 
@@ -219,22 +226,33 @@ class LinearMPC(PredictiveController):
     @property
     def gain_set(self) -> tuple[float, float]:
         """The gain's 95 % credible set within the datasheet's (-, relative to the model)."""
-        return (1.0, 1.0) if self._gain is None else self._gain.set
+        if self._gain is None:
+            return (1.0, 1.0)
+        return float(self._gain.low[self._member]), float(self._gain.high[self._member])
 
     def _update_gain(self, y: float) -> None:
-        """Learn the gain from the measurement y (um); on a change, carry the plan, the last
-        input and the observer's state to the new input scale g z."""
+        """Learn the gain from the measurement y (um) and predict with its new value."""
         if self._gain is None:
             return
-        g = self._gain.update(y)
-        if g != self._g:
-            ratio = g / self._g
-            self.observer.rescale_input(ratio)
-            self._plan = self._plan * ratio
-            self._z_prev *= ratio
-            self._g = g
-            if self._slew_step is not None:
-                self._qp.set_rate(g * self.z_rate)
+        self._gain.update(y)
+        self._select()
+        self._set_gain(float(self._gain.value[self._member]))
+
+    def _select(self) -> None:
+        """Choose the linear part to predict with (one here: see the adaptive MPC)."""
+
+    def _set_gain(self, g: float) -> None:
+        """Predict with gain g from now on: carry the plan, the last input and the observer's
+        state to the new input scale g z."""
+        if g == self._g:
+            return
+        ratio = g / self._g
+        self.observer.rescale_input(ratio)
+        self._plan = self._plan * ratio
+        self._z_prev *= ratio
+        self._g = g
+        if self._slew_step is not None:
+            self._qp.set_rate(g * self.z_rate)
 
     def _act(self, observation: np.ndarray) -> float:
         y = float(observation[0])

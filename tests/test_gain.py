@@ -25,7 +25,7 @@ def _drive(estimate: GainEstimate, gain: float, noise: float, n: int, seed: int)
     for t in range(n):
         z = 5.0 * np.sin(2 * np.pi * t / 50.0) + rng.uniform(-1.0, 1.0)
         estimate.update(gain * float(c[0] @ x) + rng.uniform(-noise, noise))
-        sets.append(estimate.set)
+        sets.append((float(estimate.low[0]), float(estimate.high[0])))
         estimate.advance(z)
         x = a @ x + b[:, 0] * z
     return sets
@@ -50,8 +50,8 @@ def test_the_estimate_is_the_batch_bayesian_posterior_mean():
     rows = np.r_[s / noise, np.sqrt(3.0) / w]
     targets = np.r_[y / noise, np.sqrt(3.0) / w]
     expected = np.linalg.lstsq(rows[:, None], targets, rcond=None)[0][0]
-    assert estimate.mean == pytest.approx(expected, rel=1e-12)
-    assert estimate.std == pytest.approx(1.0 / np.linalg.norm(rows), rel=1e-12)
+    assert estimate.mean[0] == pytest.approx(expected, rel=1e-12)
+    assert estimate.std[0] == pytest.approx(1.0 / np.linalg.norm(rows), rel=1e-12)
 
 
 @pytest.mark.parametrize("gain", [0.8, 0.93, 1.0, 1.2])
@@ -64,7 +64,7 @@ def test_the_credible_set_holds_the_plants_gain_and_shrinks(gain, seed):
     assert high - low < 0.1 * 0.4  # from the datasheet's width 0.4 to under a tenth of it
     widths = [h - lo for lo, h in sets]
     assert widths[0] > 0.3 and max(widths[200:]) < widths[10]
-    assert low <= estimate.value <= high
+    assert low <= estimate.value[0] <= high
 
 
 def test_the_nominal_model_stands_while_the_data_allow_it():
@@ -77,7 +77,7 @@ def test_the_nominal_model_stands_while_the_data_allow_it():
     x = np.zeros(1)
     for t in range(500):
         z = 5.0 * np.sin(2 * np.pi * t / 50.0)
-        values.append(estimate.update(float(c[0] @ x) + rng.uniform(-0.5, 0.5)))
+        values.append(estimate.update(float(c[0] @ x) + rng.uniform(-0.5, 0.5))[0])
         estimate.advance(z)
         x = a @ x + b[:, 0] * z
     values = np.array(values)
@@ -139,3 +139,37 @@ def test_the_mpc_learns_a_softer_benders_gain(tolerance, limit):
         low, high = controller.gain_set
         assert low <= 1.2 <= high + 1e-12
         assert high - low < 0.05
+
+
+def test_side_by_side_estimates_are_each_ones_own():
+    """K linear parts run at once give, bitwise, what each gives alone; the misfit is the mean
+    squared residual at the posterior mean, recomputed here from the stored data."""
+    rng = np.random.default_rng(5)
+    parts = [(np.array([[p]]), np.array([[1.0]]), np.array([[1.0]])) for p in (0.5, 0.9, 0.95)]
+    together = GainEstimate(
+        np.array([a for a, _, _ in parts]),
+        np.array([b[:, 0] for _, b, _ in parts]),
+        np.array([c[0] for _, _, c in parts]),
+        tolerance=0.2,
+        noise_std=0.3,
+    )
+    alone = [GainEstimate(*part, tolerance=0.2, noise_std=0.3) for part in parts]
+    ys, ss = [], []
+    x = np.zeros(1)
+    for _ in range(200):
+        y = float(x[0]) * 1.1 + rng.uniform(-0.5, 0.5)
+        ss.append([float(e._c[0] @ e._x[0]) for e in alone])
+        ys.append(y)
+        together.update(y)
+        for estimate in alone:
+            estimate.update(y)
+        z = rng.uniform(-1.0, 1.0)
+        together.advance(z)
+        for estimate in alone:
+            estimate.advance(z)
+        x = 0.9 * x + z
+    for k, estimate in enumerate(alone):
+        assert together.mean[k] == estimate.mean[0]
+        assert together.value[k] == estimate.value[0]
+        residual = np.array(ys) - estimate.mean[0] * np.array(ss)[:, k]
+        assert together.misfit[k] == pytest.approx(np.mean(residual**2), rel=1e-9)
