@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from controllers.riccati import filter_riccati
 from controllers.settings import measurement_std
 
 __all__ = [
@@ -110,6 +111,7 @@ class DisturbanceObserver:
         process_std: float = 0.0,
         slope_std: float = 0.0,
         state_scale: np.ndarray | None = None,
+        covariance: np.ndarray | None = None,
     ) -> None:
         if not (
             measurement_std > 0 and disturbance_std > 0 and process_std >= 0 and slope_std >= 0
@@ -122,30 +124,19 @@ class DisturbanceObserver:
         n = a.shape[0]
         self.n = n
         self.n_disturbance = nd = 2 if slope_std > 0 else 1
-        m = n + nd
-        aa = np.zeros((m, m))
-        aa[:n, :n] = a
-        aa[n:, n:] = np.eye(nd) + np.eye(nd, k=1)  # d += s, s constant
-        ba = np.zeros(m)
-        ba[:n] = b[:, 0]
-        ca = np.zeros((1, m))
-        ca[0, :n] = c[0]
-        ca[0, n] = 1.0
-        q = np.zeros((m, m))
-        q[:n, :n] = process_std**2 * np.outer(b[:, 0], b[:, 0])
-        q[n, n] = disturbance_std**2
-        if nd == 2:
-            q[n + 1, n + 1] = slope_std**2
-        scale = state_scale_of(a, b[:, 0]) if state_scale is None else state_scale
-        q += 1e-12 * np.diag(np.r_[scale, np.ones(nd)])
+        aa, ba, ca = augmented(a, b, c, nd)
         r = np.array([[measurement_std**2]])
-        p = scipy.linalg.solve_discrete_are(aa.T, ca.T, q, r)
+        if covariance is None:
+            scale = state_scale_of(a, b[:, 0]) if state_scale is None else state_scale
+            q = noise_covariance(b, scale, process_std, disturbance_std, slope_std)
+            covariance = scipy.linalg.solve_discrete_are(aa.T, ca.T, q, r)
+        p = covariance
         # Filter (current-estimate) gain: L = P C^T (C P C^T + R)^-1 on the predicted P.
         self.innovation_var = float((ca @ p @ ca.T + r).item())
         self.gain = (p @ ca.T / self.innovation_var).ravel()
         self.process_std, self.disturbance_std = float(process_std), float(disturbance_std)
         self.a_aug, self.b_aug, self.c_aug = aa, ba, ca[0]
-        self.estimate = np.zeros(m)
+        self.estimate = np.zeros(n + nd)
 
     @classmethod
     def for_controller(cls, model: Any, task: Any, settings: Any) -> DisturbanceObserver:
@@ -248,6 +239,42 @@ in 25 of 60 trials (5 noise seeds, 4 onsets, 3 frequencies) with the bank's 200-
 35 of 60 with 50 samples, and none with three samples. A runaway costs those two samples: the
 PL127's fastest (loop poles at 1.3-1.4 per sample) end at 13-15 % of the stroke instead of
 8.7-10 % when the guard falls back two samples sooner."""
+
+
+def augmented(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, n_disturbance: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(A, B, C)`` of ``[x; d (; s)]``: the model, then d (+= s, s constant) on the output."""
+    n, nd = a.shape[0], n_disturbance
+    m = n + nd
+    aa = np.zeros((m, m))
+    aa[:n, :n] = a
+    aa[n:, n:] = np.eye(nd) + np.eye(nd, k=1)  # d += s, s constant
+    ba = np.zeros(m)
+    ba[:n] = b[:, 0]
+    ca = np.zeros((1, m))
+    ca[0, :n] = c[0]
+    ca[0, n] = 1.0
+    return aa, ba, ca
+
+
+def noise_covariance(
+    b: np.ndarray,
+    scale: np.ndarray,
+    process_std: float,
+    disturbance_std: float,
+    slope_std: float = 0.0,
+) -> np.ndarray:
+    """Process noise covariance of ``[x; d (; s)]`` (module docstring): input-referred noise
+    on x, the random walks of d (and s), and the well-posedness term scaled per state."""
+    n = b.shape[0]
+    nd = 2 if slope_std > 0 else 1
+    q = np.zeros((n + nd, n + nd))
+    q[:n, :n] = process_std**2 * np.outer(b[:, 0], b[:, 0])
+    q[n, n] = disturbance_std**2
+    if nd == 2:
+        q[n + 1, n + 1] = slope_std**2
+    return q + 1e-12 * np.diag(np.r_[scale, np.ones(nd)])
 
 
 def state_scale_of(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -360,18 +387,25 @@ class ObserverBank:
             raise ValueError(f"the model's DC gain must be finite and nonzero, got {dc_gain}")
         ratios = list(itertools.product(process_ratios, disturbance_ratios))
         scale = state_scale_of(a, b[:, 0])  # the same for every filter: solved once
+        levels = [(rx * measurement_std / dc_gain, rd * measurement_std) for rx, rd in ratios]
+        # Every filter's Riccati equation at once (controllers.riccati).
+        aa, _, ca = augmented(a, b, c, 2 if slope_std > 0 else 1)
+        q = np.array([noise_covariance(b, scale, px, dx, slope_std) for px, dx in levels])
+        covariances, self.riccati_fallbacks = filter_riccati(
+            aa, ca, q, np.full(len(levels), measurement_std**2)
+        )
         filters = [
             DisturbanceObserver(
                 a,
                 b,
                 c,
                 measurement_std=measurement_std,
-                disturbance_std=rd * measurement_std,
-                process_std=rx * measurement_std / dc_gain,
+                disturbance_std=dx,
+                process_std=px,
                 slope_std=slope_std,
-                state_scale=scale,
+                covariance=p,
             )
-            for rx, rd in ratios
+            for (px, dx), p in zip(levels, covariances, strict=True)
         ]
         first = filters[0]
         self.n, self.n_disturbance = first.n, first.n_disturbance

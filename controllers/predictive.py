@@ -150,6 +150,7 @@ class PredictiveController(Controller):
         return {
             "modulus_margin_range": [float(margins.min()), float(margins.max())],
             "modulus_margin_prior": float(margins[observer.prior]),
+            "riccati_fallbacks": int(observer.riccati_fallbacks),
         }
 
     def _set_up(self) -> None:
