@@ -17,7 +17,7 @@ import numpy as np
 from benchmarks.cells import aggregate
 from benchmarks.references import REFERENCES
 from benchmarks.rows import row_color, seed_groups
-from benchmarks.runner import DT, MONTE_CARLO, BenchmarkResult
+from benchmarks.runner import MONTE_CARLO, BenchmarkResult
 
 __all__ = ["draw_figures"]
 
@@ -103,7 +103,7 @@ def _tracking(result: BenchmarkResult, path: Path) -> str | None:
         traces = result.traces[ref]
         lo, hi = _WINDOWS[ref]
         reference = np.asarray(traces[shown[0]]["reference_um"])
-        t = (np.arange(reference.size) + 1) * DT
+        t = (np.arange(reference.size) + 1) * result.config.dt
         window = (t >= lo) & (t <= hi)
         top, bottom = axes[0, j], axes[1, j]
         for name in shown:
@@ -369,21 +369,25 @@ def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
     bender = _bender(result)
     full_stroke = 2.0 * float(result.config.stroke_um)
     fig, axes = plt.subplots(2, len(plants), figsize=(5.2 * len(plants), 6.4), squeeze=False)
-    width = 50
+    dt = result.config.dt
+    window_s = 0.05
+    width = max(1, round(window_s / dt))  # samples of the rolling RMS
     for j, plant in enumerate(plants):
         rows = result.traces[f"adaptation:{plant}"]
         top, bottom = axes[0, j], axes[1, j]
         for name, row in rows.items():
             rms = 100.0 * _rolling_rms(row["error_um"], width) / full_stroke
-            t = (np.arange(rms.size) + width) * DT
+            t = (np.arange(rms.size) + width) * dt
             top.semilogy(t, rms, color=row_color(name), label=name, lw=1.2)
-        top.set_title(f"{plant}, {ADAPTATION_REFERENCE}: RMSE over {width} ms", fontsize=9)
+        top.set_title(
+            f"{plant}, {ADAPTATION_REFERENCE}: RMSE over {window_s * 1e3:g} ms", fontsize=9
+        )
         top.set_ylabel("% of full stroke")
         top.legend(fontsize=8)
         adaptive = next(row for row in rows.values() if "models" in row)
         models = np.asarray(adaptive["models"], float)
         gain0, resonance0 = adaptive["offline"]
-        times = np.r_[0.0, models[:, 0] * DT, len(adaptive["error_um"]) * DT]
+        times = np.r_[0.0, models[:, 0] * dt, len(adaptive["error_um"]) * dt]
         gains = np.r_[1.0, models[:, 1] / gain0, models[-1, 1] / gain0]
         resonances = np.r_[1.0, models[:, 2] / resonance0, models[-1, 2] / resonance0]
         true_gain, true_resonance = plant_ratios(plant, bender, times)

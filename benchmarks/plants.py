@@ -3,7 +3,8 @@
 Each plant is a function of the nominal bender's catalogue name that returns
 ``PiezoBender-v0`` keyword arguments: changes from the nominal bender the model was identified
 on, derived from that bender's own datasheet. A controller is always built for the nominal task
-and runs unchanged on every plant.
+and runs unchanged on every plant; every plant steps at the nominal bender's sample time
+(:func:`sample_time`), which the runner passes.
 """
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ __all__ = [
     "BENCH_SENSOR_HZ",
     "DEFAULT_BENDER",
     "DRIFT",
-    "DT",
+    "EPISODE_S",
     "MONTE_CARLO",
     "MONTE_CARLO_REFERENCES",
     "NOMINAL_STROKE_UM",
     "PLANTS",
+    "sample_time",
 ]
 
 DEFAULT_BENDER = "PL140"
@@ -31,8 +33,16 @@ NOMINAL_STROKE_UM = 1000.0
 """One-sided stroke of the nominal PL140 (um), the reference amplitudes' scale: the references
 of another bender are scaled by its stroke over this."""
 
-DT = 1e-3
-"""Sample time of the benchmark's env (s), the default of PiezoBender-v0."""
+EPISODE_S = 2.0
+"""Length of a benchmark episode (s), at any sample time: 2000 steps at 1 ms."""
+
+
+def sample_time(bender: str) -> float:
+    """Sample time (s) of the benchmark of ``bender``: its default, :func:`piezo_env.default_dt`
+    (1 ms for the PL140, 0.25 ms for the PL127). Every plant of the benchmark steps at it."""
+    from piezo_env import default_dt
+
+    return default_dt(bender)
 
 
 def _tolerance_sheet(bender: str, scale: float) -> Any:

@@ -385,11 +385,21 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
         "verdict).",
         "",
         *_disclosure_lines(result),
+        *_left_out_lines(meta),
         f"Model: {meta['model']}. Time: "
         + ", ".join(f"{k} {v} s" for k, v in meta["timing"].items()),
         "",
         native_code_line(result),
     ]
+
+
+def _left_out_lines(meta: dict[str, Any]) -> list[str]:
+    """The policies ``piezo benchmark`` found but did not run, and why (when any)."""
+    left_out = meta.get("policies_left_out") or {}
+    if not left_out:
+        return []
+    reasons = "; ".join(f"`{Path(folder).name}` {why}" for folder, why in left_out.items())
+    return [f"Policies left out (their task differs from this benchmark's): {reasons}.", ""]
 
 
 def native_code_line(result: BenchmarkResult) -> str:
@@ -491,8 +501,8 @@ def write_benchmark(
     """Write ``benchmark.md``, ``benchmark.json`` and (optionally) the figures into ``out``.
 
     ``meta`` holds ``model``, ``dt`` (s), ``noise_bound_um``, ``stroke_um`` (one-sided, um),
-    ``machine`` and ``timing``. A figure with nothing to show is not written; the report says
-    why.
+    ``machine`` and ``timing``, and optionally ``policies_left_out`` (folder -> reason). A
+    figure with nothing to show is not written; the report says why.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

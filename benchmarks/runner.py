@@ -1,8 +1,10 @@
 """The closed-loop benchmark: every controller on the same env, seeds and references.
 
-:func:`run_benchmark` runs each selected controller on each reference of the nominal PL140 and
-on the robustness plants (the same identified model and settings on plants it was not
-identified on), and returns every episode's metrics. ``piezo benchmark`` calls it and writes
+:func:`run_benchmark` runs each selected controller on each reference of the nominal bender
+(the PL140 by default) and on the robustness plants (the same identified model and settings on
+plants it was not identified on), and returns every episode's metrics. Every env steps at the
+nominal bender's sample time (:func:`benchmarks.plants.sample_time`, its default dt), and an
+episode lasts 2 s whatever that is. ``piezo benchmark`` calls it and writes
 the tables and figures (:mod:`benchmarks.report`).
 
 Fairness. Every controller sees the same observation: the measured deflection and a preview
@@ -31,10 +33,11 @@ import numpy as np
 
 from benchmarks.plants import (
     DEFAULT_BENDER,
-    DT,
+    EPISODE_S,
     MONTE_CARLO,
     MONTE_CARLO_REFERENCES,
     PLANTS,
+    sample_time,
 )
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
@@ -43,7 +46,6 @@ from piezo_parallel.backends import BACKENDS, run_tasks
 
 __all__ = [
     "DEFAULT_CONTROLLERS",
-    "DT",
     "MONTE_CARLO",
     "PLANTS",
     "BenchmarkConfig",
@@ -98,8 +100,10 @@ class BenchmarkConfig:
         :data:`ROBUSTNESS_REFERENCES` with :data:`ROBUSTNESS_CONTROLLERS`.
     seed : int
         Env seed (sensor noise) and seed of the random references.
-    steps : int
-        Steps per episode (2000 = 2 s at 1 ms).
+    steps : int or None
+        Steps per episode; None (the default): :data:`benchmarks.plants.EPISODE_S` (2 s) at
+        the bender's sample time :attr:`dt` (2000 steps on the PL140, 8000 on the PL127).
+        Resolved at construction: :func:`dataclasses.replace` with another bender keeps it.
     preview : int
         Reference samples after r_t in every controller's observation (>= 1: the action a_t
         is scored against r_t+1).
@@ -121,15 +125,16 @@ class BenchmarkConfig:
         interval. The random plants keep one seed per draw (the draws are their spread).
     bender : str
         Catalogue name of the nominal bender (``"PL140"``, ``"PL112"``, ``"PL122"``,
-        ``"PL127"``, ``"PL128"``): its references are scaled to its stroke and its robustness
-        plants derived from its datasheet.
+        ``"PL127"``, ``"PL128"``): its references are scaled to its stroke, its robustness
+        plants derived from its datasheet, and every env steps at its sample time :attr:`dt`.
+        A policy trained at another sample time is refused.
     """
 
     controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
     references: tuple[str, ...] = tuple(REFERENCES)
     plants: tuple[str, ...] = tuple(PLANTS)
     seed: int = 0
-    steps: int = 2000
+    steps: int | None = None
     preview: int = 20
     jobs: int = 1
     backend: str = "local"
@@ -157,6 +162,8 @@ class BenchmarkConfig:
         from piezo_env import get_datasheet
 
         get_datasheet(self.bender)  # an unknown bender is refused with the catalogue's names
+        if self.steps is None:
+            object.__setattr__(self, "steps", max(1, round(EPISODE_S / self.dt)))
         for name in ("steps", "jobs", "draws", "preview", "seeds"):
             require_int(name, getattr(self, name))  # preview >= 1: a_t is scored against r_t+1
         if self.backend not in BACKENDS:
@@ -232,12 +239,24 @@ class BenchmarkConfig:
             raise ValueError(f"policy folder names {sorted(clash)} clash with controller names")
         for folder in self.policies:
             policy = load_policy(folder)  # a folder that does not load fails here, before work
+            trained_dt = policy.metadata.get("task", {}).get("dt_s")
+            if trained_dt is not None and abs(float(trained_dt) - self.dt) > 1e-9 * self.dt:
+                raise ValueError(
+                    f"policy {folder} was trained at dt = {float(trained_dt):g} s but the "
+                    f"{self.bender} benchmark steps at dt = {self.dt:g} s (its default sample "
+                    "time, piezo_env.default_dt); leave the policy out or train one at that dt"
+                )
             if policy.observation.preview > self.preview:
                 raise ValueError(
                     f"policy {folder} was trained with a preview of {policy.observation.preview} "
                     f"samples but the benchmark shows {self.preview}; raise --preview to at "
                     f"least {policy.observation.preview} or leave the policy out"
                 )
+
+    @property
+    def dt(self) -> float:
+        """Sample time of every env of the benchmark (s): the bender's default."""
+        return sample_time(self.bender)
 
     @property
     def stroke_um(self) -> float:
@@ -300,7 +319,7 @@ def _make_env(config: BenchmarkConfig, plant: str, **extra: Any) -> Any:
         "piezo_env:PiezoBender-v0",
         preview=config.preview,
         max_episode_steps=config.steps,
-        **{**PLANTS[plant](config.bender), **extra},
+        **{**PLANTS[plant](config.bender), "dt": config.dt, **extra},
     )
 
 
@@ -462,7 +481,7 @@ def run_benchmark(
     # Built here, not in the workers, so references registered in this process run anywhere.
     arrays = {
         name: make_reference(
-            name, config.steps + config.preview + 1, dt=DT, seed=config.seed,
+            name, config.steps + config.preview + 1, dt=config.dt, seed=config.seed,
             stroke_um=config.stroke_um,
         )
         for name in config.references

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,9 +15,12 @@ from piezo_env.task import TaskConfig
 __all__ = [
     "NLS_REFINEMENTS",
     "ORDER_TIE_PERCENT",
+    "RAND_HOLD_S",
+    "RECORD_SECONDS",
     "REFINEMENTS",
     "RICH_DEFAULTS",
     "IdentificationConfig",
+    "env_sample_time",
 ]
 
 REFINEMENTS = ("output-error", "none")
@@ -25,9 +29,18 @@ REFINEMENTS = ("output-error", "none")
 NLS_REFINEMENTS = ("output-error", "none")
 """Choices of ``IdentificationConfig.nls_refinement`` (step e')."""
 
-RICH_DEFAULTS: dict[str, dict[str, float]] = {"random": {"hold": 10}, "sine": {"frequency": 5.0}}
-"""Parameters of the rich signal when ``rich_params`` is None: RAND with the hold of the paper's
-validation signal (samples), the paper's 5 Hz sine (Hz)."""
+RAND_HOLD_S = 0.01
+"""Hold of the RAND records (s): the paper's 10 samples at 1 ms. A new level every 10 ms puts
+the records' large-signal power below about 100 Hz at any sample time."""
+
+RECORD_SECONDS: dict[str, float] = {"rich": 12.0, "validation": 6.0}
+"""Length (s) of the rich and the validation records when their sample counts are None: what
+the NLS learns from is the number of RAND levels (length over hold), so the length is a
+duration, as the hold is (12000 and 6000 samples at 1 ms)."""
+
+RICH_DEFAULTS: dict[str, dict[str, float]] = {"sine": {"frequency": 5.0}}
+"""Parameters of the rich signal when ``rich_params`` is None, besides RAND's hold
+(:data:`RAND_HOLD_S`, in samples at the env's dt): the paper's 5 Hz sine (Hz)."""
 
 ORDER_TIE_PERCENT = 0.25
 """Held-out fits (percentage points) this close to the best count as a tie between orders."""
@@ -57,9 +70,12 @@ class IdentificationConfig:
         1.95, PL122 1.69 -> 1.42, but PL127 1.31 -> 1.37; 50 Hz sine PL140 2.93 -> 2.77, PL122
         1.33 -> 1.18, PL127 1.30 -> 1.22.
     prbs_clock : int
-        PRBS clock period (samples).
+        PRBS clock period (samples). One sample: the PRBS is white up to the Nyquist frequency
+        at any dt, the band the ARX model at that dt is fitted over.
     prbs_samples : int
-        Length of the PRBS record; its last quarter scores the candidate orders.
+        Length of the PRBS record (samples); its last quarter scores the candidate orders. In
+        samples, not seconds: under a white input the variance of the ARX estimate goes as its
+        parameters over the samples (Ljung 1999, sec. 9.4), whatever the sample time.
     orders : tuple of int
         Candidate ARX orders n (na = nb = n), scored by free-run fit on the last quarter of the
         PRBS record; near-ties (ORDER_TIE_PERCENT) go to the larger order.
@@ -70,10 +86,11 @@ class IdentificationConfig:
         estimate (the paper's procedure as it is).
     rich_signal : str
         Rich excitation for the NLS and for step e': ``"random"`` (default: RAND, a new level
-        drawn uniformly in +-``rich_amplitude`` every 10 samples, the paper's validation signal;
-        the bender traces random loops at every amplitude, and the record carries large-signal
-        power up to about 100 Hz), ``"decaying-multisine"`` (1, 3 and 7 Hz under a decaying
-        envelope: nested minor loops at every amplitude), ``"sine"`` (the paper's, one major
+        drawn uniformly in +-``rich_amplitude`` every 10 ms (:data:`RAND_HOLD_S`), the paper's
+        validation signal; the bender traces random loops at every amplitude, and the record
+        carries large-signal power up to about 100 Hz), ``"decaying-multisine"`` (1, 3 and 7
+        Hz under a decaying envelope: nested minor loops at every amplitude), ``"sine"`` (the
+        paper's, one major
         loop: an NLS trained on it errs most on loops of half the stroke, where tracking
         references live), ``"multisine"``, ... Step e' estimates the linear part from the PRBS
         and this record together, and the +-2 V PRBS alone leaves it uncertain by a few 1e-4
@@ -88,10 +105,13 @@ class IdentificationConfig:
     rich_amplitude : float
         Its amplitude (V).
     rich_params : dict or None
-        Further parameters of the rich signal (e.g. frequency, Hz); None: :data:`RICH_DEFAULTS`
-        for the random signal and the sine, ``piezo_env.signals.SIGNAL_DEFAULTS`` for the others.
-    rich_samples : int
-        Length of the rich record.
+        Further parameters of the rich signal, in the units of :mod:`piezo_env.signals` (e.g.
+        frequency, Hz; RAND's hold, samples); None: for the random signal a hold of
+        :data:`RAND_HOLD_S` at the env's dt, :data:`RICH_DEFAULTS` for the sine,
+        ``piezo_env.signals.SIGNAL_DEFAULTS`` for the others.
+    rich_samples : int or None
+        Length of the rich record (samples); None: :data:`RECORD_SECONDS` ``["rich"]`` (12 s)
+        at the env's dt.
     features : str
         NLS memory features: ``"auto"`` (chosen on the selection record), or one of
         ``"play"``, ``"past-inputs"``, ``"bouc-wen"``.
@@ -140,10 +160,14 @@ class IdentificationConfig:
         dominated.
     validation_amplitude : float
         RAND amplitude C_R (V) of the selection and validation records.
-    validation_hold : int
-        RAND hold (samples).
-    validation_samples : int
-        Length of the validation record.
+    validation_hold : int or None
+        RAND hold (samples); None: :data:`RAND_HOLD_S` (10 ms) at the env's dt.
+    validation_samples : int or None
+        Length of the validation record (samples; the selection record is half of it); None:
+        :data:`RECORD_SECONDS` ``["validation"]`` (6 s) at the env's dt.
+
+    The fields left None are durations in time: :func:`identification.identify` runs
+    :meth:`at_sample_time` with the env's dt, and its report records the samples used.
     """
 
     seed: int = 0
@@ -156,7 +180,7 @@ class IdentificationConfig:
     rich_signal: str = "random"
     rich_amplitude: float = 30.0
     rich_params: dict | None = None
-    rich_samples: int = 12000
+    rich_samples: int | None = None
     features: str = "auto"
     hidden: tuple[int, ...] = (2, 2, 2)
     n_bouc_wen: int = 16
@@ -164,8 +188,8 @@ class IdentificationConfig:
     nls_refinement: str = "output-error"
     nls_refinement_iterations: int = 300
     validation_amplitude: float = 30.0
-    validation_hold: int = 10
-    validation_samples: int = 6000
+    validation_hold: int | None = None
+    validation_samples: int | None = None
 
     def __post_init__(self) -> None:
         if self.features != "auto" and self.features not in FEATURE_SETS:
@@ -185,7 +209,8 @@ class IdentificationConfig:
         for width in self.hidden:
             require_int("hidden width", width)
         for name in ("prbs_samples", "rich_samples", "validation_samples"):
-            require_int(name, getattr(self, name), minimum=200)
+            if name == "prbs_samples" or getattr(self, name) is not None:
+                require_int(f"{name} (or None)", getattr(self, name), minimum=200)
         for name in (
             "prbs_clock",
             "validation_hold",
@@ -193,26 +218,77 @@ class IdentificationConfig:
             "nls_refinement_iterations",
             "n_bouc_wen",
         ):
-            require_int(name, getattr(self, name))
+            if name != "validation_hold" or self.validation_hold is not None:
+                require_int(name, getattr(self, name))
         for name in ("prbs_amplitude", "rich_amplitude", "validation_amplitude"):
             require_number(name, getattr(self, name), low=0.0, low_open=True)
         if "reference" in self.env_kwargs:
             raise ValueError("env_kwargs must not set 'reference': identification runs open loop")
         # Build a few samples of the rich signal now, so that a wrong name or parameter fails
         # here and not after the PRBS experiment.
+        dt = env_sample_time(self.env_kwargs)
         make_signal(
             self.rich_signal,
             16,
-            dt=float(self.env_kwargs.get("dt", TaskConfig().dt)),
+            dt=dt,
             rng=np.random.default_rng(0),
             amplitude=self.rich_amplitude,
-            **self.rich_signal_params(),
+            **self.rich_signal_params(dt),
         )
 
-    def rich_signal_params(self) -> dict:
-        """Parameters of the rich signal besides its amplitude."""
+    def rich_signal_params(self, dt: float | None = None) -> dict:
+        """Parameters of the rich signal besides its amplitude.
+
+        Parameters
+        ----------
+        dt : float, optional
+            Sample time (s) the default RAND hold is counted at; default: that of
+            ``env_kwargs`` (:func:`env_sample_time`).
+        """
         if self.rich_params is not None:
             return dict(self.rich_params)
+        if self.rich_signal == "random":
+            dt = env_sample_time(self.env_kwargs) if dt is None else dt
+            return {"hold": _samples(RAND_HOLD_S, dt)}
         if self.rich_signal in RICH_DEFAULTS:
             return dict(RICH_DEFAULTS[self.rich_signal])
         return dict(SIGNAL_DEFAULTS.get(self.rich_signal, {}))
+
+    def at_sample_time(self, dt: float) -> IdentificationConfig:
+        """This config with its durations counted in samples at ``dt`` (s).
+
+        ``rich_samples``, ``validation_samples`` and ``validation_hold`` left None become
+        :data:`RECORD_SECONDS` and :data:`RAND_HOLD_S` at ``dt``, and ``rich_params`` the rich
+        signal's parameters (:meth:`rich_signal_params`); values given stay as they are.
+
+        Raises
+        ------
+        ValueError
+            If ``dt`` is not a positive number, or a record would be shorter than 200 samples
+            at it (then give the record's length in samples).
+        """
+        require_number("dt (s)", dt, low=0.0, low_open=True)
+        counts = {}
+        for name, key in (("rich_samples", "rich"), ("validation_samples", "validation")):
+            if getattr(self, name) is None:
+                counts[name] = _samples(RECORD_SECONDS[key], dt)
+                if counts[name] < 200:
+                    raise ValueError(
+                        f"the {key} record of {RECORD_SECONDS[key]:g} s is {counts[name]} "
+                        f"samples at dt = {dt:g} s, fewer than 200; pass {name} (>= 200)"
+                    )
+        if self.validation_hold is None:
+            counts["validation_hold"] = _samples(RAND_HOLD_S, dt)
+        return dataclasses.replace(self, rich_params=self.rich_signal_params(dt), **counts)
+
+
+def env_sample_time(env_kwargs: dict) -> float:
+    """The sample time (s) of ``PiezoBender-v0`` made with ``env_kwargs``: its ``dt``, else
+    the bender's default (:func:`piezo_env.default_dt`)."""
+    settings = {name: env_kwargs[name] for name in ("bender", "dt") if name in env_kwargs}
+    return float(TaskConfig.from_kwargs(**settings).dt)
+
+
+def _samples(seconds: float, dt: float) -> int:
+    """``seconds`` as a whole number of samples at ``dt`` (s), at least one."""
+    return max(1, round(seconds / dt))

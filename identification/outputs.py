@@ -291,7 +291,9 @@ def relative_response_error(model: ARXModel, true: Any, frequencies_hz: Any) -> 
 
 def _validation_section(config: IdentificationConfig, val: Validation) -> dict[str, Any]:
     return {
-        "signal": f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold}",
+        "signal": (
+            f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold} samples"
+        ),
         "samples": len(val.u),
         **val.metrics,
         "rmse_ratio_hammerstein_to_arx": (

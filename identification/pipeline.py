@@ -11,9 +11,9 @@ b') :func:`refine_linear_part`: refine the linear part by output error, started 
    (mostly in the zeros, which the inverse of step d and the MPC invert); the prediction-error
    estimate of the output-error model is not (:mod:`identification.refine`). Its order is chosen
    again, by minimum description length. Steps d-f use the refined linear part;
-c) :func:`excite_rich`: excite it with a rich signal (RAND +-30 V, hold 10, by default: random
-   loops at every amplitude and large-signal power up to about 100 Hz for the linear part in
-   step e'; the paper's SINE is ``rich_signal="sine"``);
+c) :func:`excite_rich`: excite it with a rich signal (RAND +-30 V, hold 10 ms, by default:
+   random loops at every amplitude and large-signal power up to about 100 Hz for the linear
+   part in step e'; the paper's SINE is ``rich_signal="sine"``);
 d) :func:`estimate_hidden_signal`: estimate the hidden signal z_t by inverting the ARX model
    (eq. 25), or by a regularised least-squares deconvolution when the estimated B polynomial is
    not minimum-phase (:mod:`identification.inversion`);
@@ -37,7 +37,10 @@ ARX part fitted to (u, y) of the PRBS run is the linear part up to a gain; takin
 the scale: the NLS has unit small-signal gain and z is in equivalent volts.
 
 Every record comes from the environment through its Gymnasium interface, as from a real
-bender: the measured (noisy) deflection is all the identification sees.
+bender: the measured (noisy) deflection is all the identification sees. The records follow the
+env's sample time (the bender's default unless ``dt`` is given): the PRBS is counted in samples,
+the rich and validation records and their RAND hold in seconds
+(:meth:`IdentificationConfig.at_sample_time`).
 """
 
 from __future__ import annotations
@@ -97,7 +100,9 @@ def identify(
     env : gymnasium.Env, optional
         The bender to identify; default ``PiezoBender-v0`` with ``config.env_kwargs``.
     config : IdentificationConfig, optional
-        All settings; keyword ``overrides`` build one when it is not given.
+        All settings; keyword ``overrides`` build one when it is not given. Its durations are
+        counted in samples at the env's sample time (:meth:`IdentificationConfig.
+        at_sample_time`); ``report["config"]`` holds the counts used.
     progress : callable, optional
         Called with one line of text per step.
 
@@ -112,6 +117,7 @@ def identify(
         raise ValueError("pass either config or keyword overrides, not both")
     env = env if env is not None else identification_env(config)
     seeds, dt, log = step_seeds(config.seed), sample_time(env), _StepLog(progress)
+    config = config.at_sample_time(dt)
 
     u_prbs, y_prbs = excite_prbs(env, config, seeds)
     log("a_prbs_experiment", _prbs_line(config, y_prbs))
@@ -221,7 +227,7 @@ def _validation_line(config: IdentificationConfig, val: Validation) -> str:
     hammer, linear = val.metrics["hammerstein"], val.metrics["linear_arx"]
     return (
         f"f) validation on RAND +-{config.validation_amplitude:g} V "
-        f"(hold {config.validation_hold}): Hammerstein fit {hammer['fit_percent']:.2f} %, "
+        f"(hold {config.validation_hold} samples): Hammerstein fit {hammer['fit_percent']:.2f} %, "
         f"RMSE {hammer['rmse']:.2f} um; linear ARX fit {linear['fit_percent']:.2f} %, "
         f"RMSE {linear['rmse']:.2f} um"
     )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from identification.config import RICH_DEFAULTS
+from identification.config import RAND_HOLD_S
 
 __all__ = ["markdown_report"]
 
@@ -71,8 +71,9 @@ def _scope_section(report: dict[str, Any]) -> list[str]:
     rich = config["rich_signal"]
     band = ""
     if rich == "random":
-        hold = (config.get("rich_params") or RICH_DEFAULTS["random"])["hold"]
-        band = f" and references up to about {1.0 / (hold * env['dt_s']):.0f} Hz (its band)"
+        params = config.get("rich_params") or {}
+        hold_s = params["hold"] * env["dt_s"] if "hold" in params else RAND_HOLD_S
+        band = f" and references up to about {1.0 / hold_s:.0f} Hz (its band)"
     loops = {
         "random": "loops of every size",
         "decaying-multisine": "nested loops of every size",

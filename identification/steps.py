@@ -359,13 +359,15 @@ def excite_rich(
     env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step c: drive the bender with the rich signal of ``config`` (V); (u, y)."""
+    dt = sample_time(env)
+    config = config.at_sample_time(dt)
     u = make_signal(
         config.rich_signal,
         config.rich_samples,
-        dt=sample_time(env),
+        dt=dt,
         rng=np.random.default_rng(seeds["rich"]),
         amplitude=config.rich_amplitude,
-        **config.rich_signal_params(),
+        **config.rich_signal_params(dt),
     )
     return collect(env, u, seed=seeds["env"] + 1)
 
@@ -398,6 +400,7 @@ def fit_nonlinearity(
     model it makes with ``arx`` scored by free-run fit (%) on the selection record.
     """
     u_max = float(env.action_space.high[0])
+    config = config.at_sample_time(sample_time(env))
     n = config.validation_samples // 2
     record = rand_signal(config, n, sample_time(env), seeds["selection"])
     u_sel, y_sel = collect(env, record, seed=seeds["env"] + 2)
@@ -504,6 +507,7 @@ def validate(
     are None when it is unstable: it has no free run); ``unrefined_nls``: step e's model when
     step e' replaced it, run free as well.
     """
+    config = config.at_sample_time(sample_time(env))
     record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
     u, y = collect(env, record, seed=seeds["env"] + 3)
     y_sim, y_lin, y_pred = model.simulate(u), model.arx.simulate(u), model.predict(u, y)
@@ -539,12 +543,13 @@ def step_seeds(seed: int) -> dict[str, int]:
 
 
 def rand_signal(config: IdentificationConfig, n: int, dt: float, seed: int) -> np.ndarray:
-    """``n`` samples of the RAND input of the selection and validation records, V."""
+    """``n`` samples of the RAND input of the selection and validation records, V (``dt`` in
+    s counts the default hold, :data:`identification.config.RAND_HOLD_S`)."""
     return make_signal(
         "random",
         n,
         dt=dt,
         rng=np.random.default_rng(seed),
         amplitude=config.validation_amplitude,
-        hold=config.validation_hold,
+        hold=config.at_sample_time(dt).validation_hold,
     )

@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from piezo_env import CATALOGUE
+from piezo_env import CATALOGUE, default_dt
 
 __all__ = [
     "BENDER_CHOICES",
@@ -24,6 +24,7 @@ __all__ = [
     "non_negative_int",
     "positive_float",
     "positive_int",
+    "sample_time",
     "seed",
     "whole_number",
 ]
@@ -151,7 +152,14 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         help="sensor noise bound r in micrometres: uniform noise in [-r, r]; 0 for none",
     )
     env.add_argument(
-        "--dt", type=positive_float, default=task.dt, metavar="S", help="sample time in seconds"
+        "--dt",
+        type=positive_float,
+        default=None,
+        metavar="S",
+        help="sample time in seconds (default: the bender's, piezo_env.default_dt: its first "
+        "resonance within the datasheet tolerance at most a quarter of the sampling rate; "
+        + ", ".join(f"{_ms(default_dt(name))} ms for the {name}" for name in _SHORT_NAMES)
+        + ")",
     )
     env.add_argument(
         "--creep", action="store_true", default=bool(task.creep), help="add linear creep"
@@ -159,11 +167,25 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def env_kwargs(args: argparse.Namespace) -> dict[str, object]:
-    """The PiezoBender-v0 keyword arguments the options of :func:`add_env_arguments` give."""
-    return {
+    """The PiezoBender-v0 keyword arguments the options of :func:`add_env_arguments` give.
+
+    ``dt`` is left out without ``--dt``: the env then takes the bender's default.
+    """
+    kwargs: dict[str, object] = {
         "bender": args.bender,
         "hysteresis": HYSTERESIS_CHOICES[args.hysteresis],
         "noise_bound": args.noise_bound,
-        "dt": args.dt,
         "creep": args.creep,
     }
+    if args.dt is not None:
+        kwargs["dt"] = args.dt
+    return kwargs
+
+
+def sample_time(args: argparse.Namespace) -> float:
+    """The sample time (s) of the run: ``--dt``, else the bender's default."""
+    return args.dt if args.dt is not None else default_dt(args.bender)
+
+
+def _ms(seconds: float) -> str:
+    return f"{seconds * 1e3:g}"

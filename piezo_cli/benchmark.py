@@ -88,7 +88,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="noise seeds per cell (from --seed on): the tables give means with 95 %% intervals "
         "and call differences within them ties",
     )
-    parser.add_argument("--steps", type=positive_int, default=2000, help="steps per episode")
+    parser.add_argument(
+        "--steps",
+        type=positive_int,
+        default=None,
+        help="steps per episode (default: 2 s at the bender's sample time, piezo_env.default_dt:"
+        " 2000 on the PL140, 8000 on the PL127)",
+    )
     parser.add_argument(
         "--preview", type=int, default=20, help="reference samples every controller sees ahead"
     )
@@ -136,7 +142,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _config(args: argparse.Namespace):
+def _config(args: argparse.Namespace, policies: tuple[str, ...]):
     from benchmarks.runner import BenchmarkConfig
 
     try:
@@ -149,7 +155,7 @@ def _config(args: argparse.Namespace):
             preview=args.preview,
             jobs=args.jobs,
             backend=args.backend,
-            policies=_policies(args.policies, args.bender),
+            policies=policies,
             controller_options=_options(args.option),
             bender=args.bender,
             seeds=args.seeds,
@@ -166,26 +172,62 @@ def _options(options: list[tuple[str, str, object]]) -> dict[str, dict[str, obje
     return grouped
 
 
-def _policies(text: str, bender: str) -> tuple[str, ...]:
-    """Policy folders from ``--policies``: 'none', a glob, or comma-separated folders.
+def _policies(text: str, bender: str) -> tuple[tuple[str, ...], dict[str, str]]:
+    """Policy folders from ``--policies`` ('none', a glob, or comma-separated folders), and
+    the folders a glob found but left out, each with the reason.
 
-    The default glob finds the committed PPO policies, trained on the PL140: for another
-    bender it finds none (a named folder is still checked, and refused if it does not fit).
+    A glob keeps the policies trained for this bender's task (its stroke and sample time): the
+    default finds the committed PPO policies, trained on the PL140 at 1 ms, and leaves them out
+    for another bender. A named folder is kept, and :class:`benchmarks.runner.BenchmarkConfig`
+    refuses it if it does not fit.
     """
     import glob
 
     if text.strip().lower() == "none":
-        return ()
-    if text == _DEFAULT_POLICIES and bender.split(".")[0] != "PL140":
-        return ()
+        return (), {}
     folders: list[str] = []
+    left_out: dict[str, str] = {}
     for part in _names(text):
         matches = sorted(glob.glob(part))
         if any(ch in part for ch in "*?["):
-            folders += [m for m in matches if os.path.isfile(os.path.join(m, "policy.json"))]
+            for match in matches:
+                if not os.path.isfile(os.path.join(match, "policy.json")):
+                    continue
+                reason = _policy_misfit(match, bender)
+                if reason is None:
+                    folders.append(match)  # also one that does not load: refused with why
+                else:
+                    left_out[match] = reason
         else:
             folders.append(part)  # an explicit folder must load: BenchmarkConfig checks it
-    return tuple(folders)
+    return tuple(folders), left_out
+
+
+def _policy_misfit(folder: str, bender: str) -> str | None:
+    """Why the policy in ``folder`` does not fit the ``bender`` benchmark's task (its stroke
+    and sample time), or None: also when it does not load (the config then says why)."""
+    from benchmarks.plants import sample_time
+    from controllers.policy import load_policy
+    from piezo_env import get_datasheet
+
+    try:
+        policy = load_policy(folder)
+    except ValueError:
+        return None
+    sheet = get_datasheet(bender)
+    stroke_um, dt = sheet.free_deflection * 1e6, sample_time(bender)
+    trained_dt = policy.metadata.get("task", {}).get("dt_s")
+    reasons = []
+    if abs(policy.observation.stroke_um - stroke_um) > 1e-9 * stroke_um:
+        reasons.append(f"a stroke of {policy.observation.stroke_um:g} um")
+    if trained_dt is not None and abs(float(trained_dt) - dt) > 1e-9 * dt:
+        reasons.append(f"dt = {float(trained_dt):g} s")
+    if not reasons:
+        return None
+    return (
+        f"trained for {' and '.join(reasons)}, but the {sheet.name} has a stroke of "
+        f"{stroke_um:g} um and steps at dt = {dt:g} s"
+    )
 
 
 def _check_backend(args: argparse.Namespace) -> None:
@@ -257,7 +299,10 @@ def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
 
 def run(args: argparse.Namespace) -> int:
     """Check everything, identify (or load) the model, run the benchmark, write the report."""
-    config = _config(args)
+    policies, left_out = _policies(args.policies, args.bender)
+    config = _config(args, policies)
+    for folder, reason in left_out.items():
+        print(f"policy {folder} left out: {reason}")
     _check_backend(args)
     out = prepare_output_dir(args.out)
     from benchmarks.machine import machine
@@ -283,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
         )
     result = run_benchmark(config, model_dir, progress=terminal_progress(args.quiet))
     timing["benchmark_s"] = round(time.perf_counter() - start, 1)
-    task = TaskConfig()
+    task = TaskConfig(bender=config.bender, dt=config.dt)
     meta = {
         "model": model_dir,
         "dt": task.dt,
@@ -294,6 +339,8 @@ def run(args: argparse.Namespace) -> int:
         "machine": machine(),
         "timing": timing,
     }
+    if left_out:
+        meta["policies_left_out"] = left_out
     paths = write_benchmark(result, out, meta)
     print("verdict (nominal plant, RMSE in % of the full stroke):")
     print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result, meta)))

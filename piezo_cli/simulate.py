@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import argparse
 
-from piezo_cli.arguments import add_env_arguments, env_kwargs, finite_float, positive_float, seed
+from piezo_cli.arguments import (
+    add_env_arguments,
+    env_kwargs,
+    finite_float,
+    positive_float,
+    sample_time,
+    seed,
+)
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
 from piezo_env import CATALOGUE, get_datasheet
@@ -27,7 +34,8 @@ PERIODIC_SIGNALS = ("sine", "triangle", "square")
 """The signals ``--frequency`` applies to."""
 
 MAX_SAMPLES = 1_000_000
-"""Longest run in samples (``--duration / --dt``): 1000 s at 1 ms, about a minute of work."""
+"""Longest run in samples (``--duration / --dt``): 1000 s at 1 ms, about a minute of work
+(100 s on the PL112 at its default 0.1 ms)."""
 
 _RATED_VOLTAGES = "/".join(f"{v:g}" for v in sorted({s.rated_voltage for s in CATALOGUE.values()}))
 _DEFAULT_FREQUENCY = SIGNAL_DEFAULTS["sine"]["frequency"]
@@ -75,6 +83,7 @@ def check_arguments(args: argparse.Namespace) -> None:
         outside (0, Nyquist), or a run longer than :data:`MAX_SAMPLES` samples.
     """
     sheet = get_datasheet(args.bender)
+    dt = sample_time(args)
     if not 0 <= args.amplitude <= sheet.rated_voltage:
         raise CommandLineError(
             f"--amplitude {args.amplitude:g} V is outside the drive range of the {sheet.name}: "
@@ -91,17 +100,17 @@ def check_arguments(args: argparse.Namespace) -> None:
             frequency, given = SIGNAL_DEFAULTS[args.signal]["frequency"], " (the default)"
         else:
             frequency, given = args.frequency, ""
-        nyquist = 0.5 / args.dt
+        nyquist = 0.5 / dt
         if not 0 < frequency < nyquist:
             raise CommandLineError(
                 f"--frequency {frequency:g} Hz{given} is out of range: choose above 0 and below "
-                f"{nyquist:g} Hz (the Nyquist frequency of --dt {args.dt:g} s)"
+                f"{nyquist:g} Hz (the Nyquist frequency of --dt {dt:g} s)"
             )
-    samples = round(args.duration / args.dt)
+    samples = round(args.duration / dt)
     if samples > MAX_SAMPLES:
         raise CommandLineError(
-            f"--duration {args.duration:g} s at --dt {args.dt:g} s is {samples:,} samples; "
-            f"the limit is {MAX_SAMPLES:,} ({MAX_SAMPLES * args.dt:g} s at this --dt)"
+            f"--duration {args.duration:g} s at --dt {dt:g} s is {samples:,} samples; "
+            f"the limit is {MAX_SAMPLES:,} ({MAX_SAMPLES * dt:g} s at this --dt)"
         )
 
 

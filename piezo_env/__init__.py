@@ -5,8 +5,10 @@ demand, so ``gymnasium.make("piezo_env:PiezoBender-v0")`` works without a prior 
 natively batched vector env is the id's vector entry point, reached the same way:
 ``gymnasium.make_vec("piezo_env:PiezoBender-v0", num_envs=N,
 vectorization_mode="vector_entry_point")``. The task settings and their defaults live in
-:class:`TaskConfig`; ``randomize=True`` (or a :class:`DomainRandomization`) draws the plant
-from the datasheet tolerances at each reset. The bench options (:class:`Amplifier`,
+:class:`TaskConfig`; the default sample time follows the bender's first resonance
+(:func:`default_dt`: 1 ms for the PL140, finer for the faster benders). ``randomize=True``
+(or a :class:`DomainRandomization`) draws the plant from the datasheet tolerances at each
+reset. The bench options (:class:`Amplifier`,
 :class:`Sensor`, :class:`Drift`, ``hysteresis="rate-dependent"``) make the plant behave like a
 real bench; all are off by default.
 
@@ -38,11 +40,13 @@ if TYPE_CHECKING:
     from piezo_env.model import BenderSimulator, PiezoBenderModel
     from piezo_env.parameters import BenderParameters, bender_parameters
     from piezo_env.randomization import DomainRandomization
+    from piezo_env.sampling import DT_LADDER, default_dt
     from piezo_env.sensor import Sensor
     from piezo_env.task import TaskConfig
 
 __all__ = [
     "CATALOGUE",
+    "DT_LADDER",
     "Amplifier",
     "BenderDatasheet",
     "BenderParameters",
@@ -59,6 +63,7 @@ __all__ = [
     "Sensor",
     "TaskConfig",
     "bender_parameters",
+    "default_dt",
     "get_datasheet",
 ]
 
@@ -80,6 +85,8 @@ _HOMES = {
     "BenderParameters": "piezo_env.parameters",
     "bender_parameters": "piezo_env.parameters",
     "DomainRandomization": "piezo_env.randomization",
+    "DT_LADDER": "piezo_env.sampling",
+    "default_dt": "piezo_env.sampling",
     "TaskConfig": "piezo_env.task",
 }
 """Submodule that defines each public name (imported on first access)."""

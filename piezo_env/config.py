@@ -27,12 +27,14 @@ from piezo_env.reference import (
     check_reference_array,
     check_reference_band,
 )
+from piezo_env.sampling import default_dt
 from piezo_env.sensor import Sensor
 
 __all__ = ["DEFAULT_HORIZON", "NOISE_BLOCK", "TaskConfig"]
 
 DEFAULT_HORIZON = 2000
-"""Default episode length (steps): 2 s at dt = 1 ms."""
+"""Default episode length (steps) of the registered id: 2 s at dt = 1 ms (the PL140's default;
+at another dt pass ``max_episode_steps=round(2.0 / dt)`` for 2 s)."""
 
 NOISE_BLOCK = 1024
 """Sensor-noise samples drawn at a time. The single and the vector env must agree on it: it
@@ -55,8 +57,13 @@ class TaskConfig:
         ``".10"`` suffix is optional) or a :class:`~piezo_env.datasheet.BenderDatasheet`.
     n_elements : int
         Hermite beam finite elements (positive integer).
-    dt : float
-        Sample time (s), > 0: one env step.
+    dt : float or None
+        Sample time (s), > 0: one env step. None (the default): the bender's default,
+        :func:`piezo_env.default_dt`, the largest of :data:`piezo_env.sampling.DT_LADDER` with
+        4 (1 + s) f_1 dt <= 1 (f_1 the datasheet resonance, s its tolerance): 1 ms for the
+        PL140, 0.5 ms for the PL128, 0.25 ms for the PL122 and PL127, 0.1 ms for the PL112.
+        Stored as a float. :meth:`from_kwargs` with a new ``bender`` and no ``dt`` chooses it
+        again when the rule chose it; :func:`dataclasses.replace` keeps it.
     hysteresis : {"bouc-wen", "prandtl-ishlinskii", "rate-dependent", None} or Hysteresis
         Input hysteresis; None for a linear bender. ``"rate-dependent"`` is the
         Prandtl-Ishlinskii map whose play radii grow with the drive's rate (loop 1.5x as wide
@@ -117,7 +124,7 @@ class TaskConfig:
 
     bender: str | BenderDatasheet = "PL140"
     n_elements: int = DEFAULT_ELEMENTS
-    dt: float = 1e-3
+    dt: float | None = None
     hysteresis: str | Hysteresis | None = "bouc-wen"
     creep: bool | Creep = False
     noise_bound: float = 1.0
@@ -132,16 +139,19 @@ class TaskConfig:
     drift: bool | Drift | None = None
 
     def __post_init__(self) -> None:
-        get_datasheet(self.bender)
+        sheet = get_datasheet(self.bender)
         require_int("n_elements", self.n_elements)
-        require_number("dt (s)", self.dt, low=0.0, low_open=True)
+        object.__setattr__(self, "_dt_from_rule", self.dt is None)
+        if self.dt is None:
+            object.__setattr__(self, "dt", default_dt(sheet))
+        require_number("dt (s; None for the bender's default)", self.dt, low=0.0, low_open=True)
         if not (self.hysteresis is None or isinstance(self.hysteresis, (str, Hysteresis))):
             raise ValueError(
                 f"hysteresis must be one of {HYSTERESIS_NAMES}, None or a Hysteresis, "
                 f"got {self.hysteresis!r}"
             )
         if isinstance(self.hysteresis, str):
-            make_hysteresis(self.hysteresis, get_datasheet(self.bender).rated_voltage, dt=self.dt)
+            make_hysteresis(self.hysteresis, sheet.rated_voltage, dt=self.dt)
         if not isinstance(self.creep, (bool, Creep)):
             raise ValueError(f"creep must be a bool or a Creep, got {self.creep!r}")
         require_number("noise_bound (um)", self.noise_bound, low=0.0)
@@ -178,6 +188,8 @@ class TaskConfig:
     def from_kwargs(cls, config: TaskConfig | None = None, /, **settings: Any) -> TaskConfig:
         """A config from keyword ``settings`` (on top of ``config`` if given).
 
+        A new ``bender`` without a ``dt`` on top of a config whose dt the rule chose
+        (:func:`piezo_env.default_dt`) gets the new bender's default dt; an explicit dt is kept.
         Raises TypeError naming the valid keywords when a keyword is not a field.
         """
         if config is not None and not isinstance(config, TaskConfig):
@@ -190,6 +202,9 @@ class TaskConfig:
             )
         if config is None:
             return cls(**settings)
+        rule_chose_dt = getattr(config, "_dt_from_rule", False)
+        if "bender" in settings and "dt" not in settings and rule_chose_dt:
+            settings = {**settings, "dt": None}
         return dataclasses.replace(config, **settings) if settings else config
 
     def __eq__(self, other: object) -> bool:

@@ -38,8 +38,11 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     elements from its datasheet, with rate-independent input hysteresis (Bouc-Wen by default),
     optional creep and a bounded-noise displacement sensor. The dynamics are discretised
     exactly (zero-order hold) at ``dt``: the action a_t is held for one sample, and the plant is
-    strictly proper, so a_t first shows in the deflection y_{t+1}. The physics object is
-    ``env.unwrapped.model`` (:class:`piezo_env.model.PiezoBenderModel`).
+    strictly proper, so a_t first shows in the deflection y_{t+1}. The default ``dt`` follows
+    the bender (:func:`piezo_env.default_dt`: its highest first resonance within the datasheet
+    tolerance at most a quarter of the sampling rate; 1 ms for the PL140, 0.25 ms for the
+    PL127). The physics object is ``env.unwrapped.model``
+    (:class:`piezo_env.model.PiezoBenderModel`).
 
     ## Timing
     At step t the agent sees the observation o_t and sends a_t; ``step(a_t)`` returns
@@ -81,7 +84,8 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
 
     ## Episode End
     Truncated after ``max_episode_steps`` (``gym.make`` default 2000 steps = 2 s at
-    dt = 1 ms; -1 or None for no limit) by TimeLimit. Terminated only if ``deflection_limit``
+    dt = 1 ms, shorter at a finer dt: pass ``max_episode_steps=round(2.0 / dt)`` for 2 s;
+    -1 or None for no limit) by TimeLimit. Terminated only if ``deflection_limit``
     (um) is set and |y_{t+1}| exceeds it, as a bender driven into its mechanical stop would be.
 
     ## Info

@@ -19,6 +19,7 @@ from piezo_env.discrete import Creep, DiscreteBender, discretize
 from piezo_env.fem import BeamFE, assemble_beam
 from piezo_env.hysteresis import BoucWen, Hysteresis, make_hysteresis
 from piezo_env.parameters import BenderParameters, bender_parameters
+from piezo_env.sampling import default_dt
 
 __all__ = ["BenderSimulator", "DriftingSimulator", "PiezoBenderModel", "SimulationResult"]
 
@@ -32,8 +33,8 @@ class PiezoBenderModel:
         Catalogue name (``"PL140"``, ``"PL112"``, ...) or a datasheet.
     n_elements : int
         Hermite beam elements (default 10: f1..f3 within 0.03 % of the continuum).
-    dt : float
-        Sample time (s).
+    dt : float or None
+        Sample time (s); None (the default): the bender's, :func:`piezo_env.default_dt`.
     hysteresis : {"bouc-wen", "prandtl-ishlinskii", "rate-dependent", None} or Hysteresis
         Input hysteresis model; None for a linear bender.
     creep : bool or Creep
@@ -51,7 +52,7 @@ class PiezoBenderModel:
         bender: str | BenderDatasheet = TaskConfig.bender,
         *,
         n_elements: int = TaskConfig.n_elements,
-        dt: float = TaskConfig.dt,
+        dt: float | None = TaskConfig.dt,
         hysteresis: str | Hysteresis | None = TaskConfig.hysteresis,
         creep: bool | Creep = TaskConfig.creep,
         damping_ratio: float = TaskConfig.damping_ratio,
@@ -59,6 +60,8 @@ class PiezoBenderModel:
         density: float | str = "calibrated",
     ) -> None:
         self.params: BenderParameters = bender_parameters(bender, density=density)
+        if dt is None:
+            dt = default_dt(self.params.datasheet)
         self.beam: BeamFE = assemble_beam(
             self.params, n_elements, damping_ratio=damping_ratio, damping=damping
         )

@@ -260,7 +260,8 @@ def test_help_speaks_to_a_person_and_shows_defaults(capsys):
         "(default: 0)",
         "(default: PL140)",
         "(default: bouc-wen)",
-        "(default: 0.001)",
+        "(default: the bender's",  # --dt: piezo_env.default_dt of the bender
+        "1 ms for the PL140",
         "(default: out/simulate)",
     ):
         assert default in flat

@@ -1,0 +1,70 @@
+"""The default sample time of a bender: the rule that keeps its first resonance well sampled.
+
+A bender's first resonance f_1 is known only within its datasheet tolerance s (relative, the
+resonance spread of :class:`~piezo_env.randomization.DomainRandomization`, 0.2), so the highest
+resonance the sample time must serve is (1 + s) f_1. The default sample time is the largest
+value of :data:`DT_LADDER` with
+
+    4 (1 + s) f_1 dt <= 1,
+
+i.e. the highest resonance in the tolerance box stays at or below a quarter of the sampling
+rate (half the Nyquist frequency): the discrete model then resolves the resonance's phase, and
+a controller acting on it has a few samples per period. PL140 (160 Hz): 1 ms; PL128 (360 Hz):
+0.5 ms; PL122 (600 Hz) and PL127 (420 Hz): 0.25 ms; PL112 (1800 Hz): 0.1 ms.
+"""
+
+from __future__ import annotations
+
+from piezo_env.datasheet import BenderDatasheet, get_datasheet
+from piezo_env.randomization import DomainRandomization
+
+__all__ = ["DT_LADDER", "RESONANCE_SAMPLES", "default_dt", "highest_resonance"]
+
+DT_LADDER: tuple[float, ...] = (1e-3, 5e-4, 2.5e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 2e-5, 1e-5)
+"""Sample times (s) the default is chosen from, largest first: sampling rates of 1, 2, 4 and 5
+x 10^k kHz, each a whole fraction of 1 ms (so 2 s episodes and 0.1 s holds are whole numbers
+of samples) and at most 2x apart (a bender never samples faster than twice what the rule asks),
+from the env's 1 ms to the 100 kHz of fast nanopositioning loops."""
+
+RESONANCE_SAMPLES = 4.0
+"""Samples per period of the highest first resonance of the tolerance box, at least (-)."""
+
+
+def highest_resonance(bender: str | BenderDatasheet) -> float:
+    """The top of the first resonance's tolerance box, (1 + s) f_1 (Hz).
+
+    ``s`` is the datasheet's resonance tolerance, ``DomainRandomization().resonance``.
+    """
+    sheet = get_datasheet(bender)
+    return (1.0 + DomainRandomization().resonance) * sheet.resonance
+
+
+def default_dt(bender: str | BenderDatasheet) -> float:
+    """The default sample time (s) of ``bender``: the largest of :data:`DT_LADDER` with
+    ``4 (1 + s) f_1 dt <= 1``.
+
+    Parameters
+    ----------
+    bender : str or BenderDatasheet
+        Catalogue name (``"PL140"`` ...) or a datasheet.
+
+    Returns
+    -------
+    float
+        Sample time (s), one of :data:`DT_LADDER` (1 ms for the PL140).
+
+    Raises
+    ------
+    ValueError
+        If the bender is unknown, or its resonance is so high that even the smallest ladder
+        value (10 us) breaks the rule: then pass ``dt`` explicitly.
+    """
+    f_top = highest_resonance(bender)
+    for dt in DT_LADDER:
+        if RESONANCE_SAMPLES * f_top * dt <= 1.0:
+            return dt
+    raise ValueError(
+        f"the first resonance of {get_datasheet(bender).name} reaches {f_top:g} Hz within its "
+        f"tolerance, above a quarter of the fastest default rate ({1.0 / DT_LADDER[-1]:g} Hz); "
+        f"pass dt explicitly (at most {1.0 / (RESONANCE_SAMPLES * f_top):.3g} s)"
+    )
