@@ -76,8 +76,9 @@ from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import check_settings, measurement_std
 from controllers.task import ControlTask
+from controllers.tolerance_box import Vertex, mode_correction
 from identification.arx import ARXModel
-from identification.correction import ModalCorrection, scale_modes
+from identification.correction import ModalSplit
 from piezo_env.randomization import DomainRandomization
 
 __all__ = [
@@ -282,8 +283,10 @@ class AdaptiveMPC(LinearMPC):
             for alpha in resonance_points(settings.resonance_tolerance, settings.damping_range[0])
             for z in damping_points(*settings.damping_range)
         ]
+        split = ModalSplit(arx)
         self._member_arx = [arx] + [
-            scale_modes(arx, ModalCorrection(1.0, alpha, z / zeta)) for alpha, z in self._grid[1:]
+            split.scaled(mode_correction(split, arx.dt, Vertex(1.0, alpha, z)))
+            for alpha, z in self._grid[1:]
         ]
         self._member_models = []
         for member in self._member_arx:

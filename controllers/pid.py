@@ -15,13 +15,33 @@ maximum sensitivity ``Ms <= Ms_max`` and a stable closed loop on the prediction 
 part (z -> um; the identified nonlinearity has unit small-signal gain, so z is volts for small
 signals), solved in closed form per (kp, kd) so that the gains do not depend on rounding.
 
+**Over the datasheet's tolerance box** (the default): the bound and the stability must hold on
+the nominal model and on every vertex of free deflection (static gain) x first resonance x its
+damping (``gain_tolerance``, ``resonance_tolerance``, ``damping_range``: +-20 %, +-20 %,
+0.01 .. 0.04 for the PI PICMA benders), each vertex built from the model itself by the modal
+correction of its first bending mode (:mod:`controllers.tolerance_box`). A fixed loop cannot know
+where in a +-20 % band a resonance with 0.01 damping sits, so it must keep its gain below
+``1 - 1/Ms`` across the whole band whatever the phase: the price is bandwidth. On the PL140
+the nominal-tuned notched loop crosses over at about 105 Hz and diverges on the benders with
+a resonance 20 % low; the box-tuned one crosses over at about 25 Hz and holds every vertex.
+``gain_tolerance=0, resonance_tolerance=0, damping_range=None`` tunes on the nominal model
+alone, as before. A resonance above the Nyquist frequency (PL112, PL122 at 1 kHz) is seen as
+its alias, and the box moves the alias, not the mode: a +-20 % band of such a mode aliases to
+a far wider one (the sample rate must follow the bender).
+
 **Notch**: the model's lightly damped resonance is the complex pole pair of ``model.a`` with the
 smallest damping ratio. On a bender whose first resonance lies above the Nyquist frequency (the
 PL112's 1800 Hz and the PL122's 600 Hz at 1 kHz sampling) that is the aliased mode the samples
 see (about 200 and 400 Hz), and the notch sits there: it is the peak the sampled loop has. The
 notch puts its zeros on those poles and its poles at the same natural frequency with damping
 ``notch_damping`` (pole-zero placement, unit DC gain), so the loop sees a well damped mode
-instead of a 26 dB peak, and the PID is re-tuned on ``N P``.
+instead of a 26 dB peak, and the PID is re-tuned on ``N P``. Over the box the notch must
+reach the whole band: its pole damping is the one that lets the largest integral gain meet
+the bound on every vertex (:func:`controllers.pid_tuning.robust_notch_damping`; about 2.55 on
+the PL140, i.e. two real poles, a notch and a low-pass near 30 Hz). ``pid-ff``'s feedback is
+then the same loop as ``pid-notch``'s; its feedforward stays the nominal model's inverse (open
+loop, it cannot destabilise; on the vertices it leaves an error at the reference's frequency,
+not at the resonance).
 
 **Feedforward** (``feedforward=True``): stable inversion of the linear model on the reference
 preview. A feedforward copy of the model ``x_f`` is driven by::
@@ -60,16 +80,25 @@ import numpy as np
 
 from controllers.base import Controller
 from controllers.pid_tuning import (
+    NOTCH_DAMPING_RANGE,
     PIDGains,
     TuningError,
     closed_loop_report,
     loop_transfer,
     notch_filter,
     resonance,
+    robust_notch_damping,
     tune_pid,
 )
 from controllers.prediction import PredictionModel
+from controllers.settings import GAIN_TOLERANCE
 from controllers.task import ControlTask
+from controllers.tolerance_box import (
+    DAMPING_RANGE,
+    RESONANCE_TOLERANCE,
+    ToleranceBox,
+    vertex_models,
+)
 from piezo_env.checks import require_number
 
 __all__ = ["PIDController", "PIDGains", "TuningError"]
@@ -99,12 +128,16 @@ class PIDController(Controller):
         ms_max: float = 1.8
         """Bound on the maximum sensitivity Ms of the tuning rule (1.2 .. 3)."""
         notch_damping: float | None = None
-        """Damping ratio of the notch's poles (0.05 .. 1; its zeros sit on the model's poles).
+        """Damping ratio of the notch's poles (0.05 .. 10; its zeros sit on the model's poles;
+        from 1 on, two real poles: a notch and a low-pass).
 
-        None: 0.7 (a wide notch: the feedback carries the tracking) without feedforward, 0.1 with
-        it (a narrow notch and a gentle loop: the feedback only corrects model error, and a wide
-        notch leaves |S| > 1 around the resonance, where the hysteresis model's odd harmonics
-        fall, e.g. 150 Hz on a 50 Hz sine)."""
+        None, tuned over a box (the default): the damping that lets the largest integral gain
+        meet ``ms_max`` on every vertex (:func:`controllers.pid_tuning.robust_notch_damping`).
+        None, tuned on the nominal model alone: 0.7 (a wide notch: the feedback carries the
+        tracking) without feedforward, 0.1 with it (a narrow notch and a gentle loop: the
+        feedback only corrects model error, and a wide notch leaves |S| > 1 around the
+        resonance, where the hysteresis model's odd harmonics fall, e.g. 150 Hz on a 50 Hz
+        sine)."""
         derivative_filter_s: float = 1e-3
         """Derivative filter time constant Tf (s), > 0."""
         derivative: bool = True
@@ -113,6 +146,19 @@ class PIDController(Controller):
         """Back-calculation gain g in (0, 1]: the integrator absorbs g (u_sat - u) per step."""
         inverse_regularization: float = 1e-6
         """rho >= 0 of the regularised inverse, used only when the model is non-minimum phase."""
+        gain_tolerance: float = GAIN_TOLERANCE
+        """Relative half-width of the bender's static gain the loop must hold (-), in [0, 1):
+        the datasheet's free-deflection tolerance, +-20 %."""
+        resonance_tolerance: float = RESONANCE_TOLERANCE
+        """Relative half-width of the first resonance the loop must hold (-), in [0, 1): the
+        datasheet's +-20 %."""
+        damping_range: tuple[float, float] | None = DAMPING_RANGE
+        """(low, high) first-mode damping ratio the loop must hold (-), or None for the model's
+        own: 0.01 .. 0.04 (the range :class:`piezo_env.DomainRandomization` draws from).
+
+        With ``gain_tolerance=0``, ``resonance_tolerance=0`` and ``damping_range=None`` the loop
+        is tuned on the nominal model alone (the faster loop that diverges on benders at the
+        edges of the datasheet's tolerances)."""
 
         def __post_init__(self) -> None:
             for name in ("notch", "feedforward", "derivative"):
@@ -120,7 +166,25 @@ class PIDController(Controller):
                     raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")
             require_number("ms_max", self.ms_max, low=1.2, high=3.0)
             if self.notch_damping is not None:
-                require_number("notch_damping", self.notch_damping, low=0.05, high=1.0)
+                low, high = NOTCH_DAMPING_RANGE
+                require_number("notch_damping", self.notch_damping, low=low, high=high)
+            require_number("gain_tolerance", self.gain_tolerance, low=0, high=1, high_open=True)
+            require_number(
+                "resonance_tolerance", self.resonance_tolerance, low=0, high=1, high_open=True
+            )
+            if self.damping_range is not None:
+                pair = self.damping_range
+                if not (
+                    isinstance(pair, (tuple, list))
+                    and len(pair) == 2
+                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair)
+                    and 0.0 < pair[0] <= pair[1] < 1.0
+                ):
+                    raise ValueError(
+                        "damping_range must be None or (low, high) with 0 < low <= high < 1, "
+                        f"got {pair!r}"
+                    )
+                object.__setattr__(self, "damping_range", (float(pair[0]), float(pair[1])))
             require_number("derivative_filter_s", self.derivative_filter_s, low=0, low_open=True)
             require_number("antiwindup_gain", self.antiwindup_gain, low=0, high=1, low_open=True)
             require_number("inverse_regularization", self.inverse_regularization, low=0)
@@ -137,12 +201,19 @@ class PIDController(Controller):
         self.name = name
         self.settings = settings = settings or self.Settings()
         self.model = model
+        self.box = ToleranceBox(
+            settings.gain_tolerance, settings.resonance_tolerance, settings.damping_range
+        )
+        self.vertices = vertex_models(model, self.box)
+        box = [vertex_model for _, vertex_model in self.vertices]
         self.notch = None
         self.resonance_hz = math.nan
         if settings.notch:
             self.resonance_hz, _, pole = resonance(model.a, model.dt)
             self.notch_damping = settings.notch_damping
-            if self.notch_damping is None:
+            if self.notch_damping is None and box:
+                self.notch_damping = robust_notch_damping(model, pole, box, ms_max=settings.ms_max)
+            elif self.notch_damping is None:
                 self.notch_damping = 0.1 if settings.feedforward else 0.7
             self.notch = notch_filter(pole, model.dt, self.notch_damping)
         self.gains = tune_pid(
@@ -151,8 +222,13 @@ class PIDController(Controller):
             ms_max=settings.ms_max,
             derivative_filter_s=settings.derivative_filter_s,
             use_derivative=settings.derivative,
+            box=box,
         )
         self.report = closed_loop_report(model, self.gains, self.notch)
+        self.vertex_reports = [
+            (vertex, closed_loop_report(vertex_model, self.gains, self.notch))
+            for vertex, vertex_model in self.vertices
+        ]
         self._slew_step = task.slew_step
         self._setup_coefficients()
         if settings.feedforward:
@@ -291,17 +367,26 @@ class PIDController(Controller):
         return {"num": num.tolist(), "den": den.tolist(), "dt": self.model.dt}
 
     def describe(self) -> dict[str, Any]:
-        """Settings, gains, notch, loop margins, Ms, bandwidth and the tuning rule (JSON-safe)."""
+        """Settings, gains, notch, loop margins, Ms, bandwidth and the tuning rule (JSON-safe).
+
+        The loop figures at the top level are the nominal model's; under ``"box"``, the
+        tolerances tuned over and each vertex's Ms, margins (None: no crossing), crossover and
+        bandwidth, with the worst vertex (largest Ms) and the smallest margins.
+        """
+        where = "the nominal model" if self.box.is_nominal else (
+            f"the nominal model and each of the {len(self.vertices)} vertices of the tolerance box"
+        )
         info: dict[str, Any] = {
             "name": self.name,
             "settings": asdict(self.settings),
             "tuning_rule": (
                 f"maximise ki subject to Ms <= {self.settings.ms_max} and a stable closed loop "
-                "(MIGO-style; the largest ki in closed form per (kp, kd) on a frequency grid up "
-                "to Nyquist, maximised over a grid of (kp, kd) and refined)"
+                f"on {where} (MIGO-style; the largest ki in closed form per (kp, kd) on a "
+                "frequency grid up to Nyquist, maximised over a grid of (kp, kd) and refined)"
             ),
             "gains": asdict(self.gains),
             **self.report,
+            "box": self._describe_box(),
             "loop": self.loop_polynomials(),
             "native": self.native_code() if self.settings.feedforward else {},
         }
@@ -315,6 +400,37 @@ class PIDController(Controller):
                 "max_zero_magnitude": self.max_zero_magnitude,
             }
         return info
+
+    def _describe_box(self) -> dict[str, Any]:
+        """The tolerance box the loop was tuned over and its margins on each vertex."""
+        vertices = [
+            {
+                "vertex": vertex.label(),
+                "gain": vertex.gain,
+                "resonance": vertex.resonance,
+                "damping": vertex.damping,
+                **{key: _finite_or_none(report[key]) for key in _VERTEX_KEYS},
+            }
+            for vertex, report in self.vertex_reports
+        ]
+        out: dict[str, Any] = {"tolerances": asdict(self.box), "vertices": vertices}
+        if vertices:
+            worst = max(vertices, key=lambda v: v["ms"])
+            out["worst_vertex"] = worst["vertex"]
+            out["worst_ms"] = worst["ms"]
+            for key in ("gain_margin_db", "phase_margin_deg"):
+                values = [v[key] for v in vertices if v[key] is not None]
+                out[f"worst_{key}"] = min(values) if values else None
+        return out
+
+
+_VERTEX_KEYS = ("ms", "gain_margin_db", "phase_margin_deg", "crossover_hz", "bandwidth_hz")
+"""The loop figures reported per vertex of the box."""
+
+
+def _finite_or_none(value: float) -> float | None:
+    """``value``, or None where it is not finite (no crossing: an infinite margin)."""
+    return float(value) if math.isfinite(value) else None
 
 
 def _notch_depth_db(notch: tuple[np.ndarray, np.ndarray], f_hz: float, dt: float) -> float:

@@ -28,13 +28,22 @@ A degenerate result raises :class:`TuningError` instead of returning a controlle
 nothing: no stabilising gains, ki at the top of its search range, no gain crossover, or Ms
 above the bound on the report's grid.
 
+**Over a set of plants** (``box``: the vertices of the datasheet's tolerance box,
+:mod:`controllers.tolerance_box`): the bound is one inequality per frequency and plant, so the set
+is one long grid (each plant's own :func:`frequency_grid`, concatenated) and ki* is the
+smallest over all of it; stability is checked on every plant. Same rule, same margin.
+
 **Notch** (:func:`notch_filter`): zeros on the model's least damped pole pair
 (:func:`resonance`), poles at the same natural frequency with a chosen damping, unit DC gain.
+Over a box (:func:`robust_notch_damping`) that damping is chosen by the same rule: the one
+that lets the largest integral gain meet the bound on every plant.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +62,7 @@ __all__ = [
     "notch_filter",
     "pid_transfer",
     "resonance",
+    "robust_notch_damping",
     "tune_pid",
 ]
 
@@ -154,7 +164,8 @@ def notch_filter(pole: complex, dt: float, damping: float) -> tuple[np.ndarray, 
     dt : float
         Sample time (s).
     damping : float
-        Damping ratio of the notch's own poles (same natural frequency).
+        Damping ratio of the notch's own poles (same natural frequency; from 1 on, two real
+        poles whose product is the natural frequency squared: a notch and a low-pass).
 
     Returns
     -------
@@ -162,11 +173,81 @@ def notch_filter(pole: complex, dt: float, damping: float) -> tuple[np.ndarray, 
         Biquad coefficients in descending powers of z (den monic).
     """
     wn = abs(np.log(pole)) / dt
-    s = wn * complex(-damping, math.sqrt(max(1.0 - damping**2, 0.0)))
-    q = np.exp(s * dt)
+    if damping < 1.0:
+        s = wn * complex(-damping, math.sqrt(1.0 - damping**2))
+        poles = np.exp(np.array([s, np.conj(s)]) * dt)
+    else:  # two real poles wn (-damping +- sqrt(damping^2 - 1)): a notch and a low-pass
+        root = math.sqrt(damping**2 - 1.0)
+        poles = np.exp(wn * np.array([-damping + root, -damping - root]) * dt)
     num = np.real(np.poly([pole, np.conj(pole)]))
-    den = np.real(np.poly([q, np.conj(q)]))
+    den = np.real(np.poly(poles))
     return num * (den.sum() / num.sum()), den
+
+
+NOTCH_DAMPING_RANGE = (0.05, 10.0)
+"""Range of the notch's pole damping (-), the settings' and the box search's. Low end: a notch
+2.5 times the width of the PL140's own resonance (damping 0.02). High end: above 1 the poles
+are real, ``wn (zeta +- sqrt(zeta^2 - 1))``, a low-pass corner near ``wn / (2 zeta)``; at 10
+it sits at 1/20 of the resonance (8 Hz on the PL140), below where a loop that is to track at
+all crosses over, so a larger damping cannot be the best one."""
+_NOTCH_GRID = 49
+"""Log-spaced grid points over :data:`NOTCH_DAMPING_RANGE` (12 % apart) before the Brent
+refinement: numerical resolution only."""
+
+
+def robust_notch_damping(
+    model: PredictionModel,
+    pole: complex,
+    box: Sequence[PredictionModel],
+    *,
+    ms_max: float,
+) -> float:
+    """The notch pole damping that lets the largest integral gain meet Ms on every plant.
+
+    The notch keeps its zeros on ``pole`` (the nominal resonance) and its poles at the same
+    natural frequency; their damping sets how far the notch reaches (and, above 1, where its
+    low-pass corner lies). It is chosen by the tuning rule itself: maximise the largest pure
+    integral gain ki*(kp = kd = 0) that meets ``Ms <= ms_max`` on ``model`` and every plant of
+    ``box`` (closed form, :func:`_largest_ki`), over :data:`NOTCH_DAMPING_RANGE`: a log-spaced
+    grid, then bounded Brent between the best point's neighbours. With a resonance that may sit
+    anywhere in the box's band at a damping ratio of 0.01, the loop must be gain-stabilised there
+    (|L| <= 1 - 1/Ms whatever the phase), so how much integral gain survives the band is the
+    measure of a notch.
+
+    Parameters
+    ----------
+    model : PredictionModel
+        Nominal model (its DC gain scales the result only).
+    pole : complex
+        Discrete resonant pole the notch's zeros sit on.
+    box : sequence of PredictionModel
+        The other plants the bound must hold on.
+    ms_max : float
+        Bound on the maximum sensitivity.
+
+    Returns
+    -------
+    float
+        Damping ratio of the notch's poles (-).
+    """
+    dt = model.dt
+    loop, zinv = _stacked_loop((model, *box), None)
+    integral = dt / (1.0 - zinv)
+    zero_d = np.zeros_like(zinv)
+
+    def ki_star(log_damping: float) -> float:
+        notched = loop * _filter_response(notch_filter(pole, dt, math.exp(log_damping)), 1 / zinv)
+        return float(_largest_ki(np.zeros(1), 0.0, notched, integral, zero_d, 1.0 / ms_max)[0])
+
+    grid = np.linspace(*np.log(NOTCH_DAMPING_RANGE), _NOTCH_GRID)
+    values = np.array([ki_star(x) for x in grid])
+    k = int(np.argmax(values))
+    low, high = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    res = scipy.optimize.minimize_scalar(
+        lambda x: -ki_star(x), bounds=(low, high), method="bounded", options={"xatol": 1e-6}
+    )
+    best = float(res.x) if -res.fun >= values[k] else float(grid[k])
+    return math.exp(best)
 
 
 def _resonance_or_none(model: PredictionModel) -> float | None:
@@ -197,14 +278,32 @@ def frequency_response(model: PredictionModel, freqs: np.ndarray) -> np.ndarray:
     """P(e^jw dt) = C (zI - A)^-1 B of the linear part (um per unit z) at ``freqs`` (Hz).
 
     Evaluated from the state space (a linear solve per frequency), not from transfer-function
-    polynomials, whose coefficients lose accuracy for lightly damped, high-order models.
+    polynomials, whose coefficients lose accuracy for lightly damped, high-order models. The
+    last few results are kept by content (matrices, dt, frequencies): a tuning over a box asks
+    for each plant's response several times. The array returned is read-only.
     """
-    z = np.exp(2j * np.pi * np.asarray(freqs) * model.dt)
-    n = model.n_states
-    pencil = z[:, None, None] * np.eye(n) - model.a[None, :, :]
-    rhs = np.broadcast_to(model.b[:, :1].astype(complex), (z.size, n, 1))
+    freqs = np.ascontiguousarray(freqs, dtype=np.float64)
+    a, b, c = (np.ascontiguousarray(m, dtype=np.float64) for m in (model.a, model.b, model.c))
+    return _cached_response(
+        a.tobytes(), b[:, :1].tobytes(), c[0].tobytes(), a.shape[0], float(model.dt),
+        freqs.tobytes(),
+    )
+
+
+@functools.lru_cache(maxsize=64)  # a box of 8 vertices and its nominal, a few times over
+def _cached_response(
+    a: bytes, b: bytes, c: bytes, n: int, dt: float, freqs: bytes
+) -> np.ndarray:
+    """:func:`frequency_response` on the raw bytes of its float64 inputs (the cache key)."""
+    a_m = np.frombuffer(a).reshape(n, n)
+    b_v, c_v = np.frombuffer(b), np.frombuffer(c)
+    z = np.exp(2j * np.pi * np.frombuffer(freqs) * dt)
+    pencil = z[:, None, None] * np.eye(n) - a_m[None, :, :]
+    rhs = np.broadcast_to(b_v[:, None].astype(complex), (z.size, n, 1))
     x = np.linalg.solve(pencil, rhs)[:, :, 0]
-    return x @ model.c[0]
+    out = x @ c_v
+    out.setflags(write=False)
+    return out
 
 
 def _filter_response(num_den: tuple[np.ndarray, np.ndarray] | None, z: np.ndarray) -> np.ndarray:
@@ -236,24 +335,68 @@ def _closed_loop_stable(
     return bool(np.abs(closed.poles()).max() < 1.0 - 1e-9)
 
 
+_CHUNK = 1 << 14
+"""Elements (kp values x frequencies) per block of :func:`_largest_ki`: cache-sized blocks are
+about twice as fast as one pass over the whole grid of a box."""
+
+
 def _largest_ki(
     kp: np.ndarray, kd: float, loop: np.ndarray, integral: np.ndarray, deriv: np.ndarray, rho: float
 ) -> np.ndarray:
     """ki* for each kp (and this kd): the largest ki reached from 0+ with |1 + L| >= rho.
 
     ``loop`` is N P, ``integral`` and ``deriv`` the PID's I and D terms, all on the grid.
-    Returns 0 where even ki = 0+ violates the bound.
+    Returns 0 where even ki = 0+ violates the bound. The smallest excluded interval's lower end
+    is found block by block over the frequencies (the minimum does not depend on the blocks).
     """
-    alpha = 1.0 + (kp[:, None] + kd * deriv[None, :]) * loop[None, :]
+    dl = deriv * loop
     beta = integral * loop
-    b2 = (beta.real**2 + beta.imag**2)[None, :]
-    half = alpha.real * beta.real[None, :] + alpha.imag * beta.imag[None, :]
-    disc = half**2 - b2 * (alpha.real**2 + alpha.imag**2 - rho**2)
-    root = np.sqrt(np.maximum(disc, 0.0))
-    low, high = (-half - root) / b2, (-half + root) / b2
-    blocking = (disc > 0.0) & (high > 0.0)
-    first = np.where(blocking, low, np.inf).min(axis=1)
+    b2 = beta.real**2 + beta.imag**2
+    step = max(_CHUNK // max(kp.size, 1), 1)
+    first = np.full(kp.size, np.inf)
+    for i in range(0, loop.size, step):
+        part = slice(i, i + step)
+        block = _first_blocking(
+            kp, kd, loop[part], dl[part], beta.real[part], beta.imag[part], b2[part], rho
+        )
+        np.minimum(first, block, out=first)
     return np.where(first > 0.0, first, 0.0)
+
+
+def _first_blocking(
+    kp: np.ndarray,
+    kd: float,
+    loop: np.ndarray,
+    dl: np.ndarray,
+    br: np.ndarray,
+    bi: np.ndarray,
+    b2: np.ndarray,
+    rho: float,
+) -> np.ndarray:
+    """Per kp, the smallest lower end k- of the excluded ki intervals that reach positive ki.
+
+    ``|alpha + ki beta| >= rho`` with ``alpha = 1 + (kp + kd D) N P`` (``dl = D N P``) and
+    ``beta = I N P`` (real and imaginary parts ``br``, ``bi``, ``b2 = |beta|^2``) excludes the
+    open interval between the roots of ``b2 ki^2 + 2 half ki + |alpha|^2 - rho^2``; real
+    arithmetic in place, inf where nothing blocks.
+    """
+    ar = (1.0 + kd * dl.real) + kp[:, None] * loop.real
+    ai = kd * dl.imag + kp[:, None] * loop.imag
+    half = ar * br
+    half += ai * bi
+    c = ar * ar
+    c += ai * ai
+    c -= rho * rho
+    c *= b2
+    disc = half * half
+    disc -= c
+    blocking = disc > 0.0
+    root = np.sqrt(np.maximum(disc, 0.0, out=disc), out=disc)
+    blocking &= root > half  # the upper root -half + root is positive
+    low = np.negative(half, out=half)
+    low -= root
+    low /= b2
+    return np.where(blocking, low, np.inf).min(axis=1)
 
 
 def tune_pid(
@@ -263,13 +406,14 @@ def tune_pid(
     ms_max: float,
     derivative_filter_s: float,
     use_derivative: bool = True,
+    box: Sequence[PredictionModel] = (),
 ) -> PIDGains:
     """Maximise ki subject to Ms <= ``ms_max`` and closed-loop stability (module docstring).
 
     Parameters
     ----------
     model : PredictionModel
-        Its linear part (z -> um) is the plant.
+        Its linear part (z -> um) is the plant; its DC gain scales the search ranges.
     notch : (num, den) or None
         Notch in series with the PID.
     ms_max : float
@@ -278,6 +422,10 @@ def tune_pid(
         Derivative filter time constant Tf (s), fixed during the search.
     use_derivative : bool
         Search kd too (else kd = 0: PI).
+    box : sequence of PredictionModel
+        More plants (e.g. the vertices of the datasheet's tolerance box,
+        :func:`controllers.tolerance_box.vertex_models`) on which the same bound and stability must
+        hold: the constraint is taken on every plant's frequency grid at once.
 
     Returns
     -------
@@ -289,9 +437,8 @@ def tune_pid(
         If no stabilising PID meets the bound, or the result is degenerate.
     """
     dt = model.dt
-    freqs = frequency_grid(dt, _resonance_or_none(model))
-    zinv = np.exp(-2j * np.pi * freqs * dt)
-    loop = frequency_response(model, freqs) * _filter_response(notch, 1.0 / zinv)
+    plants = (model, *box)
+    loop, zinv = _stacked_loop(plants, notch)
     dc_gain = float(np.real(frequency_response(model, np.zeros(1))[0]))
     if not dc_gain > 0.0:
         raise TuningError(
@@ -310,7 +457,8 @@ def tune_pid(
         return min(float(ki[0]) / scale[1], KI_RANGE)
 
     def stable(rows: np.ndarray) -> np.ndarray:
-        return _closed_loop_radius(model, notch, rows * scale, a) < 1.0 - 1e-9
+        radius = [_closed_loop_radius(p, notch, rows * scale, a) for p in plants]
+        return np.max(radius, axis=0) < 1.0 - 1e-9
 
     candidates = _grid_candidates(loop, integral, deriv, rho, scale, use_derivative, stable)
     best, stable_found = None, 0
@@ -320,7 +468,7 @@ def tune_pid(
             float(x[0] * scale[0]), float(ki * scale[1]), float(x[1] * scale[2]),
             derivative_filter_s,
         )
-        if ki > 0.0 and _closed_loop_stable(model, gains, notch):
+        if ki > 0.0 and all(_closed_loop_stable(p, gains, notch) for p in plants):
             stable_found += 1
             if best is None or ki > best[0]:
                 best = (ki, gains)
@@ -329,7 +477,28 @@ def tune_pid(
     if best is None:
         raise TuningError(f"ms_max: no stabilising PID found with Ms <= {ms_max}")
     _check_not_degenerate(best[0], model, best[1], notch, ms_max)
+    for plant in box:
+        ms = closed_loop_report(plant, best[1], notch)["ms"]
+        if ms > ms_max * (1.0 + 1e-6):
+            raise TuningError(f"the tuned loop's Ms on a plant of the box is {ms:.4g} > {ms_max}")
     return best[1]
+
+
+def _stacked_loop(
+    plants: Sequence[PredictionModel], notch: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """N P on each plant's own :func:`frequency_grid`, concatenated, and z^-1 on that grid.
+
+    The Ms bound is one inequality per frequency and plant, so a set of plants is one long
+    grid: the largest ki that meets the bound on all of them is the smallest over the union.
+    """
+    loops, zinvs = [], []
+    for plant in plants:
+        freqs = frequency_grid(plant.dt, _resonance_or_none(plant))
+        zinv = np.exp(-2j * np.pi * freqs * plant.dt)
+        loops.append(frequency_response(plant, freqs) * _filter_response(notch, 1.0 / zinv))
+        zinvs.append(zinv)
+    return np.concatenate(loops), np.concatenate(zinvs)
 
 
 def _closed_loop_radius(
@@ -474,7 +643,9 @@ def closed_loop_report(
     Returns
     -------
     dict
-        ``gain_margin_db``, ``phase_margin_deg``, ``crossover_hz`` (first |L| = 1), ``ms``,
+        ``gain_margin_db``, ``phase_margin_deg`` (the smallest angle between L and -1 at a
+        gain crossing, either way round: a loop phase-stabilised at a resonance crosses with
+        phase lead), ``crossover_hz`` (first |L| = 1), ``ms``,
         ``mt`` (peak |T|), ``bandwidth_hz`` (first frequency where |T| drops below -3 dB),
         ``resonance_loop_gain_db`` (|L| at the model's resonance, dB).
     """
@@ -487,7 +658,7 @@ def closed_loop_report(
     gain_cross = np.flatnonzero(np.diff(np.sign(np.abs(resp) - 1.0)))
     phase_cross = np.flatnonzero((np.diff(np.sign(resp.imag)) != 0) & (resp.real[:-1] < 0))
     phase = np.degrees(np.angle(resp[gain_cross]))
-    pm = np.where(phase <= 0.0, 180.0 + phase, phase - 180.0)
+    pm = 180.0 - np.abs(phase)  # angle from -1 at each crossing, either way round
     gm = [-20 * np.log10(np.abs(resp[i])) for i in phase_cross]
     comp = np.abs(resp / (1.0 + resp))
     below = np.flatnonzero(comp < 1.0 / math.sqrt(2.0))

@@ -78,8 +78,8 @@ def test_the_members_have_the_grids_resonances_and_damping(controller):
     """Read back from each member's own poles (not from the grid that built it)."""
     f0 = first_resonance_hz(controller.arx)
     for (alpha, zeta), arx in zip(controller._grid, controller._member_arx, strict=True):
-        assert first_resonance_hz(arx) == pytest.approx(alpha * f0, rel=0.02)
-        assert first_damping_ratio(arx) == pytest.approx(zeta, rel=0.1)
+        assert first_resonance_hz(arx) == pytest.approx(alpha * f0, rel=1e-6)
+        assert first_damping_ratio(arx) == pytest.approx(zeta, rel=1e-6)
         assert arx.static_gain() == pytest.approx(controller.arx.static_gain(), rel=1e-6)
 
 

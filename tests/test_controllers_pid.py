@@ -1,7 +1,9 @@
-"""PID family: closed loop against python-control, anti-windup, notch, episodes, settings."""
+"""PID family: closed loop against python-control, anti-windup, notch, episodes, settings, and
+episodes on the worst bender of the datasheet's tolerance box."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -11,10 +13,16 @@ import numpy as np
 import pytest
 
 import controllers
+from benchmarks.corners import vertex_env
 from controllers.pid import PIDController
+from controllers.prediction import PredictionModel
 
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "model")
 PRESETS = ("pid", "pid-notch", "pid-ff")
+NOMINAL_ONLY = {"gain_tolerance": 0.0, "resonance_tolerance": 0.0, "damping_range": None}
+"""Options that tune on the nominal model alone (no tolerance box)."""
+WORST_VERTEX = (1.2, 0.8, 0.04)
+"""Free deflection x1.2, resonance x0.8, damping 0.04: where the nominal tunings diverged."""
 
 
 @pytest.fixture(scope="module")
@@ -83,8 +91,8 @@ def test_closed_loop_equals_python_control_feedback(name, built, model):
     assert np.abs(ys).max() > 1.0  # the loop did track something
 
 
-def test_antiwindup_bounds_integrator_and_recovers(env, model):
-    controller = controllers.make("pid-notch", model, env)
+def test_antiwindup_bounds_integrator_and_recovers(built, model):
+    controller = built["pid-notch"]
     u_max = controller.task.u_max
     t = np.arange(1200)
     ref = np.where((t > 10) & (t < 600), 5000.0, 0.0)  # 2.5 strokes: unreachable
@@ -141,8 +149,9 @@ def test_episode_finite_in_range_and_deterministic(name, built, env):
     assert np.isfinite(first.voltage_V).all() and np.isfinite(first.deflection_um).all()
     assert np.abs(first.voltage_V).max() <= u_max
     np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
-    # Measured 16.2 / 0.26 / 0.038 % (pure-I PID, notch, feedforward), limits about 1.5x.
-    assert first.metrics["rmse_percent"] < {"pid": 20.0, "pid-notch": 0.4, "pid-ff": 0.06}[name]
+    # Measured 17.3 / 4.8 / 0.008 % (pure-I PID, notch, feedforward; each loop tuned over the
+    # tolerance box, the notched one crossing over at about 25 Hz), limits about 1.2-1.5x.
+    assert first.metrics["rmse_percent"] < {"pid": 20.0, "pid-notch": 7.0, "pid-ff": 0.06}[name]
     assert sum(controller.stats.status.values()) == 300
     info = first.controller
     assert {"gains", "ms", "gain_margin_db", "phase_margin_deg", "bandwidth_hz"} <= set(info)
@@ -158,7 +167,7 @@ def test_feedforward_tracks_far_better_than_feedback(built, env):
         for name in PRESETS
     }
     assert rmse["pid-ff"] < rmse["pid-notch"] < rmse["pid"]
-    assert rmse["pid-ff"] < 0.06  # measured 0.037 %
+    assert rmse["pid-ff"] < 0.06  # measured 0.010 %
 
 
 @pytest.mark.parametrize(
@@ -167,7 +176,13 @@ def test_feedforward_tracks_far_better_than_feedback(built, env):
         ("ms_max", 1.0),
         ("ms_max", float("nan")),
         ("notch_damping", 0.0),
-        ("notch_damping", 2.0),
+        ("notch_damping", 20.0),
+        ("gain_tolerance", -0.1),
+        ("gain_tolerance", 1.0),
+        ("resonance_tolerance", 1.0),
+        ("damping_range", (0.04, 0.01)),
+        ("damping_range", (0.0, 0.04)),
+        ("damping_range", 0.02),
         ("derivative_filter_s", -1e-3),
         ("antiwindup_gain", 0.0),
         ("antiwindup_gain", 1.5),
@@ -186,3 +201,49 @@ def test_unknown_option_raises(env, model):
     with pytest.raises(ValueError, match="ms_max"):
         controllers.make("pid", model, env, gain=1.0)
 
+
+
+@pytest.mark.parametrize("name", ["pid-notch", "pid-ff"])
+def test_the_worst_vertex_stays_bounded(name):
+    """On the bender with free deflection x1.2, resonance x0.8 and damping 0.04, a 500 um 10 Hz
+    sine: the box-tuned loop built for the nominal bender tracks (measured 3.9 % for pid-notch,
+    0.87 % for pid-ff over 1000 steps), the one tuned on the nominal model alone diverges
+    (measured 135 % and 263 %). The controllers' model is the nominal plant's own (the oracle),
+    so the test measures the tuning, not the identification."""
+    nominal = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    model = PredictionModel.from_plant(nominal.unwrapped.model)
+    plant = vertex_env(WORST_VERTEX)
+    t = np.arange(1, 2002) * 1e-3
+    ref = 500 * np.sin(2 * np.pi * 10 * t)
+    rmse = {}
+    for label, options in (("box", {}), ("nominal", NOMINAL_ONLY)):
+        controller = controllers.make(name, model, nominal, **options)
+        episode = controllers.run_episode(plant, controller, seed=0, reference=ref, max_steps=1000)
+        rmse[label] = episode.metrics["rmse_percent"]
+    assert rmse["box"] < 10.0, rmse
+    assert not rmse["nominal"] < 10.0, rmse  # what the box buys (NaN counts as diverged)
+
+
+def test_describe_reports_every_vertex(built):
+    info = built["pid-notch"].describe()
+    box = json.loads(json.dumps(info["box"], allow_nan=False))
+    assert box["tolerances"] == {"gain": 0.2, "resonance": 0.2, "damping": [0.01, 0.04]}
+    assert len(box["vertices"]) == 8
+    assert max(v["ms"] for v in box["vertices"]) == pytest.approx(box["worst_ms"])
+    assert box["worst_ms"] <= built["pid-notch"].settings.ms_max * (1 + 1e-6)
+    assert box["worst_phase_margin_deg"] > 30.0
+    assert "vertices of the tolerance box" in info["tuning_rule"]
+
+
+def test_nominal_only_tuning_is_the_faster_narrower_loop(env, model, built):
+    """``gain_tolerance=0, resonance_tolerance=0, damping_range=None``: no vertices, the fixed
+    notch dampings 0.7 / 0.1, and the loop the box has to give up (about 105 Hz crossover
+    against 25 Hz on this model)."""
+    nominal = {name: controllers.make(name, model, env, **NOMINAL_ONLY) for name in PRESETS[1:]}
+    assert nominal["pid-notch"].notch_damping == 0.7 and nominal["pid-ff"].notch_damping == 0.1
+    assert nominal["pid-notch"].vertices == [] and nominal["pid-notch"].describe()["box"] == {
+        "tolerances": {"gain": 0.0, "resonance": 0.0, "damping": None},
+        "vertices": [],
+    }
+    box_crossover = built["pid-notch"].report["crossover_hz"]
+    assert nominal["pid-notch"].report["crossover_hz"] > 3 * box_crossover
