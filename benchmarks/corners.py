@@ -18,19 +18,16 @@ Run: ``python -m benchmarks.corners`` (about three minutes on 2 cores).
 
 from __future__ import annotations
 
-import dataclasses
-import itertools
 import math
 from typing import Any
 
 import numpy as np
 
 from benchmarks._common import header, markdown_table, write_result
+from benchmarks.plants import VERTICES, vertex_options
 
 MODEL_DIR = "docs/benchmark/model"
 BENDER = "PL140"
-VERTICES = tuple(itertools.product((0.8, 1.2), (0.8, 1.2), (0.01, 0.04)))
-"""(free deflection, first resonance) relative to the datasheet's, and the damping ratio."""
 REFERENCES_RUN = ("sine-10Hz", "sine-50Hz", "multisine")
 ROWS = {
     "mpc-oracle": ("mpc", {}),
@@ -48,21 +45,11 @@ def vertex_env(vertex: tuple[float, float, float], **options: Any) -> Any:
     """``PiezoBender-v0`` on one vertex (free deflection, resonance, damping) of the box."""
     import gymnasium as gym
 
-    from piezo_env import get_datasheet
-
-    deflection, resonance, damping = vertex
-    sheet = get_datasheet(BENDER)
-    sheet = dataclasses.replace(
-        sheet,
-        free_deflection=sheet.free_deflection * deflection,
-        resonance=sheet.resonance * resonance,
-    )
     return gym.make(
         "piezo_env:PiezoBender-v0",
-        bender=sheet,
-        damping_ratio=damping,
         preview=20,
         max_episode_steps=STEPS,
+        **vertex_options(BENDER, vertex),
         **options,
     )
 

@@ -17,7 +17,7 @@ import numpy as np
 from benchmarks.cells import aggregate
 from benchmarks.references import REFERENCES
 from benchmarks.rows import row_color, seed_groups
-from benchmarks.runner import MONTE_CARLO, BenchmarkResult
+from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
 
 __all__ = ["draw_figures"]
 
@@ -154,8 +154,15 @@ def _summary(result: BenchmarkResult, path: Path) -> str | None:
             low = np.array([min(v) if v else np.nan for v in values])
             high = np.array([max(v) if v else np.nan for v in values])
             spread = np.nan_to_num(np.stack([height - low, high - height]))
-        ax.bar(x + offset, height, width, label=label, color=row_color(members[0]),
-               yerr=spread, capsize=2)
+        ax.bar(
+            x + offset,
+            height,
+            width,
+            label=label,
+            color=row_color(members[0]),
+            yerr=spread,
+            capsize=2,
+        )
     ax.set_yscale("log")
     ax.set_xticks(x, refs, rotation=20)
     ax.set_ylabel("RMSE (% of full stroke)")
@@ -164,8 +171,7 @@ def _summary(result: BenchmarkResult, path: Path) -> str | None:
         title += "; seeds of one recipe: mean, whiskers min to max"
     ax.set_title(_wrapped(title, fig), fontsize=10)
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    ax.legend(fontsize=8, ncol=min(len(bars), 6), loc="upper center",
-              bbox_to_anchor=(0.5, -0.2))
+    ax.legend(fontsize=8, ncol=min(len(bars), 6), loc="upper center", bbox_to_anchor=(0.5, -0.2))
     fig.tight_layout()
     _save(fig, path)
     return None
@@ -190,9 +196,9 @@ def _robustness_grid(result: BenchmarkResult) -> tuple[np.ndarray, list[str], li
     index = {
         (c["plant"], c["controller"], c["reference"]): c["rmse_percent"]
         for c in aggregate(result.episodes)
-        if c["plant"] != MONTE_CARLO
+        if c["plant"] not in DRAWN_PLANTS
     }
-    plants = [p for p in cfg.plants if p != MONTE_CARLO]
+    plants = [p for p in cfg.plants if p not in DRAWN_PLANTS]
     controllers = [c for c in cfg.rows if any(k[1] == c and k[0] != "nominal" for k in index)]
     # Smooth references only: a step's ~0.9 % (the drive limit) would swamp them in the mean.
     refs = sorted(
@@ -223,8 +229,15 @@ def _robustness(result: BenchmarkResult, path: Path) -> str | None:
     for (i, j), value in np.ndenumerate(grid):
         if np.isfinite(value):
             dark = value < np.sqrt(norm.vmin * norm.vmax)
-            ax.text(j, i, f"{value:.3g}", ha="center", va="center", fontsize=8,
-                    color="white" if dark else "black")
+            ax.text(
+                j,
+                i,
+                f"{value:.3g}",
+                ha="center",
+                va="center",
+                fontsize=8,
+                color="white" if dark else "black",
+            )
     ax.set_xticks(range(len(plants)), plants, rotation=25, ha="right")
     ax.set_yticks(range(len(controllers)), controllers)
     fig.colorbar(image, ax=ax, label="mean RMSE (% of full stroke)")
@@ -391,8 +404,28 @@ def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
         gains = np.r_[1.0, models[:, 1] / gain0, models[-1, 1] / gain0]
         resonances = np.r_[1.0, models[:, 2] / resonance0, models[-1, 2] / resonance0]
         true_gain, true_resonance = plant_ratios(plant, bender, times)
-        bottom.step(times, gains, where="post", color="C0", lw=2.2, label="model DC gain")
-        bottom.step(times, resonances, where="post", color="C3", label="model first resonance")
+        if models.shape[1] >= 7:  # the set the data still allow: gain and resonance bands
+            edges = np.r_[models[:, 0] * dt, len(adaptive["error_um"]) * dt]
+            for low, high, base, colour in ((3, 4, gain0, "C0"), (5, 6, resonance0, "C3")):
+                bottom.fill_between(
+                    edges,
+                    np.r_[models[:, low], models[-1, low]] / base,
+                    np.r_[models[:, high], models[-1, high]] / base,
+                    step="post",
+                    color=colour,
+                    alpha=0.15,
+                    lw=0,
+                )
+        bottom.step(
+            times, gains, where="post", color="C0", lw=2.2, label="model DC gain (band: its set)"
+        )
+        bottom.step(
+            times,
+            resonances,
+            where="post",
+            color="C3",
+            label="model first resonance (band: its set)",
+        )
         bottom.plot(times, true_gain, "--", color="C0", lw=1, label="plant DC gain")
         bottom.plot(times, true_resonance, "--", color="C3", lw=1, label="plant resonance")
         bottom.set_xlabel("time (s)")

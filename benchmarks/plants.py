@@ -16,14 +16,18 @@ from typing import Any
 __all__ = [
     "BENCH_CURRENT_MA",
     "BENCH_SENSOR_HZ",
+    "BOX_CORNERS",
     "DEFAULT_BENDER",
+    "DRAWN_PLANTS",
     "DRIFT",
     "EPISODE_S",
     "MONTE_CARLO",
     "MONTE_CARLO_REFERENCES",
     "NOMINAL_STROKE_UM",
     "PLANTS",
+    "VERTICES",
     "sample_time",
+    "vertex_options",
 ]
 
 DEFAULT_BENDER = "PL140"
@@ -112,6 +116,7 @@ PLANTS: dict[str, Callable[[str], dict[str, Any]]] = {
     "stiffness+20%": lambda bender: {"bender": _tolerance_sheet(bender, 1.2)},
     "stiffness-20%": lambda bender: {"bender": _tolerance_sheet(bender, 0.8)},
     "random-plants": lambda bender: {"bender": bender, "randomize": True},
+    "box-corners": lambda bender: {"bender": bender},
     "bench": _bench,
     "drift": _drift,
 }
@@ -122,6 +127,9 @@ reference draws a new plant from the datasheet tolerances (``piezo_env.DomainRan
 stiffness, blocking force and resonance +-20 %, damping 0.01-0.04, hysteresis +-30 %) with
 its own seed; the report gives the distribution of each controller's RMSE over the draws.
 
+``box-corners`` is the tolerance box's corners: one episode per reference on each of the
+:data:`VERTICES` (:func:`vertex_options`), the report giving the distribution and the worst.
+
 ``bench`` is a real bench: a current-limited amplifier (:data:`BENCH_CURRENT_MA`), a 20 kHz
 displacement sensor (:data:`BENCH_SENSOR_HZ`) and rate-dependent Prandtl-Ishlinskii hysteresis
 (loop 1.5x as wide at a full-stroke 50 Hz sine as quasi-static), each documented in
@@ -131,6 +139,44 @@ coefficient and the stiffness during the episode (:data:`DRIFT`).
 """
 
 MONTE_CARLO = "random-plants"
+
+BOX_CORNERS = "box-corners"
+
+DRAWN_PLANTS = (MONTE_CARLO, BOX_CORNERS)
+"""The plants whose table is a distribution over plants (draws or vertices), one noise seed
+each, on :data:`MONTE_CARLO_REFERENCES`."""
+
+VERTICES = (
+    (0.8, 0.8, 0.01),
+    (0.8, 0.8, 0.04),
+    (0.8, 1.2, 0.01),
+    (0.8, 1.2, 0.04),
+    (1.2, 0.8, 0.01),
+    (1.2, 0.8, 0.04),
+    (1.2, 1.2, 0.01),
+    (1.2, 1.2, 0.04),
+)
+"""The corners of the datasheet's tolerance box that move the tip's response: (free
+deflection, first resonance) relative to the datasheet's, and the first-mode damping ratio
+(+-20 %, +-20 %, 0.01 / 0.04: ``piezo_env.DomainRandomization``'s box). The blocking force,
+the fourth datasheet tolerance, moves the stiffness and the piezo moment together and leaves
+the response as it is, so its 8 other corners repeat these."""
+
+
+def vertex_options(bender: str, vertex: tuple[float, float, float]) -> dict[str, Any]:
+    """``PiezoBender-v0`` keyword arguments of ``bender`` at one of the :data:`VERTICES`."""
+    from piezo_env import get_datasheet
+
+    deflection, resonance, damping = vertex
+    sheet = get_datasheet(bender)
+    sheet = dataclasses.replace(
+        sheet,
+        name=f"{sheet.name} (free deflection x{deflection:g}, resonance x{resonance:g})",
+        free_deflection=sheet.free_deflection * deflection,
+        resonance=sheet.resonance * resonance,
+    )
+    return {"bender": sheet, "damping_ratio": damping}
+
 
 MONTE_CARLO_REFERENCES = ("sine-10Hz", "sine-50Hz", "multisine")
 """The references run on the random plants (when selected)."""

@@ -103,20 +103,23 @@ def bad_news(data: dict[str, Any]) -> list[str]:
     """What the same run says against the project: one line each, worst first."""
     episodes = aggregate(data["results"]["episodes"])
     news = []
-    random = [e for e in episodes if e["plant"] == "random-plants"]
-    for row in ("mpc", "mpc-adaptive", "pid-ff"):
-        worst = max((e for e in random if e["controller"] == row),
-                    key=lambda e: e["rmse_percent"], default=None)
-        if worst is not None and worst["rmse_percent"] > 1.0:
-            n = sum(1 for e in random if e["controller"] == row and e["reference"] ==
-                    worst["reference"])
-            news.append(
-                f"`{row}` on plants drawn from the datasheet tolerances: worst "
-                f"{worst['rmse_percent']:.1f} % on {worst['reference']} (of {n} draws)."
-            )
+    drawn = (("box-corners", "on the corners of the datasheet's tolerance box", "vertices"),
+             ("random-plants", "on plants drawn from the datasheet tolerances", "draws"))
+    for plant, where, unit in drawn:
+        cells = [e for e in episodes if e["plant"] == plant]
+        for row in ("pid-notch", "pid-ff", "mpc", "mpc-adaptive", "nmpc"):
+            worst = max((e for e in cells if e["controller"] == row),
+                        key=lambda e: e["rmse_percent"], default=None)
+            if worst is not None and worst["rmse_percent"] > 1.0:
+                n = sum(1 for e in cells if e["controller"] == row and e["reference"] ==
+                        worst["reference"])
+                news.append(
+                    f"`{row}` {where}: worst {worst['rmse_percent']:.1f} % on "
+                    f"{worst['reference']} (of {n} {unit})."
+                )
     worst: dict[str, dict[str, Any]] = {}
     for e in episodes:
-        if e["plant"] in ("nominal", "random-plants") or e["rmse_percent"] <= 1.0:
+        if e["plant"] in ("nominal", "random-plants", "box-corners") or e["rmse_percent"] <= 1.0:
             continue
         row = e["controller"]
         if row in ("pid-notch", "pid-ff", "mpc", "mpc-adaptive", "nmpc") and (

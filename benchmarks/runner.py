@@ -32,12 +32,16 @@ from typing import Any
 import numpy as np
 
 from benchmarks.plants import (
+    BOX_CORNERS,
     DEFAULT_BENDER,
+    DRAWN_PLANTS,
     EPISODE_S,
     MONTE_CARLO,
     MONTE_CARLO_REFERENCES,
     PLANTS,
+    VERTICES,
     sample_time,
+    vertex_options,
 )
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
@@ -45,7 +49,9 @@ from piezo_env.checks import require_int
 from piezo_parallel.backends import BACKENDS, run_tasks
 
 __all__ = [
+    "BOX_CORNERS",
     "DEFAULT_CONTROLLERS",
+    "DRAWN_PLANTS",
     "MONTE_CARLO",
     "PLANTS",
     "BenchmarkConfig",
@@ -81,6 +87,7 @@ the adaptation figure (a tolerance plant and the plant that drifts)."""
 ADAPTATION_REFERENCE = "sine-10Hz"
 
 ADAPTATION_ROWS = ("mpc", "mpc-adaptive")
+
 
 @dataclass(frozen=True)
 class BenchmarkConfig:
@@ -280,12 +287,12 @@ class BenchmarkConfig:
         out = []
         for plant in self.plants:
             nominal = plant == "nominal"
-            chosen = MONTE_CARLO_REFERENCES if plant == MONTE_CARLO else ROBUSTNESS_REFERENCES
+            chosen = MONTE_CARLO_REFERENCES if plant in DRAWN_PLANTS else ROBUSTNESS_REFERENCES
             refs = self.references if nominal else tuple(r for r in self.references if r in chosen)
             robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders, *self.entry_points)
             for controller in self.rows:
-                # An oracle's model is one plant: it has no meaning over random plants.
-                oracle_on_random = plant == MONTE_CARLO and controller.endswith("-oracle")
+                # An oracle's model is one plant: it has no meaning over many plants.
+                oracle_on_random = plant in DRAWN_PLANTS and controller.endswith("-oracle")
                 if refs and (nominal or controller in robust) and not oracle_on_random:
                     out.append((plant, controller, refs))
         return out
@@ -369,17 +376,26 @@ def _run_group(
 
     env = _make_env(config, plant)
     episodes, traces = [], {}
-    draws = range(config.draws) if plant == MONTE_CARLO else [None]
+    draws: Any = [None]
+    envs = {None: env}
+    if plant == MONTE_CARLO:
+        draws = range(config.draws)
+        envs = dict.fromkeys(draws, env)  # the env draws its plant at each reset
+    elif plant == BOX_CORNERS:
+        draws = range(len(VERTICES))
+        envs = {
+            d: _make_env(config, plant, **vertex_options(config.bender, VERTICES[d])) for d in draws
+        }
     with threadpool_limits(1):
         built = _build(controller, model_dir, env, config)
         _warm_up(env, built, next(iter(references.values())), config.seed)
         with _no_collection():
-            seeds = [0] if plant == MONTE_CARLO else range(config.seeds)
+            seeds = [0] if plant in DRAWN_PLANTS else range(config.seeds)
             for ref_name, reference in references.items():
                 for draw in draws:
                     for seed_index in seeds:
                         episode = ctl.run_episode(
-                            env,
+                            envs[draw],
                             built,
                             seed=config.seed + (draw or 0) + seed_index,
                             reference=reference,
@@ -406,7 +422,8 @@ def _run_group(
                         "voltage_V": traced.voltage_V.tolist(),
                     }
 
-    env.close()
+    for each in {id(e): e for e in envs.values()}.values():
+        each.close()
     return episodes, built.describe() if hasattr(built, "describe") else {}, traces
 
 
@@ -481,7 +498,10 @@ def run_benchmark(
     # Built here, not in the workers, so references registered in this process run anywhere.
     arrays = {
         name: make_reference(
-            name, config.steps + config.preview + 1, dt=config.dt, seed=config.seed,
+            name,
+            config.steps + config.preview + 1,
+            dt=config.dt,
+            seed=config.seed,
             stroke_um=config.stroke_um,
         )
         for name in config.references

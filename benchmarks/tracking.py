@@ -31,10 +31,10 @@ def main() -> int:
     suffix = "" if bender.startswith("PL140") else f"-{bender.split('.')[0]}"
     out = Path("docs") / f"benchmark{suffix}"
     # One worker on two cores: the compute times are the controllers', not waits for a core;
-    # five noise seeds: every cell a mean with its 95 % interval.
+    # five noise seeds: every cell a mean with its 95 % interval; 50 random plants.
     command = [
         sys.executable, "-m", "piezo_cli.main", "benchmark", "--out", str(out), "--quiet",
-        "--jobs", "1", "--seeds", "5",
+        "--jobs", "1", "--seeds", "5", "--draws", "50",
     ]
     status = subprocess.run([*command, *args], check=False).returncode
     if status == 0:

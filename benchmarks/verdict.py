@@ -19,7 +19,7 @@ from typing import Any
 
 from benchmarks.cells import TIE, aggregate, different
 from benchmarks.references import REFERENCES
-from benchmarks.runner import MONTE_CARLO, BenchmarkResult
+from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
 
 __all__ = ["SATURATED", "cell_index", "tie_rule", "verdict", "winners"]
 
@@ -39,7 +39,7 @@ def cell_index(result: BenchmarkResult) -> dict[tuple[str, str, str], dict[str, 
     return {
         (c["plant"], c["controller"], c["reference"]): c
         for c in aggregate(result.episodes)
-        if c["plant"] != MONTE_CARLO
+        if c["plant"] not in DRAWN_PLANTS
     }
 
 

@@ -89,6 +89,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "and call differences within them ties",
     )
     parser.add_argument(
+        "--draws",
+        type=positive_int,
+        default=None,
+        help="plants drawn from the datasheet tolerances for the random-plants table "
+        "(default: BenchmarkConfig's)",
+    )
+    parser.add_argument(
         "--steps",
         type=positive_int,
         default=None,
@@ -159,6 +166,7 @@ def _config(args: argparse.Namespace, policies: tuple[str, ...]):
             controller_options=_options(args.option),
             bender=args.bender,
             seeds=args.seeds,
+            **({} if args.draws is None else {"draws": args.draws}),
         )
     except ValueError as error:
         raise CommandLineError(str(error)) from None

@@ -184,6 +184,36 @@ def test_monte_carlo_plants_differ_per_draw_and_leave_oracles_out():
     assert tracking_tables(result) == ""  # the draws are not a plant table
 
 
+def test_the_box_corners_run_each_vertex_of_the_datasheet_box():
+    """One episode per vertex, on that vertex's bender (its datasheet deflection, resonance and
+    damping), no oracle, and their own table in the report."""
+    from benchmarks.plants import VERTICES, vertex_options
+    from benchmarks.report import monte_carlo_table
+    from benchmarks.runner import _make_env
+
+    config = BenchmarkConfig(
+        controllers=("mpc", "mpc-oracle"),
+        references=("sine-10Hz",),
+        plants=("box-corners",),
+        steps=60,
+    )
+    assert [g[1] for g in config.groups()] == ["mpc"]
+    result = run_benchmark(config, MODEL_DIR)
+    assert [e["draw"] for e in result.episodes] == list(range(len(VERTICES)))
+    assert len({e["rmse_percent"] for e in result.episodes}) == len(VERTICES)
+    nominal = _make_env(config, "nominal").unwrapped.model.params
+    for vertex in VERTICES:
+        env = _make_env(config, "box-corners", **vertex_options(config.bender, vertex))
+        sheet = env.unwrapped.model.params.datasheet
+        assert sheet.free_deflection == pytest.approx(vertex[0] * nominal.datasheet.free_deflection)
+        assert sheet.resonance == pytest.approx(vertex[1] * nominal.datasheet.resonance)
+        assert env.unwrapped.config.damping_ratio == vertex[2]
+        assert env.unwrapped.model.dt == config.dt
+    table = monte_carlo_table(result, "box-corners")
+    assert "Corners of the datasheet's tolerance box" in table and "worst of 8" in table
+    assert tracking_tables(result) == ""
+
+
 def test_another_bender_scales_references_and_plants_to_its_datasheet(tmp_path):
     from benchmarks.plants import PLANTS
 
