@@ -292,6 +292,9 @@ class AdaptiveMPC(LinearMPC):
         for member in self._member_arx:
             a, b, c, _ = member.state_space_matrices()
             self._member_models.append(dataclasses.replace(model, a=a, b=b, c=c))
+        # Read once: the trace and the properties must not find poles inside the loop.
+        self._member_hz = np.array([first_resonance_hz(m) for m in self._member_arx])
+        self._member_gains = np.array([m.static_gain() for m in self._member_arx])
         slowest = max(float(np.max(np.abs(m.poles()))) for m in self._member_arx)
         self.history = max(arx.na, arx.nb) + math.ceil(3.0 / -math.log(slowest))
         self._members: list[_Member] = []
@@ -355,12 +358,12 @@ class AdaptiveMPC(LinearMPC):
     @property
     def dc_gain(self) -> float:
         """DC gain of the model in use, learned gain included (um per equivalent V)."""
-        return self.arx.static_gain() * self._g
+        return float(self._member_gains[self._member]) * self._g
 
     @property
     def resonance_hz(self) -> float:
         """First bending mode of the linear part in use (Hz), :func:`first_resonance_hz`."""
-        return first_resonance_hz(self.arx)
+        return float(self._member_hz[self._member])
 
     def plausible(self) -> np.ndarray:
         """Indices of the members the likelihood-ratio test does not reject against the best
@@ -462,10 +465,8 @@ class AdaptiveMPC(LinearMPC):
 
     def _trace(self) -> None:
         gain = self._gain
-        index, base = self._member, self.arx.static_gain()
-        resonances = [first_resonance_hz(self._member_arx[i]) for i in self.plausible()]
-        if gain.count == 0:
-            resonances = [first_resonance_hz(a) for a in self._member_arx]
+        index, base = self._member, float(self._member_gains[self._member])
+        resonances = self._member_hz if gain.count == 0 else self._member_hz[self.plausible()]
         self.stats.trace.append(
             (
                 self._step,
@@ -473,8 +474,8 @@ class AdaptiveMPC(LinearMPC):
                 self.resonance_hz,
                 base * float(gain.low[index]),
                 base * float(gain.high[index]),
-                min(resonances),
-                max(resonances),
+                float(np.min(resonances)),
+                float(np.max(resonances)),
             )
         )
 
