@@ -11,7 +11,8 @@ benchmark run (``docs/benchmark/model``), and runs unchanged on each vertex, as 
 floor) and ``mpc, model's gain`` the MPC that predicts with the identified gain
 (``gain_tolerance=0``), the design before the gain was learned. Whole 2 s episodes, seed 0,
 noise on, preview 20; RMSE in % of the full stroke, and for ``mpc-adaptive`` the RMSE over the
-second half in parentheses.
+second half and its settling time in parentheses (when the RMS error over 50 ms windows last
+came within twice the second half's: :func:`settling_ms`).
 
 Run: ``python -m benchmarks.corners`` (about three minutes on 2 cores).
 """
@@ -54,8 +55,19 @@ def vertex_env(vertex: tuple[float, float, float], **options: Any) -> Any:
     )
 
 
-def run_vertex(vertex: tuple[float, float, float]) -> dict[tuple[str, str], tuple[float, float]]:
-    """(row, reference) -> (RMSE, second-half RMSE) in % of the full stroke on one vertex."""
+def settling_ms(error: np.ndarray, dt: float = 1e-3, window_s: float = 0.05) -> float:
+    """When (ms) the RMS error over consecutive ``window_s`` windows last came within twice its
+    second-half value: the end of the first window from which every later window stays there."""
+    width = round(window_s / dt)
+    half = np.sqrt(np.mean(error[error.size // 2 :] ** 2))
+    windows = np.sqrt(np.mean(error[: error.size // width * width].reshape(-1, width) ** 2, axis=1))
+    above = np.flatnonzero(windows > 2.0 * half)
+    return float((above[-1] + 2 if above.size else 1) * width * dt * 1e3)
+
+
+def run_vertex(vertex: tuple[float, float, float]) -> dict[tuple[str, str], tuple[float, ...]]:
+    """(row, reference) -> (RMSE, second-half RMSE in % of the full stroke, settling in ms)
+    on one vertex."""
     import gymnasium as gym
     from threadpoolctl import threadpool_limits
 
@@ -78,7 +90,11 @@ def run_vertex(vertex: tuple[float, float, float]) -> dict[tuple[str, str], tupl
                 )
                 error = episode.deflection_um - episode.reference_um
                 half = np.sqrt(np.mean(error[error.size // 2 :] ** 2)) / (2 * STROKE_UM) * 100
-                out[row, ref_name] = (episode.metrics["rmse_percent"], float(half))
+                out[row, ref_name] = (
+                    episode.metrics["rmse_percent"],
+                    float(half),
+                    settling_ms(error),
+                )
     return out
 
 
@@ -97,9 +113,11 @@ def main() -> None:
             label = f"x{vertex[0]:g}, x{vertex[1]:g}, {vertex[2]:g}"
             row = [label]
             for name in ROWS:
-                whole, half = cells[name, ref_name]
+                whole, half, settle = cells[name, ref_name]
                 text = _cell(whole)
-                row.append(f"{text} ({_cell(half)})" if name == "mpc-adaptive" else text)
+                if name == "mpc-adaptive":
+                    text = f"{text} ({_cell(half)}; {settle:.0f} ms)"
+                row.append(text)
             rows.append(row)
         worst = ["worst"]
         for name in ROWS:

@@ -258,3 +258,13 @@ def test_several_noise_seeds_give_means_with_intervals_and_honest_ties(tmp_path)
     text = (tmp_path / "benchmark.md").read_text()
     assert "mean over 4 seeds" in text and "tie between `mpc`, `nmpc`" in text
     assert f"{mpc['rmse_percent']:.3f} +- {mpc['rmse_ci95_percent']:.3f}" in text
+
+
+def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_the_floor():
+    from benchmarks.corners import settling_ms
+
+    floor = np.ones(2000)
+    assert settling_ms(floor) == 50.0
+    late = floor.copy()
+    late[120:130] = 30.0  # the window 100-150 ms is the last one above twice the floor
+    assert settling_ms(late) == 200.0  # the next one (150-200 ms) and all after stay within
