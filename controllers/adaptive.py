@@ -76,10 +76,9 @@ from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import check_settings, measurement_std
 from controllers.task import ControlTask
-from controllers.tolerance_box import Vertex, mode_correction
+from controllers.tolerance_box import DAMPING_RANGE, RESONANCE_TOLERANCE, Vertex, mode_correction
 from identification.arx import ARXModel
 from identification.correction import ModalSplit
-from piezo_env.randomization import DomainRandomization
 
 __all__ = [
     "NORMAL_95",
@@ -105,8 +104,6 @@ NORMAL_95 = 1.6448536269514722
 TRACE_EVERY = 20
 """Samples between the records of :attr:`AdaptiveStats.trace` (for figures only)."""
 
-_TOLERANCES = DomainRandomization()
-
 
 @dataclass(frozen=True)
 class AdaptiveMPCSettings(MPCSettings):
@@ -121,8 +118,8 @@ class AdaptiveMPCSettings(MPCSettings):
         (low, high) first-mode damping ratios the set covers (-): the datasheet box's.
     """
 
-    resonance_tolerance: float = _TOLERANCES.resonance
-    damping_range: tuple[float, float] = _TOLERANCES.damping_ratio
+    resonance_tolerance: float = RESONANCE_TOLERANCE
+    damping_range: tuple[float, float] = DAMPING_RANGE
 
     def __post_init__(self) -> None:
         super().__post_init__()
