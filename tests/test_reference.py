@@ -73,12 +73,15 @@ def test_stream_extends_by_fresh_segments_and_arrays_hold_their_last_value():
 
 
 # Drawn with seed 11 before the band became an option: (frequency as float.hex, the first 16 hex
-# digits of the SHA-256 of the rendered float64 samples).
+# digits of the SHA-256 of the rendered float64 samples rounded to 1e-6 um). The draw's numbers
+# are compared bitwise; the samples to 1e-6 um, because numpy's vectorised sine differs in the
+# last bit between numpy versions and CPUs (numpy 1.25 on an Intel Xeon), which is not a
+# different draw (samples up to 280 um: a last-bit difference is about 6e-14 um).
 _GOLDEN_DEFAULT_BAND = {
-    "sine": ("0x1.93b1d8ba15d9cp+1", "4557564a2b9c5028"),
-    "triangle": ("0x1.93b1d8ba15d9cp+1", "a0894426bac8b112"),
-    "multisine": ("0x1.4000000000000p+4", "51686a3e61c4a5d0"),
-    "steps": ("0x1.93b1d8ba15d9cp+1", "223297f68e2ab9df"),
+    "sine": ("0x1.93b1d8ba15d9cp+1", "10c209e224c37fff"),
+    "triangle": ("0x1.93b1d8ba15d9cp+1", "5135dfd0fa78b3d4"),
+    "multisine": ("0x1.4000000000000p+4", "9496130c9559ddc1"),
+    "steps": ("0x1.93b1d8ba15d9cp+1", "39b3ec278dbc6ca8"),
 }
 
 
@@ -90,7 +93,7 @@ def test_default_band_draws_are_bitwise_those_made_before_the_option(shape, band
         shape, SEGMENT, dt=DT, stroke_um=1000.0, rng=np.random.default_rng(11), **kwargs
     )
     samples = render_references([draw], SEGMENT, dt=DT)[0]
-    digest = hashlib.sha256(samples.tobytes()).hexdigest()[:16]
+    digest = hashlib.sha256(np.round(samples, 6).tobytes()).hexdigest()[:16]
     assert (draw.frequency.hex(), digest) == _GOLDEN_DEFAULT_BAND[shape]
 
 
