@@ -14,6 +14,10 @@ noise on, preview 20; RMSE in % of the full stroke, and for ``mpc-adaptive`` the
 second half and its settling time in parentheses (when the RMS error over 50 ms windows last
 came within twice the second half's: :func:`settling_ms`).
 
+Another bender runs at its own sample time (:func:`benchmarks.plants.sample_time`), on its
+own references (the PL140's scaled to its stroke), from a model identified on it:
+``python -m benchmarks.corners --bender PL127 --model DIR`` writes ``corners-PL127.md``.
+
 Run: ``python -m benchmarks.corners`` (about three minutes on 2 cores).
 """
 
@@ -25,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks._common import header, markdown_table, write_result
-from benchmarks.plants import VERTICES, vertex_options
+from benchmarks.plants import EPISODE_S, VERTICES, sample_time, vertex_options
 
 MODEL_DIR = "docs/benchmark/model"
 BENDER = "PL140"
@@ -38,19 +42,27 @@ ROWS = {
     "pid-notch": ("pid-notch", {}),
     "pid-ff": ("pid-ff", {}),
 }
-STEPS = 2000
-STROKE_UM = 1000.0
 
 
-def vertex_env(vertex: tuple[float, float, float], **options: Any) -> Any:
-    """``PiezoBender-v0`` on one vertex (free deflection, resonance, damping) of the box."""
+def stroke_um(bender: str) -> float:
+    """One-sided stroke of ``bender`` (um): the percentages' scale."""
+    from piezo_env import get_datasheet
+
+    return get_datasheet(bender).free_deflection * 1e6
+
+
+def vertex_env(vertex: tuple[float, float, float], bender: str = BENDER, **options: Any) -> Any:
+    """``PiezoBender-v0`` on one vertex (free deflection, resonance, damping) of ``bender``'s
+    box, at the bender's benchmark sample time, for one 2 s episode."""
     import gymnasium as gym
 
+    dt = sample_time(bender)
     return gym.make(
         "piezo_env:PiezoBender-v0",
         preview=20,
-        max_episode_steps=STEPS,
-        **vertex_options(BENDER, vertex),
+        dt=dt,
+        max_episode_steps=round(EPISODE_S / dt),
+        **vertex_options(bender, vertex),
         **options,
     )
 
@@ -65,35 +77,43 @@ def settling_ms(error: np.ndarray, dt: float = 1e-3, window_s: float = 0.05) -> 
     return float((above[-1] + 2 if above.size else 1) * width * dt * 1e3)
 
 
-def run_vertex(vertex: tuple[float, float, float]) -> dict[tuple[str, str], tuple[float, ...]]:
+def run_vertex(
+    vertex: tuple[float, float, float], bender: str = BENDER, model_dir: str = MODEL_DIR
+) -> dict[tuple[str, str], tuple[float, ...]]:
     """(row, reference) -> (RMSE, second-half RMSE in % of the full stroke, settling in ms)
-    on one vertex."""
+    on one vertex of ``bender``'s box, every controller built from the model in
+    ``model_dir``."""
     import gymnasium as gym
     from threadpoolctl import threadpool_limits
 
     import controllers as ctl
     from benchmarks.references import make_reference
 
-    env = vertex_env(vertex)
-    nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, max_episode_steps=STEPS)
+    dt = sample_time(bender)
+    steps = round(EPISODE_S / dt)
+    stroke = stroke_um(bender)
+    env = vertex_env(vertex, bender)
+    nominal = gym.make(
+        "piezo_env:PiezoBender-v0", bender=bender, preview=20, dt=dt, max_episode_steps=steps
+    )
     out = {}
     with threadpool_limits(1):
         for row, (name, options) in ROWS.items():
-            model = MODEL_DIR
+            model = model_dir
             if row.endswith("-oracle"):
                 model = ctl.PredictionModel.from_plant(env.unwrapped.model)
             controller = ctl.make(name, model, nominal, **options)
             for ref_name in REFERENCES_RUN:
-                reference = make_reference(ref_name, STEPS + 1, dt=1e-3, seed=0)
+                reference = make_reference(ref_name, steps + 1, dt=dt, seed=0, stroke_um=stroke)
                 episode = ctl.run_episode(
-                    env, controller, seed=0, reference=reference, stroke_um=STROKE_UM
+                    env, controller, seed=0, reference=reference, stroke_um=stroke
                 )
                 error = episode.deflection_um - episode.reference_um
-                half = np.sqrt(np.mean(error[error.size // 2 :] ** 2)) / (2 * STROKE_UM) * 100
+                half = np.sqrt(np.mean(error[error.size // 2 :] ** 2)) / (2 * stroke) * 100
                 out[row, ref_name] = (
                     episode.metrics["rmse_percent"],
                     float(half),
-                    settling_ms(error),
+                    settling_ms(error, dt),
                 )
     return out
 
@@ -102,9 +122,29 @@ def _cell(value: float) -> str:
     return "diverged" if not math.isfinite(value) or value > 100 else f"{value:.3f}"
 
 
-def main() -> None:
-    results = {vertex: run_vertex(vertex) for vertex in VERTICES}
-    lines = header("Controllers on the corners of the PL140's tolerance box", "corners.py")
+def main(argv: list[str] | None = None) -> None:
+    """Run every row on every vertex and write ``corners[-BENDER].md``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.corners", description=__doc__)
+    parser.add_argument("--bender", default=BENDER, help="catalogue name (default: PL140)")
+    parser.add_argument(
+        "--model",
+        default=None,
+        help=f"identified model folder (default: {MODEL_DIR}; required for another bender)",
+    )
+    args = parser.parse_args(argv)
+    from piezo_env import get_datasheet
+
+    bender = get_datasheet(args.bender).name.split(".")[0]
+    if args.model is None and bender != BENDER:
+        parser.error(f"--model is required for {bender}: run `piezo identify --bender {bender}`")
+    model_dir = args.model or MODEL_DIR
+    results = {vertex: run_vertex(vertex, bender, model_dir) for vertex in VERTICES}
+    title = f"Controllers on the corners of the {bender}'s tolerance box"
+    lines = header(
+        title, "corners" + ("" if bender == BENDER else f" --bender {bender} --model DIR")
+    )
     lines += [__doc__.split("\n\nRun:")[0].split("\n\n", 1)[1], ""]
     for ref_name in REFERENCES_RUN:
         head = ["free deflection, resonance, damping", *ROWS]
@@ -125,7 +165,7 @@ def main() -> None:
             worst.append(f"**{_cell(whole)}**")
         rows.append(worst)
         lines += [f"## {ref_name}", "", markdown_table(head, rows), ""]
-    write_result("corners", lines)
+    write_result("corners" if bender == BENDER else f"corners-{bender}", lines)
 
 
 if __name__ == "__main__":

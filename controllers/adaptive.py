@@ -8,9 +8,10 @@ mode lies 20 % low) that costs about 1 % of the stroke. :class:`AdaptiveMPC` lea
 resonance and the damping too, with bounded work per sample.
 
 The set. The identified model's first bending mode is moved over a grid that covers the
-datasheet's tolerance box (:func:`identification.correction.scale_modes`: frequency factor
-``alpha`` on ``[1 - s, 1 + s]``, damping ratio on ``[zeta_lo, zeta_hi]``); with the identified
-model itself these are the members. Every member keeps the identified model's orders, so all
+datasheet's tolerance box (:func:`controllers.tolerance_box.box_model`: frequency factor
+``alpha`` on ``[1 - s, 1 + s]``, damping ratio on ``[zeta_lo, zeta_hi]``, the further modes,
+aliases included, moved with it as a stiffness change moves them); with the identified model
+itself these are the members. Every member keeps the identified model's orders, so all
 share the measured-history realization (state: past deflections and past z) and the observer's
 state carries over between them. The grid is fine enough that the plant's mode is never further
 from a member than the mode's own half-power bandwidth (:func:`resonance_points`,
@@ -35,7 +36,9 @@ loop of each member's MPC (its observer bank's prior filter) is closed around ea
 the gain matched, and its spectral radius kept (:meth:`AdaptiveMPC.loop_radii`): the
 identified model's loop is stable on every member of the box, so the first sample is safe on
 any bender the datasheet allows, and every later swap keeps the loop stable on whatever the
-data still allow.
+data still allow. Each member's observer bank may select only filters whose loop is stable on
+every vertex of the box (:func:`controllers.predictive.screen_bank`), so a filter chosen by the
+likelihood cannot undo that.
 
 Bounded work. Everything a member's MPC needs (condensed prediction, QP matrices, the observer
 bank's gains, an OSQP workspace, the loop radii) is built when the controller is, and the QP
@@ -76,9 +79,8 @@ from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import check_settings, measurement_std
 from controllers.task import ControlTask
-from controllers.tolerance_box import DAMPING_RANGE, RESONANCE_TOLERANCE, Vertex, mode_correction
+from controllers.tolerance_box import DAMPING_RANGE, RESONANCE_TOLERANCE, Vertex, box_model
 from identification.arx import ARXModel
-from identification.correction import ModalSplit
 
 __all__ = [
     "NORMAL_95",
@@ -280,10 +282,8 @@ class AdaptiveMPC(LinearMPC):
             for alpha in resonance_points(settings.resonance_tolerance, settings.damping_range[0])
             for z in damping_points(*settings.damping_range)
         ]
-        split = ModalSplit(arx)
         self._member_arx = [arx] + [
-            split.scaled(mode_correction(split, arx.dt, Vertex(1.0, alpha, z)))
-            for alpha, z in self._grid[1:]
+            box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in self._grid[1:]
         ]
         self._member_models = []
         for member in self._member_arx:
@@ -295,6 +295,7 @@ class AdaptiveMPC(LinearMPC):
         slowest = max(float(np.max(np.abs(m.poles()))) for m in self._member_arx)
         self.history = max(arx.na, arx.nb) + math.ceil(3.0 / -math.log(slowest))
         self._members: list[_Member] = []
+        self._member_screens: list[dict[str, Any]] = []
         super().__init__(model, task, settings, name=name)
 
     # -- the set --------------------------------------------------------------------------------
@@ -325,6 +326,10 @@ class AdaptiveMPC(LinearMPC):
         hessian, q_matrix = self._qp_matrices(phi, gamma)
         unconstrained = -np.linalg.solve(hessian, q_matrix)
         observer = make_observer(model, self.task, self.settings)
+        screen = self._screen(
+            observer, feedback_law(hessian, q_matrix, observer.n + observer.n_disturbance)
+        )
+        self._member_screens.append(screen)
         return _Member(arx, model, phi, gamma, hessian, q_matrix, unconstrained, observer)
 
     def _gain_estimate(self) -> GainEstimate:
@@ -495,7 +500,9 @@ class AdaptiveMPC(LinearMPC):
 
     def describe(self) -> dict:
         """The linear MPC's description plus the set: its members' first resonances and
-        damping ratios, and the worst spectral radius of :meth:`loop_radii`."""
+        damping ratios, the worst spectral radius of :meth:`loop_radii`, and how many members'
+        banks kept no filter stable on the whole box (:func:`controllers.predictive.screen_bank`
+        warns for each)."""
         out = super().describe()
         out["settings"] = asdict(self.settings)
         out["adaptation"] = {
@@ -511,5 +518,8 @@ class AdaptiveMPC(LinearMPC):
             "identified_loop_radius": float(np.max(self._radii[0])),
             "worst_loop_radius": float(np.max(self._radii)),
             "unstable_pairs": int(np.sum(~self._stable)),
+            "members_without_a_robust_filter": sum(
+                1 for screen in self._member_screens if not screen.get("robust", True)
+            ),
         }
         return out

@@ -64,6 +64,17 @@ removes them (no trip in the 60, none on a stable row, over 25, 35 or 50 samples
 random PL140 over 25), for two samples of delay on a runaway; over 35 samples it gives the damped
 PL127's steps 0.88 % (the single filter's 0.98 %), the stiffer plant 13-29 %.
 
+What changed that verdict: the box. The margin screen above judged each filter on the model
+alone, and a margin on one model cannot cover a lightly damped mode that moves by 10-20 %. A
+screen on every vertex of the datasheet's tolerance box does: the filters kept are those whose
+loop is stable on every vertex's linear part (:func:`worst_radii`, with the box's models moving
+every mode, aliases included, :mod:`controllers.tolerance_box`) and within the Ms bound on the
+model (:func:`controllers.predictive.screen_bank`). The MPCs learn the gain
+(:mod:`controllers.gain`), so the softer bender whose resonance the fast filters had to chase is
+a vertex the kept filters are stable on; :mod:`benchmarks.corners` measures the result
+(``benchmarks/results/corners*.md``). The guard stays as the last line for what the box does not
+hold.
+
 The frequency responses of all filters of a bank are computed together: they share A, B, c
 and the feedback law, and differ only by L, so with ``R(q) = (qI - A)^-1`` (one inverse per
 frequency for the whole bank) the correction's rank-one term is folded in by the
@@ -86,6 +97,7 @@ __all__ = [
     "loop_is_stable",
     "modulus_margins",
     "output_feedback",
+    "worst_radii",
 ]
 
 FREQUENCY_POINTS = 1024
@@ -196,6 +208,44 @@ def closed_loop_matrix(
 def loop_is_stable(controller: OutputFeedback, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> bool:
     """True if the loop of :func:`closed_loop_matrix` has every pole inside the unit circle."""
     return bool(np.max(np.abs(np.linalg.eigvals(closed_loop_matrix(controller, a, b, c)))) < 1.0)
+
+
+def worst_radii(
+    a_aug: np.ndarray,
+    b_aug: np.ndarray,
+    c_aug: np.ndarray,
+    gains: np.ndarray,
+    k_estimate: np.ndarray,
+    k_previous: float,
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> np.ndarray:
+    """Largest spectral radius (-) of each filter's loop over ``plants``.
+
+    Parameters
+    ----------
+    a_aug, b_aug, c_aug : numpy.ndarray
+        The observer's augmented model.
+    gains : numpy.ndarray
+        Filter gains, one row per filter.
+    k_estimate, k_previous
+        The feedback law (:func:`feedback_law`).
+    plants : list of (a, b, c)
+        Linear parts the loop is closed around (:func:`closed_loop_matrix`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (filters,): below 1 where that filter's loop is stable on every plant.
+    """
+    loops = [
+        output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
+        for gain in np.atleast_2d(gains)
+    ]
+    radii = np.zeros(len(loops))
+    for plant in plants:  # one batch of eigenvalue problems per plant (orders may differ)
+        matrices = np.array([closed_loop_matrix(loop, *plant) for loop in loops])
+        radii = np.maximum(radii, np.max(np.abs(np.linalg.eigvals(matrices)), axis=1))
+    return radii
 
 
 def modulus_margins(

@@ -121,6 +121,11 @@ class MPCSettings:
         learns the gain inside [1 - w, 1 + w] from the first sample and predicts with the
         point of its 95 % credible set nearest the model's (:mod:`controllers.gain`). Default:
         the datasheet's +-20 % on the free deflection. 0: predict with the model's gain.
+    robust_bank : bool
+        Let the observer bank select only the filters whose loop is stable on every vertex of
+        the datasheet's tolerance box and within :data:`controllers.settings.MS_MAX` on the
+        model (:func:`controllers.predictive.screen_bank`); identified models only (the
+        oracle's model is the plant).
     """
 
     horizon: int = 20
@@ -136,6 +141,7 @@ class MPCSettings:
     max_iter: int = 1000
     shortcut: bool = True
     gain_tolerance: float = GAIN_TOLERANCE
+    robust_bank: bool = True
 
     def __post_init__(self) -> None:
         check_settings(

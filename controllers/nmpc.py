@@ -87,8 +87,9 @@ class NMPCSettings:
     measurement_std : float or None
         Sensor noise standard deviation the observer assumes (um); None: noise bound /
         sqrt(3) (uniform noise), at least 0.05 um.
-    observer, bank_memory : str, int
-        The observer, as :class:`controllers.mpc.MPCSettings`' (default: the bank).
+    observer, bank_memory, robust_bank : str, int, bool
+        The observer, as :class:`controllers.mpc.MPCSettings`' (default: the bank, screened
+        over the tolerance box with the linearised law).
     disturbance_std : float
         Random-walk step of the output disturbance of the fixed observer (um per sample): its
         speed.
@@ -124,6 +125,7 @@ class NMPCSettings:
     measurement_std: float | None = None
     observer: str = "bank"
     bank_memory: int = 200
+    robust_bank: bool = True
     disturbance_std: float = DISTURBANCE_STD
     process_std: float = PROCESS_STD
     jacobian: str = "auto"

@@ -418,17 +418,36 @@ class ObserverBank:
         self._half_log_var = 0.5 * np.log(variance)
         self._keep = 1.0 - 1.0 / memory
         self._guard_keep = 1.0 - 1.0 / RUNAWAY_MEMORY
-        self.prior = int(
-            np.argmin(
-                [
-                    abs(np.log((rx + 1e-3) / (PRIOR_RATIOS[0] + 1e-3)))
-                    + abs(np.log(rd / PRIOR_RATIOS[1]))
-                    for rx, rd in ratios
-                ]
-            )
-        )
-        self._prior_filter = filters[self.prior]
+        self.prior = int(np.argmin(_prior_distance(np.array(ratios))))
+        self._filters = filters
         self.fallback = int(np.lexsort(np.array(ratios).T[::-1])[0])  # smallest process, then d
+        self._ratios = ratios
+        self.admissible = np.ones(len(levels), dtype=bool)
+        self._penalty = np.zeros(len(levels))  # -inf on the filters the bank may not select
+        self.reset()
+
+    def restrict(self, admissible: np.ndarray) -> None:
+        """Let the bank select only the filters where ``admissible`` is True (boolean, one per
+        filter); the prior becomes the admissible filter nearest the prior ratios, the fallback
+        the admissible one of least process noise, then least disturbance.
+
+        Raises
+        ------
+        ValueError
+            If no filter is admissible, or the mask's length is not the number of filters.
+        """
+        mask = np.asarray(admissible, dtype=bool)
+        if mask.shape != (len(self.noise_levels),) or not mask.any():
+            raise ValueError(
+                f"admissible must be a boolean mask over the {len(self.noise_levels)} filters "
+                f"with at least one True, got {mask.tolist()}"
+            )
+        self.admissible = mask
+        self._penalty = np.where(mask, 0.0, -np.inf)
+        kept = np.flatnonzero(mask)
+        ratios = np.array(self._ratios)[kept]
+        self.prior = int(kept[np.argmin(_prior_distance(ratios))])
+        self.fallback = int(kept[np.lexsort(ratios.T[::-1])[0]])
         self.reset()
 
     @classmethod
@@ -481,7 +500,7 @@ class ObserverBank:
         """What the runaway guard reads for the most likely filter: its normalised innovation
         squared averaged over :data:`RUNAWAY_MEMORY` samples, and the lag-one correlation of its
         innovations over their mean square (dimensionless; 0 and 0 before the first sample)."""
-        best = int(np.argmax(self._score))
+        best = int(np.argmax(self._score + self._penalty))
         nis = float(self._mean_nis[best])
         return nis, float(self._mean_lag[best] / nis) if nis > 0 else 0.0
 
@@ -507,7 +526,7 @@ class ObserverBank:
         self._last_innovation = innovation
         self._samples += 1
         if self.runaway_at is None:
-            best = int(np.argmax(self._score))
+            best = int(np.argmax(self._score + self._penalty))
             nis = self._mean_nis[best]
             suspect = (
                 best != self.fallback  # reading the fallback already: nothing to fall back to
@@ -533,7 +552,7 @@ class ObserverBank:
     def slowest_pole_hz(self, dt: float) -> float:
         """The prior filter's slowest-pole decay rate (Hz), for reports; see
         :meth:`DisturbanceObserver.slowest_pole_hz`."""
-        return self._prior_filter.slowest_pole_hz(dt)
+        return self._filters[self.prior].slowest_pole_hz(dt)
 
     def selection_summary(self, top: int = 3) -> list[dict[str, float]]:
         """The filters selected most often since the last reset, with their share of the
@@ -549,6 +568,13 @@ class ObserverBank:
             for k in order
             if self.selection_counts[k] > 0
         ]
+
+
+def _prior_distance(ratios: np.ndarray) -> np.ndarray:
+    """Log distance of (process, disturbance) ratio pairs ((F, 2)) from :data:`PRIOR_RATIOS`."""
+    return np.abs(np.log((ratios[:, 0] + 1e-3) / (PRIOR_RATIOS[0] + 1e-3))) + np.abs(
+        np.log(ratios[:, 1] / PRIOR_RATIOS[1])
+    )
 
 
 def rescale_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: float) -> None:

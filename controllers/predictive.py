@@ -16,6 +16,8 @@ start in :meth:`PredictiveController._start`.
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from typing import Any, ClassVar
 
 import numpy as np
@@ -27,12 +29,71 @@ from controllers.condensed import (
     qp_matrices,
     rate_hessian,
 )
-from controllers.loop import feedback_law, modulus_margins
+from controllers.loop import feedback_law, modulus_margins, worst_radii
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
+from controllers.settings import MS_MAX
 from controllers.task import ControlTask
+from controllers.tolerance_box import ToleranceBox, vertex_models
 
-__all__ = ["PredictiveController"]
+__all__ = ["PredictiveController", "screen_bank"]
+
+
+def _has_mode(model: PredictionModel) -> bool:
+    """True if the model's linear part has a complex pole pair (a bending mode to move)."""
+    return bool(np.any(np.abs(np.linalg.eigvals(model.a).imag) > 1e-9))
+
+
+def screen_bank(
+    bank: ObserverBank,
+    law: tuple[np.ndarray, float],
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> dict[str, Any]:
+    """Let ``bank`` select only the filters whose unconstrained loop (feedback ``law``,
+    :func:`controllers.loop.feedback_law`) is stable on every one of ``plants`` and has a
+    sensitivity peak of at most :data:`controllers.settings.MS_MAX` on the bank's own model.
+
+    Why. The bank selects the filter whose innovations are the most likely, which says nothing
+    about whether the loop it closes is stable on the plant at hand; on a bender within the
+    datasheet's tolerances whose resonance is off, the fast filters' loops can be unstable and
+    their growing innovations make them still more likely. Screening on the box's vertices
+    removes those filters before the first sample, so that every loop the bank can close is
+    stable on every vertex of the box; the Ms bound keeps a margin for what the box's models
+    do not hold (higher modes beyond the identified order, hysteresis error). The check is at
+    the vertices (and the gain's midpoint), not a proof over the box's interior; the tests
+    check random interior plants as well.
+
+    If no filter passes, the bank keeps the one of the smallest worst radius, and the result
+    says so (``robust`` False) and warns: the loop is then not known to be stable on the box.
+
+    Returns
+    -------
+    dict
+        ``applied`` True, ``robust``, ``filters_kept``, ``filters``, ``worst_radius`` (the
+        largest spectral radius over the kept filters and the plants, -), ``ms_max``.
+    """
+    radii = worst_radii(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
+    margins = modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, n=bank.n)
+    admissible = (radii < 1.0) & (margins >= 1.0 / MS_MAX)
+    robust = bool(admissible.any())
+    if not robust:
+        admissible = radii == radii.min()
+        warnings.warn(
+            f"no filter of the observer bank keeps the loop stable on every vertex of the "
+            f"tolerance box within Ms <= {MS_MAX} (smallest worst spectral radius "
+            f"{radii.min():.4f}); the bank keeps that filter alone",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    bank.restrict(admissible)
+    return {
+        "applied": True,
+        "robust": robust,
+        "filters_kept": int(admissible.sum()),
+        "filters": int(admissible.size),
+        "worst_radius": float(radii[admissible].max()),
+        "ms_max": MS_MAX,
+    }
 
 
 class PredictiveController(Controller):
@@ -77,8 +138,39 @@ class PredictiveController(Controller):
         weight = getattr(settings, "tracking_weight", 1.0)  # the linear MPC weighs error by 1
         check_well_posed(self._gamma, settings.rate_weight, weight, name=self.name)
         self.observer = make_observer(model, task, settings)
+        self._box_plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._set_up()
+        self.screen = self._screen(self.observer, self.feedback_law())
         self._reset(None)
+
+    def box_plants(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """The linear parts (a, b, c) the observer bank's filters are screened on: the vertices
+        of the datasheet's tolerance box around the model
+        (:func:`controllers.tolerance_box.vertex_models`), at the gain factors ``1 - w``,
+        ``1`` and ``1 + w`` (w the datasheet's free-deflection tolerance: the plant's gain
+        relative to the one the MPC predicts with lies between 1 and the plant's own, as the MPC
+        learns it, :mod:`controllers.gain`). Computed once."""
+        if self._box_plants is None:
+            box = ToleranceBox()
+            if not _has_mode(self.model):  # nothing to move but the gain
+                box = dataclasses.replace(box, resonance=0.0, damping=None)
+            models = [m for _, m in vertex_models(self.model, box, further_modes=True)]
+            matched = dataclasses.replace(box, gain=0.0)
+            if not matched.is_nominal:
+                models += [m for _, m in vertex_models(self.model, matched, further_modes=True)]
+            self._box_plants = [(m.a, m.b, m.c) for m in models]
+        return self._box_plants
+
+    def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
+        """Restrict ``observer`` (a bank) to the filters :func:`screen_bank` admits, and say
+        what was done (JSON-safe, for ``describe()``)."""
+        if not isinstance(observer, ObserverBank):
+            return {"applied": False, "why": "a single filter (observer='fixed')"}
+        if not getattr(self.settings, "robust_bank", True):
+            return {"applied": False, "why": "robust_bank=False"}
+        if self.model.source != "identified":
+            return {"applied": False, "why": "the model is the plant's own (oracle)"}
+        return screen_bank(observer, law, self.box_plants())
 
     def _reset(self, observation: np.ndarray | None) -> None:
         y0 = 0.0 if observation is None else float(observation[0])
@@ -133,8 +225,9 @@ class PredictiveController(Controller):
 
     def observer_description(self) -> dict[str, Any]:
         """Modulus margin of the loop this controller closes around its own model, unconstrained
-        (:mod:`controllers.loop`): the single filter's, or the bank's range over its filters and
-        its prior filter's (JSON-safe; dimensionless, 0 when that loop is unstable)."""
+        (:mod:`controllers.loop`): the single filter's, or the bank's range over the filters it
+        may select and its prior filter's, with what the box screen kept (:func:`screen_bank`)
+        (JSON-safe; dimensionless, 0 when that loop is unstable)."""
         observer = self.observer
         bank = isinstance(observer, ObserverBank)
         margins = modulus_margins(
@@ -147,10 +240,12 @@ class PredictiveController(Controller):
         )
         if not bank:
             return {"modulus_margin": float(margins[0])}
+        kept = margins[observer.admissible]
         return {
-            "modulus_margin_range": [float(margins.min()), float(margins.max())],
+            "modulus_margin_range": [float(kept.min()), float(kept.max())],
             "modulus_margin_prior": float(margins[observer.prior]),
             "riccati_fallbacks": int(observer.riccati_fallbacks),
+            "box_screen": self.screen,
         }
 
     def _set_up(self) -> None:

@@ -11,6 +11,7 @@ from piezo_env.randomization import DomainRandomization
 __all__ = [
     "DISTURBANCE_STD",
     "GAIN_TOLERANCE",
+    "MS_MAX",
     "OBSERVERS",
     "PROCESS_STD",
     "USABLE_OSQP_STATUS",
@@ -33,6 +34,13 @@ OBSERVERS = ("bank", "fixed")
 GAIN_TOLERANCE = DomainRandomization().free_deflection
 """Relative half-width of the bender's static gain the MPCs allow for (-): the datasheet's
 tolerance of the free deflection (deflection per volt), +-20 % (:mod:`controllers.gain`)."""
+
+MS_MAX = 1.8
+"""Bound on the sensitivity peak Ms = 1 / (modulus margin) of every loop the controllers close
+on their own model (-): within Astrom and Murray's usual 1.2-2 (*Feedback Systems*, 2nd ed.,
+sec. 10.3), the margin left for what no model of the box holds (higher modes, hysteresis
+error). The PIDs are tuned to it; the MPCs' observer banks keep only filters within it
+(:func:`controllers.predictive.screen_bank`)."""
 
 PROCESS_STD = 0.04
 """The observer's default input-referred process noise (equivalent V), both MPCs'.
@@ -74,6 +82,9 @@ def check_settings(
         value = getattr(settings, name)
         if not number_at_least(value, 0.0) or value == 0:
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    robust = getattr(settings, "robust_bank", True)
+    if not isinstance(robust, bool):
+        raise ValueError(f"robust_bank must be True or False, got {robust!r}")
     observer = getattr(settings, "observer", "fixed")
     if observer not in OBSERVERS:
         raise ValueError(f"observer must be 'bank' or 'fixed', got {observer!r}")

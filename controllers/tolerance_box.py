@@ -12,8 +12,19 @@ hold. Each vertex's linear part is the identified nominal model with
   ``damping[1]``),
 
 by the modal correction of :mod:`identification.correction` (:func:`scale_modes`: the mode's
-pole moved, its static contribution kept, every residue times the gain factor). So the box
-needs nothing but the identified model and the datasheet's tolerances.
+pole moved, its static contribution kept, every residue times the gain factor), and every other
+bending mode of the model (each further complex pole pair) moved by the same frequency factor
+with its damping ratio scaled as the first mode's (stiffness-proportional damping, zeta_k = zeta_1
+omega_k / omega_1; :func:`box_model`): the datasheet's resonance tolerance is one
+of stiffness over mass, and an Euler-Bernoulli beam's modal frequencies all scale with
+sqrt(EI / m). A further mode may be an alias: a cantilever's second mode lies at 6.27 times the
+first (:data:`CANTILEVER_RATIOS`), above the Nyquist frequency of every default sample time
+(:func:`piezo_env.default_dt`), so the sampled model shows it folded (the PL127's 2.6 kHz mode
+at 4 kHz sampling appears at 1.4 kHz), and a stiffer bender moves the alias *down*. Each
+further mode's continuous frequency is therefore the fold of its sampled one nearest a
+cantilever mode of the identified first resonance (:func:`unfolded_hz`), and it is that
+frequency which the factor moves before the mode is sampled again. So the box needs nothing but
+the identified model and the datasheet's tolerances.
 
 The correction's factors are exact, not first-order: the first mode's continuous pole
 ``s = -sigma + j omega_d`` becomes ``alpha (beta (-sigma) + j omega_d)``; the damping ratio
@@ -37,12 +48,16 @@ from identification.correction import ModalCorrection, ModalSplit
 from piezo_env.randomization import DomainRandomization
 
 __all__ = [
+    "CANTILEVER_RATIOS",
     "DAMPING_RANGE",
+    "MAX_ZETA",
     "RESONANCE_TOLERANCE",
     "ToleranceBox",
     "Vertex",
     "arx_of",
+    "box_model",
     "mode_correction",
+    "unfolded_hz",
     "vertex_models",
 ]
 
@@ -154,8 +169,80 @@ def mode_correction(split: ModalSplit, dt: float, vertex: Vertex) -> ModalCorrec
     return ModalCorrection(gain=vertex.gain, frequency=alpha, damping=beta)
 
 
+CANTILEVER_RATIOS = (
+    (4.694091 / 1.875104) ** 2,
+    (7.854757 / 1.875104) ** 2,
+    (10.995541 / 1.875104) ** 2,
+)
+"""Natural frequencies of a uniform Euler-Bernoulli cantilever's 2nd-4th bending modes over its
+first (-): (beta_k L / beta_1 L)^2, beta_k L the roots of 1 + cos(x) cosh(x) = 0."""
+
+
+MAX_ZETA = 0.99
+"""Largest damping ratio a further mode of :func:`box_model` is moved to (-): stiffness-
+proportional damping can carry a high mode past critical damping, where its complex pair would
+split into two real poles; it stays a pair just below."""
+
+
+def unfolded_hz(sampled_hz: float, first_hz: float, dt: float) -> float:
+    """Continuous frequency (Hz) of a mode seen at ``sampled_hz`` in a model sampled every
+    ``dt`` (s) whose first mode lies at ``first_hz``: of the folds ``m / dt +- sampled_hz``
+    (m = 0, 1, ...) the one nearest (in ratio) a cantilever mode
+    (:data:`CANTILEVER_RATIOS` times ``first_hz``)."""
+    fs = 1.0 / dt
+    targets = np.array(CANTILEVER_RATIOS) * first_hz
+    folds = np.arange(0, math.ceil(targets[-1] / fs) + 2) * fs
+    candidates = np.concatenate([folds + sampled_hz, folds[1:] - sampled_hz])
+    distance = np.abs(np.log(candidates[:, None] / targets[None, :])).min(axis=1)
+    return float(candidates[np.argmin(distance)])
+
+
+def box_model(arx: ARXModel, vertex: Vertex, *, further_modes: bool = True) -> ARXModel:
+    """``arx`` (the nominal linear part) moved to ``vertex``: its first bending mode to the
+    vertex's resonance factor and damping ratio and its static gain to the vertex's
+    (:func:`mode_correction`), and, with ``further_modes``, every further complex pole pair's
+    natural frequency times the resonance factor, its damping ratio times the first's factor
+    (module docstring).
+
+    Raises
+    ------
+    ValueError
+        If the model has no complex pole pair (no mode to move).
+    """
+    dt = arx.dt
+    split = ModalSplit(arx)
+    first = split.p
+    first_s = np.log(first) / dt
+    first_hz = abs(first_s) / (2.0 * math.pi)
+    zeta_ratio = 1.0 if vertex.damping is None else vertex.damping / (-first_s.real / abs(first_s))
+    moved = split.scaled(mode_correction(split, dt, vertex))
+    if not further_modes or (vertex.resonance == 1.0 and zeta_ratio == 1.0):
+        return moved
+    poles = arx.poles()
+    for pole in (p for p in poles if p.imag > 1e-9 and p != first):
+        current = moved.poles()
+        further = ModalSplit(moved, pole=current[np.argmin(np.abs(current - pole))])
+        decay = -math.log(abs(further.p)) / dt  # sigma (1/s): aliasing keeps the modulus
+        sampled_hz = abs(np.angle(further.p)) / (2.0 * math.pi * dt)
+        true_hz = unfolded_hz(sampled_hz, first_hz, dt)  # damped frequency
+        # The continuous upper pole -sigma + j 2 pi f samples to p or to its conjugate.
+        fold = round(true_hz * dt)
+        p_old = further.p if true_hz - fold / dt >= 0 else np.conj(further.p)
+        # Stiffness-proportional damping, zeta_k = zeta_1 omega_k / omega_1: every mode's
+        # damping ratio moves by the first's factor (kept underdamped: the pair stays a pair).
+        omega_n = vertex.resonance * math.hypot(decay, 2.0 * math.pi * true_hz)
+        zeta = min(zeta_ratio * decay / math.hypot(decay, 2.0 * math.pi * true_hz), MAX_ZETA)
+        s_new = omega_n * complex(-zeta, math.sqrt(1.0 - zeta**2))
+        moved = further.moved(np.exp(s_new * dt), p_old=p_old)
+    # Each move keeps its mode's static contribution; rounding over many modes does not quite.
+    scale = vertex.gain * arx.static_gain() / moved.static_gain()
+    return ARXModel(
+        moved.a, moved.b * scale, dt=dt, noise_bound=arx.noise_bound, method=moved.method
+    )
+
+
 def vertex_models(
-    model: PredictionModel, box: ToleranceBox
+    model: PredictionModel, box: ToleranceBox, *, further_modes: bool = False
 ) -> list[tuple[Vertex, PredictionModel]]:
     """The linear part of each vertex of ``box`` around ``model`` (module docstring).
 
@@ -166,6 +253,10 @@ def vertex_models(
         (as in :func:`identification.correction.scale_modes`). A box of the gain alone needs
         no mode: its vertices scale the output.
     box : ToleranceBox
+    further_modes : bool
+        Move every further mode too (:func:`box_model`; the observer bank's screen). False
+        (the default): the first mode alone, the box the PIDs are tuned over
+        (:mod:`controllers.pid_tuning`), whose notch and gains are built around that mode.
 
     Returns
     -------
@@ -186,10 +277,9 @@ def vertex_models(
             for vertex in box.vertices()
         ]
     arx = arx_of(model)
-    split = ModalSplit(arx)
     out = []
     for vertex in box.vertices():
-        corrected = split.scaled(mode_correction(split, model.dt, vertex))
-        a, b, c, _ = corrected.state_space_matrices()
+        moved = box_model(arx, vertex, further_modes=further_modes)
+        a, b, c, _ = moved.state_space_matrices()
         out.append((vertex, dataclasses.replace(model, a=a, b=b, c=c)))
     return out

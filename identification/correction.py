@@ -129,9 +129,13 @@ class ModalSplit:
     ----------
     model : ARXModel
         With ``0 < na <= nb`` and a complex pole pair (:func:`scale_modes`).
+    pole : complex, optional
+        Split off the mode of the model's upper complex pole nearest this one (another mode
+        than the first, e.g. to move every mode with a stiffness factor); default: the first
+        bending mode.
     """
 
-    def __init__(self, model: ARXModel) -> None:
+    def __init__(self, model: ARXModel, pole: complex | None = None) -> None:
         na, nb = model.na, model.nb
         if nb < na or na == 0:
             raise ValueError(
@@ -141,6 +145,9 @@ class ModalSplit:
         num = np.concatenate([[0.0], model.b])  # B(w), lowest power first
         poles = model.poles()
         top = _first_mode(poles)
+        if pole is not None:
+            upper = np.flatnonzero(poles.imag > 1e-9)
+            top = int(upper[np.argmin(np.abs(poles[upper] - pole))])
         p = poles[top]
         others = np.delete(poles, [top, int(np.argmin(np.abs(poles - np.conj(p))))])
         self.rest_den = _real_poly(others)  # A_rest(w) = prod (1 - p_j w)
@@ -161,14 +168,28 @@ class ModalSplit:
 
     def scaled(self, correction: ModalCorrection) -> ARXModel:
         """The model with the correction applied (see the module docstring)."""
-        model = self.model
-        s = np.log(self.p) / model.dt
+        s = np.log(self.p) / self.model.dt
         s_new = correction.frequency * (correction.damping * s.real + 1j * s.imag)
-        p_new = np.exp(s_new * model.dt)
-        rho_new = self.rho * (p_new - 1.0) * self.p / ((self.p - 1.0) * p_new)
+        return self.moved(np.exp(s_new * self.model.dt), correction.gain)
+
+    def _residue(self, p_old: complex, p_new: complex) -> complex:
+        """The residue at ``p_new`` of the mode moved there from its pole ``p_old`` (``p`` or
+        its conjugate) with its static contribution ``2 Re(rho p / (1 - p))`` kept."""
+        rho = self.rho if p_old == self.p else np.conj(self.rho)
+        return rho * (p_new - 1.0) * p_old / ((p_old - 1.0) * p_new)
+
+    def moved(self, p_new: complex, gain: float = 1.0, p_old: complex | None = None) -> ARXModel:
+        """The model with the mode's pole ``p_old`` (default: ``p``; or its conjugate) moved to
+        ``p_new``, its static contribution kept, and the whole times ``gain``."""
+        model = self.model
+        p_old = self.p if p_old is None else p_old
+        rho_new = self._residue(p_old, p_new)
+        if p_new.imag < 0:  # the same pair, written with its upper pole
+            p_new, rho_new = np.conj(p_new), np.conj(rho_new)
+        gain = float(gain)
         q_new = _real_poly([p_new, np.conj(p_new)])
         size = model.nb + 1
-        num = correction.gain * (
+        num = gain * (
             _padded(np.convolve(self.rest_num, q_new), size)
             + _padded(np.convolve(self._mode_num(p_new, rho_new), self.rest_den), size)
         )

@@ -113,7 +113,14 @@ def _model(bender: str) -> str:
 
 
 def _episode(
-    bender: str, plant: str, reference: str, steps: int, controller=None, name="mpc", seed=0
+    bender: str,
+    plant: str,
+    reference: str,
+    steps: int,
+    controller=None,
+    name="mpc",
+    seed=0,
+    **options,
 ):
     stroke = get_datasheet(bender).free_deflection * 1e6
     env = gym.make(
@@ -125,16 +132,21 @@ def _episode(
     )
     if controller is None:
         nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender, dt=DT)
-        controller = ctl.make(name, _model(bender), nominal)
+        controller = ctl.make(name, _model(bender), nominal, **options)
     r = make_reference(reference, steps + 21, dt=DT, seed=seed, stroke_um=stroke)
     return ctl.run_episode(env, controller, seed=seed, reference=r, stroke_um=stroke), controller
 
 
 def test_the_damped_pl127_no_longer_runs_away_on_steps() -> None:
     """Twice the damping of the PL127's datasheet: the fast filters' loops oscillate at Nyquist
-    (41.6 % of the stroke over 2 s without the guard). With it the loop holds; the next
-    episode starts afresh."""
-    episode, controller = _episode("PL127", "damping-0.04", "steps", 1000)
+    (41.6 % of the stroke over 2 s without the guard). The box screen removes those filters
+    before the first sample, so the guard is tested on the unscreened bank (what the box does
+    not hold): with it the loop holds; the next episode starts afresh."""
+    screened, _ = _episode("PL127", "damping-0.04", "steps", 1000)
+    assert screened.metrics["observer_fallback_step"] is None
+    error = screened.deflection_um[-300:] - screened.reference_um[-300:]
+    assert np.sqrt(np.mean(error**2)) < 5.0  # um
+    episode, controller = _episode("PL127", "damping-0.04", "steps", 1000, robust_bank=False)
     step = episode.metrics["observer_fallback_step"]
     assert step is not None and step == controller.observer.runaway_at
     assert episode.controller["stats"]["observer_fallback_step"] == step
