@@ -30,15 +30,16 @@ model that is as good as the noise allows. The sample counts of both tests are c
 the residuals' correlation (:attr:`controllers.gain.GainEstimate.independent_fraction`).
 
 Robust over the set. The data still allow every member the likelihood-ratio test does not
-reject (:meth:`AdaptiveMPC.plausible`); the MPC swaps only to a member whose loop is stable on
-every one of them, the best fit among those. When the controller is built, the unconstrained
-loop of each member's MPC (its observer bank's prior filter) is closed around each member with
-the gain matched, and its spectral radius kept (:meth:`AdaptiveMPC.loop_radii`): the
-identified model's loop is stable on every member of the box, so the first sample is safe on
-any bender the datasheet allows, and every later swap keeps the loop stable on whatever the
-data still allow. Each member's observer bank may select only filters whose loop is stable on
-every vertex of the box (:func:`controllers.predictive.screen_bank`), so a filter chosen by the
-likelihood cannot undo that.
+reject (:meth:`AdaptiveMPC.plausible`). When the controller is built, the unconstrained loop of
+each member's MPC with each filter of its observer bank is closed around each member, gains
+matched, and its spectral radius kept (:meth:`AdaptiveMPC.filter_radii`; a filter whose loop on
+its own member exceeds the sensitivity bound :data:`controllers.settings.MS_MAX` is never
+used). At every sample the bank in use may select only the filters whose loop is stable on
+every member the data still allow, and the MPC swaps only to a member that has such a filter.
+At the first sample that is every member of the box, so the first sample is safe on any bender
+the datasheet allows; as the data rule members out, faster filters become allowed and the loop
+tends to the one the true plant's model would close. :meth:`AdaptiveMPC.loop_radii` (each
+member's prior filter) stays for reports.
 
 Bounded work. Everything a member's MPC needs (condensed prediction, QP matrices, the observer
 bank's gains, an OSQP workspace, the loop radii) is built when the controller is, and the QP
@@ -73,11 +74,17 @@ from controllers.base import ControllerStats
 from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.gain import GainEstimate
-from controllers.loop import closed_loop_matrix, feedback_law, output_feedback
+from controllers.loop import (
+    closed_loop_matrix,
+    feedback_law,
+    modulus_margins,
+    output_feedback,
+    radii_matrix,
+)
 from controllers.mpc import LinearMPC, MPCSettings
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
-from controllers.settings import check_settings, measurement_std
+from controllers.settings import MS_MAX, check_settings, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import DAMPING_RANGE, RESONANCE_TOLERANCE, Vertex, box_model
 from identification.arx import ARXModel
@@ -295,7 +302,7 @@ class AdaptiveMPC(LinearMPC):
         slowest = max(float(np.max(np.abs(m.poles()))) for m in self._member_arx)
         self.history = max(arx.na, arx.nb) + math.ceil(3.0 / -math.log(slowest))
         self._members: list[_Member] = []
-        self._member_screens: list[dict[str, Any]] = []
+        self._plausible_key: bytes | None = None
         super().__init__(model, task, settings, name=name)
 
     # -- the set --------------------------------------------------------------------------------
@@ -317,7 +324,54 @@ class AdaptiveMPC(LinearMPC):
         pairs = zip(self._member_models[1:], self._member_arx[1:], strict=True)
         self._members = [offline, *(self._member(m, a) for m, a in pairs)]
         self._radii = self.loop_radii()
-        self._stable = self._radii < 1.0
+        self._filter_radii = self.filter_radii()
+
+    def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
+        """The set screens its banks itself, as the data narrow it (:meth:`_allow`)."""
+        stable = self._filter_radii < 1.0  # (member, filter, plant member)
+        return {
+            "applied": True,
+            "dynamic": True,
+            "filters": int(stable.shape[1]),
+            "filters_kept_at_start": [int(n) for n in np.all(stable, axis=2).sum(axis=1)],
+            "ms_max": MS_MAX,
+        }
+
+    def filter_radii(self) -> np.ndarray:
+        """Spectral radius (-) of the unconstrained loop of each member's MPC with each filter
+        of its bank around each member, gains matched: (K, F, K); infinite for a filter whose
+        loop on its own member exceeds :data:`controllers.settings.MS_MAX` (never selected)."""
+        plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
+        out = []
+        for member in self._members:
+            bank = member.observer
+            gains = np.atleast_2d(bank.gains if isinstance(bank, ObserverBank) else bank.gain)
+            law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
+            margins = modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, gains, *law, n=bank.n)
+            radii = np.full((len(gains), len(plants)), np.inf)
+            within = margins >= 1.0 / MS_MAX
+            if within.any():
+                radii[within] = radii_matrix(
+                    bank.a_aug, bank.b_aug, bank.c_aug, gains[within], *law, plants
+                )
+            out.append(radii)
+        return np.array(out)
+
+    def _allow(self, plausible: np.ndarray) -> np.ndarray:
+        """Which filters each member's loop may use given the members the data still allow
+        (K, F): stable on every one of them; the in-use member's bank is narrowed to its row
+        (or, when its row is empty, to its filter of the smallest worst radius, counted in
+        ``stats.adaptation["no_stable_filter"]``)."""
+        worst = self._filter_radii[:, :, plausible].max(axis=2)
+        allowed = worst < 1.0
+        bank = self.observer
+        if isinstance(bank, ObserverBank):
+            row = allowed[self._member]
+            if not row.any():
+                row = worst[self._member] == worst[self._member].min()
+                self.stats.adaptation["no_stable_filter"] += 1
+            bank.allow(row)
+        return allowed
 
     def _member(self, model: PredictionModel, arx: ARXModel) -> _Member:
         horizon = self.settings.horizon
@@ -326,10 +380,6 @@ class AdaptiveMPC(LinearMPC):
         hessian, q_matrix = self._qp_matrices(phi, gamma)
         unconstrained = -np.linalg.solve(hessian, q_matrix)
         observer = make_observer(model, self.task, self.settings)
-        screen = self._screen(
-            observer, feedback_law(hessian, q_matrix, observer.n + observer.n_disturbance)
-        )
-        self._member_screens.append(screen)
         return _Member(arx, model, phi, gamma, hessian, q_matrix, unconstrained, observer)
 
     def _gain_estimate(self) -> GainEstimate:
@@ -394,6 +444,9 @@ class AdaptiveMPC(LinearMPC):
         # over between episodes, and no set-up is left for the loop.
         for index, member in enumerate(self._members):
             member.qp = self._qp if index == self._member else self._setup_solver(member.hessian)
+        everyone = np.arange(len(self._members))
+        self._plausible_key = everyone.tobytes()
+        self._allowed = self._allow(everyone)
         self._trace()
 
     def _act(self, observation: np.ndarray) -> float:
@@ -406,15 +459,23 @@ class AdaptiveMPC(LinearMPC):
         return u
 
     def _select(self) -> None:
-        """Swap to the best member when the tests reject the one in use (module docstring)."""
+        """Narrow the banks to what the data allow, and swap to the best member when the tests
+        reject the one in use (module docstring)."""
+        plausible = self.plausible()
+        key = plausible.tobytes()
+        if key != self._plausible_key:
+            self._plausible_key = key
+            self._allowed = self._allow(plausible)
         gain = self._gain
         misfit = gain.misfit
         noise = measurement_std(self.settings.measurement_std, self.task) ** 2
         in_use = gain.count * float(gain.independent_fraction[self._member])
         if misfit[self._member] * in_use / noise <= chi2_upper(in_use):
             return  # the model in use explains the data to within the sensor noise
-        # Only members whose loop is stable on every member the data still allow.
-        allowed = np.flatnonzero(np.all(self._stable[:, self.plausible()], axis=1))
+        # Only members with a filter whose loop is stable on every member still allowed.
+        allowed = np.flatnonzero(self._allowed.any(axis=1))
+        if allowed.size == 0:
+            return
         best = int(allowed[np.argmin(misfit[allowed])])
         if best == self._member:
             return
@@ -436,7 +497,10 @@ class AdaptiveMPC(LinearMPC):
             self._qp.set_rate(self.z_rate)
         observer = self.observer
         if isinstance(observer, ObserverBank):
-            observer.reset(estimate, selected=old.selected)
+            row = self._allowed[index]
+            selected = old.selected if row[old.selected] else int(np.flatnonzero(row)[0])
+            observer.allow(row)
+            observer.reset(estimate, selected=selected)
             if old.runaway_at is not None:
                 observer.fall_back(old.runaway_at)
         else:
@@ -500,9 +564,8 @@ class AdaptiveMPC(LinearMPC):
 
     def describe(self) -> dict:
         """The linear MPC's description plus the set: its members' first resonances and
-        damping ratios, the worst spectral radius of :meth:`loop_radii`, and how many members'
-        banks kept no filter stable on the whole box (:func:`controllers.predictive.screen_bank`
-        warns for each)."""
+        damping ratios, the worst spectral radius of :meth:`loop_radii`, and how many members
+        have no filter whose loop is stable on every member (:meth:`filter_radii`)."""
         out = super().describe()
         out["settings"] = asdict(self.settings)
         out["adaptation"] = {
@@ -517,9 +580,9 @@ class AdaptiveMPC(LinearMPC):
             ),
             "identified_loop_radius": float(np.max(self._radii[0])),
             "worst_loop_radius": float(np.max(self._radii)),
-            "unstable_pairs": int(np.sum(~self._stable)),
-            "members_without_a_robust_filter": sum(
-                1 for screen in self._member_screens if not screen.get("robust", True)
+            "unstable_pairs": int(np.sum(self._radii >= 1.0)),
+            "members_without_a_filter_stable_on_the_set": int(
+                np.sum(~np.any(np.all(self._filter_radii < 1.0, axis=2), axis=1))
             ),
         }
         return out

@@ -97,6 +97,7 @@ __all__ = [
     "loop_is_stable",
     "modulus_margins",
     "output_feedback",
+    "radii_matrix",
     "worst_radii",
 ]
 
@@ -246,6 +247,41 @@ def worst_radii(
         matrices = np.array([closed_loop_matrix(loop, *plant) for loop in loops])
         radii = np.maximum(radii, np.max(np.abs(np.linalg.eigvals(matrices)), axis=1))
     return radii
+
+
+def radii_matrix(
+    a_aug: np.ndarray,
+    b_aug: np.ndarray,
+    c_aug: np.ndarray,
+    gains: np.ndarray,
+    k_estimate: np.ndarray,
+    k_previous: float,
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> np.ndarray:
+    """Spectral radius (-) of each filter's loop on each plant: (filters, plants).
+
+    As :func:`worst_radii`, without the maximum over the plants; the plants must share one
+    order (their loops are built and solved as one batch).
+    """
+    loops = [
+        output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
+        for gain in np.atleast_2d(gains)
+    ]
+    n = plants[0][0].shape[0]
+    k = loops[0].a.shape[0]
+    a = np.array([p[0] for p in plants])  # (P, n, n)
+    b = np.array([np.reshape(p[1], n) for p in plants])  # (P, n)
+    c = np.array([np.reshape(p[2], n) for p in plants])
+    ca = np.array([loop.a for loop in loops])  # (F, k, k)
+    cb = np.array([loop.b for loop in loops])  # (F, k)
+    cc = np.array([loop.c for loop in loops])
+    cd = np.array([loop.d for loop in loops])  # (F,)
+    matrices = np.zeros((len(loops), len(plants), n + k, n + k))
+    matrices[:, :, :n, :n] = a[None] + cd[:, None, None, None] * (b[:, :, None] * c[:, None, :])
+    matrices[:, :, :n, n:] = b[None, :, :, None] * cc[:, None, None, :]
+    matrices[:, :, n:, :n] = cb[:, None, :, None] * c[None, :, None, :]
+    matrices[:, :, n:, n:] = ca[:, None]
+    return np.max(np.abs(np.linalg.eigvals(matrices)), axis=-1)
 
 
 def modulus_margins(

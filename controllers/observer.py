@@ -426,6 +426,31 @@ class ObserverBank:
         self._penalty = np.zeros(len(levels))  # -inf on the filters the bank may not select
         self.reset()
 
+    def allow(self, admissible: np.ndarray) -> None:
+        """Mid-episode: from now on select only the filters where ``admissible`` is True; the
+        estimates and likelihoods carry on (the adaptive MPC narrows or widens the set as its
+        data do). If the filter selected is no longer allowed, the most likely allowed one is.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`restrict`.
+        """
+        mask = self._mask(admissible)
+        self.admissible = mask
+        self._penalty = np.where(mask, 0.0, -np.inf)
+        if not mask[self.selected] and self.runaway_at is None:
+            self.selected = int(np.argmax(self._score + self._penalty))
+
+    def _mask(self, admissible: np.ndarray) -> np.ndarray:
+        mask = np.asarray(admissible, dtype=bool)
+        if mask.shape != (len(self.noise_levels),) or not mask.any():
+            raise ValueError(
+                f"admissible must be a boolean mask over the {len(self.noise_levels)} filters "
+                f"with at least one True, got {mask.tolist()}"
+            )
+        return mask
+
     def restrict(self, admissible: np.ndarray) -> None:
         """Let the bank select only the filters where ``admissible`` is True (boolean, one per
         filter); the prior becomes the admissible filter nearest the prior ratios, the fallback
@@ -436,12 +461,7 @@ class ObserverBank:
         ValueError
             If no filter is admissible, or the mask's length is not the number of filters.
         """
-        mask = np.asarray(admissible, dtype=bool)
-        if mask.shape != (len(self.noise_levels),) or not mask.any():
-            raise ValueError(
-                f"admissible must be a boolean mask over the {len(self.noise_levels)} filters "
-                f"with at least one True, got {mask.tolist()}"
-            )
+        mask = self._mask(admissible)
         self.admissible = mask
         self._penalty = np.where(mask, 0.0, -np.inf)
         kept = np.flatnonzero(mask)

@@ -200,12 +200,13 @@ def test_adaptation_on_the_corners_worst_for_the_fixed_mpc(nominal, controller):
 
 @pytest.mark.parametrize("reference", ["sine-10Hz", "multisine"])
 def test_on_the_nominal_bender_the_identified_model_stays(nominal, controller, reference):
-    """The identified model explains the nominal bender's data to within the sensor noise:
-    no swap, and the same episode as the fixed MPC's."""
+    """The identified model explains the nominal bender's data to within the sensor noise: no
+    swap, and within 10 % of the fixed MPC's error (the issue's nominal target; the filters
+    differ once the data narrow the set, so the episodes are not the same to the bit)."""
     result = episode(env_for(), controller, reference)
     fixed = episode(env_for(), controllers.make("mpc", MODEL_DIR, nominal), reference)
     assert controller.stats.adaptation["swaps"] == 0
-    np.testing.assert_array_equal(result.voltage_V, fixed.voltage_V)
+    assert result.metrics["rmse_percent"] <= 1.1 * fixed.metrics["rmse_percent"]
 
 
 def test_adaptive_runs_are_deterministic_and_episodes_start_from_the_offline_model(
@@ -229,3 +230,38 @@ def test_a_plant_outside_the_model_class_is_no_worse_than_the_fixed_mpc(nominal,
     result = episode(env, controller)
     fixed = episode(env, controllers.make("mpc", MODEL_DIR, nominal))
     assert result.metrics["rmse_percent"] <= 1.1 * fixed.metrics["rmse_percent"]
+
+
+def test_the_bank_in_use_widens_as_the_data_narrow_the_set(nominal, controller):
+    """At the first sample the bank in use may select only filters whose loop is stable on
+    every member (and on the true vertex benders, which it never saw); once the data rule
+    members out, at least as many filters are allowed, each stable on what the data allow."""
+    from controllers.loop import worst_radii
+
+    env = vertex_env((1.2, 0.8, 0.04))
+    obs, _ = env.reset(seed=0)
+    controller.reset(obs)
+    bank = controller.observer
+    start = bank.admissible.copy()
+    assert np.all(controller._filter_radii[0][start] < 1.0)
+    law = controllers.loop.feedback_law(
+        controller._hessian, controller._q_matrix, bank.a_aug.shape[0]
+    )
+    a, b, c = controller.model.a, controller.model.b[:, 0], controller.model.c[0]
+    dc = float(c @ np.linalg.solve(np.eye(a.shape[0]) - a, b))
+    plants = []
+    for vertex in [(g, r, z) for g in (0.8, 1.2) for r in (0.8, 1.2) for z in (0.01, 0.04)]:
+        true = controllers.PredictionModel.from_plant(vertex_env(vertex).unwrapped.model)
+        ta, tb, tc = true.a, true.b[:, 0], true.c[0]
+        plants.append((ta, tb * dc / float(tc @ np.linalg.solve(np.eye(ta.shape[0]) - ta, tb)), tc))
+    radii = worst_radii(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains[start], *law, plants)
+    assert np.all(radii < 1.0)
+    reference = make_reference("sine-50Hz", 1021, dt=1e-3, seed=0)
+    for t in range(1000):
+        obs, *_ = env.step(controller.act(np.r_[obs[:1], reference[t : t + 21]]))
+    plausible = controller.plausible()
+    assert plausible.size < len(controller._members)
+    allowed = controller.observer.admissible
+    assert allowed.sum() >= start.sum()
+    worst = controller._filter_radii[controller._member][:, plausible].max(axis=1)
+    assert np.all(worst[allowed] < 1.0)
