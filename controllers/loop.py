@@ -67,7 +67,7 @@ PL127's steps 0.88 % (the single filter's 0.98 %), the stiffer plant 13-29 %.
 What changed that verdict: the box. The margin screen above judged each filter on the model
 alone, and a margin on one model cannot cover a lightly damped mode that moves by 10-20 %. A
 screen on every vertex of the datasheet's tolerance box does: the filters kept are those whose
-loop is stable on every vertex's linear part (:func:`worst_radii`, with the box's models moving
+loop is stable on every vertex's linear part (:func:`radii_matrix`, with the box's models moving
 every mode, aliases included, :mod:`controllers.tolerance_box`) and within the Ms bound on the
 model (:func:`controllers.predictive.screen_bank`). The MPCs learn the gain
 (:mod:`controllers.gain`), so the softer bender whose resonance the fast filters had to chase is
@@ -98,7 +98,6 @@ __all__ = [
     "modulus_margins",
     "output_feedback",
     "radii_matrix",
-    "worst_radii",
 ]
 
 FREQUENCY_POINTS = 1024
@@ -211,7 +210,7 @@ def loop_is_stable(controller: OutputFeedback, a: np.ndarray, b: np.ndarray, c: 
     return bool(np.max(np.abs(np.linalg.eigvals(closed_loop_matrix(controller, a, b, c)))) < 1.0)
 
 
-def worst_radii(
+def radii_matrix(
     a_aug: np.ndarray,
     b_aug: np.ndarray,
     c_aug: np.ndarray,
@@ -220,7 +219,7 @@ def worst_radii(
     k_previous: float,
     plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 ) -> np.ndarray:
-    """Largest spectral radius (-) of each filter's loop over ``plants``.
+    """Spectral radius (-) of each filter's loop on each plant.
 
     Parameters
     ----------
@@ -231,38 +230,23 @@ def worst_radii(
     k_estimate, k_previous
         The feedback law (:func:`feedback_law`).
     plants : list of (a, b, c)
-        Linear parts the loop is closed around (:func:`closed_loop_matrix`).
+        Linear parts the loop is closed around (:func:`closed_loop_matrix`); the plants of each
+        order are built and solved as one batch.
 
     Returns
     -------
     numpy.ndarray
-        (filters,): below 1 where that filter's loop is stable on every plant.
+        (filters, plants): below 1 where that filter's loop is stable on that plant.
     """
-    loops = [
-        output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
-        for gain in np.atleast_2d(gains)
-    ]
-    radii = np.zeros(len(loops))
-    for plant in plants:  # one batch of eigenvalue problems per plant (orders may differ)
-        matrices = np.array([closed_loop_matrix(loop, *plant) for loop in loops])
-        radii = np.maximum(radii, np.max(np.abs(np.linalg.eigvals(matrices)), axis=1))
-    return radii
-
-
-def radii_matrix(
-    a_aug: np.ndarray,
-    b_aug: np.ndarray,
-    c_aug: np.ndarray,
-    gains: np.ndarray,
-    k_estimate: np.ndarray,
-    k_previous: float,
-    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
-) -> np.ndarray:
-    """Spectral radius (-) of each filter's loop on each plant: (filters, plants).
-
-    As :func:`worst_radii`, without the maximum over the plants; the plants must share one
-    order (their loops are built and solved as one batch).
-    """
+    orders = sorted({plant[0].shape[0] for plant in plants})
+    if len(orders) > 1:
+        out = np.empty((len(np.atleast_2d(gains)), len(plants)))
+        for order in orders:
+            index = [i for i, plant in enumerate(plants) if plant[0].shape[0] == order]
+            out[:, index] = radii_matrix(
+                a_aug, b_aug, c_aug, gains, k_estimate, k_previous, [plants[i] for i in index]
+            )
+        return out
     loops = [
         output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
         for gain in np.atleast_2d(gains)

@@ -29,7 +29,7 @@ from controllers.condensed import (
     qp_matrices,
     rate_hessian,
 )
-from controllers.loop import feedback_law, modulus_margins, worst_radii
+from controllers.loop import feedback_law, modulus_margins, radii_matrix
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX
@@ -72,7 +72,7 @@ def screen_bank(
         ``applied`` True, ``robust``, ``filters_kept``, ``filters``, ``worst_radius`` (the
         largest spectral radius over the kept filters and the plants, -), ``ms_max``.
     """
-    radii = worst_radii(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
+    radii = radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants).max(axis=1)
     margins = modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, n=bank.n)
     admissible = (radii < 1.0) & (margins >= 1.0 / MS_MAX)
     robust = bool(admissible.any())

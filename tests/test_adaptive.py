@@ -236,7 +236,7 @@ def test_the_bank_in_use_widens_as_the_data_narrow_the_set(nominal, controller):
     """At the first sample the bank in use may select only filters whose loop is stable on
     every member (and on the true vertex benders, which it never saw); once the data rule
     members out, at least as many filters are allowed, each stable on what the data allow."""
-    from controllers.loop import worst_radii
+    from controllers.loop import radii_matrix
 
     env = vertex_env((1.2, 0.8, 0.04))
     obs, _ = env.reset(seed=0)
@@ -254,7 +254,9 @@ def test_the_bank_in_use_widens_as_the_data_narrow_the_set(nominal, controller):
         true = controllers.PredictionModel.from_plant(vertex_env(vertex).unwrapped.model)
         ta, tb, tc = true.a, true.b[:, 0], true.c[0]
         plants.append((ta, tb * dc / float(tc @ np.linalg.solve(np.eye(ta.shape[0]) - ta, tb)), tc))
-    radii = worst_radii(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains[start], *law, plants)
+    radii = radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains[start], *law, plants).max(
+        axis=1
+    )
     assert np.all(radii < 1.0)
     reference = make_reference("sine-50Hz", 1021, dt=1e-3, seed=0)
     for t in range(1000):

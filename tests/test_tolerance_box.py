@@ -18,7 +18,7 @@ import scipy.signal
 
 import controllers as ctl
 from benchmarks.plants import sample_time, vertex_options
-from controllers.loop import feedback_law, worst_radii
+from controllers.loop import feedback_law, radii_matrix
 from controllers.observer import ObserverBank
 from controllers.tolerance_box import CANTILEVER_RATIOS, Vertex, box_model, unfolded_hz
 from identification.arx import ARXModel
@@ -105,7 +105,7 @@ def test_screened_bank_is_stable_on_the_true_benders(bender, model):
     gain_ref = float(c @ np.linalg.solve(np.eye(a.shape[0]) - a, b))
     plants = [_true_plant(bender, p, gain_ref) for p in _points(seed=7, count=6)]
     law = feedback_law(mpc._hessian, mpc._q_matrix, bank.a_aug.shape[0])
-    radii = worst_radii(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
+    radii = radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants).max(axis=1)
     assert np.all(radii[bank.admissible] < 1.0)
     assert np.any(radii[~bank.admissible] > 1.0)
     assert bank.admissible[bank.prior] and bank.admissible[bank.fallback]
