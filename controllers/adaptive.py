@@ -425,7 +425,7 @@ class AdaptiveMPC(LinearMPC):
         best = float(np.min(misfit))
         index = int(np.argmin(misfit))
         variance = max(best, measurement_std(self.settings.measurement_std, self.task) ** 2)
-        samples = gain.count * float(gain.independent_fraction[index])
+        samples = gain.count * gain.independent_fraction_of(index)
         return np.flatnonzero((misfit - best) * samples / variance <= SWITCH_CHI2)
 
     # -- episode --------------------------------------------------------------------------------
@@ -469,7 +469,7 @@ class AdaptiveMPC(LinearMPC):
         gain = self._gain
         misfit = gain.misfit
         noise = measurement_std(self.settings.measurement_std, self.task) ** 2
-        in_use = gain.count * float(gain.independent_fraction[self._member])
+        in_use = gain.count * gain.independent_fraction_of(self._member)
         if misfit[self._member] * in_use / noise <= chi2_upper(in_use):
             return  # the model in use explains the data to within the sensor noise
         # Only members with a filter whose loop is stable on every member still allowed.
@@ -480,7 +480,7 @@ class AdaptiveMPC(LinearMPC):
         if best == self._member:
             return
         variance = max(float(misfit[best]), noise)
-        samples = gain.count * float(gain.independent_fraction[best])
+        samples = gain.count * gain.independent_fraction_of(best)
         if (misfit[self._member] - misfit[best]) * samples / variance > SWITCH_CHI2:
             self._swap(best)
 

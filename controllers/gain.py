@@ -141,9 +141,10 @@ class GainEstimate:
         self.std = 1.0 / np.sqrt(precision)
         half = CREDIBLE_Z * self.std
         low, high = self.bounds
-        self.low = np.clip(mean - half, low, high)
-        self.high = np.clip(mean + half, low, high)
-        self.value = np.clip(1.0, self.low, self.high)
+        # np.minimum/np.maximum, not np.clip: the same numbers at a third of the overhead.
+        self.low = np.minimum(np.maximum(mean - half, low), high)
+        self.high = np.minimum(np.maximum(mean + half, low), high)
+        self.value = np.minimum(np.maximum(1.0, self.low), self.high)
         self.misfit = (self._s_yy - 2.0 * mean * self._s_sy + mean * mean * self._s_ss) / self.count
         return self.value
 
@@ -153,6 +154,12 @@ class GainEstimate:
         misfits: ``(1 - rho) / (1 + rho)``, rho the lag-one autocorrelation of each part's
         residuals (the variance inflation of a mean of AR(1) errors), rho clipped to [0, 1)."""
         rho = np.clip(self._s_lag / np.maximum(self._s_ee, 1e-300), 0.0, 1.0 - 1e-12)
+        return (1.0 - rho) / (1.0 + rho)
+
+    def independent_fraction_of(self, index: int) -> float:
+        """:attr:`independent_fraction` of part ``index`` alone (the same number, one part's
+        work)."""
+        rho = min(max(self._s_lag[index] / max(self._s_ee[index], 1e-300), 0.0), 1.0 - 1e-12)
         return (1.0 - rho) / (1.0 + rho)
 
     def advance(self, z: float) -> None:
