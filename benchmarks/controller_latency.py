@@ -72,7 +72,7 @@ def controller_times(
     if nonlinearity is not None:
         timed(nonlinearity, "inverse", parts["inverse"])
     dt = env.unwrapped.model.dt
-    stroke = env.unwrapped.model.params.datasheet.free_deflection * 1e6
+    stroke = env.unwrapped.model.stroke_um
     t = np.arange(1, steps + 22) * dt
     reference = 0.5 * stroke * np.sin(2 * np.pi * 50.0 * t)
     episode = controllers.run_episode(

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks._common import header, markdown_table, write_result
-from benchmarks.plants import EPISODE_S, VERTICES, sample_time, vertex_options
+from benchmarks.plants import EPISODE_S, VERTICES, sample_time, stroke_um, vertex_options
 
 MODEL_DIR = "docs/benchmark/model"
 BENDER = "PL140"
@@ -42,13 +42,6 @@ ROWS = {
     "pid-notch": ("pid-notch", {}),
     "pid-ff": ("pid-ff", {}),
 }
-
-
-def stroke_um(bender: str) -> float:
-    """One-sided stroke of ``bender`` (um): the percentages' scale."""
-    from piezo_env import get_datasheet
-
-    return get_datasheet(bender).free_deflection * 1e6
 
 
 def vertex_env(vertex: tuple[float, float, float], bender: str = BENDER, **options: Any) -> Any:

@@ -27,6 +27,7 @@ __all__ = [
     "PLANTS",
     "VERTICES",
     "sample_time",
+    "stroke_um",
     "vertex_options",
 ]
 
@@ -47,6 +48,13 @@ def sample_time(bender: str) -> float:
     from piezo_env import default_dt
 
     return default_dt(bender)
+
+
+def stroke_um(bender: str) -> float:
+    """One-sided stroke of ``bender`` (um), its free deflection: the percentages' scale."""
+    from piezo_env import get_datasheet
+
+    return get_datasheet(bender).free_deflection * 1e6
 
 
 def _tolerance_sheet(bender: str, scale: float) -> Any:

@@ -41,6 +41,7 @@ from benchmarks.plants import (
     PLANTS,
     VERTICES,
     sample_time,
+    stroke_um,
     vertex_options,
 )
 from benchmarks.references import REFERENCES, make_reference
@@ -268,9 +269,7 @@ class BenchmarkConfig:
     @property
     def stroke_um(self) -> float:
         """One-sided stroke of the nominal bender (um): the percentages' scale."""
-        from piezo_env import get_datasheet
-
-        return get_datasheet(self.bender).free_deflection * 1e6
+        return stroke_um(self.bender)
 
     @property
     def policy_folders(self) -> dict[str, str]:

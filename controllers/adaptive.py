@@ -75,10 +75,8 @@ from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.gain import GainEstimate
 from controllers.loop import (
-    closed_loop_matrix,
     feedback_law,
     modulus_margins,
-    output_feedback,
     radii_matrix,
 )
 from controllers.mpc import LinearMPC, MPCSettings
@@ -551,16 +549,16 @@ class AdaptiveMPC(LinearMPC):
         """Spectral radius (-) of the unconstrained loop of each member's MPC (with its bank's
         prior filter, or its single filter) around each member, gains matched: (K, K), row =
         the MPC's member, column = the plant's; below 1 where that loop is stable."""
-        radii = np.empty((len(self._members), len(self._members)))
-        for i, member in enumerate(self._members):
+        plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
+        radii = []
+        for member in self._members:
             bank = member.observer
             filter_gain = bank.gains[bank.prior] if isinstance(bank, ObserverBank) else bank.gain
             law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-            loop = output_feedback(bank.a_aug, bank.b_aug, bank.c_aug, filter_gain, *law)
-            for j, plant in enumerate(self._members):
-                matrix = closed_loop_matrix(loop, plant.model.a, plant.model.b, plant.model.c)
-                radii[i, j] = np.max(np.abs(np.linalg.eigvals(matrix)))
-        return radii
+            radii.append(
+                radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, filter_gain, *law, plants)
+            )
+        return np.concatenate(radii)
 
     def describe(self) -> dict:
         """The linear MPC's description plus the set: its members' first resonances and

@@ -461,10 +461,8 @@ class ObserverBank:
         ValueError
             If no filter is admissible, or the mask's length is not the number of filters.
         """
-        mask = self._mask(admissible)
-        self.admissible = mask
-        self._penalty = np.where(mask, 0.0, -np.inf)
-        kept = np.flatnonzero(mask)
+        self.allow(admissible)
+        kept = np.flatnonzero(self.admissible)
         ratios = np.array(self._ratios)[kept]
         self.prior = int(kept[np.argmin(_prior_distance(ratios))])
         self.fallback = int(kept[np.lexsort(ratios.T[::-1])[0]])

@@ -230,11 +230,12 @@ def box_model(arx: ARXModel, vertex: Vertex, *, further_modes: bool = True) -> A
         p_old = further.p if true_hz - fold / dt >= 0 else np.conj(further.p)
         # Stiffness-proportional damping, zeta_k = zeta_1 omega_k / omega_1: every mode's
         # damping ratio moves by the first's factor (kept underdamped: the pair stays a pair).
-        omega_n = vertex.resonance * math.hypot(decay, 2.0 * math.pi * true_hz)
-        zeta = min(zeta_ratio * decay / math.hypot(decay, 2.0 * math.pi * true_hz), MAX_ZETA)
-        s_new = omega_n * complex(-zeta, math.sqrt(1.0 - zeta**2))
+        omega_n = math.hypot(decay, 2.0 * math.pi * true_hz)
+        zeta = min(zeta_ratio * decay / omega_n, MAX_ZETA)
+        s_new = vertex.resonance * omega_n * complex(-zeta, math.sqrt(1.0 - zeta**2))
         moved = further.moved(np.exp(s_new * dt), p_old=p_old)
-    # Each move keeps its mode's static contribution; rounding over many modes does not quite.
+    # Each move keeps its mode's static contribution exactly in theory; the polynomial
+    # products of a high-order model (the FE plant's) lose digits, so the gain is set last.
     scale = vertex.gain * arx.static_gain() / moved.static_gain()
     return ARXModel(
         moved.a, moved.b * scale, dt=dt, noise_bound=arx.noise_bound, method=moved.method

@@ -141,7 +141,8 @@ def test_fixed_mpc_holds_the_pl127_corner_it_diverged_on():
     """Regression: the fixed MPC on the PL127 at 0.25 ms, the corner with gain and resonance
     20 % up and damping 0.01, 10 Hz sine, reached hundreds of % of the stroke before the
     screen."""
-    from benchmarks.corners import stroke_um, vertex_env
+    from benchmarks.corners import vertex_env
+    from benchmarks.plants import stroke_um
     from benchmarks.references import make_reference
 
     dt = sample_time("PL127")
