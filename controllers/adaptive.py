@@ -42,7 +42,7 @@ tends to the one the true plant's model would close. :meth:`AdaptiveMPC.loop_rad
 member's prior filter) stays for reports.
 
 Bounded work. Everything a member's MPC needs (condensed prediction, QP matrices, the observer
-bank's gains, an OSQP workspace, the loop radii) is built when the controller is, and the QP
+bank's gains, a QP workspace, the loop radii) is built when the controller is, and the QP
 workspaces are set up afresh before each episode, so a swap inside :meth:`act` is a change of
 pointers plus one run of the new member over the last :attr:`AdaptiveMPC.history` samples
 (re-deriving its past outputs, as below): no Riccati equation, no factorisation, no

@@ -1,4 +1,4 @@
-"""Linear MPC in the hidden signal z, solved by OSQP, then the nonlinearity's inverse to volts.
+"""Linear MPC in the hidden signal z (a dense box QP), then the nonlinearity's inverse to volts.
 
 The Hammerstein structure splits the problem. The linear part predicts the deflection from the
 hidden signal z, so tracking is a convex QP in z over the horizon; the memory nonlinearity is
@@ -32,13 +32,13 @@ triangle visits, and the plan stays one the amplifier can follow. The QP then ha
 constraint rows ([I; D], D the first differences) instead of the box; without a slew limit
 nothing changes (the same box QP, bitwise).
 
-Implementation follows OSQP's documented MPC pattern (:class:`controllers.box_qp.BoxQP`): P
-and the constraint matrix are built and factorised once per episode; each step updates only q, l
-and u (one stacked matrix-vector product gives q from [x; d; r; z_prev]) and warm-starts from the
-shifted previous plan. A solver failure never stops the loop: the shifted previous plan (else
-the last z) is used and counted in ``stats.fallbacks``. Phi, Gamma, the rate penalty and the
-start of an episode (the steady state holding the first measurement) are the nonlinear MPC's
-too: :mod:`controllers.predictive`.
+The QP solver's workspace (:func:`controllers.box_qp.box_qp`; DAQP by default, OSQP with
+``qp_solver="osqp"``) is set up, P factorised, once per episode; each step updates only q and
+the bounds (one stacked matrix-vector product gives q from [x; d; r; z_prev]) and warm-starts
+(DAQP from the last active set, OSQP from the shifted previous plan). A solver failure never
+stops the loop: the shifted previous plan (else the last z) is used and counted in
+``stats.fallbacks``. Phi, Gamma, the rate penalty and the start of an episode (the steady state
+holding the first measurement) are the nonlinear MPC's too: :mod:`controllers.predictive`.
 """
 
 from __future__ import annotations
@@ -48,9 +48,8 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-import osqp
 
-from controllers.box_qp import BoxQP, within
+from controllers.box_qp import BoxQP, box_qp, solver_version, within
 from controllers.gain import GainEstimate
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
@@ -107,15 +106,18 @@ class MPCSettings:
         0: the output disturbance is held constant over the horizon. > 0: it is modelled as
         drifting with an estimated slope (random walk of this step, um per sample^2) and
         extrapolated; see :class:`controllers.observer.DisturbanceObserver`.
+    qp_solver : str
+        ``"daqp"`` (default: dense dual active set, exact active set, a few microseconds on
+        this QP) or ``"osqp"`` (:mod:`controllers.box_qp`).
     eps_abs, eps_rel : float
-        OSQP tolerances.
+        OSQP tolerances (DAQP ends on an exact active set and takes none).
     max_iter : int
-        OSQP iteration cap; reaching it is a fallback.
+        The QP solver's iteration cap; reaching it is a fallback.
     shortcut : bool
-        Skip OSQP when the unconstrained optimum -P^-1 q satisfies every bound: exact, not an
-        approximation (see :mod:`controllers.box_qp`). Smooth references rarely touch the
-        bounds, so most steps cost one matrix-vector product; OSQP (warm-started) solves the
-        others.
+        Skip the QP solver when the unconstrained optimum -P^-1 q satisfies every bound:
+        exact, not an approximation (see :mod:`controllers.box_qp`). Smooth references rarely
+        touch the bounds, so most steps cost one matrix-vector product; the QP solver
+        (warm-started) solves the others.
     gain_tolerance : float
         Relative half-width w (-) of the plant's static gain around the model's: the MPC
         learns the gain inside [1 - w, 1 + w] from the first sample and predicts with the
@@ -136,6 +138,7 @@ class MPCSettings:
     disturbance_std: float = DISTURBANCE_STD
     process_std: float = PROCESS_STD
     slope_std: float = 0.0
+    qp_solver: str = "daqp"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
     max_iter: int = 1000
@@ -157,7 +160,7 @@ class MPCSettings:
 
 
 class LinearMPC(PredictiveController):
-    """Offset-free linear MPC in z (OSQP) with the exact nonlinearity inverse to volts.
+    """Offset-free linear MPC in z (a dense box QP) with the exact nonlinearity inverse to volts.
 
     ``LinearMPC(model, task, settings=None, *, name="mpc")`` with :class:`MPCSettings`; the
     parameters are :class:`controllers.predictive.PredictiveController`'s.
@@ -182,10 +185,11 @@ class LinearMPC(PredictiveController):
             self._n_rows = 2 * settings.horizon - 1
 
     def _setup_solver(self, hessian: np.ndarray | None = None) -> BoxQP:
-        """OSQP set up (and factorised) afresh for ``hessian`` (default: the model's in use):
-        no adapted step size or duals carry over."""
+        """The QP solver's workspace set up (and P factorised) afresh for ``hessian`` (default:
+        the model's in use): no active set, step size or duals carry over."""
         s = self.settings
-        return BoxQP(
+        return box_qp(
+            s.qp_solver,
             self._lower,
             self._upper,
             hessian=self._hessian if hessian is None else hessian,
@@ -373,7 +377,7 @@ class LinearMPC(PredictiveController):
             "z_bounds": list(self.model.z_bounds),
             "observer_slowest_pole_hz": self.observer.slowest_pole_hz(self.model.dt),
             "observer": self.observer_description(),
-            "qp_solver": f"osqp {osqp.__version__}",
+            "qp_solver": solver_version(self.settings.qp_solver),
             "native": self.native_code(),
         }
 

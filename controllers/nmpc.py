@@ -9,6 +9,15 @@ Prediction over the horizon N from the observer's ``[x_t; d_t]`` (offset-free, s
 Cost and constraints over ``u = (u_t .. u_t+N-1)`` (V), targets r_t+1 .. r_t+N (um)::
 
     min  w sum_k (y_t+k - r_t+k)^2 + lambda sum_k (u_t+k - u_t+k-1)^2,   |u_t+k| <= u_max
+                                                      (|u_t+k - u_t+k-1| <= S dt, slew limit)
+
+**Amplifier slew limit** (``task.slew_limit`` = S, V/s; :class:`controllers.task.ControlTask`).
+The voltage is the decision variable here, so the limit is linear and exact on every move: the
+first move's bounds are the window u_t-1 +- S dt within the drive range, and the later moves
+get the rate rows |u_t+k - u_t+k-1| <= S dt (2N - 1 rows with the box, as the linear MPC's).
+The plan is one the amplifier follows sample by sample, so the nonlinearity's memory, stepped
+with the commanded voltage, is stepped with the voltage the plant receives. IPOPT gets the same
+rows as constraints. Without a slew limit nothing changes.
 
 Solvers
 -------
@@ -23,11 +32,12 @@ Solvers
     N = 20, against 1.8-3.6 ms for casadi's Jacobian of the unrolled horizon; the module
     :mod:`controllers.native.nmpc_horizon` lists every path measured) and from casadi's generic
     Jacobian for any other nonlinearity (the plant's hysteresis in the oracle). The QP is
-    dense and small (N variables, identity constraint matrix): OSQP is set up once with a
-    dense upper-triangular P pattern; each iteration updates ``Px`` and ``q`` and warm-starts,
-    after trying the unconstrained optimum (one 20 x 20 solve, exact when it lies inside the
-    drive range, which it does on smooth references). A step takes ~200 us median at N = 20
-    (two iterations; one: ~135 us, but 0.094 % instead of 0.044 % at 100 Hz).
+    dense and small (N variables, the box as bounds): its solver's workspace
+    (:func:`controllers.box_qp.box_qp`, DAQP by default, OSQP with ``qp_solver="osqp"``) is set
+    up once per episode; each iteration updates P and q, after trying the unconstrained
+    optimum (one N x N solve, exact when it meets every bound, which it does on smooth
+    references). Two iterations are the default (one loses accuracy at input reversals);
+    ``benchmarks/results/controller_latency.md`` has the step's cost.
 ``"ipopt"`` (the reference)
     The full nonlinear program through ``casadi.nlpsol("ipopt")`` with exact derivatives,
     warm-started from the shifted plan, capped by ``ipopt_max_iter`` and
@@ -48,9 +58,8 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
-import osqp
 
-from controllers.box_qp import BoxQP, within
+from controllers.box_qp import box_qp, solver_version, within
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
@@ -74,7 +83,8 @@ class NMPCSettings:
     horizon : int
         Prediction horizon N (samples).
     solver : str
-        ``"rti"`` (SQP real-time iteration, OSQP) or ``"ipopt"`` (full solve, the reference).
+        ``"rti"`` (SQP real-time iteration, one box QP per iteration) or ``"ipopt"`` (full
+        solve, the reference).
     sqp_iterations : int
         Gauss-Newton QPs per step for ``"rti"`` (2: one loses at input reversals).
     step_tolerance : float
@@ -101,15 +111,18 @@ class NMPCSettings:
         ``"auto"`` (structured for the identified NLS, else generic; generated C where a
         compiler works), ``"structured"``, ``"structured-vm"`` (casadi's virtual machine, no
         compiler), ``"generic"``, ``"generic-vm"``.
+    qp_solver : str
+        ``"daqp"`` (default) or ``"osqp"``: the QP solver of ``"rti"``
+        (:mod:`controllers.box_qp`).
     eps_abs, eps_rel : float
-        OSQP tolerances.
+        OSQP tolerances (DAQP ends on an exact active set and takes none).
     max_qp_iterations : int
-        OSQP iteration cap per QP; reaching it is a fallback. 1000, as the linear MPC's: at
-        200, one QP of a step beyond the drive range (the bound binding over the horizon)
-        needed 290 iterations.
+        The QP solver's iteration cap per QP; reaching it is a fallback. 1000, as the linear
+        MPC's: at 200, one OSQP solve of a step beyond the drive range (the bound binding over
+        the horizon) needed 290 iterations.
     shortcut : bool
-        Try the unconstrained optimum of each QP first and skip OSQP when it lies inside the
-        drive range (exact: see :mod:`controllers.box_qp`).
+        Try the unconstrained optimum of each QP first and skip the QP solver when it meets
+        every bound (exact: see :mod:`controllers.box_qp`).
     ipopt_max_iter : int
         IPOPT iteration cap; reaching it is a fallback.
     ipopt_max_cpu_time : float
@@ -129,6 +142,7 @@ class NMPCSettings:
     disturbance_std: float = DISTURBANCE_STD
     process_std: float = PROCESS_STD
     jacobian: str = "auto"
+    qp_solver: str = "daqp"
     eps_abs: float = 1e-6
     eps_rel: float = 1e-6
     max_qp_iterations: int = 1000
@@ -190,13 +204,29 @@ class NonlinearMPC(PredictiveController):
 
     def _start(self, start: SteadyStart) -> None:
         s = self.settings
-        if s.solver == "rti":  # afresh: no adapted step size or duals carry over episodes
-            box = np.full(s.horizon, self._u_max)
-            self._qp = BoxQP(
-                -box, box, eps_abs=s.eps_abs, eps_rel=s.eps_rel, max_iter=s.max_qp_iterations
+        self._slew_step = self.task.slew_step
+        self._lower = np.full(s.horizon, -self._u_max)
+        self._upper = np.full(s.horizon, self._u_max)
+        if s.solver == "rti":  # afresh: no active set, step size or duals carry over episodes
+            self._qp = box_qp(
+                s.qp_solver,
+                self._lower,
+                self._upper,
+                eps_abs=s.eps_abs,
+                eps_rel=s.eps_rel,
+                max_iter=s.max_qp_iterations,
+                rate=self._slew_step,
             )
         self._plan = np.full(s.horizon, start.u)
-        self._u_prev = start.u
+        self._u_prev = float(np.float32(start.u))
+
+    def _slew_window(self) -> tuple[float, float]:
+        """Voltages (V) the first move may take: the drive range, and with a slew limit
+        u_t-1 +- S dt within it."""
+        if self._slew_step is None:
+            return -self._u_max, self._u_max
+        step = self._slew_step
+        return max(self._u_prev - step, -self._u_max), min(self._u_prev + step, self._u_max)
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
@@ -204,7 +234,9 @@ class NonlinearMPC(PredictiveController):
         targets = self.task.targets(observation, self.settings.horizon)
         # Predicted error without the z contribution: y - r = offset + Gamma z.
         offset = self._phi @ estimate[:n] + (estimate[n] - targets)
-        shifted = np.clip(np.r_[self._plan[1:], self._plan[-1]], -self._u_max, self._u_max)
+        low, high = self._slew_window()
+        self._lower[0], self._upper[0] = low, high
+        shifted = self._feasible(np.r_[self._plan[1:], self._plan[-1]])
         if self.settings.solver == "rti":
             plan, status, iterations = self._solve_rti(offset, shifted)
         else:
@@ -215,8 +247,10 @@ class NonlinearMPC(PredictiveController):
             self.stats.fallbacks += 1
             plan = shifted
         self._plan = plan
-        # The plant gets float32 volts: step the memory and the observer with exactly those.
-        u = float(np.float32(plan[0]))
+        # The plant gets float32 volts: step the memory and the observer with exactly those
+        # (kept in the window: the QP meets it to rounding, float32 rounding may step out).
+        u = float(np.float32(min(max(plan[0], low), high)))
+        u = min(max(u, low), high)
         z, self._memory = self.model.nonlinearity.step(u, self._memory)
         self.observer.predict(z)
         self._u_prev = u
@@ -258,6 +292,7 @@ class NonlinearMPC(PredictiveController):
         (status ``kept-last-iterate``): it is a real SQP iterate, not a fallback.
         """
         s = self.settings
+        bounds = (self._lower, self._upper)
         w, total, status = s.tracking_weight, 0, "solved"
         for iteration in range(s.sqp_iterations):
             z, jac_z = self.horizon.linearize(u_bar, self._memory)
@@ -266,7 +301,7 @@ class NonlinearMPC(PredictiveController):
             hessian = w * (jac_y.T @ jac_y) + self._rate_hessian
             q = w * (jac_y.T @ constant)
             q[0] -= s.rate_weight * self._u_prev
-            u_new, status, iterations = self._solve_qp(hessian, q, u_bar)
+            u_new, status, iterations = self._solve_qp(hessian, q, u_bar, bounds)
             total += iterations
             if u_new is None:
                 return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
@@ -277,23 +312,49 @@ class NonlinearMPC(PredictiveController):
         return u_bar, status, total
 
     def _solve_qp(
-        self, hessian: np.ndarray, q: np.ndarray, u_bar: np.ndarray
+        self,
+        hessian: np.ndarray,
+        q: np.ndarray,
+        u_bar: np.ndarray,
+        bounds: tuple[np.ndarray, np.ndarray],
     ) -> tuple[np.ndarray | None, str, int]:
-        """Box-constrained QP: (solution or None, status, OSQP iterations).
+        """Box-constrained QP (rate rows with a slew limit): (solution or None, status, the
+        QP solver's iterations).
 
-        The unconstrained optimum is tried first: inside the box it is the exact solution
-        (:mod:`controllers.box_qp`; most steps on smooth references).
+        The unconstrained optimum is tried first: where it meets every bound it is the exact
+        solution (:mod:`controllers.box_qp`; most steps on smooth references).
         """
         if self.settings.shortcut:
             try:
                 u_new = -np.linalg.solve(hessian, q)
             except np.linalg.LinAlgError:  # dz/du = 0 somewhere and no rate weight
                 u_new = None
-            if u_new is not None and within(u_new, -self._u_max, self._u_max):
+            if u_new is not None and within(u_new, *bounds) and self._rates_within(u_new):
                 return u_new, "unconstrained", 0
-        # Zero duals: each SQP iteration's QP has a new Hessian, the last duals mean little.
-        solution = self._qp.solve(q, u_bar, np.zeros_like(u_bar), hessian=hessian)
+        # Zero duals: each SQP iteration's QP has a new Hessian, the last active set means
+        # little.
+        rows = u_bar.size if self._slew_step is None else 2 * u_bar.size - 1
+        solution = self._qp.solve(
+            q, self._feasible(u_bar), np.zeros(rows), hessian=hessian, bounds=bounds
+        )
         return solution.x, solution.status, solution.iterations
+
+    def _rates_within(self, plan: np.ndarray) -> bool:
+        """The plan's later moves meet the slew limit (always True without one)."""
+        if self._slew_step is None:
+            return True
+        return bool(np.all(np.abs(np.diff(plan)) <= self._slew_step))
+
+    def _feasible(self, plan: np.ndarray) -> np.ndarray:
+        """``plan`` made feasible: clipped to the bounds and, with a slew limit, each move
+        limited to S dt from the one before (first move from u_t-1)."""
+        plan = np.clip(plan, self._lower, self._upper)
+        if self._slew_step is None:
+            return plan
+        step, previous = self._slew_step, self._u_prev
+        for k in range(plan.size):
+            previous = plan[k] = min(max(plan[k], previous - step), previous + step)
+        return plan
 
     # -- IPOPT reference ------------------------------------------------------------------------
 
@@ -315,6 +376,9 @@ class NonlinearMPC(PredictiveController):
         error = y + d - targets
         rates = u - casadi.vertcat(u_prev, u[:-1])
         cost = s.tracking_weight * casadi.sumsqr(error) + s.rate_weight * casadi.sumsqr(rates)
+        problem = {"x": u, "p": p, "f": cost}
+        if self.task.slew_step is not None:
+            problem["g"] = rates  # bounded by +-S dt in _solve_nlp
         options = {
             "ipopt.max_iter": s.ipopt_max_iter,
             "ipopt.max_cpu_time": s.ipopt_max_cpu_time,
@@ -323,15 +387,18 @@ class NonlinearMPC(PredictiveController):
             "print_time": False,
             "error_on_fail": False,
         }
-        return casadi.nlpsol("nmpc_ipopt", "ipopt", {"x": u, "p": p, "f": cost}, options)
+        return casadi.nlpsol("nmpc_ipopt", "ipopt", problem, options)
 
     def _solve_nlp(
         self, estimate: np.ndarray, targets: np.ndarray, u_bar: np.ndarray
     ) -> tuple[np.ndarray | None, str, int]:
         """IPOPT from ``u_bar``: (plan or None on failure, status, iterations)."""
         params = np.concatenate([estimate, self._memory, targets, [self._u_prev]])
+        limits = {}
+        if self._slew_step is not None:
+            limits = {"lbg": -self._slew_step, "ubg": self._slew_step}
         try:
-            solution = self._nlp(x0=u_bar, p=params, lbx=-self._u_max, ubx=self._u_max)
+            solution = self._nlp(x0=u_bar, p=params, lbx=-self._u_max, ubx=self._u_max, **limits)
         except RuntimeError as exc:  # casadi raises on evaluation errors inside the solver
             return None, f"error: {type(exc).__name__}", 0
         stats = self._nlp.stats()
@@ -346,8 +413,13 @@ class NonlinearMPC(PredictiveController):
 
     def describe(self) -> dict[str, Any]:
         """Settings, model source, Jacobian path and observer bandwidth (JSON-safe)."""
-        solver = f"osqp {osqp.__version__}" if self.settings.solver == "rti" else "ipopt (casadi)"
+        rti = self.settings.solver == "rti"
+        solver = solver_version(self.settings.qp_solver) if rti else "ipopt (casadi)"
+        slew = {}
+        if self.task.slew_step is not None:
+            slew = {"slew_limit_V_per_s": self.task.slew_limit}
         return {
+            **slew,
             "name": self.name,
             "model": self.model.source,
             "settings": asdict(self.settings),

@@ -14,11 +14,16 @@ __all__ = [
     "MS_MAX",
     "OBSERVERS",
     "PROCESS_STD",
+    "QP_SOLVERS",
     "USABLE_OSQP_STATUS",
     "check_settings",
     "measurement_std",
     "number_at_least",
 ]
+
+QP_SOLVERS = ("daqp", "osqp")
+"""The MPCs' QP solvers (:mod:`controllers.box_qp`): DAQP, the default (dense dual active set,
+exact active set, a few microseconds on these QPs), or OSQP (operator splitting)."""
 
 USABLE_OSQP_STATUS = ("solved", "solved inaccurate")
 """OSQP statuses whose solution is applied; any other falls back to the shifted plan."""
@@ -85,6 +90,9 @@ def check_settings(
     robust = getattr(settings, "robust_bank", True)
     if not isinstance(robust, bool):
         raise ValueError(f"robust_bank must be True or False, got {robust!r}")
+    solver = getattr(settings, "qp_solver", "daqp")
+    if solver not in QP_SOLVERS:
+        raise ValueError(f"qp_solver must be one of {QP_SOLVERS}, got {solver!r}")
     observer = getattr(settings, "observer", "fixed")
     if observer not in OBSERVERS:
         raise ValueError(f"observer must be 'bank' or 'fixed', got {observer!r}")

@@ -317,12 +317,13 @@ STEP_REFERENCE = np.r_[np.zeros(30), np.full(300, 600.0)]
 SINE_50HZ = 500.0 * np.sin(2 * np.pi * 50.0 * 1e-3 * np.arange(400))
 
 
+@pytest.mark.parametrize("name", ["mpc", "nmpc"])
 @pytest.mark.parametrize("reference", [STEP_REFERENCE, SINE_50HZ], ids=["step", "sine-50Hz"])
-def test_mpc_voltages_respect_the_slew_limit(reference):
+def test_mpc_voltages_respect_the_slew_limit(reference, name):
     """30 mA: S dt = 3.66 V per sample, below what both references ask (the 50 Hz sine needs
-    4.7 V per sample at its zero crossings): the limit binds, the MPC plans within it, and the
+    4.7 V per sample at its zero crossings): the limit binds, both MPCs plan within it, and the
     amplifier never has to clip its command."""
-    u, limited, _, step, mpc = _closed_loop("mpc", 30.0, reference)
+    u, limited, _, step, mpc = _closed_loop(name, 30.0, reference)
     du = np.abs(np.diff(u))
     assert du.max() <= step
     assert du.max() >= step - 1e-3  # binding
@@ -346,7 +347,7 @@ def test_mpc_plans_later_moves_within_the_z_rate():
     for _ in range(50):
         obs, *_ = env.step(mpc.act(obs))
         worst = max(worst, float(np.abs(np.diff(mpc._plan)).max()))
-    assert worst <= mpc.z_rate * (1 + 1e-3) + 1e-6  # OSQP meets the rows to its tolerance
+    assert worst <= mpc.z_rate * (1 + 1e-3) + 1e-6  # the QP meets the rows to its tolerance
     assert worst >= 0.9 * mpc.z_rate  # and they were active
     assert mpc.stats.status["solved"] > 0
 
@@ -371,6 +372,29 @@ def test_pid_integrator_does_not_wind_up_against_the_slew_limit():
     assert overshoot[1.0] < 0.5 * overshoot[1e-3]
 
 
+def test_nmpc_plans_every_move_within_the_slew_limit():
+    """In the voltage the rate rows are exact: every move of every plan, not only the first."""
+    import controllers as ctl
+
+    env = gym.make(
+        "piezo_env:PiezoBender-v0",
+        preview=20,
+        amplifier=Amplifier(current_limit_mA=30.0),
+        reference=STEP_REFERENCE[:80],
+    )
+    nmpc = ctl.make("nmpc", "plant", env)
+    step = nmpc.task.slew_step
+    obs, _ = env.reset(seed=0)
+    nmpc.reset(obs)
+    worst = 0.0
+    for _ in range(50):
+        obs, *_ = env.step(nmpc.act(obs))
+        worst = max(worst, float(np.abs(np.diff(nmpc._plan)).max()))
+    assert worst <= step + 1e-9  # DAQP meets the rows to rounding
+    assert worst >= 0.99 * step  # and they were active
+    assert nmpc.stats.status["solved"] > 0
+
+
 def test_controllers_without_an_amplifier_keep_their_paths():
     import controllers as ctl
     from controllers.box_qp import BoxQP
@@ -379,6 +403,7 @@ def test_controllers_without_an_amplifier_keep_their_paths():
     mpc = ctl.make("mpc", "plant", env)
     assert mpc.task.slew_limit is None and mpc.task.slew_step is None
     assert isinstance(mpc._qp, BoxQP) and "slew_limit_V_per_s" not in mpc.describe()
+    assert "slew_limit_V_per_s" not in ctl.make("nmpc", "plant", env).describe()
     assert ctl.make("pid-ff", "plant", env)._slew_step is None
 
 
