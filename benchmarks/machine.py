@@ -11,7 +11,7 @@ from typing import Any
 
 __all__ = ["cpu_name", "machine"]
 
-_PACKAGES = ("numpy", "scipy", "gymnasium", "control", "osqp", "casadi", "torch")
+_PACKAGES = ("numpy", "scipy", "gymnasium", "control", "daqp", "osqp", "casadi", "torch")
 
 
 def cpu_name() -> str:

@@ -242,8 +242,9 @@ def bench_gap_table(result: BenchmarkResult) -> str:
     the full stroke, and the factor), on the references both ran; empty without it."""
     index = cell_index(result)
     rows = [c for c in result.config.rows if any(k[:2] == ("bench", c) for k in index)]
-    refs = [r for r in result.config.references
-            if any(k[0] == "bench" and k[2] == r for k in index)]
+    refs = [
+        r for r in result.config.references if any(k[0] == "bench" and k[2] == r for k in index)
+    ]
     if not rows or not refs:
         return ""
 
@@ -277,6 +278,7 @@ def _effort_table(result: BenchmarkResult) -> str:
         "step p99 (us)",
         "step max (us)",
         "deadline misses",
+        "solver iterations (max)",
         "fallbacks",
     ]
 
@@ -292,6 +294,10 @@ def _effort_table(result: BenchmarkResult) -> str:
             "step p99 (us)": np.max([e["compute_p99_us"] for e in eps]),
             "step max (us)": np.max([e["compute_max_us"] for e in eps]),
             "deadline misses": sum(int(e.get("deadline_misses", 0)) for e in eps),
+            "solver iterations (max)": max(
+                (int(e["solver_iterations_max"]) for e in eps if e.get("solver_iterations_max")),
+                default=0,
+            ),
             "fallbacks": sum(e["fallbacks"] for e in eps),
         }
         v = values[col]
@@ -327,9 +333,7 @@ def _step_table(result: BenchmarkResult, dt: float) -> str:
         "Medians over the steps of each reference (`controllers.metrics.step_metrics`); 10-90 "
         "% rise, 2 % settling band, read over the first 3/4 of each hold (a controller with "
         f"preview moves before the next step). Times at the sample's resolution ({dt * 1e3:g} "
-        "ms): a rise of 0 went from 10 % to 90 % within one sample.\n\n"
-        + "\n".join(lines)
-        + "\n"
+        "ms): a rise of 0 went from 10 % to 90 % within one sample.\n\n" + "\n".join(lines) + "\n"
     )
 
 
@@ -367,7 +371,7 @@ def _disclosure_lines(result: BenchmarkResult) -> list[str]:
         "Tuning disclosure: the controllers' defaults were chosen on this benchmark's "
         "references (the span of the MPC observer bank's noise levels and its 200-sample "
         "memory on the nominal PL140's references and the Prandtl-Ishlinskii plant, the "
-        "single filter's noise levels, `observer=\"fixed\"`, on the nominal 50 Hz sine "
+        'single filter\'s noise levels, `observer="fixed"`, on the nominal 50 Hz sine '
         "against the Prandtl-Ishlinskii plant's 10 Hz sine; the two thresholds of the bank's "
         f"runaway guard, the {RUNAWAY_MEMORY} samples it averages over and the "
         f"{RUNAWAY_PERSISTENCE} it asks in a row, on the "
@@ -390,8 +394,7 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
         f"{m['python']}; one BLAS thread in the control loop; "
         + ", ".join(f"{k} {v}" for k, v in m["packages"].items() if v),
         "",
-        _seeds_sentence(cfg)
-        + f" {cfg.steps} steps of {meta['dt'] * 1e3:g} ms per episode; every "
+        _seeds_sentence(cfg) + f" {cfg.steps} steps of {meta['dt'] * 1e3:g} ms per episode; every "
         f"controller observes the measured deflection (sensor noise +-{noise:g} um) and a "
         f"preview of {cfg.preview} reference samples; the same noise and references for all. "
         "RMSE and max error: true deflection against the reference sample each action is "
@@ -483,6 +486,11 @@ def _markdown(
             if jobs >= cores
             else "."
         ),
+        "",
+        "Solver iterations (max): the worst step's QP iterations over the nominal episodes "
+        "(each controller's QP solver is in its description below; a DAQP iteration adds or "
+        "removes one active constraint, so this bounds the work of a step on a real-time "
+        "target), 0 for a controller without a solver.",
         "",
     ]
     if figures:

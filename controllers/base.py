@@ -61,7 +61,8 @@ class ControllerStats:
     observer_fallback_step: int | None = None
 
     def summary(self) -> dict[str, Any]:
-        """Median, p99 and max compute time (s), status counts, iterations and fallbacks."""
+        """Median, p99 and max compute time (s), status counts, mean and worst solver
+        iterations per step, and fallbacks."""
         times = np.asarray(self.compute_s)
         values = np.quantile(times, [0.5, 0.99, 1.0]) if times.size else np.zeros(3)
         quantiles = dict(zip(("median_s", "p99_s", "max_s"), values, strict=True))
@@ -71,6 +72,7 @@ class ControllerStats:
             "status": dict(self.status),
             "inverse": dict(self.inverse),
             "mean_iterations": float(np.mean(self.iterations)) if self.iterations else 0.0,
+            "max_iterations": int(max(self.iterations)) if self.iterations else 0,
             "fallbacks": self.fallbacks,
             "saturated": self.saturated,
             "observer_fallback_step": self.observer_fallback_step,

@@ -106,6 +106,10 @@ def run_episode(
     )
     # A model-based controller's observer that fell back to its most robust filter: when.
     metrics["observer_fallback_step"] = getattr(stats, "observer_fallback_step", None)
+    # The worst step's solver iterations (None without a solver): what sizes a real-time
+    # target's worst case (a DAQP iteration adds or removes one active constraint).
+    iterations = getattr(stats, "iterations", None)
+    metrics["solver_iterations_max"] = int(max(iterations)) if iterations else None
     describe = getattr(controller, "describe", dict)()
     summary = stats.summary() if hasattr(stats, "summary") else {}
     return Episode(
