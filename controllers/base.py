@@ -128,13 +128,19 @@ class Controller:
     def native_code(self) -> dict[str, dict[str, Any]]:
         """Generated function name -> the record of its native build (JSON-safe).
 
-        Collected from the prediction model (``self.model``: the NLS inverse) and the NMPC
-        horizon (``self.horizon``), whichever this controller holds; each record says whether
+        Collected from the prediction model (``self.model``: the NLS inverse), the NMPC
+        horizon (``self.horizon``) and the estimators (``self.observer``, ``self._gain``: the
+        step kernels), whichever this controller holds; each record says whether
         generated C or a fallback (numpy, casadi's virtual machine) runs, and why (see
         :class:`controllers.native.codegen.NativeBuild`). Empty for a controller without
         generated code.
         """
-        owners = (getattr(self, "model", None), getattr(self, "horizon", None))
+        owners = (
+            getattr(self, "model", None),
+            getattr(self, "horizon", None),
+            getattr(self, "observer", None),
+            getattr(self, "_gain", None),
+        )
         return {
             build.function: build.to_dict()
             for owner in owners

@@ -40,9 +40,12 @@ rescaled so that its output estimate stays where the measurements put it
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
+
+from controllers.native.step_kernels import MAX_STATES, kernels
 
 __all__ = ["CREDIBLE_Z", "GainEstimate"]
 
@@ -82,6 +85,12 @@ class GainEstimate:
         each linear part, at its estimated gain, explains the measurements.
     count : int
         Samples taken.
+    native : list of NativeBuild
+        The record of the compiled kernels that run :meth:`update` and :meth:`advance`
+        (:mod:`controllers.native.step_kernels`; numpy when they are not compiled).
+
+    The arrays above are views that each :meth:`update` overwrites in place: copy what must
+    outlive the next sample.
     """
 
     def __init__(
@@ -100,6 +109,51 @@ class GainEstimate:
         self.bounds = (1.0 - tolerance, 1.0 + tolerance)
         self._prior_precision = 3.0 / tolerance**2
         self._floor = noise_std**2
+        # Every running quantity lives in one block, updated in place (by numpy or by the
+        # compiled kernel, controllers.native.step_kernels): the attributes are views of it.
+        self._state = np.zeros(11 * k + 2)
+        (
+            self._s_ss,  # sum s^2
+            self._s_sy,  # sum s y
+            self._s_ee,  # sum of squared a-priori residuals
+            self._s_lag,  # sum of products of successive a-priori residuals
+            self._residual,
+            self.mean,
+            self.std,
+            self.low,
+            self.high,
+            self.value,
+            self.misfit,
+        ) = self._state[: 11 * k].reshape(11, k)
+        self._sums = self._state[11 * k :]  # s_yy, count
+        self._x = np.zeros((k, n))
+        self._a = np.ascontiguousarray(self._a)
+        self.native: list = []
+        self._update_native = self._advance_native = None
+        if n <= MAX_STATES:
+            library, build = kernels()
+            self.native = [build]
+            if library is not None:
+                dims = np.array([k, n], dtype=np.int64)
+                par = np.array(
+                    [self._prior_precision, self._floor, *self.bounds, CREDIBLE_Z], dtype=float
+                )
+                self._kernel_data = (dims, par)  # kept alive: the kernels hold their pointers
+                self._update_native = functools.partial(
+                    library.gain_update,
+                    dims.ctypes.data,
+                    par.ctypes.data,
+                    self._c.ctypes.data,
+                    self._x.ctypes.data,
+                    self._state.ctypes.data,
+                )
+                self._advance_native = functools.partial(
+                    library.gain_advance,
+                    dims.ctypes.data,
+                    self._a.ctypes.data,
+                    self._b.ctypes.data,
+                    self._x.ctypes.data,
+                )
         self.reset(np.zeros(n))
 
     @property
@@ -107,46 +161,50 @@ class GainEstimate:
         """K, the number of linear parts."""
         return self._a.shape[0]
 
+    @property
+    def count(self) -> int:
+        """Samples taken."""
+        return int(self._sums[1])
+
     def reset(self, x0: np.ndarray) -> None:
         """Start an episode from the state ``x0`` ((n,) shared or (K, n)); the prior: g = 1."""
-        k = self.size
-        self._x = np.array(np.broadcast_to(x0, self._b.shape), dtype=float)
-        self._s_ss = np.zeros(k)  # sum s^2
-        self._s_sy = np.zeros(k)  # sum s y
-        self._s_ee = np.zeros(k)  # sum of squared a-priori residuals
-        self._s_yy = 0.0
-        self._s_lag = np.zeros(k)  # sum of products of successive a-priori residuals
-        self._residual = np.zeros(k)
-        self.count = 0
-        self.mean = np.ones(k)
-        self.std = np.full(k, 1.0 / math.sqrt(self._prior_precision))
-        self.low, self.high = np.full(k, self.bounds[0]), np.full(k, self.bounds[1])
-        self.value = np.ones(k)
-        self.misfit = np.zeros(k)
+        self._x[:] = np.broadcast_to(x0, self._b.shape)
+        self._state[:] = 0.0
+        self.mean[:] = 1.0
+        self.std[:] = 1.0 / math.sqrt(self._prior_precision)
+        self.low[:], self.high[:] = self.bounds
+        self.value[:] = 1.0
 
     def update(self, y: float) -> np.ndarray:
-        """Take the measurement y (um) of the present sample; returns :attr:`value`."""
+        """Take the measurement y (um) of the present sample; returns :attr:`value` (a
+        copy)."""
+        if self._update_native is not None:
+            self._update_native(y)
+            return self.value.copy()
         s = np.einsum("kn,kn->k", self._c, self._x)
         residual = y - self.mean * s
         self._s_ee += residual * residual
         self._s_lag += residual * self._residual
-        self._residual = residual
-        self.count += 1
+        self._residual[:] = residual
+        sums = self._sums
+        sums[1] += 1.0
+        sums[0] += y * y
+        count = sums[1]
         self._s_ss += s * s
         self._s_sy += s * y
-        self._s_yy += y * y
-        variance = np.maximum(self._s_ee / self.count, self._floor)
+        variance = np.maximum(self._s_ee / count, self._floor)
         precision = self._prior_precision + self._s_ss / variance
-        self.mean = mean = (self._prior_precision + self._s_sy / variance) / precision
-        self.std = 1.0 / np.sqrt(precision)
+        mean = (self._prior_precision + self._s_sy / variance) / precision
+        self.mean[:] = mean
+        self.std[:] = 1.0 / np.sqrt(precision)
         half = CREDIBLE_Z * self.std
         low, high = self.bounds
         # np.minimum/np.maximum, not np.clip: the same numbers at a third of the overhead.
-        self.low = np.minimum(np.maximum(mean - half, low), high)
-        self.high = np.minimum(np.maximum(mean + half, low), high)
-        self.value = np.minimum(np.maximum(1.0, self.low), self.high)
-        self.misfit = (self._s_yy - 2.0 * mean * self._s_sy + mean * mean * self._s_ss) / self.count
-        return self.value
+        np.minimum(np.maximum(mean - half, low), high, out=self.low)
+        np.minimum(np.maximum(mean + half, low), high, out=self.high)
+        np.minimum(np.maximum(1.0, self.low), self.high, out=self.value)
+        self.misfit[:] = (sums[0] - 2.0 * mean * self._s_sy + mean * mean * self._s_ss) / count
+        return self.value.copy()
 
     @property
     def independent_fraction(self) -> np.ndarray:
@@ -164,4 +222,7 @@ class GainEstimate:
 
     def advance(self, z: float) -> None:
         """Time update with the hidden signal z applied this sample (equivalent V)."""
-        self._x = np.einsum("kij,kj->ki", self._a, self._x) + self._b * z
+        if self._advance_native is not None:
+            self._advance_native(z)
+            return
+        self._x[:] = np.einsum("kij,kj->ki", self._a, self._x) + self._b * z

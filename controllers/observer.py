@@ -41,12 +41,14 @@ the benchmark's tables.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from typing import Any
 
 import numpy as np
 import scipy.linalg
 
+from controllers.native.step_kernels import MAX_STATES, kernels
 from controllers.riccati import filter_riccati
 from controllers.settings import measurement_std
 
@@ -420,11 +422,89 @@ class ObserverBank:
         self._guard_keep = 1.0 - 1.0 / RUNAWAY_MEMORY
         self.prior = int(np.argmin(_prior_distance(np.array(ratios))))
         self._filters = filters
-        self.fallback = int(np.lexsort(np.array(ratios).T[::-1])[0])  # smallest process, then d
         self._ratios = ratios
         self.admissible = np.ones(len(levels), dtype=bool)
-        self._penalty = np.zeros(len(levels))  # -inf on the filters the bank may not select
+        self._allocate(len(levels))
+        self.fallback = int(np.lexsort(np.array(ratios).T[::-1])[0])  # smallest process, then d
         self.reset()
+
+    def _allocate(self, count: int) -> None:
+        """The bank's running state in fixed blocks, updated in place (by numpy or by the
+        compiled kernels, :mod:`controllers.native.step_kernels`): the attributes are views."""
+        size = self.n + self.n_disturbance
+        self._state = np.zeros(count * size + 5 * count)
+        self._estimates = self._state[: count * size].reshape(count, size)
+        (
+            self._score,
+            self._mean_nis,
+            self._mean_lag,
+            self._last_innovation,
+            self._penalty,  # -inf on the filters the bank may not select
+        ) = self._state[count * size :].reshape(5, count)
+        # selected, samples, consecutive suspect samples, runaway sample (-1: none)
+        self._counters = np.zeros(4, dtype=np.int64)
+        self.selection_counts = np.zeros(count, dtype=np.int64)
+        # filters, state size, fallback filter, persistence
+        self._dims = np.array([count, size, 0, RUNAWAY_PERSISTENCE], dtype=np.int64)
+        self._a_aug = np.ascontiguousarray(self.a_aug, dtype=float)
+        self._b_aug = np.ascontiguousarray(self.b_aug, dtype=float)
+        self._c_aug = np.ascontiguousarray(self.c_aug, dtype=float)
+        self.gains = np.ascontiguousarray(self.gains, dtype=float)
+        self._parameters = np.array(
+            [self._keep, self._guard_keep, RUNAWAY_NIS, RUNAWAY_CORRELATION], dtype=float
+        )
+        self._correct_native = self._predict_native = None
+        self.native: list = []
+        if size > MAX_STATES:
+            return
+        library, build = kernels()
+        self.native = [build]
+        if library is None:
+            return
+        pointer = self._dims.ctypes.data
+        self._correct_native = functools.partial(
+            library.bank_correct,
+            pointer,
+            self._parameters.ctypes.data,
+            self._c_aug.ctypes.data,
+            self.gains.ctypes.data,
+            self._half_log_var.ctypes.data,
+            self._half_inverse_var.ctypes.data,
+            self._state.ctypes.data,
+            self._counters.ctypes.data,
+            self.selection_counts.ctypes.data,
+        )
+        self._predict_native = functools.partial(
+            library.bank_predict,
+            pointer,
+            self._a_aug.ctypes.data,
+            self._b_aug.ctypes.data,
+            self._state.ctypes.data,
+        )
+
+    @property
+    def selected(self) -> int:
+        """Index of the filter the controller reads."""
+        return int(self._counters[0])
+
+    @selected.setter
+    def selected(self, index: int) -> None:
+        self._counters[0] = index
+
+    @property
+    def fallback(self) -> int:
+        """Index of the filter the runaway guard falls back to."""
+        return int(self._dims[2])
+
+    @fallback.setter
+    def fallback(self, index: int) -> None:
+        self._dims[2] = index
+
+    @property
+    def runaway_at(self) -> int | None:
+        """Sample (from 0, since the last reset) at which the guard fell back; None if not."""
+        at = int(self._counters[3])
+        return None if at < 0 else at
 
     def allow(self, admissible: np.ndarray) -> None:
         """Mid-episode: from now on select only the filters where ``admissible`` is True; the
@@ -438,7 +518,7 @@ class ObserverBank:
         """
         mask = self._mask(admissible)
         self.admissible = mask
-        self._penalty = np.where(mask, 0.0, -np.inf)
+        self._penalty[:] = np.where(mask, 0.0, -np.inf)
         if not mask[self.selected] and self.runaway_at is None:
             self.selected = int(np.argmax(self._score + self._penalty))
 
@@ -499,19 +579,11 @@ class ObserverBank:
     def reset(self, estimate: np.ndarray | None = None, *, selected: int | None = None) -> None:
         """Set every filter's prior ``[x; d (; s)]`` (default: rest) and forget the
         likelihoods; start from filter ``selected`` (default: the prior's)."""
-        size = self.n + self.n_disturbance
-        start = np.zeros(size) if estimate is None else np.array(estimate, float)
-        self._estimates = np.tile(start, (len(self.noise_levels), 1))
-        self._score = np.zeros(len(self.noise_levels))
-        self.selected = self.prior if selected is None else int(selected)
-        self.selection_counts = np.zeros(len(self.noise_levels), dtype=int)
-        count = len(self.noise_levels)
-        self._mean_nis = np.zeros(count)
-        self._mean_lag = np.zeros(count)
-        self._last_innovation = np.zeros(count)
-        self._samples = 0
-        self._suspect_run = 0  # consecutive samples on which both guard tests held
-        self.runaway_at: int | None = None
+        self._estimates[:] = 0.0 if estimate is None else np.asarray(estimate, float)
+        for running in (self._score, self._mean_nis, self._mean_lag, self._last_innovation):
+            running[:] = 0.0
+        self.selection_counts[:] = 0
+        self._counters[:] = (self.prior if selected is None else int(selected), 0, 0, -1)
 
     @property
     def guard_statistics(self) -> tuple[float, float]:
@@ -526,24 +598,32 @@ class ObserverBank:
         """Read the :attr:`fallback` filter for the rest of the episode, as the runaway guard
         does; ``at`` is the sample recorded in :attr:`runaway_at` (default: the last corrected
         one). The adaptive MPC calls it on a rebuilt bank to keep the guard's decision."""
-        self.runaway_at = max(self._samples - 1, 0) if at is None else int(at)
+        samples = int(self._counters[1])
+        self._counters[3] = max(samples - 1, 0) if at is None else int(at)
         self.selected = self.fallback
 
     def correct(self, y_measured: float) -> np.ndarray:
         """Measurement update of every filter with y (um), score them and select; returns the
-        selected filter's filtered ``[x; d]`` (a view, not a copy)."""
+        selected filter's filtered ``[x; d]`` (a view that the next update overwrites).
+
+        One call of the compiled kernel where it is built
+        (:mod:`controllers.native.step_kernels`), else the same operations in numpy."""
+        if self._correct_native is not None:
+            self._correct_native(y_measured)
+            return self._estimates[self._counters[0]]
         innovation = y_measured - self._estimates @ self.c_aug
         self._estimates += self.gains * innovation[:, None]
         log_likelihood = -self._half_log_var - innovation**2 * self._half_inverse_var
         keep, new = self._keep, 1.0 - self._keep
-        self._score = keep * self._score + new * log_likelihood
+        self._score[:] = keep * self._score + new * log_likelihood
         normalised = 2.0 * self._half_inverse_var * innovation
         keep, new = self._guard_keep, 1.0 - self._guard_keep
-        self._mean_nis = keep * self._mean_nis + new * normalised * innovation
-        self._mean_lag = keep * self._mean_lag + new * normalised * self._last_innovation
-        self._last_innovation = innovation
-        self._samples += 1
-        if self.runaway_at is None:
+        self._mean_nis[:] = keep * self._mean_nis + new * normalised * innovation
+        self._mean_lag[:] = keep * self._mean_lag + new * normalised * self._last_innovation
+        self._last_innovation[:] = innovation
+        counters = self._counters  # selected, samples, suspect run, runaway sample
+        counters[1] += 1
+        if counters[3] < 0:
             best = int(np.argmax(self._score + self._penalty))
             nis = self._mean_nis[best]
             suspect = (
@@ -551,17 +631,20 @@ class ObserverBank:
                 and nis > RUNAWAY_NIS
                 and self._mean_lag[best] < RUNAWAY_CORRELATION * nis
             )
-            self._suspect_run = self._suspect_run + 1 if suspect else 0
-            if self._suspect_run >= RUNAWAY_PERSISTENCE:
+            counters[2] = counters[2] + 1 if suspect else 0
+            if counters[2] >= RUNAWAY_PERSISTENCE:
                 self.fall_back()
             else:
-                self.selected = best
-        self.selection_counts[self.selected] += 1
-        return self._estimates[self.selected]
+                counters[0] = best
+        self.selection_counts[counters[0]] += 1
+        return self._estimates[counters[0]]
 
     def predict(self, z: float) -> None:
         """Time update of every filter with the hidden input z actually applied (equivalent V)."""
-        self._estimates = self._estimates @ self._a_aug_t + self.b_aug * z
+        if self._predict_native is not None:
+            self._predict_native(z)
+            return
+        self._estimates[:] = self._estimates @ self._a_aug_t + self.b_aug * z
 
     def rescale_input(self, ratio: float) -> None:
         """Every filter's :meth:`DisturbanceObserver.rescale_input`."""

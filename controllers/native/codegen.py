@@ -1,4 +1,5 @@
-"""Generated C for casadi Functions: compile once, cache on disk, verify, call through ctypes.
+"""Generated C for casadi Functions (and hand-written C kernels): compile once, cache on disk,
+verify, call through ctypes.
 
 :func:`compile_function` writes a casadi Function as C (``casadi.CodeGenerator``), compiles it
 with the machine's compiler (``$CC`` or ``cc``) into a shared library cached on disk, and loads
@@ -70,7 +71,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -88,6 +89,7 @@ __all__ = [
     "cache_dir",
     "cache_key",
     "compile_function",
+    "compile_source",
     "native_policy",
 ]
 
@@ -391,13 +393,19 @@ def _generate(function: Any, folder: Path) -> Path:
 
 
 def _load(
-    function: Any, command: Sequence[str], identity: str, flags: Sequence[str], folder: Path
-) -> tuple[CompiledFunction, NativeBuild]:
-    """Generate, then under the folder's lock find a verified library or build one, and
-    load it (raises OSError, subprocess and casadi errors for the caller to record)."""
-    name = function.name()
+    name: str,
+    write_source: Callable[[Path], Path],
+    load: Callable[[Path], Any],
+    command: Sequence[str],
+    identity: str,
+    flags: Sequence[str],
+    folder: Path,
+) -> tuple[Any, NativeBuild]:
+    """Write the C, then under the folder's lock find a verified library or build one, and
+    load it with ``load(library)`` (raises OSError, subprocess and casadi errors for the
+    caller to record)."""
     with tempfile.TemporaryDirectory(dir=folder) as staging:
-        source = _generate(function, Path(staging))
+        source = write_source(Path(staging))
         key = cache_key(source.read_bytes(), flags, identity)
         library = folder / f"{name}_{key[:16]}.so"
         with _locked(folder):
@@ -408,7 +416,7 @@ def _load(
                 reason = f"built {library.name} ({problem})"
             else:
                 reason = f"cached {library.name}, digest verified"
-            loaded = CompiledFunction(library, function)
+            loaded = load(library)
             os.utime(library)  # last use, for the stale-build clean-up
             _remove_stale(folder, keep=library)
     build = NativeBuild(
@@ -460,7 +468,68 @@ def compile_function(
     NativeCodeError
         Under ``PIEZO_NATIVE=require``, instead of returning None.
     """
-    name, flag_text = function.name(), " ".join(flags)
+    return _compile(
+        function.name(),
+        lambda folder: _generate(function, folder),
+        lambda library: CompiledFunction(library, function),
+        flags,
+        cache,
+        fallback,
+    )
+
+
+def compile_source(
+    name: str,
+    source: str,
+    *,
+    flags: Sequence[str] = DEFAULT_FLAGS,
+    cache: str = "kernels",
+    fallback: str = NUMPY,
+) -> tuple[ctypes.CDLL | None, NativeBuild]:
+    """Compile hand-written C (cached, verified, as :func:`compile_function`) and load it.
+
+    Parameters
+    ----------
+    name : str
+        Names the source file, the library and the record.
+    source : str
+        The C translation unit.
+    flags, cache, fallback
+        As :func:`compile_function`'s.
+
+    Returns
+    -------
+    library : ctypes.CDLL or None
+        The loaded library (the caller declares its functions' argument types); None when
+        there is no native code.
+    build : NativeBuild
+        What happened, for reports.
+
+    Raises
+    ------
+    NativeCodeError
+        Under ``PIEZO_NATIVE=require``, instead of returning None.
+    """
+
+    def write(folder: Path) -> Path:
+        path = folder / f"{name}.c"
+        path.write_text(source, encoding="utf-8")
+        return path
+
+    return _compile(name, write, lambda library: ctypes.CDLL(str(library)), flags, cache, fallback)
+
+
+def _compile(
+    name: str,
+    write_source: Callable[[Path], Path],
+    load: Callable[[Path], Any],
+    flags: Sequence[str],
+    cache: str,
+    fallback: str,
+) -> tuple[Any, NativeBuild]:
+    """The native policy, the compiler's lookup and the cached build of one library; every
+    failure recorded as a fallback (or raised under ``require``)."""
+    flag_text = " ".join(flags)
     if native_policy() == "off":
         return None, _fallback(name, fallback, "native code switched off (PIEZO_NATIVE=off)")
     command = shlex.split(os.environ.get("CC") or "cc")
@@ -472,7 +541,7 @@ def compile_function(
     identity = compiler_identity(tuple(command))
     try:
         folder = _private_folder(cache_dir(cache))
-        return _load(function, command, identity, flags, folder)
+        return _load(name, write_source, load, command, identity, flags, folder)
     except subprocess.CalledProcessError as exc:
         reason = f"the compiler failed (exit status {exc.returncode})"
         return None, _fallback(name, fallback, reason, identity, flag_text, exc.stderr or "")

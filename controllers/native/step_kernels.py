@@ -1,0 +1,190 @@
+"""The per-sample arithmetic of the MPCs' estimators in C: one ctypes call where numpy makes 30.
+
+An MPC step runs the gain estimate's update and time update (:mod:`controllers.gain`) and the
+observer bank's measurement and time updates (:class:`controllers.observer.ObserverBank`). Each
+is a handful of operations on arrays of 1 to 50 entries, where numpy's cost is its call overhead
+(about half a microsecond per operation, some 70 per step), not the arithmetic. The kernels here
+do the same operations, in the same order, in one C call each, on the estimators' own arrays
+(updated in place, so that the Python objects read the same memory).
+
+Where the results differ from numpy's: the dot products (``c . x`` of each part, each filter's
+``c . estimate`` and its time update) are summed left to right here, while numpy's einsum and
+matrix products may pair the terms differently, so a result may differ in its last bit (about
+1e-16 relative); every other operation is the same IEEE operation on the same operands
+(compiled without fused multiply-adds, :data:`controllers.native.codegen.DEFAULT_FLAGS`). The
+tests hold both paths to each other step by step and over closed-loop episodes.
+
+The library is built once per machine through :func:`controllers.native.codegen.compile_source`
+(cached, digest-verified, the ``PIEZO_NATIVE`` policy applies); without it the estimators run
+their numpy code, and their ``native`` records say so.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from typing import Any
+
+from controllers.native.codegen import DEFAULT_FLAGS, NativeBuild, compile_source, native_policy
+
+__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "kernels"]
+
+MAX_STATES = 64
+"""Largest state size the kernels take (their time updates use a stack buffer of this size)."""
+
+SOURCE = r"""
+#include <math.h>
+#include <stdint.h>
+
+#define MAX_STATES 64
+
+/* controllers.gain.GainEstimate.update: K parts of order n.
+   dims = {K, n}; par = {prior precision, variance floor, low bound, high bound, z_975};
+   st = {s_ss, s_sy, s_ee, s_lag, residual, mean, std, low, high, value, misfit} (K each),
+   then s_yy, count. */
+void gain_update(const int64_t *dims, const double *par, const double *c, const double *x,
+                 double *st, double y)
+{
+    const int64_t K = dims[0], n = dims[1];
+    const double pp = par[0], floor_ = par[1], lo = par[2], hi = par[3], zc = par[4];
+    double *s_ss = st, *s_sy = st + K, *s_ee = st + 2 * K, *s_lag = st + 3 * K;
+    double *res = st + 4 * K, *mean = st + 5 * K, *sd = st + 6 * K, *low = st + 7 * K;
+    double *high = st + 8 * K, *value = st + 9 * K, *misfit = st + 10 * K;
+    double *s_yy = st + 11 * K, *count = st + 11 * K + 1;
+    *count += 1.0;
+    *s_yy += y * y;
+    for (int64_t k = 0; k < K; ++k) {
+        double s = 0.0;
+        for (int64_t j = 0; j < n; ++j) s += c[k * n + j] * x[k * n + j];
+        double r = y - mean[k] * s;
+        s_ee[k] += r * r;
+        s_lag[k] += r * res[k];
+        res[k] = r;
+        s_ss[k] += s * s;
+        s_sy[k] += s * y;
+        double variance = s_ee[k] / *count;
+        if (variance < floor_) variance = floor_;
+        double precision = pp + s_ss[k] / variance;
+        double m = (pp + s_sy[k] / variance) / precision;
+        mean[k] = m;
+        sd[k] = 1.0 / sqrt(precision);
+        double half = zc * sd[k];
+        double l = m - half, h = m + half;
+        l = l < lo ? lo : l;
+        l = l > hi ? hi : l;
+        h = h < lo ? lo : h;
+        h = h > hi ? hi : h;
+        low[k] = l;
+        high[k] = h;
+        double v = 1.0 < l ? l : 1.0;
+        value[k] = v > h ? h : v;
+        misfit[k] = (*s_yy - 2.0 * m * s_sy[k] + m * m * s_ss[k]) / *count;
+    }
+}
+
+/* controllers.gain.GainEstimate.advance: x_k <- a_k x_k + b_k z, K parts of order n. */
+void gain_advance(const int64_t *dims, const double *a, const double *b, double *x, double z)
+{
+    const int64_t K = dims[0], n = dims[1];
+    double next[MAX_STATES];
+    for (int64_t k = 0; k < K; ++k) {
+        const double *ak = a + k * n * n, *xk = x + k * n;
+        for (int64_t i = 0; i < n; ++i) {
+            double sum = 0.0;
+            for (int64_t j = 0; j < n; ++j) sum += ak[i * n + j] * xk[j];
+            next[i] = sum + b[k * n + i] * z;
+        }
+        for (int64_t i = 0; i < n; ++i) x[k * n + i] = next[i];
+    }
+}
+
+/* controllers.observer.ObserverBank.correct: F filters of state size m.
+   dims = {F, m, fallback, persistence}; par = {keep, guard keep, NIS limit, correlation};
+   st = {estimates (F x m), score, mean NIS, mean lag, last innovation, penalty} (F each);
+   counters = {selected, samples, suspect run, runaway at (-1: none)}; counts: F. */
+void bank_correct(const int64_t *dims, const double *par, const double *c, const double *gains,
+                  const double *half_log_var, const double *half_inverse_var, double *st,
+                  int64_t *counters, int64_t *counts, double y)
+{
+    const int64_t F = dims[0], m = dims[1], fallback = dims[2], persistence = dims[3];
+    const double keep = par[0], new_ = 1.0 - par[0], gkeep = par[1], gnew = 1.0 - par[1];
+    double *est = st, *score = st + F * m, *nis = score + F, *lag = nis + F;
+    double *last = lag + F, *penalty = last + F;
+    for (int64_t f = 0; f < F; ++f) {
+        double *e = est + f * m;
+        double predicted = 0.0;
+        for (int64_t j = 0; j < m; ++j) predicted += e[j] * c[j];
+        double innovation = y - predicted;
+        for (int64_t j = 0; j < m; ++j) e[j] += gains[f * m + j] * innovation;
+        double log_likelihood = -half_log_var[f] - innovation * innovation * half_inverse_var[f];
+        score[f] = keep * score[f] + new_ * log_likelihood;
+        double normalised = 2.0 * half_inverse_var[f] * innovation;
+        nis[f] = gkeep * nis[f] + gnew * normalised * innovation;
+        lag[f] = gkeep * lag[f] + gnew * normalised * last[f];
+        last[f] = innovation;
+    }
+    counters[1] += 1;
+    if (counters[3] < 0) {
+        int64_t best = 0;
+        double top = score[0] + penalty[0];
+        for (int64_t f = 1; f < F; ++f) {
+            double v = score[f] + penalty[f];
+            if (v > top) { top = v; best = f; }
+        }
+        double n = nis[best];
+        int suspect = best != fallback && n > par[2] && lag[best] < par[3] * n;
+        counters[2] = suspect ? counters[2] + 1 : 0;
+        if (counters[2] >= persistence) {
+            counters[3] = counters[1] - 1 > 0 ? counters[1] - 1 : 0;
+            counters[0] = fallback;
+        } else {
+            counters[0] = best;
+        }
+    }
+    counts[counters[0]] += 1;
+}
+
+/* controllers.observer.ObserverBank.predict: each filter's estimate e <- a e + b z. */
+void bank_predict(const int64_t *dims, const double *a, const double *b, double *est, double z)
+{
+    const int64_t F = dims[0], m = dims[1];
+    double next[MAX_STATES];
+    for (int64_t f = 0; f < F; ++f) {
+        double *e = est + f * m;
+        for (int64_t i = 0; i < m; ++i) {
+            double sum = 0.0;
+            for (int64_t j = 0; j < m; ++j) sum += e[j] * a[i * m + j];
+            next[i] = sum + b[i] * z;
+        }
+        for (int64_t i = 0; i < m; ++i) e[i] = next[i];
+    }
+}
+"""
+
+FLAGS = ("-O2", *DEFAULT_FLAGS[1:])
+"""The kernels' compiler flags: optimised loops, still no fused multiply-adds (see
+:data:`controllers.native.codegen.DEFAULT_FLAGS`)."""
+
+_P = ctypes.c_void_p
+_SIGNATURES = {
+    "gain_update": [_P] * 5 + [ctypes.c_double],
+    "gain_advance": [_P] * 4 + [ctypes.c_double],
+    "bank_correct": [_P] * 9 + [ctypes.c_double],
+    "bank_predict": [_P] * 4 + [ctypes.c_double],
+}
+
+
+@functools.lru_cache(maxsize=3)
+def _build(policy: str) -> tuple[ctypes.CDLL | None, NativeBuild]:
+    library, build = compile_source("step_kernels", SOURCE, flags=FLAGS)
+    if library is not None:
+        for name, argtypes in _SIGNATURES.items():
+            function = getattr(library, name)
+            function.argtypes, function.restype = argtypes, None
+    return library, build
+
+
+def kernels() -> tuple[Any, NativeBuild]:
+    """The compiled kernels (None without native code) and the record of their build, once
+    per process and ``PIEZO_NATIVE`` policy."""
+    return _build(native_policy())
