@@ -201,6 +201,7 @@ class LinearMPC(PredictiveController):
 
     def _start(self, start: SteadyStart) -> None:
         self._qp = self._setup_solver()
+        self._later_bounds: tuple | None = None
         self._plan = np.full(self.settings.horizon, start.z)
         self._duals: np.ndarray | None = None
         self._z_prev = start.z  # the model's input (g z, equivalent V)
@@ -325,8 +326,11 @@ class LinearMPC(PredictiveController):
         else:
             low, high = self._reachable_in_window()
         g = self._g
-        z_min, z_max = self.model.z_bounds
-        self._lower[1:], self._upper[1:] = g * z_min, g * z_max
+        bounds = (g, self.model.z_bounds)
+        if bounds != self._later_bounds:  # the later moves' bounds change with g only
+            z_min, z_max = bounds[1]
+            self._lower[1:], self._upper[1:] = g * z_min, g * z_max
+            self._later_bounds = bounds
         self._lower[0], self._upper[0] = g * low, g * high
         if self.settings.shortcut:
             plan = self._unconstrained @ stacked

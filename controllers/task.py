@@ -8,6 +8,7 @@ last previewed sample when the horizon reaches past the preview).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -149,9 +150,12 @@ class ControlTask:
                 f"observation must have shape ({self.observation_size},) = [y, r_t, r_t+1 .. "
                 f"r_t+{self.preview}] (um), got shape {obs.shape}"
             )
-        if not np.isfinite(obs).all():
-            bad = int(np.flatnonzero(~np.isfinite(obs))[0])
-            raise ValueError(f"observation[{bad}] = {obs[bad]} is not finite")
+        # One sum tells (NaN and inf propagate); only a non-finite sum needs the element
+        # check, which also clears a sum of finite values that overflowed.
+        if not math.isfinite(obs.sum()):
+            bad = np.flatnonzero(~np.isfinite(obs))
+            if bad.size:
+                raise ValueError(f"observation[{bad[0]}] = {obs[bad[0]]} is not finite")
         return obs
 
     def targets(self, observation: np.ndarray, horizon: int) -> np.ndarray:
