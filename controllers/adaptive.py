@@ -372,9 +372,9 @@ class AdaptiveMPC(LinearMPC):
         return allowed
 
     def _member(self, model: PredictionModel, arx: ARXModel) -> _Member:
-        horizon = self.settings.horizon
-        phi, gamma = prediction_matrices(model.a, model.b, model.c, horizon)
-        check_well_posed(gamma, self.settings.rate_weight, 1.0, name=self.name)
+        samples = self.prediction_samples
+        phi, gamma = prediction_matrices(model.a, model.b, model.c, samples)
+        check_well_posed(self._blocked(gamma), self.settings.rate_weight, 1.0, name=self.name)
         hessian, q_matrix = self._qp_matrices(phi, gamma)
         unconstrained = -np.linalg.solve(hessian, q_matrix)
         observer = make_observer(model, self.task, self.settings)

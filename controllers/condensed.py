@@ -7,13 +7,28 @@ an affine function of the state and the inputs (no equality constraints, N decis
 
 and the input-rate penalty ``lambda sum_k (v_t+k - v_t+k-1)^2`` of a plan v (z for the linear
 MPC, volts for the nonlinear one) has the Hessian ``lambda D^T D`` with D the first difference.
+
+**Move blocking** (:func:`move_blocks`, :func:`blocking_matrix`). A prediction over Np samples
+may be planned with M < Np moves, each held over a block of samples: ``z = T v`` with T (Np, M)
+of ones on each block. The prediction becomes ``Gamma T`` (Np, M), and because the plan changes
+only at block starts, the rate penalty over the Np samples is the same penalty over the M moves
+(``lambda D^T D`` of size M, with the first move linked to v_t-1): :func:`qp_matrices` takes the
+blocked Gamma as it is. The first block is one sample, so the first move, the one applied, is
+the one an unblocked plan would have at its bounds.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["check_well_posed", "prediction_matrices", "qp_matrices", "rate_hessian"]
+__all__ = [
+    "blocking_matrix",
+    "check_well_posed",
+    "move_blocks",
+    "prediction_matrices",
+    "qp_matrices",
+    "rate_hessian",
+]
 
 
 def prediction_matrices(
@@ -42,6 +57,34 @@ def prediction_matrices(
     return phi, gamma
 
 
+def move_blocks(moves: int, samples: int) -> tuple[int, ...]:
+    """Block lengths (samples) of ``moves`` moves over ``samples`` samples: the first half of
+    the moves one sample each (the near plan, against which the applied first move is computed,
+    as free as an unblocked plan's), the other half sharing the remaining samples as evenly as
+    possible, the longer blocks last.
+
+    Raises
+    ------
+    ValueError
+        If ``samples < moves`` or ``moves < 1``.
+    """
+    if not 1 <= moves <= samples:
+        raise ValueError(
+            f"a plan of {moves} moves needs at least as many prediction samples, got {samples}"
+        )
+    single = moves // 2 if samples > moves else moves
+    rest = moves - single
+    if rest == 0:
+        return (1,) * moves
+    edges = np.floor(np.linspace(0.0, samples - single, rest + 1) + 0.5).astype(int)
+    return (1,) * single + tuple(sorted(int(length) for length in np.diff(edges)))
+
+
+def blocking_matrix(blocks: tuple[int, ...]) -> np.ndarray:
+    """T (sum(blocks), len(blocks)): column j is one over block j's samples (z = T v)."""
+    return np.repeat(np.eye(len(blocks)), blocks, axis=0)
+
+
 def rate_hessian(horizon: int, rate_weight: float) -> np.ndarray:
     """``lambda D^T D`` (N, N): the Hessian of ``lambda sum_k (v_t+k - v_t+k-1)^2`` in v.
 
@@ -55,7 +98,7 @@ def rate_hessian(horizon: int, rate_weight: float) -> np.ndarray:
 def qp_matrices(
     phi: np.ndarray, gamma: np.ndarray, rate_weight: float, *, slope: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Hessian P (N, N) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
+    """Hessian P (M, M) and the matrix G with ``q = G [x; d (; s); r; z_prev]``, scaled.
 
     The QP ``min_v v^T P v / 2 + q^T v`` of the tracking cost ``sum_k (y_t+k - r_t+k)^2 +
     lambda sum_k (v_t+k - v_t+k-1)^2`` with the output disturbance d held over the horizon
@@ -66,20 +109,21 @@ def qp_matrices(
     Parameters
     ----------
     phi, gamma : numpy.ndarray
-        The condensed prediction (:func:`prediction_matrices`).
+        The condensed prediction (:func:`prediction_matrices`): Phi (Np, n) and Gamma (Np, M),
+        M = Np, or Gamma times a :func:`blocking_matrix` for M blocked moves.
     rate_weight : float
         lambda ((um / unit of v)^2): the rate penalty, ``lambda D^T D`` (:func:`rate_hessian`)
         in P and its link to v_t-1 in G.
     slope : bool
         Whether the estimate holds a disturbance slope s.
     """
-    n_hor = gamma.shape[0]
-    hessian = gamma.T @ gamma + rate_hessian(n_hor, rate_weight)
-    previous_move = np.zeros((n_hor, 1))  # the rate penalty's link to z_t-1
+    samples, moves = gamma.shape
+    hessian = gamma.T @ gamma + rate_hessian(moves, rate_weight)
+    previous_move = np.zeros((moves, 1))  # the rate penalty's link to z_t-1
     previous_move[0, 0] = -rate_weight
     columns = [gamma.T @ phi, gamma.T.sum(axis=1, keepdims=True)]
     if slope:  # d_t+k = d_t + k s_t
-        columns.append(gamma.T @ np.arange(1.0, n_hor + 1)[:, None])
+        columns.append(gamma.T @ np.arange(1.0, samples + 1)[:, None])
     scale = 1.0 / float(np.max(np.diag(hessian)))
     return hessian * scale, scale * np.hstack([*columns, -gamma.T, previous_move])
 
@@ -98,13 +142,13 @@ def check_well_posed(
     Parameters
     ----------
     gamma : numpy.ndarray
-        Gamma (N, N) of :func:`prediction_matrices` (um per equivalent V).
+        Gamma (Np, M) of :func:`prediction_matrices`, blocked or not (um per equivalent V).
     rate_weight, tracking_weight : float
         lambda and w of the cost.
     name : str
         The controller, for the message.
     """
-    hessian = tracking_weight * gamma.T @ gamma + rate_hessian(gamma.shape[0], rate_weight)
+    hessian = tracking_weight * gamma.T @ gamma + rate_hessian(gamma.shape[1], rate_weight)
     if np.max(np.diag(hessian)) > 0 and np.linalg.cond(hessian) < 1e12:
         return
     raise ValueError(

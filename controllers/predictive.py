@@ -24,7 +24,9 @@ import numpy as np
 
 from controllers.base import Controller
 from controllers.condensed import (
+    blocking_matrix,
     check_well_posed,
+    move_blocks,
     prediction_matrices,
     qp_matrices,
     rate_hessian,
@@ -133,10 +135,13 @@ class PredictiveController(Controller):
         self.model = model
         self.settings = settings = settings or self.Settings()
         n_hor = settings.horizon
-        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, n_hor)
+        self.prediction_samples = samples = self._prediction_samples(model, settings)
+        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, samples)
+        self.blocks = move_blocks(n_hor, samples)
+        self._blocking = None if samples == n_hor else blocking_matrix(self.blocks)
         self._rate_hessian = rate_hessian(n_hor, settings.rate_weight)
         weight = getattr(settings, "tracking_weight", 1.0)  # the linear MPC weighs error by 1
-        check_well_posed(self._gamma, settings.rate_weight, weight, name=self.name)
+        check_well_posed(self._blocked(self._gamma), settings.rate_weight, weight, name=self.name)
         self.observer = make_observer(model, task, settings)
         self._box_plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
         self._set_up()
@@ -216,12 +221,22 @@ class PredictiveController(Controller):
 
     def _qp_matrices(self, phi: np.ndarray, gamma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The settings' QP (:func:`controllers.condensed.qp_matrices`) on the condensed
-        prediction ``(phi, gamma)``: the rate penalty over the tracking weight (1 for the linear
-        MPC), and the disturbance slope when ``slope_std`` > 0."""
+        prediction ``(phi, gamma)``, its moves blocked (:attr:`blocks`): the rate penalty over
+        the tracking weight (1 for the linear MPC), and the disturbance slope when
+        ``slope_std`` > 0."""
         s = self.settings
         weight = getattr(s, "tracking_weight", 1.0)
         slope = getattr(s, "slope_std", 0.0) > 0
-        return qp_matrices(phi, gamma, s.rate_weight / weight, slope=slope)
+        return qp_matrices(phi, self._blocked(gamma), s.rate_weight / weight, slope=slope)
+
+    def _blocked(self, gamma: np.ndarray) -> np.ndarray:
+        """Gamma of the M moves: times the blocking matrix when the moves are blocked."""
+        return gamma if self._blocking is None else gamma @ self._blocking
+
+    def _prediction_samples(self, model: PredictionModel, settings: Any) -> int:
+        """Np, the samples the output is predicted over: the horizon's (no blocking); the
+        linear MPC may predict further (:func:`controllers.mpc.covering_samples`)."""
+        return settings.horizon
 
     def observer_description(self) -> dict[str, Any]:
         """Modulus margin of the loop this controller closes around its own model, unconstrained

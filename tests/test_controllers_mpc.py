@@ -346,3 +346,64 @@ def test_daqp_and_osqp_agree_on_random_box_qps_of_the_mpc_shape(rate):
             # General rows are met to DAQP's primal tolerance (1e-6); measured 1.3e-12.
             assert np.max(np.abs(np.diff(got.x))) <= rate + 1e-9
     assert active > 20  # the bounds bind in most of the QPs
+
+
+def test_move_blocks_cover_the_prediction_first_move_alone():
+    from controllers.condensed import blocking_matrix, move_blocks
+
+    assert move_blocks(20, 20) == (1,) * 20
+    for moves, samples in ((20, 79), (8, 9), (3, 50), (20, 1000)):
+        blocks = move_blocks(moves, samples)
+        assert len(blocks) == moves and sum(blocks) == samples and blocks[0] == 1
+        assert list(blocks) == sorted(blocks)  # longer blocks later
+        t = blocking_matrix(blocks)
+        assert t.shape == (samples, moves) and np.all(t.sum(axis=1) == 1)
+    with pytest.raises(ValueError, match="at least as many prediction samples"):
+        move_blocks(20, 19)
+
+
+def test_blocked_first_move_equals_independent_least_squares():
+    """M = 6 moves over Np = 15 samples: the MPC's unconstrained first move against the
+    least-squares minimiser of the same cost with z = T v written out independently (dlsim
+    responses, each move held over its block)."""
+    from controllers.condensed import blocking_matrix, move_blocks
+
+    model = synthetic_model()
+    moves, samples, lam = 6, 15, 0.05
+    settings = MPCSettings(horizon=moves, prediction_horizon=samples, rate_weight=lam)
+    mpc = LinearMPC(model, TASK, settings)
+    assert mpc.blocks == move_blocks(moves, samples) and mpc.prediction_samples == samples
+    assert mpc.describe()["move_blocks"] == list(mpc.blocks)
+    hold = blocking_matrix(mpc.blocks)
+    rng = np.random.default_rng(4)
+    for _ in range(4):
+        x0, d = rng.normal(0.0, 5.0, model.n_states), rng.normal(0.0, 3.0)
+        targets = rng.uniform(-20.0, 20.0, samples)
+        mpc._z_prev = z_prev = rng.uniform(-5.0, 5.0)
+        got = mpc._solve(np.r_[x0, d], targets)
+        matrix, rhs = least_squares_form(model, x0, d, targets, z_prev, lam)
+        responses = matrix[:samples] @ hold  # outputs per move
+        diff = np.eye(moves) - np.eye(moves, k=-1)
+        blocked = np.vstack([responses, np.sqrt(lam) * diff])
+        blocked_rhs = np.r_[rhs[:samples], np.sqrt(lam) * z_prev * np.eye(moves)[0]]
+        expected = np.linalg.lstsq(blocked, blocked_rhs, rcond=None)[0][0]
+        assert got == pytest.approx(expected, abs=1e-9 * (1 + abs(expected)))
+
+
+def test_resonance_prediction_covers_the_slowest_first_mode_of_the_datasheet():
+    """On the oracle's model of the PL140 at 0.1 ms: one period of its first mode moved 20 %
+    down, from the mode's analytic frequency (the env calibrates it to the datasheet's)."""
+    import math
+
+    from controllers.tolerance_box import RESONANCE_TOLERANCE
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, dt=1e-4)
+    mpc = controllers.make("mpc", "plant", env, prediction_horizon="resonance")
+    f1 = env.unwrapped.model.params.datasheet.resonance  # Hz: the FE mode is calibrated to it
+    expected = math.ceil(1.0 / (f1 * (1.0 - RESONANCE_TOLERANCE) * 1e-4))
+    assert abs(mpc.prediction_samples - expected) <= 1  # modal damping moves |ln p| slightly
+    assert mpc.prediction_samples > 70 and mpc.blocks[0] == 1 and len(mpc.blocks) == 20
+    default = controllers.make("mpc", "plant", env)
+    assert default.prediction_samples == 20 and default.blocks == (1,) * 20
+    with pytest.raises(ValueError, match="at least horizon"):
+        MPCSettings(horizon=20, prediction_horizon=10)
