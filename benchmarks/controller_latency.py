@@ -1,22 +1,27 @@
 """Controller latency: compute time per step of every controller, against a CartPole-v1 step.
 
 Each controller runs closed loop on PiezoBender-v0 (PL140, noise on, preview 20) tracking a
-half-stroke 50 Hz sine, with one BLAS thread (threadpoolctl); the time of each ``act`` call
-(observer, solver, inverse: everything) is recorded, and a step longer than the sample time is
-a deadline miss. The adaptive MPC also runs where it adapts (the box's corner with its gain 20 %
-up, its resonance 20 % low, damping 0.04), and the MPCs run on the PL127 at its own 0.25 ms (model
-``tests/data/pl127-model``; on its corner with gain and resonance 20 % up, damping 0.01).
-Beside it, in the same process: the OSQP solve alone (the MPC forced to call OSQP at every
-step), the nonlinearity inverse alone, and a CartPole-v1 step through ``gymnasium.make``, the
-reference the ratios are taken against (absolute times on shared machines drift; ratios
-travel). IPOPT (``nmpc-ipopt``) runs a shorter
-episode. Writes ``benchmarks/results/controller_latency.md``.
+half-stroke 50 Hz sine, with one BLAS thread (threadpoolctl) and the garbage collector off
+inside episodes (as the benchmark runs them, and as a real-time loop would); the time of each
+``act`` call (observer, solver, inverse: everything) is recorded, and a step longer than the
+sample time is a deadline miss. The QP rows force a QP at every step (``shortcut=False``), with
+DAQP (the default solver) and with OSQP. A second table runs the MPC at 10 kHz: the PL140 at
+0.1 ms (model ``tests/data/pl140-0.1ms-model``, identified there) on every benchmark reference
+and on a drive-saturating 500 Hz sine (a QP at every step), 2 s each, against the 100 us
+deadline. The adaptive MPC also runs where it adapts (the box's corner with its gain 20 %
+up, its resonance 20 % low, damping 0.04), and the MPCs run on the PL127 at its own 0.25 ms
+(model ``tests/data/pl127-model``; on its corner with gain and resonance 20 % up, damping
+0.01). Beside it, in the same process: the QP solve alone, the nonlinearity inverse alone, and
+a CartPole-v1 step through ``gymnasium.make``, the reference the ratios are taken against
+(absolute times on shared machines drift; ratios travel). IPOPT (``nmpc-ipopt``) runs a
+shorter episode. Writes ``benchmarks/results/controller_latency.md``.
 
 Run: ``python -m benchmarks.controller_latency`` (a few minutes).
 """
 
 from __future__ import annotations
 
+import gc
 import time
 
 import gymnasium as gym
@@ -28,9 +33,12 @@ import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from benchmarks._common import header, markdown_table, single_env_step_times, write_result
 from benchmarks.corners import vertex_env
 from benchmarks.plants import EPISODE_S, sample_time
+from benchmarks.references import REFERENCES, make_reference
 
 MODEL_DIR = "docs/identify/model"
 PL127_MODEL = "tests/data/pl127-model"
+MODEL_10KHZ = "tests/data/pl140-0.1ms-model"
+DT_10KHZ = 1e-4
 STEPS = 2000
 IPOPT_STEPS = 200
 
@@ -59,7 +67,7 @@ def controller_times(
     c = controllers.make(name, model, env, **options)
     parts: dict[str, list[float]] = {"qp": [], "inverse": []}
     if hasattr(c, "_setup_solver"):
-        # The OSQP solver is set up afresh at each reset: time the solve of each new one.
+        # The QP solver is set up afresh at each reset: time the solve of each new one.
         setup = c._setup_solver
 
         def timed_setup(*args, **kwargs):
@@ -75,16 +83,56 @@ def controller_times(
     stroke = env.unwrapped.model.stroke_um
     t = np.arange(1, steps + 22) * dt
     reference = 0.5 * stroke * np.sin(2 * np.pi * 50.0 * t)
-    episode = controllers.run_episode(
-        plant or env, c, seed=0, reference=reference, max_steps=steps, stroke_um=stroke
-    )
+    episode = quiet_episode(plant or env, c, reference, steps, stroke)
     return {
         "step": episode.compute_s * 1e6,
         "misses": np.array([int(np.sum(episode.compute_s > dt))]),
         "qp": np.asarray(parts["qp"]),
         "inverse": np.asarray(parts["inverse"]),
         "rmse": np.array([episode.metrics["rmse_percent"]]),
+        "iterations": np.array([episode.metrics.get("solver_iterations_max") or 0]),
     }
+
+
+def quiet_episode(env, controller, reference: np.ndarray, steps: int, stroke: float):
+    """One episode with the garbage collector frozen and off (the benchmark's way)."""
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    try:
+        return controllers.run_episode(
+            env, controller, seed=0, reference=reference, max_steps=steps, stroke_um=stroke
+        )
+    finally:
+        gc.enable()
+        gc.unfreeze()
+
+
+def ten_khz_rows(cart_median: float) -> list[list[str]]:
+    """``mpc`` on the PL140 at 0.1 ms over every benchmark reference and a saturating 500 Hz
+    sine: step times against the 100 us deadline, worst QP iterations, RMSE."""
+    steps = round(EPISODE_S / DT_10KHZ)
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, dt=DT_10KHZ, max_episode_steps=steps)
+    stroke = env.unwrapped.model.stroke_um
+    c = controllers.make("mpc", MODEL_10KHZ, env)
+    t = np.arange(steps + 21) * DT_10KHZ
+    signals = {name: make_reference(name, steps + 21, dt=DT_10KHZ, seed=0) for name in REFERENCES}
+    signals["sine-500Hz, 1500 um (saturating)"] = 1500.0 * np.sin(2 * np.pi * 500.0 * t)
+    rows = []
+    for name, reference in signals.items():
+        episode = quiet_episode(env, c, reference, steps, stroke)
+        step = episode.compute_s * 1e6
+        rows.append(
+            [
+                name,
+                *stats(step),
+                f"{int(np.sum(step > DT_10KHZ * 1e6))} of {step.size}",
+                f"{np.median(step) / cart_median:.1f}",
+                str(episode.metrics.get("solver_iterations_max") or 0),
+                f"{episode.metrics['rmse_percent']:.3f}",
+            ]
+        )
+    return rows
 
 
 def stats(x: np.ndarray) -> tuple[str, str, str]:
@@ -112,7 +160,8 @@ def main() -> None:
         ("pid-notch", "pid-notch", STEPS, {}),
         ("pid-ff", "pid-ff", STEPS, {}),
         ("mpc", "mpc", STEPS, {}),
-        ("mpc (OSQP every step)", "mpc", STEPS, {"shortcut": False}),
+        ("mpc (DAQP every step)", "mpc", STEPS, {"shortcut": False}),
+        ("mpc (OSQP every step)", "mpc", STEPS, {"shortcut": False, "qp_solver": "osqp"}),
         ("mpc-adaptive", "mpc-adaptive", STEPS, {}),
         ("mpc-adaptive (corner x1.2, x0.8, 0.04)", "mpc-adaptive", STEPS, {"plant": corner}),
         ("nmpc", "nmpc", STEPS, {}),
@@ -136,7 +185,7 @@ def main() -> None:
             try:
                 r = controller_times(run_env, name, steps, **options)
             except Exception as error:  # a missing optional solver must not hide the rest
-                rows.append([label, f"failed: {error}", "", "", "", "", "", "", ""])
+                rows.append([label, f"failed: {error}", *[""] * 9])
                 continue
             median = float(np.median(r["step"]))
             rows.append(
@@ -145,11 +194,14 @@ def main() -> None:
                     *stats(r["step"]),
                     f"{int(r['misses'][0])} of {r['step'].size}",
                     f"{median / cart_median:.1f}",
+                    f"{np.quantile(r['step'], 0.99) / cart_median:.1f}",
                     stats(r["qp"])[0],
+                    str(int(r["iterations"][0])),
                     stats(r["inverse"])[0],
                     f"{r['rmse'][0]:.3f}",
                 ]
             )
+        fast = ten_khz_rows(cart_median)
         lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
     lines += [
         f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
@@ -169,11 +221,29 @@ def main() -> None:
                 "step max (us)",
                 "deadline misses",
                 "median / CartPole step",
+                "p99 / CartPole step",
                 "QP solve median (us)",
+                "QP iterations (max)",
                 "inverse median (us)",
                 "RMSE (% stroke)",
             ],
             rows,
+        ),
+        "",
+        "## `mpc` at 10 kHz (PL140, 0.1 ms, 100 us deadline)",
+        "",
+        markdown_table(
+            [
+                "reference",
+                "step median (us)",
+                "step p99 (us)",
+                "step max (us)",
+                "deadline misses",
+                "median / CartPole step",
+                "QP iterations (max)",
+                "RMSE (% stroke)",
+            ],
+            fast,
         ),
     ]
     write_result("controller_latency", lines)
