@@ -420,11 +420,16 @@ class AdaptiveMPC(LinearMPC):
         one (the set the data still allow)."""
         gain = self._gain
         misfit = gain.misfit
-        best = float(np.min(misfit))
-        index = int(np.argmin(misfit))
-        variance = max(best, measurement_std(self.settings.measurement_std, self.task) ** 2)
+        index = int(misfit.argmin())
+        best = float(misfit[index])
+        variance = max(best, self._noise_variance)
         samples = gain.count * gain.independent_fraction_of(index)
         return np.flatnonzero((misfit - best) * samples / variance <= SWITCH_CHI2)
+
+    @property
+    def _noise_variance(self) -> float:
+        """The sensor noise's variance the tests use (um^2)."""
+        return measurement_std(self.settings.measurement_std, self.task) ** 2
 
     # -- episode --------------------------------------------------------------------------------
 
@@ -466,7 +471,7 @@ class AdaptiveMPC(LinearMPC):
             self._allowed = self._allow(plausible)
         gain = self._gain
         misfit = gain.misfit
-        noise = measurement_std(self.settings.measurement_std, self.task) ** 2
+        noise = self._noise_variance
         in_use = gain.count * gain.independent_fraction_of(self._member)
         if misfit[self._member] * in_use / noise <= chi2_upper(in_use):
             return  # the model in use explains the data to within the sensor noise
