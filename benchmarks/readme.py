@@ -39,7 +39,19 @@ __all__ = [
 ]
 
 ROOT = Path(__file__).resolve().parents[1]
-_LABELS = {"mpc": "`mpc` (OSQP)", "nmpc": "`nmpc` (casadi, RTI)"}
+
+
+def _label(row: str, data: dict[str, Any], members: dict[str, list[str]]) -> str:
+    """A row's name, with the QP solver the run recorded for the MPCs (from its description,
+    so that the label states what produced the numbers)."""
+    if row in members:
+        return row
+    described = data.get("controllers", {}).get(row, {})
+    solver = described.get("qp_solver") or described.get("solver")
+    if row in ("mpc", "nmpc") and solver:
+        name = str(solver).split()[0].upper()
+        return f"`{row}` ({'RTI, ' if row == 'nmpc' else ''}{name})"
+    return f"`{row}`"
 
 
 def _nominal(data: dict[str, Any]) -> dict[tuple[str, str], float]:
@@ -94,7 +106,7 @@ def headline_table(data: dict[str, Any]) -> str:
     for row in rows:
         medians = [m for n in members.get(row, [row]) for m in steps.get(n, [])]
         step = f"{np.median(medians):.0f}" if medians else ""
-        label = _LABELS.get(row, f"`{row}`" if row not in members else row)
+        label = _label(row, data, members)
         lines.append(f"| {label} | " + " | ".join(cell(row, r) for r in refs) + f" | {step} |")
     return "\n".join(lines)
 
