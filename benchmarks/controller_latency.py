@@ -14,14 +14,17 @@ up, its resonance 20 % low, damping 0.04), and the MPCs run on the PL127 at its 
 0.01). Beside it, in the same process: the QP solve alone, the nonlinearity inverse alone, and
 a CartPole-v1 step through ``gymnasium.make``, the reference the ratios are taken against
 (absolute times on shared machines drift; ratios travel). IPOPT (``nmpc-ipopt``) runs a
-shorter episode. Writes ``benchmarks/results/controller_latency.md``.
+shorter episode. Writes ``benchmarks/results/controller_latency.md`` and the same numbers as
+``controller_latency.json`` (the README's block is generated from it).
 
 Run: ``python -m benchmarks.controller_latency`` (a few minutes).
 """
 
 from __future__ import annotations
 
+import datetime
 import gc
+import json
 import time
 
 import gymnasium as gym
@@ -30,7 +33,14 @@ from threadpoolctl import threadpool_limits
 
 import controllers
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
-from benchmarks._common import header, markdown_table, single_env_step_times, write_result
+from benchmarks._common import (
+    RESULTS,
+    header,
+    machine_line,
+    markdown_table,
+    single_env_step_times,
+    write_result,
+)
 from benchmarks.corners import vertex_env
 from benchmarks.plants import EPISODE_S, sample_time
 from benchmarks.references import REFERENCES, make_reference
@@ -91,6 +101,8 @@ def controller_times(
         "inverse": np.asarray(parts["inverse"]),
         "rmse": np.array([episode.metrics["rmse_percent"]]),
         "iterations": np.array([episode.metrics.get("solver_iterations_max") or 0]),
+        "metrics": episode.metrics,
+        "dt": dt,
     }
 
 
@@ -108,9 +120,10 @@ def quiet_episode(env, controller, reference: np.ndarray, steps: int, stroke: fl
         gc.unfreeze()
 
 
-def ten_khz_rows(cart_median: float) -> list[list[str]]:
+def ten_khz_rows(cart_median: float, record: list[dict]) -> list[list[str]]:
     """``mpc`` on the PL140 at 0.1 ms over every benchmark reference and a saturating 500 Hz
-    sine: step times against the 100 us deadline, worst QP iterations, RMSE."""
+    sine: step times against the 100 us deadline, worst QP iterations, RMSE (each row also
+    appended to ``record`` as numbers)."""
     steps = round(EPISODE_S / DT_10KHZ)
     env = gym.make("piezo_env:PiezoBender-v0", preview=20, dt=DT_10KHZ, max_episode_steps=steps)
     stroke = env.unwrapped.model.stroke_um
@@ -122,17 +135,36 @@ def ten_khz_rows(cart_median: float) -> list[list[str]]:
     for name, reference in signals.items():
         episode = quiet_episode(env, c, reference, steps, stroke)
         step = episode.compute_s * 1e6
+        entry = numbers(name, step, DT_10KHZ, cart_median, episode.metrics)
+        record.append(entry)
         rows.append(
             [
                 name,
                 *stats(step),
-                f"{int(np.sum(step > DT_10KHZ * 1e6))} of {step.size}",
-                f"{np.median(step) / cart_median:.1f}",
-                str(episode.metrics.get("solver_iterations_max") or 0),
-                f"{episode.metrics['rmse_percent']:.3f}",
+                f"{entry['misses']} of {entry['steps']}",
+                f"{entry['median_ratio']:.1f}",
+                str(entry["qp_iterations_max"]),
+                f"{entry['rmse_percent']:.3f}",
             ]
         )
     return rows
+
+
+def numbers(label: str, step: np.ndarray, dt: float, cart_median: float, metrics: dict) -> dict:
+    """One row of ``controller_latency.json`` (times in us, ratios to the CartPole median)."""
+    median, p99, worst = (float(v) for v in np.quantile(step, [0.5, 0.99, 1.0]))
+    return {
+        "label": label,
+        "median_us": median,
+        "p99_us": p99,
+        "max_us": worst,
+        "misses": int(np.sum(step > dt * 1e6)),
+        "steps": int(step.size),
+        "median_ratio": median / cart_median,
+        "p99_ratio": p99 / cart_median,
+        "qp_iterations_max": int(metrics.get("solver_iterations_max") or 0),
+        "rmse_percent": float(metrics["rmse_percent"]),
+    }
 
 
 def stats(x: np.ndarray) -> tuple[str, str, str]:
@@ -175,7 +207,7 @@ def main() -> None:
             {**pl127, "plant": corner127},
         ),
     ]
-    rows = []
+    rows, record, fast_record = [], [], []
     with threadpool_limits(1):
         cart = single_env_step_times("CartPole-v1", 20_000) * 1e6
         cart_median = float(np.median(cart))
@@ -188,6 +220,7 @@ def main() -> None:
                 rows.append([label, f"failed: {error}", *[""] * 9])
                 continue
             median = float(np.median(r["step"]))
+            record.append(numbers(label, r["step"], r["dt"], cart_median, r["metrics"]))
             rows.append(
                 [
                     label,
@@ -201,7 +234,7 @@ def main() -> None:
                     f"{r['rmse'][0]:.3f}",
                 ]
             )
-        fast = ten_khz_rows(cart_median)
+        fast = ten_khz_rows(cart_median, fast_record)
         lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
     lines += [
         f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
@@ -247,6 +280,16 @@ def main() -> None:
         ),
     ]
     write_result("controller_latency", lines)
+    summary = {
+        "date": datetime.date.today().isoformat(),
+        "machine": machine_line(),
+        "cartpole_median_us": cart_median,
+        "cartpole_p99_us": float(np.quantile(cart, 0.99)),
+        "controllers": record,
+        "mpc_10khz": fast_record,
+    }
+    path = RESULTS / "controller_latency.json"
+    path.write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
 
 
 if __name__ == "__main__":

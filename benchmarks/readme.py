@@ -9,7 +9,10 @@
   identification costs, the reference checks that were missed);
 - ``adaptation`` from the same file: ``mpc`` against ``mpc-adaptive`` on the robustness
   plants, whole episode and second half, and the Monte Carlo worst cases;
-- ``identification`` from ``docs/identify/report.json`` (``piezo identify --out docs/identify``).
+- ``identification`` from ``docs/identify/report.json`` (``piezo identify --out docs/identify``);
+- ``latency`` from ``benchmarks/results/controller_latency.json``
+  (``python -m benchmarks.controller_latency``): step times as ratios to a CartPole-v1 step of
+  the same run, deadline misses, the MPC at 10 kHz, and the speed targets they miss.
 
 ``--check`` only compares (a test runs it).
 """
@@ -34,6 +37,7 @@ __all__ = [
     "headline",
     "headline_table",
     "identification",
+    "latency",
     "render",
     "update_readme",
 ]
@@ -301,11 +305,72 @@ def other_bender(data: dict[str, Any]) -> str:
     ])
 
 
+LATENCY_ROWS = (
+    "pid-ff",
+    "mpc",
+    "mpc (DAQP every step)",
+    "mpc (OSQP every step)",
+    "mpc-adaptive",
+    "nmpc",
+    "mpc (PL127, 0.25 ms)",
+    "mpc-adaptive (PL127, 0.25 ms)",
+    "mpc-adaptive (PL127 corner x1.2, x1.2, 0.01)",
+)
+"""The rows of the latency block, in its order."""
+
+
+def latency(data: dict[str, Any]) -> str:
+    """Step times against a CartPole-v1 step, the MPC at 10 kHz, and the targets missed."""
+    rows = {r["label"]: r for r in data["controllers"]}
+    lines = [
+        f"Committed run of {data['date']} ({data['machine']}), one BLAS thread; a CartPole-v1 "
+        f"step took {data['cartpole_median_us']:.1f} us in the same run.",
+        "",
+        "| controller | step median (us) | median / CartPole | p99 / CartPole | deadline misses "
+        "| QP iterations (max) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for label in LATENCY_ROWS:
+        if label in rows:
+            r = rows[label]
+            lines.append(
+                f"| `{label}` | {r['median_us']:.1f} | {r['median_ratio']:.1f} | "
+                f"{r['p99_ratio']:.1f} | {r['misses']} of {r['steps']} | {r['qp_iterations_max']} |"
+            )
+    fast = data.get("mpc_10khz", [])
+    if fast:
+        clean = sum(r["misses"] == 0 for r in fast)
+        worst = max(fast, key=lambda r: (r["misses"], r["max_us"]))
+        lines += [
+            "",
+            f"`mpc` at 10 kHz (PL140, 0.1 ms, deadline 100 us): {clean} of {len(fast)} references "
+            f"without a deadline miss over 2 s; the worst, {worst['label']}, "
+            f"{worst['misses']} of {worst['steps']} steps (max {worst['max_us']:.0f} us, "
+            f"{worst['qp_iterations_max']} QP iterations at most).",
+        ]
+    mpc, adaptive, nmpc = (rows.get(k) for k in ("mpc", "mpc-adaptive", "nmpc"))
+    missed = []
+    if mpc and mpc["median_ratio"] > 2.0:
+        ratio = mpc["median_ratio"]
+        missed.append(f"`mpc`'s median step is {ratio:.1f}x a CartPole step (target 2x)")
+    if mpc and mpc["p99_ratio"] > 5.0:
+        missed.append(f"its p99 {mpc['p99_ratio']:.1f}x (target 5x)")
+    if nmpc and nmpc["median_ratio"] > 10.0:
+        missed.append(f"`nmpc`'s median {nmpc['median_ratio']:.1f}x (target 10x)")
+    if mpc and adaptive and adaptive["median_us"] > 1.5 * mpc["median_us"]:
+        ratio = adaptive["median_us"] / mpc["median_us"]
+        missed.append(f"`mpc-adaptive`'s median {ratio:.1f}x `mpc`'s (target 1.5x)")
+    if missed:
+        lines += ["", "Speed targets missed in this run: " + "; ".join(missed) + "."]
+    return "\n".join(lines)
+
+
 BLOCKS = {
     "headline": ("docs/benchmark/benchmark.json", headline),
     "headline-PL127": ("docs/benchmark-PL127/benchmark.json", other_bender),
     "adaptation": ("docs/benchmark/benchmark.json", adaptation),
     "identification": ("docs/identify/report.json", identification),
+    "latency": ("benchmarks/results/controller_latency.json", latency),
 }
 """Marker name -> (the committed file it is generated from, the function that renders it)."""
 
