@@ -228,13 +228,13 @@ class DAQPBoxQP(BoxQP):
             data["blower"], data["bupper"] = low, high
         if hessian is not None:
             data["H"] = hessian
-        if not np.any(warm_duals):
+        if not warm_duals.any():
             data["sense"] = self._no_active_set
         self._model.update(**data)
         x, _, flag, info = self._model.solve()
         iterations = int(info["iterations"])
         status = DAQP_STATUS.get(int(flag), f"exit flag {int(flag)}")
-        if flag <= 0 or not np.all(np.isfinite(x)):
+        if flag <= 0 or not np.isfinite(x).all():
             return BoxQPSolution(None, None, status, iterations)
         return BoxQPSolution(np.clip(x, self.lower, self.upper), info["lam"], status, iterations)
 
