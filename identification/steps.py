@@ -1,8 +1,10 @@
 """The steps a-f of the paper's procedure (section 3.4), one function each, and their results.
 
-Each step takes what the earlier steps returned and the settings; the experiments (steps a and
-c, and the selection and validation records of e and f) run on the environment through
-:func:`identification.experiment.collect`.
+Each step takes what the earlier steps returned, the measured records and the settings. The
+records come from a bender, simulated or real: :func:`identification.experiment.measure`
+drives the environment with the inputs of :func:`identification.experiment.experiment_inputs`
+(:func:`excite_prbs` and :func:`excite_rich` measure one record each), and
+:mod:`identification.records` reads them from files.
 """
 
 from __future__ import annotations
@@ -17,7 +19,13 @@ import numpy as np
 from identification.arx import ARXModel
 from identification.config import ORDER_TIE_PERCENT, IdentificationConfig
 from identification.estimation import fit_arx
-from identification.experiment import collect, sample_time
+from identification.experiment import (
+    collect,
+    experiment_inputs,
+    rand_signal,
+    sample_time,
+    step_seeds,
+)
 from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
@@ -25,7 +33,6 @@ from identification.metrics import fit_metrics
 from identification.nls import fit_nls
 from identification.nls.output_error import free_run_rms, move_gain, refine_nls_output_error
 from identification.refine import OutputErrorFit, refine_output_error
-from piezo_env.signals import make_signal
 
 __all__ = [
     "ArxEstimate",
@@ -247,14 +254,7 @@ def excite_prbs(
     env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step a: drive the bender with a PRBS of level ``config.prbs_amplitude`` (V); (u, y)."""
-    u = make_signal(
-        "prbs",
-        config.prbs_samples,
-        dt=sample_time(env),
-        rng=np.random.default_rng(seeds["prbs"]),
-        amplitude=config.prbs_amplitude,
-        clock_period=config.prbs_clock,
-    )
+    u = experiment_inputs(config, sample_time(env), seeds)["prbs"]
     return collect(env, u, seed=seeds["env"])
 
 
@@ -359,16 +359,7 @@ def excite_rich(
     env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step c: drive the bender with the rich signal of ``config`` (V); (u, y)."""
-    dt = sample_time(env)
-    config = config.at_sample_time(dt)
-    u = make_signal(
-        config.rich_signal,
-        config.rich_samples,
-        dt=dt,
-        rng=np.random.default_rng(seeds["rich"]),
-        amplitude=config.rich_amplitude,
-        **config.rich_signal_params(dt),
-    )
+    u = experiment_inputs(config, sample_time(env), seeds)["rich"]
     return collect(env, u, seed=seeds["env"] + 1)
 
 
@@ -385,25 +376,25 @@ def estimate_hidden_signal(arx: ARXModel, y_rich: np.ndarray, y_prbs: np.ndarray
 
 
 def fit_nonlinearity(
-    env: gym.Env,
     arx: ARXModel,
     u_train: np.ndarray,
     z_train: np.ndarray,
+    selection: tuple[np.ndarray, np.ndarray],
     config: IdentificationConfig,
     seeds: dict[str, int],
     *,
+    u_max: float,
+    u_prbs: np.ndarray,
     say: Callable[[str], None] = lambda _msg: None,
 ) -> NlsFit:
-    """Step e: fit the NLS to (u, z_hat); choose its features on a fresh RAND selection record.
+    """Step e: fit the NLS to (u, z_hat); choose its features on the held-out selection record.
 
     Every feature set of ``config.features`` ("auto": all of them) is trained and the Hammerstein
-    model it makes with ``arx`` scored by free-run fit (%) on the selection record.
+    model it makes with ``arx`` scored by free-run fit (%) on ``selection`` (u V, y um).
+    ``u_max`` (V) bounds the drive range the network is scaled to; ``u_prbs`` (V), the PRBS
+    record, measures its small-signal gain.
     """
-    u_max = float(env.action_space.high[0])
-    config = config.at_sample_time(sample_time(env))
-    n = config.validation_samples // 2
-    record = rand_signal(config, n, sample_time(env), seeds["selection"])
-    u_sel, y_sel = collect(env, record, seed=seeds["env"] + 2)
+    u_sel, y_sel = selection
     candidates = FEATURE_SETS if config.features == "auto" else (config.features,)
     fitted, scores = {}, {}
     for features in candidates:
@@ -422,7 +413,7 @@ def fit_nonlinearity(
         say(f"e) NLS with {features} features: selection fit {scores[features]:.2f} %")
     best = max(scores, key=scores.get)
     model = HammersteinModel(fitted[best], arx)
-    gain = _small_signal_gain(model, u_train[: config.prbs_samples])
+    gain = _small_signal_gain(model, u_prbs)
     return NlsFit(model, best, scores, gain, (u_sel, y_sel))
 
 
@@ -493,25 +484,24 @@ def _small_signal_gain(model: HammersteinModel, u_prbs: np.ndarray) -> float:
 
 
 def validate(
-    env: gym.Env,
+    record: tuple[np.ndarray, np.ndarray],
     model: HammersteinModel,
-    config: IdentificationConfig,
-    seeds: dict[str, int],
     *,
+    stroke_um: float | None,
     unrefined: ARXModel | None = None,
     unrefined_nls: HammersteinModel | None = None,
 ) -> Validation:
-    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data.
+    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh data.
 
-    ``unrefined``: the step b estimate when step b' replaced it, run free as well (its metrics
-    are None when it is unstable: it has no free run); ``unrefined_nls``: step e's model when
-    step e' replaced it, run free as well.
+    ``record``: the validation record (u V, y um), aligned as by :func:`collect`;
+    ``stroke_um``: the bender's one-sided stroke (um) the metrics' percentages refer to (None:
+    no percentages); ``unrefined``: the step b estimate when step b' replaced it, run free as
+    well (its metrics are None when it is unstable: it has no free run); ``unrefined_nls``:
+    step e's model when step e' replaced it, run free as well.
     """
-    config = config.at_sample_time(sample_time(env))
-    record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
-    u, y = collect(env, record, seed=seeds["env"] + 3)
+    u, y = record
     y_sim, y_lin, y_pred = model.simulate(u), model.arx.simulate(u), model.predict(u, y)
-    stroke = env.unwrapped.model.stroke_um
+    stroke = stroke_um  # the metrics' percentages refer to it
     metrics = {
         "hammerstein": fit_metrics(y, y_sim, stroke=stroke),
         "linear_arx": fit_metrics(y, y_lin, stroke=stroke),
@@ -530,26 +520,3 @@ def validate(
                 y, unrefined_nls.arx.simulate(u), stroke=stroke
             )
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
-
-
-# -- seeds and signals shared by the steps -----------------------------------------------------
-
-
-def step_seeds(seed: int) -> dict[str, int]:
-    """Independent seeds of the steps' signals, the env's noise and the training, from one."""
-    names = ("prbs", "rich", "selection", "validation", "env", "nls")
-    children = np.random.SeedSequence(seed).spawn(len(names))
-    return {name: int(c.generate_state(1)[0]) for name, c in zip(names, children, strict=True)}
-
-
-def rand_signal(config: IdentificationConfig, n: int, dt: float, seed: int) -> np.ndarray:
-    """``n`` samples of the RAND input of the selection and validation records, V (``dt`` in
-    s counts the default hold, :data:`identification.config.RAND_HOLD_S`)."""
-    return make_signal(
-        "random",
-        n,
-        dt=dt,
-        rng=np.random.default_rng(seed),
-        amplitude=config.validation_amplitude,
-        hold=config.at_sample_time(dt).validation_hold,
-    )
