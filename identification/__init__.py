@@ -7,8 +7,8 @@
 - :mod:`identification.hammerstein`: the model object the controllers use, saved as plain files.
 - :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment, and
   ``identify_records``, steps b-f on measured records (:mod:`identification.records`: the
-  files a bench reads and writes), one function per step (:mod:`identification.steps`), with its settings
-  (:mod:`identification.config`, ``IdentificationConfig``), its experiments
+  files a bench reads and writes), one function per step (:mod:`identification.steps`), with
+  its settings (:mod:`identification.config`, ``IdentificationConfig``), its experiments
   (:mod:`identification.experiment`: ``collect`` drives the environment open loop), the inverse
   ARX model (:mod:`identification.inversion`), and its result, report and files
   (:mod:`identification.outputs`: ``IdentificationResult``, ``write_outputs``; the report's

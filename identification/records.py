@@ -63,6 +63,8 @@ __all__ = [
     "RecordsError",
     "manifest_digest",
     "minimum_samples",
+    "read_excitation",
+    "read_manifest",
     "read_records",
     "records_from_arrays",
     "records_from_env",
@@ -457,6 +459,7 @@ def _times(n: int, dt: float) -> np.ndarray:
 def _write_record(out: Path, name: str, columns: dict[str, np.ndarray]) -> list[Path]:
     """``NAME.csv`` (time with 9 decimals, the rest with 17 significant digits: exact) and
     ``NAME.npz``."""
+    out.mkdir(parents=True, exist_ok=True)
     csv_path, npz_path = out / f"{name}.csv", out / f"{name}.npz"
     header = ",".join(columns)
     table = np.column_stack(list(columns.values()))
@@ -510,11 +513,7 @@ def read_records(
     listed = manifest["records"]
     arrays, where = {}, {}
     for name, file in listed.items():
-        if not isinstance(file, str) or not file:
-            raise RecordsError(f"{path}: field 'records.{name}' must be a file name")
-        record = folder / file
-        if not record.is_file():
-            raise RecordsError(f"{record}: missing (listed as record {name!r} in {path})")
+        record = _listed(folder, path, name, file)
         columns, offset = _read_columns(record)
         _check_time(columns["time_s"], dt, record, path, offset)
         arrays[name] = (columns["voltage_V"], columns["deflection_um"])
@@ -545,6 +544,46 @@ def read_records(
     )
     plant = manifest.get("plant") or {}
     return dataclasses.replace(records, plant=dict(plant))
+
+
+def read_excitation(folder: str | Path) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Read and check the input records of ``folder/records.json`` (``time_s,voltage_V``).
+
+    Returns
+    -------
+    manifest : dict
+        The manifest.
+    inputs : dict of numpy.ndarray
+        Record name -> drive voltage, V.
+
+    Raises
+    ------
+    RecordsError
+        As :func:`read_records`, for the columns of an input record.
+    """
+    folder = Path(folder)
+    path = folder / MANIFEST
+    manifest = _read_manifest(path)
+    dt = _positive(manifest, "dt", path)
+    low, high = _drive_range(manifest.get("drive_range_V"), f"{path}: field 'drive_range_V'")
+    inputs = {}
+    for name, file in manifest["records"].items():
+        record = _listed(folder, path, name, file)
+        columns, offset = _read_columns(record, INPUT_COLUMNS)
+        _check_time(columns["time_s"], dt, record, path, offset)
+        _check_drive(columns["voltage_V"], low, high, str(record), offset=offset)
+        inputs[name] = columns["voltage_V"]
+    return manifest, inputs
+
+
+def _listed(folder: Path, manifest: Path, name: str, file: Any) -> Path:
+    """The file of record ``name``, which must exist."""
+    if not isinstance(file, str) or not file:
+        raise RecordsError(f"{manifest}: field 'records.{name}' must be a file name")
+    record = folder / file
+    if not record.is_file():
+        raise RecordsError(f"{record}: missing (listed as record {name!r} in {manifest})")
+    return record
 
 
 def read_manifest(folder: str | Path) -> dict[str, Any]:
@@ -600,15 +639,17 @@ def _drive_range(value: Any, label: str) -> tuple[float, float]:
     return float(value[0]), float(value[1])
 
 
-def _read_columns(path: Path) -> tuple[dict[str, np.ndarray], int]:
-    """The columns of a measured record, and the offset from array index to the line number
+def _read_columns(
+    path: Path, names: tuple[str, ...] = MEASURED_COLUMNS
+) -> tuple[dict[str, np.ndarray], int]:
+    """The columns ``names`` of a record, and the offset from array index to the line number
     (2 for a CSV: the header is line 1; 0 for an NPZ, whose messages name the index)."""
     if path.suffix.lower() == ".npz":
         with np.load(path, allow_pickle=False) as data:
-            missing = [c for c in MEASURED_COLUMNS if c not in data.files]
+            missing = [c for c in names if c not in data.files]
             if missing:
                 raise RecordsError(f"{path}: missing array(s) {', '.join(missing)}")
-            columns = {c: np.asarray(data[c], dtype=float) for c in MEASURED_COLUMNS}
+            columns = {c: np.asarray(data[c], dtype=float) for c in names}
         for column, values in columns.items():
             if values.shape != columns["time_s"].shape or values.ndim != 1:
                 raise RecordsError(f"{path}: array {column} must be 1-D, as long as time_s")
@@ -617,20 +658,20 @@ def _read_columns(path: Path) -> tuple[dict[str, np.ndarray], int]:
     with path.open(encoding="utf-8-sig", newline="") as handle:
         rows = list(csv.reader(handle))
     if not rows:
-        raise RecordsError(f"{path}: empty; expected the header {','.join(MEASURED_COLUMNS)}")
+        raise RecordsError(f"{path}: empty; expected the header {','.join(names)}")
     header = [cell.strip() for cell in rows[0]]
-    missing = [c for c in MEASURED_COLUMNS if c not in header]
+    missing = [c for c in names if c not in header]
     if missing:
         raise RecordsError(
             f"{path}, line 1: missing column(s) {', '.join(missing)}; the header must name "
-            f"{','.join(MEASURED_COLUMNS)} (got {','.join(header)})"
+            f"{','.join(names)} (got {','.join(header)})"
         )
     body = rows[1:]
     while body and not any(cell.strip() for cell in body[-1]):
         body.pop()  # a blank last line
-    index = [header.index(c) for c in MEASURED_COLUMNS]
+    index = [header.index(c) for c in names]
     columns = {}
-    for column, i in zip(MEASURED_COLUMNS, index, strict=True):
+    for column, i in zip(names, index, strict=True):
         columns[column] = _parse_column(body, i, path, column)
         _check_finite(columns[column], str(path), column, offset=2)
     return columns, 2
