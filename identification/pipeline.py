@@ -219,7 +219,9 @@ def identify_records(
     if seed is not None:
         records = dataclasses.replace(records, seed=int(seed))
     config = dataclasses.replace(config, seed=records.seed).at_sample_time(records.dt)
-    lengths = {name: len(u) for name, (u, _) in records.records.items()}
+    lengths = {
+        name: len(u) - records.lead_in.get(name, 0) for name, (u, _) in records.records.items()
+    }
     config = dataclasses.replace(
         config,
         prbs_samples=lengths["prbs"],
@@ -272,6 +274,7 @@ def _identify(
         seeds,
         u_max=records.u_max,
         u_prbs=u_prbs,
+        lead_in=records.lead_in.get("selection", 0),
         say=log.say,
     )
     log("e_nls_training", _gain_line(nls))
@@ -289,6 +292,7 @@ def _identify(
         stroke_um=records.stroke_um,
         unrefined=est.model,
         unrefined_nls=nls.model,
+        lead_in=records.lead_in.get("validation", 0),
     )
     log("f_validation", _validation_line(config, val))
 

@@ -28,7 +28,9 @@ FRACTION: its first FRACTION is the estimation record, used as the PRBS record o
 and as the rich record of steps d, e, e' (without a two-level input the decoupling of the
 linear part (Bai 2004) holds only approximately, so the ARX part starts from the best linear
 approximation and step e' refines both together); the rest is held out, its first half the
-selection record of step e, its second half the validation record of step f.
+selection record of step e, its second half the validation record of step f. The bench is not
+at rest where a held-out part begins (vibration, hysteresis memory), so the models run free
+from the start of the record and are scored on the held-out part only.
 
 Every check runs before any work and refuses in one line naming the file and the line or
 field (:class:`RecordsError`, a ``ValueError``).
@@ -139,6 +141,10 @@ class Records:
         "manifest": path, "manifest_sha256": digest}`` (and ``"split"``).
     shared : bool
         True when one record serves as both the PRBS and the rich record (a split record).
+    lead_in : dict
+        Record name -> samples at its start that the models run over from rest but that are
+        not scored: a split record's held-out parts are the tail of the record from its start,
+        since the bench was not at rest where they begin (vibration, hysteresis memory).
     """
 
     records: dict[str, tuple[np.ndarray, np.ndarray]]
@@ -151,6 +157,7 @@ class Records:
     plant: dict[str, Any] = field(default_factory=dict)
     source: dict[str, Any] = field(default_factory=lambda: {"kind": "arrays"})
     shared: bool = False
+    lead_in: dict[str, int] = field(default_factory=dict)
 
     @property
     def u_max(self) -> float:
@@ -262,7 +269,7 @@ def records_from_arrays(
             _check_finite(values, label, column, offset=0)
         _check_drive(u, low, high, label, offset=0)
         arrays[name] = (u, y)
-    shared = False
+    shared, lead_in = False, {}
     if split is not None:
         if len(arrays) != 1:
             raise RecordsError(
@@ -270,7 +277,8 @@ def records_from_arrays(
                 f"({', '.join(arrays)}): drop --split, or list one record"
             )
         ((name, (u, y)),) = arrays.items()
-        arrays, shared = _split(u, y, split, where.get(name, f"record {name!r}"), config), True
+        arrays, lead_in = _split(u, y, split, where.get(name, f"record {name!r}"), config)
+        shared = True
     else:
         if len(arrays) == 1 and not set(arrays) & set(RECORD_NAMES):
             raise RecordsError(
@@ -290,7 +298,7 @@ def records_from_arrays(
             raise RecordsError(f"unknown record(s) {unknown}; expected {', '.join(RECORD_NAMES)}")
     need = minimum_samples(config)
     for name, (u, _) in arrays.items():
-        if len(u) < need:
+        if len(u) - lead_in.get(name, 0) < need:
             label = where.get(name, f"record {name!r}")
             raise RecordsError(
                 f"{label}: {len(u)} samples ({name} record), too short for ARX orders up to "
@@ -309,13 +317,15 @@ def records_from_arrays(
         seed=int(seed),
         source=dict(source or {"kind": "arrays"}),
         shared=shared,
+        lead_in=lead_in,
     )
 
 
 def _split(
     u: np.ndarray, y: np.ndarray, fraction: float, label: str, config: IdentificationConfig
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Cut one record: estimation (PRBS and rich), then selection and validation halves."""
+) -> tuple[dict[str, tuple[np.ndarray, np.ndarray]], dict[str, int]]:
+    """Cut one record: estimation (PRBS and rich), then selection and validation halves, each
+    held-out part with the record before it as its lead-in."""
     if not (isinstance(fraction, (int, float)) and 0.0 < fraction < 1.0):
         raise RecordsError(f"split must be a fraction between 0 and 1 (e.g. 0.7); got {fraction!r}")
     n = len(u)
@@ -331,12 +341,13 @@ def _split(
             + f" samples; each part needs at least {need}: record longer or move the split"
         )
     estimation = (u[:cut], y[:cut])
-    return {
+    records = {
         "prbs": estimation,
         "rich": estimation,
-        "selection": (u[cut:half], y[cut:half]),
-        "validation": (u[half:], y[half:]),
+        "selection": (u[:half], y[:half]),
+        "validation": (u, y),
     }
+    return records, {"selection": cut, "validation": half}
 
 
 def _catalogue_datasheet(bender: str) -> dict[str, Any] | None:

@@ -31,7 +31,7 @@ from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
-from identification.nls.output_error import free_run_rms, move_gain, refine_nls_output_error
+from identification.nls.output_error import move_gain, refine_nls_output_error
 from identification.refine import OutputErrorFit, refine_output_error
 
 __all__ = [
@@ -153,6 +153,10 @@ class NlsFit:
         Slope of z against u on the PRBS record (1 by the scale convention).
     selection_record : tuple of numpy.ndarray
         The selection record (u V, y um), held out from the training; step e' is judged on it.
+    selection_lead_in : int
+        Samples at the start of the selection record that the model runs over but that are
+        not scored (the estimation part before a split record's held-out part: the model
+        starts from rest where the record starts).
     """
 
     model: HammersteinModel
@@ -160,6 +164,7 @@ class NlsFit:
     selection_scores: dict[str, float]
     small_signal_gain: float
     selection_record: tuple[np.ndarray, np.ndarray]
+    selection_lead_in: int = 0
 
 
 @dataclass
@@ -385,6 +390,7 @@ def fit_nonlinearity(
     *,
     u_max: float,
     u_prbs: np.ndarray,
+    lead_in: int = 0,
     say: Callable[[str], None] = lambda _msg: None,
 ) -> NlsFit:
     """Step e: fit the NLS to (u, z_hat); choose its features on the held-out selection record.
@@ -392,7 +398,8 @@ def fit_nonlinearity(
     Every feature set of ``config.features`` ("auto": all of them) is trained and the Hammerstein
     model it makes with ``arx`` scored by free-run fit (%) on ``selection`` (u V, y um).
     ``u_max`` (V) bounds the drive range the network is scaled to; ``u_prbs`` (V), the PRBS
-    record, measures its small-signal gain.
+    record, measures its small-signal gain; the first ``lead_in`` samples of ``selection`` are
+    run over but not scored.
     """
     u_sel, y_sel = selection
     candidates = FEATURE_SETS if config.features == "auto" else (config.features,)
@@ -409,12 +416,12 @@ def fit_nonlinearity(
             u_range=(-u_max, u_max),
         )
         y_hat = HammersteinModel(fitted[features], arx).simulate(u_sel)
-        scores[features] = float(fit_metrics(y_sel, y_hat)["fit_percent"])
+        scores[features] = float(fit_metrics(y_sel[lead_in:], y_hat[lead_in:])["fit_percent"])
         say(f"e) NLS with {features} features: selection fit {scores[features]:.2f} %")
     best = max(scores, key=scores.get)
     model = HammersteinModel(fitted[best], arx)
     gain = _small_signal_gain(model, u_prbs)
-    return NlsFit(model, best, scores, gain, (u_sel, y_sel))
+    return NlsFit(model, best, scores, gain, (u_sel, y_sel), lead_in)
 
 
 def refine_nonlinearity(
@@ -434,7 +441,7 @@ def refine_nonlinearity(
     feedforward invert B) is dropped for the network-only stage, and ``note`` says so.
     """
     start = nls.model
-    selection = {"before": free_run_rms(start.nls, start.arx, [nls.selection_record])}
+    selection = {"before": _selection_rms(start, nls)}
     if not start.arx.is_stable():
         return NlsRefinement(
             model=start,
@@ -457,7 +464,7 @@ def refine_nonlinearity(
         refusal = f"the refined network's small-signal gain is {gain:.3g}, not positive"
     else:
         refined = HammersteinModel(*move_gain(fit.nls, fit.arx, gain))
-        selection["after"] = free_run_rms(refined.nls, refined.arx, [nls.selection_record])
+        selection["after"] = _selection_rms(refined, nls)
         if selection["after"] < selection["before"]:
             model = refined
         else:
@@ -478,6 +485,16 @@ def refine_nonlinearity(
     return result
 
 
+def _selection_rms(model: HammersteinModel, nls: NlsFit) -> float:
+    """Free-run RMS output error (um) of ``model`` on step e's selection record, after its
+    lead-in (:func:`identification.nls.output_error.free_run_rms` of one record when there is
+    none)."""
+    u, y = nls.selection_record
+    error = model.arx.simulate(model.nls.evaluate(u)) - np.asarray(y, dtype=np.float64)
+    error = error[nls.selection_lead_in :]
+    return float(np.sqrt(float(error @ error) / error.size))
+
+
 def _small_signal_gain(model: HammersteinModel, u_prbs: np.ndarray) -> float:
     """Slope of z against u on the PRBS record (1 by the scale convention)."""
     return float(np.polyfit(u_prbs, model.nls_output(u_prbs), 1)[0])
@@ -490,6 +507,7 @@ def validate(
     stroke_um: float | None,
     unrefined: ARXModel | None = None,
     unrefined_nls: HammersteinModel | None = None,
+    lead_in: int = 0,
 ) -> Validation:
     """Step f: free-run simulation of the model (and of its ARX part alone) on fresh data.
 
@@ -497,10 +515,18 @@ def validate(
     ``stroke_um``: the bender's one-sided stroke (um) the metrics' percentages refer to (None:
     no percentages); ``unrefined``: the step b estimate when step b' replaced it, run free as
     well (its metrics are None when it is unstable: it has no free run); ``unrefined_nls``:
-    step e's model when step e' replaced it, run free as well.
+    step e's model when step e' replaced it, run free as well; ``lead_in``: samples at the
+    start of ``record`` that every model runs over from rest but that are not scored (the
+    estimation and selection parts before a split record's validation part).
     """
-    u, y = record
-    y_sim, y_lin, y_pred = model.simulate(u), model.arx.simulate(u), model.predict(u, y)
+    full = record[0]
+    u, y = (np.asarray(x)[lead_in:] for x in record)
+    runs = (model.simulate(full), model.arx.simulate(full), model.predict(*record))
+    y_sim, y_lin, y_pred = (x[lead_in:] for x in runs)
+
+    def tail(x: np.ndarray) -> np.ndarray:
+        return x[lead_in:]
+
     stroke = stroke_um  # the metrics' percentages refer to it
     metrics = {
         "hammerstein": fit_metrics(y, y_sim, stroke=stroke),
@@ -509,14 +535,16 @@ def validate(
     }
     if unrefined is not None and unrefined is not model.arx:
         metrics["linear_arx_unrefined"] = (
-            fit_metrics(y, unrefined.simulate(u), stroke=stroke) if unrefined.is_stable() else None
+            fit_metrics(y, tail(unrefined.simulate(full)), stroke=stroke)
+            if unrefined.is_stable()
+            else None
         )
     if unrefined_nls is not None and unrefined_nls is not model:
         metrics["hammerstein_unrefined_nls"] = fit_metrics(
-            y, unrefined_nls.simulate(u), stroke=stroke
+            y, tail(unrefined_nls.simulate(full)), stroke=stroke
         )
         if unrefined_nls.arx is not model.arx:
             metrics["linear_arx_before_e2"] = fit_metrics(
-                y, unrefined_nls.arx.simulate(u), stroke=stroke
+                y, tail(unrefined_nls.arx.simulate(full)), stroke=stroke
             )
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
