@@ -47,18 +47,43 @@ def run(args: argparse.Namespace) -> int:
     out = prepare_output_dir(args.out)
     paths = write_excitation(out, config, bender=args.bender, dt=dt)
     manifest = read_manifest(out)
+    peaks = _simulated_peaks(out, args.bender, dt, args.seed)
+    stroke = manifest["datasheet"]["free_deflection"] * 1e6
     print(
         f"input records of the identification of the {manifest['bender']} at dt = {dt:g} s, "
         f"seed {args.seed}, drive range {manifest['drive_range_V']} V:"
     )
     for name, purpose in manifest["purposes"].items():
-        print(f"  {name}.csv: {purpose}")
+        print(
+            f"  {name}.csv: {purpose}; on the simulated bender its peak deflection is "
+            f"{peaks[name]:.0f} um ({peaks[name] / stroke:.1f} x the rated {stroke:g} um)"
+        )
     print(
         "play each from rest at dt and record time_s,voltage_V,deflection_um (see 'measure' in "
         "records.json); then piezo identify --records FOLDER"
     )
     print(f"files in {out}: {', '.join(p.name for p in paths)}")
     return 0
+
+
+def _simulated_peaks(folder, bender: str, dt: float, seed: int) -> dict[str, float]:
+    """Peak |deflection| (um) of each record on the simulated bender, without sensor noise:
+    what the bench's bender will be asked to do, to check against its stroke before playing."""
+    import gymnasium as gym
+
+    from identification.records import read_excitation, records_from_env
+
+    _, inputs = read_excitation(folder)
+    env = gym.make(
+        "piezo_env:PiezoBender-v0",
+        reference=None,
+        max_episode_steps=-1,
+        bender=bender,
+        dt=dt,
+        noise_bound=0.0,
+    )
+    records = records_from_env(env, inputs, seed)
+    return {name: float(abs(y).max()) for name, (_, y) in records.records.items()}
 
 
 EXCITE = Subcommand(
@@ -71,7 +96,9 @@ EXCITE = Subcommand(
         "signals 'piezo identify' drives the simulated bender with for this bender, sample time "
         "and seed. Play them on the bench, record the applied voltage and the deflection, and "
         "identify with 'piezo identify --records'; 'piezo simulate --records' measures them on "
-        "the simulated bender."
+        "the simulated bender. The peak deflection each record reaches on the simulated "
+        "bender is printed: check it against your bender's stroke and mounting before playing "
+        "it (the white PRBS and the RAND records ring the first bending mode)."
     ),
     add_arguments=add_arguments,
     run=run,
