@@ -703,11 +703,16 @@ def _parse_column(rows: list[list[str]], i: int, path: Path, column: str) -> np.
         raise
 
 
+def _where(k: int, offset: int) -> str:
+    """Sample ``k`` as a reader finds it: a CSV's line (``offset`` 2), an array's index (0)."""
+    return f"line {k + offset}" if offset else f"sample {k}"
+
+
 def _check_finite(values: np.ndarray, label: str, column: str, *, offset: int) -> None:
     bad = np.flatnonzero(~np.isfinite(values))
     if bad.size:
         k = int(bad[0])
-        where = f"line {k + offset}" if offset else f"sample {k}"
+        where = _where(k, offset)
         raise RecordsError(
             f"{label}, {where}: column {column} is {values[k]!r}; every value must be a finite "
             f"number ({bad.size} are not)"
@@ -718,7 +723,7 @@ def _check_drive(u: np.ndarray, low: float, high: float, label: str, *, offset: 
     bad = np.flatnonzero((u < low - VOLTAGE_TOLERANCE_V) | (u > high + VOLTAGE_TOLERANCE_V))
     if bad.size:
         k = int(bad[0])
-        where = f"line {k + offset}" if offset else f"sample {k}"
+        where = _where(k, offset)
         raise RecordsError(
             f"{label}, {where}: voltage_V {u[k]:g} V is outside the drive range "
             f"[{low:g}, {high:g}] V ({bad.size} samples are); subtract the amplifier's bias, "
@@ -736,7 +741,7 @@ def _check_time(t: np.ndarray, dt: float, record: Path, manifest: Path, offset: 
     if back.size:
         k = int(back[0]) + 1
         raise RecordsError(
-            f"{record}, line {k + offset}: time_s {t[k]!r} s does not increase (previous "
+            f"{record}, {_where(k, offset)}: time_s {t[k]!r} s does not increase (previous "
             f"{t[k - 1]!r} s); the records must be sampled in time order"
         )
     if t.size < 2:
@@ -754,7 +759,7 @@ def _check_time(t: np.ndarray, dt: float, record: Path, manifest: Path, offset: 
     if uneven.size:
         k = int(uneven[0]) + 1
         raise RecordsError(
-            f"{record}, line {k + offset}: time_s {t[k]!r} s is {steps[k - 1]:.9g} s after the "
+            f"{record}, {_where(k, offset)}: time_s {t[k]!r} s is {steps[k - 1]:.9g} s after the "
             f"previous sample, not dt = {dt:g} s (tolerance {TIME_TOLERANCE_S * 1e6:g} us): "
             "the samples are not uniform (a lost or repeated sample?); record on a fixed clock"
         )

@@ -318,3 +318,21 @@ def test_records_from_env_and_write_measured_keep_the_arrays_exactly(tmp_path):
     table = np.loadtxt(tmp_path / "validation.csv", delimiter=",", skiprows=1)
     np.testing.assert_array_equal(table[:, 1], records.records["validation"][0])
     np.testing.assert_array_equal(table[:, 2], records.records["validation"][1])
+
+
+def test_npz_records_read_as_their_csv(measured, tmp_path):
+    folder = _copy(measured, tmp_path)
+    manifest = json.loads((folder / "records.json").read_text(encoding="utf-8"))
+    manifest["records"] = {k: v.replace(".csv", ".npz") for k, v in manifest["records"].items()}
+    (folder / "records.json").write_text(json.dumps(manifest), encoding="utf-8")
+    config = IdentificationConfig(**STEPS)
+    got, want = read_records(folder, config), read_records(measured, config)
+    for name, (u, y) in want.records.items():
+        np.testing.assert_array_equal(got.records[name][0], u)
+        np.testing.assert_array_equal(got.records[name][1], y)
+
+
+def test_split_without_records_is_refused(tmp_path, capsys):
+    assert main(["identify", "--split", "0.7", "--out", str(tmp_path / "new")]) == 2
+    assert "--split applies to --records" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
