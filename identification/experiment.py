@@ -19,6 +19,7 @@ from piezo_env.signals import make_signal
 
 __all__ = [
     "RECORD_NAMES",
+    "RECORD_PURPOSES",
     "collect",
     "experiment_inputs",
     "identification_env",

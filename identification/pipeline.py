@@ -122,6 +122,10 @@ def identify(
 ) -> IdentificationResult:
     """Identify the Hammerstein model of a bender (paper section 3.4, steps a-f).
 
+    Measures the records of the experiment on ``env`` (step a's PRBS, step c's rich record,
+    the selection and validation records), then runs steps b-f on them as
+    :func:`identify_records` does on records measured elsewhere.
+
     Parameters
     ----------
     env : gymnasium.Env, optional
