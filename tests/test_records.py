@@ -336,3 +336,21 @@ def test_split_without_records_is_refused(tmp_path, capsys):
     assert main(["identify", "--split", "0.7", "--out", str(tmp_path / "new")]) == 2
     assert "--split applies to --records" in capsys.readouterr().err
     assert not (tmp_path / "new").exists()
+
+
+def test_arrays_identify_as_the_folder_they_were_read_from(measured):
+    config = IdentificationConfig(**STEPS)
+    records = read_records(measured, config)
+    from_folder = identify_records(measured, config=config)
+    from_arrays = identify_records(
+        records.records,
+        dt=records.dt,
+        drive_range_V=records.drive_range_V,
+        bender="PL140",
+        seed=records.seed,
+        config=config,
+    )
+    for name, value in _model_arrays(from_folder.model).items():
+        np.testing.assert_array_equal(_model_arrays(from_arrays.model)[name], value)
+    assert from_arrays.model.metadata["records"] == {"kind": "arrays"}
+    assert from_arrays.model.metadata["datasheet"] == from_folder.model.metadata["datasheet"]
