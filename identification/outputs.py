@@ -34,6 +34,7 @@ __all__ = [
     "figure_data",
     "jsonable",
     "model_metadata",
+    "validation_signal",
     "write_outputs",
 ]
 
@@ -152,7 +153,7 @@ def build_report(
             "training": jsonable(getattr(nls.model.nls, "training", {})),
             "output_error": _nls_refinement_section(true_plant, nls_refinement),
         },
-        "validation": _validation_section(config, val),
+        "validation": _validation_section(config, records, val),
         "timings_s": timings,
     }
 
@@ -295,11 +296,19 @@ def relative_response_error(model: ARXModel, true: Any, frequencies_hz: Any) -> 
     return np.abs(g - p) / np.abs(p)
 
 
-def _validation_section(config: IdentificationConfig, val: Validation) -> dict[str, Any]:
+def validation_signal(config: IdentificationConfig, records: Records) -> str:
+    """What the validation record is, in words: the RAND of step f, or the held-out end of a
+    split record."""
+    if records.shared:
+        return "the last part of the split record (after the selection part)"
+    return f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold} samples"
+
+
+def _validation_section(
+    config: IdentificationConfig, records: Records, val: Validation
+) -> dict[str, Any]:
     return {
-        "signal": (
-            f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold} samples"
-        ),
+        "signal": validation_signal(config, records),
         "samples": len(val.u),
         **val.metrics,
         "rmse_ratio_hammerstein_to_arx": (

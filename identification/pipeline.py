@@ -75,6 +75,7 @@ from identification.outputs import (
     figure_data,
     jsonable,
     model_metadata,
+    validation_signal,
     write_outputs,
 )
 from identification.records import (
@@ -152,7 +153,11 @@ def identify(
 
 
 def identify_records(
-    records: str | os.PathLike[str] | Records | Mapping[str, tuple[ArrayLike, ArrayLike]],
+    records: str
+    | os.PathLike[str]
+    | Records
+    | Mapping[str, tuple[ArrayLike, ArrayLike]]
+    | tuple[ArrayLike, ArrayLike],
     *,
     split: float | None = None,
     seed: int | None = None,
@@ -252,7 +257,7 @@ def _identify(
     the report's comparisons only, or None)."""
     seeds, dt = step_seeds(config.seed), records.dt
     u_prbs, y_prbs = records.records["prbs"]
-    log("a_prbs_experiment", _prbs_line(config, y_prbs))
+    log("a_prbs_experiment", _prbs_line(config, records, y_prbs))
     est = estimate_arx(u_prbs, y_prbs, config, dt=dt)
     log("b_arx_estimation", _arx_line(est))
     refinement = None
@@ -261,7 +266,7 @@ def _identify(
         log("b2_output_error", _refinement_line(refinement))
     linear = est.model if refinement is None else refinement.model
     u_rich, y_rich = records.records["rich"]
-    log("c_rich_experiment", _rich_line(config, u_rich))
+    log("c_rich_experiment", _rich_line(config, records, u_rich))
     hidden = estimate_hidden_signal(linear, y_rich, y_prbs)
     log("d_inverse_arx", _hidden_line(hidden))
     if records.shared:  # one record split: the PRBS record is the rich record
@@ -298,7 +303,7 @@ def _identify(
         unrefined_nls=nls.model,
         lead_in=records.lead_in.get("validation", 0),
     )
-    log("f_validation", _validation_line(config, val))
+    log("f_validation", _validation_line(validation_signal(config, records), val))
 
     report = build_report(
         records,
@@ -319,11 +324,13 @@ def _identify(
     return IdentificationResult(model=model, report=jsonable(report), data=data)
 
 
-def _prbs_line(config: IdentificationConfig, y_prbs: np.ndarray) -> str:
-    return (
-        f"a) PRBS +-{config.prbs_amplitude:g} V, {len(y_prbs)} samples: peak |y| = "
-        f"{np.abs(y_prbs).max():.1f} um"
+def _prbs_line(config: IdentificationConfig, records: Records, y_prbs: np.ndarray) -> str:
+    what = (
+        "estimation part of the split record"
+        if records.shared
+        else f"PRBS +-{config.prbs_amplitude:g} V"
     )
+    return f"a) {what}, {len(y_prbs)} samples: peak |y| = {np.abs(y_prbs).max():.1f} um"
 
 
 def _arx_line(est: ArxEstimate) -> str:
@@ -347,7 +354,9 @@ def _refinement_line(refinement: LinearRefinement) -> str:
     )
 
 
-def _rich_line(config: IdentificationConfig, u_rich: np.ndarray) -> str:
+def _rich_line(config: IdentificationConfig, records: Records, u_rich: np.ndarray) -> str:
+    if records.shared:
+        return f"c) the estimation part again as the rich record, {len(u_rich)} samples"
     return f"c) {config.rich_signal} {config.rich_amplitude:g} V, {len(u_rich)} samples"
 
 
@@ -385,11 +394,10 @@ def _nls_refinement_line(refinement: NlsRefinement) -> str:
     )
 
 
-def _validation_line(config: IdentificationConfig, val: Validation) -> str:
+def _validation_line(signal: str, val: Validation) -> str:
     hammer, linear = val.metrics["hammerstein"], val.metrics["linear_arx"]
     return (
-        f"f) validation on RAND +-{config.validation_amplitude:g} V "
-        f"(hold {config.validation_hold} samples): Hammerstein fit {hammer['fit_percent']:.2f} %, "
+        f"f) validation on {signal}: Hammerstein fit {hammer['fit_percent']:.2f} %, "
         f"RMSE {hammer['rmse']:.2f} um; linear ARX fit {linear['fit_percent']:.2f} %, "
         f"RMSE {linear['rmse']:.2f} um"
     )
