@@ -519,6 +519,12 @@ def read_records(
     folder = Path(folder)
     path = folder / MANIFEST
     manifest = _read_manifest(path)
+    if manifest.get("kind") == "excitation":
+        raise RecordsError(
+            f"{path}: field 'kind' is 'excitation': these are the inputs to play, not "
+            "measurements; play them on the bench (or piezo simulate --records) and identify "
+            "from the measured folder"
+        )
     dt = _positive(manifest, "dt", path)
     low, high = _drive_range(manifest.get("drive_range_V"), f"{path}: field 'drive_range_V'")
     listed = manifest["records"]

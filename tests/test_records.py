@@ -297,6 +297,11 @@ def test_a_single_long_record_is_split_into_estimation_selection_and_validation(
         identify_records((u, y), split=0.95, dt=1e-3, drive_range_V=(-30, 30), bender="PL140")
 
 
+def test_an_excitation_folder_is_not_taken_for_measurements(measured, tmp_path, capsys):
+    err = _refused(measured.parent / "excitation", tmp_path, capsys)
+    assert "field 'kind' is 'excitation'" in err
+
+
 def test_split_on_a_records_folder_of_four_records_is_refused(measured, tmp_path, capsys):
     err = _refused(measured, tmp_path, capsys, "--split", "0.7")
     assert "split applies to a single record" in err
