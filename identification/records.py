@@ -280,22 +280,7 @@ def records_from_arrays(
         arrays, lead_in = _split(u, y, split, where.get(name, f"record {name!r}"), config)
         shared = True
     else:
-        if len(arrays) == 1 and not set(arrays) & set(RECORD_NAMES):
-            raise RecordsError(
-                f"one record ({next(iter(arrays))}) and no split: pass --split FRACTION (e.g. "
-                "0.7) to cut it into estimation and validation, or list the records "
-                + ", ".join(RECORD_NAMES)
-            )
-        missing = [name for name in RECORD_NAMES if name not in arrays]
-        if missing:
-            raise RecordsError(
-                f"missing record(s) {', '.join(missing)}: the identification needs "
-                + ", ".join(RECORD_NAMES)
-                + " (piezo excite writes them all)"
-            )
-        unknown = sorted(set(arrays) - set(RECORD_NAMES))
-        if unknown:
-            raise RecordsError(f"unknown record(s) {unknown}; expected {', '.join(RECORD_NAMES)}")
+        _check_names(arrays)
     need = minimum_samples(config)
     for name, (u, _) in arrays.items():
         if len(u) - lead_in.get(name, 0) < need:
@@ -319,6 +304,26 @@ def records_from_arrays(
         shared=shared,
         lead_in=lead_in,
     )
+
+
+def _check_names(arrays: Mapping[str, Any]) -> None:
+    """The four records of :data:`identification.experiment.RECORD_NAMES`, no other."""
+    if len(arrays) == 1 and not set(arrays) & set(RECORD_NAMES):
+        raise RecordsError(
+            f"one record ({next(iter(arrays))}) and no split: pass --split FRACTION (e.g. "
+            "0.7) to cut it into estimation and validation, or list the records "
+            + ", ".join(RECORD_NAMES)
+        )
+    missing = [name for name in RECORD_NAMES if name not in arrays]
+    if missing:
+        raise RecordsError(
+            f"missing record(s) {', '.join(missing)}: the identification needs "
+            + ", ".join(RECORD_NAMES)
+            + " (piezo excite writes them all)"
+        )
+    unknown = sorted(set(arrays) - set(RECORD_NAMES))
+    if unknown:
+        raise RecordsError(f"unknown record(s) {unknown}; expected {', '.join(RECORD_NAMES)}")
 
 
 def _split(
