@@ -5,9 +5,10 @@
   estimator (``"bayes-uniform"``), the exact MAP (``"chebyshev"``) and least squares.
 - :mod:`identification.nls`: the neural static nonlinearity with memory features.
 - :mod:`identification.hammerstein`: the model object the controllers use, saved as plain files.
-- :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment, one
-  function per step (:mod:`identification.steps`), with its settings
-  (:mod:`identification.config`, ``IdentificationConfig``), its experiments
+- :mod:`identification.pipeline`: ``identify``, the paper's steps a-f on the environment, and
+  ``identify_records``, steps b-f on measured records (:mod:`identification.records`: the
+  files a bench reads and writes), one function per step (:mod:`identification.steps`), with
+  its settings (:mod:`identification.config`, ``IdentificationConfig``), its experiments
   (:mod:`identification.experiment`: ``collect`` drives the environment open loop), the inverse
   ARX model (:mod:`identification.inversion`), and its result, report and files
   (:mod:`identification.outputs`: ``IdentificationResult``, ``write_outputs``; the report's
@@ -36,7 +37,7 @@ if TYPE_CHECKING:
     from identification.hammerstein import HammersteinModel
     from identification.nls import NLS, fit_nls
     from identification.outputs import IdentificationResult, write_outputs
-    from identification.pipeline import identify
+    from identification.pipeline import identify, identify_records
 
 _LAZY = {
     "BayesUniformEstimator": "identification.bayes_uniform",
@@ -52,6 +53,7 @@ _LAZY = {
     "IdentificationResult": "identification.outputs",
     "collect": "identification.experiment",
     "identify": "identification.pipeline",
+    "identify_records": "identification.pipeline",
     "write_outputs": "identification.outputs",
 }
 
@@ -72,6 +74,7 @@ __all__ = [
     "fit_nls",
     "fit_percent",
     "identify",
+    "identify_records",
     "max_abs_error",
     "regressors",
     "rmse",

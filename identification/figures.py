@@ -216,7 +216,7 @@ def _error_panels(axes, t, models, errors, val, noise, window, dt) -> None:
         )
         ax.set_xlim(t[0], t[-1])
         ax.grid(alpha=0.3)
-    for sign in (-1, 1):  # what a perfect model would leave: the sensor noise
+    for sign in (-1, 1) if noise is not None else ():  # what a perfect model would leave
         axes[1].axhline(
             sign * noise,
             color="k",
@@ -244,7 +244,8 @@ def _zoom_panels(zoom, zoom_err, t, y, models, errors, val, noise, window) -> No
             label=f"{name} ({val[key]['fit_percent']:.1f} %)",
         )
     zoom_err.plot(tz, errors["hammerstein"][lo:hi], color="tab:red", lw=1.2, label="Hammerstein")
-    zoom_err.axhspan(-noise, noise, color="0.6", alpha=0.5, lw=0, label=f"+-{noise:g} um noise")
+    if noise is not None:  # the sensor's bound, when the records say it
+        zoom_err.axhspan(-noise, noise, color="0.6", alpha=0.5, lw=0, label=f"+-{noise:g} um noise")
     zoom.set_ylabel("tip deflection (um)")
     zoom.set_title(
         f"{ZOOM_S * 1e3:.0f} ms zoom around the largest Hammerstein error "

@@ -5,21 +5,19 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 
 from identification.arx import ARXModel
 from identification.config import IdentificationConfig
-from identification.experiment import sample_time
 from identification.hammerstein import HammersteinModel
 from identification.metrics import complex_response
+from identification.records import Records
 from identification.steps import (
     ArxEstimate,
     HiddenSignal,
@@ -36,6 +34,7 @@ __all__ = [
     "figure_data",
     "jsonable",
     "model_metadata",
+    "validation_signal",
     "write_outputs",
 ]
 
@@ -60,7 +59,7 @@ class IdentificationResult:
 
 
 def model_metadata(
-    env: gym.Env,
+    records: Records,
     config: IdentificationConfig,
     features: str,
     hidden: HiddenSignal,
@@ -69,11 +68,11 @@ def model_metadata(
 ) -> dict[str, Any]:
     """What the model files record about their origin (JSON-safe): the bender (its datasheet
     values) and the task it was identified on, so that a controller can refuse another one;
+    where the records came from (``records``: the env, or the manifest's path and SHA-256);
     with step b', how the linear part was refined and the output noise it identified on the
     PRBS record (a model saved before step b' existed has no ``linear_part`` entry and loads as
     before); with step e', whether it refined the model further and the free-run error it left
     on the training records (``nls_refinement``)."""
-    plant = env.unwrapped.model
     extra = {}
     if refinement is not None:
         extra["linear_part"] = {
@@ -94,23 +93,24 @@ def model_metadata(
         }
     return {
         **extra,
-        "bender": plant.name,
-        "datasheet": dataclasses.asdict(plant.params.datasheet),
+        "bender": records.bender,
+        "datasheet": records.datasheet,
         "task": {
-            "dt_s": sample_time(env),
-            "u_max_V": float(plant.rated_voltage),
-            "noise_bound_um": float(env.unwrapped.noise_bound),
+            "dt_s": records.dt,
+            "u_max_V": records.u_max,
+            "noise_bound_um": records.noise_bound_um,
         },
-        "dt": sample_time(env),
+        "dt": records.dt,
         "features": features,
         "seed": config.seed,
+        "records": dict(records.source),
         "z_error_bound_V": hidden.error["z_error_bound_V"],
         "z_error_rms_V": hidden.error["z_error_rms_V"],
     }
 
 
 def build_report(
-    env: gym.Env,
+    records: Records,
     config: IdentificationConfig,
     est: ArxEstimate,
     hidden: HiddenSignal,
@@ -119,18 +119,20 @@ def build_report(
     timings: dict[str, float],
     refinement: LinearRefinement | None = None,
     nls_refinement: NlsRefinement | None = None,
+    *,
+    true_plant: Any = None,
 ) -> dict[str, Any]:
     """The JSON report of a run (keys read by the CLI, the benchmarks and report.md).
 
     With step b', ``refinement`` compares the step b estimate with the refined linear part,
-    each also against the true plant's linear part: available in simulation, used here for the
-    report only, never for fitting.
+    and, given the simulated plant's linear part ``true_plant`` (python-control state space),
+    each against it: used for the report only, never for fitting; measured records have none.
     """
     return {
         "config": jsonable(asdict(config)),
-        "environment": _environment_section(env),
+        "environment": _environment_section(records),
         "arx": _arx_section(est),
-        "refinement": _refinement_section(env, est, refinement, val),
+        "refinement": _refinement_section(true_plant, est, refinement, val),
         "inversion": {
             "method": hidden.method,
             **hidden.error,
@@ -149,21 +151,18 @@ def build_report(
             ),
             "selection_fit_percent": nls.selection_scores,
             "training": jsonable(getattr(nls.model.nls, "training", {})),
-            "output_error": _nls_refinement_section(env, nls_refinement),
+            "output_error": _nls_refinement_section(true_plant, nls_refinement),
         },
-        "validation": _validation_section(config, val),
+        "validation": _validation_section(config, records, val),
         "timings_s": timings,
     }
 
 
-def _nls_refinement_section(
-    env: gym.Env, refinement: NlsRefinement | None
-) -> dict[str, Any] | None:
+def _nls_refinement_section(true: Any, refinement: NlsRefinement | None) -> dict[str, Any] | None:
     """Step e' before and after (None when the run skipped it); the model's linear part against
-    the true plant's, as in step b' (report only, never for fitting)."""
+    the true plant's when there is one, as in step b' (report only, never for fitting)."""
     if refinement is None:
         return None
-    true = env.unwrapped.model.state_space()
     return {
         **refinement.record(),
         "linear_part": _linear_part_entry(
@@ -172,14 +171,18 @@ def _nls_refinement_section(
     }
 
 
-def _environment_section(env: gym.Env) -> dict[str, Any]:
-    plant = env.unwrapped.model
+def _environment_section(records: Records) -> dict[str, Any]:
+    """The bender and where its records came from (``hysteresis`` is the simulated plant's, or
+    ``"unknown (measured records)"``; ``noise_bound_um`` None when the sensor's is not
+    known)."""
     return {
-        "bender": plant.name,
-        "dt_s": plant.dt,
-        "hysteresis": plant.hysteresis.name,
-        "noise_bound_um": float(env.unwrapped.noise_bound),
-        "stroke_um": plant.stroke_um,
+        "bender": records.bender,
+        "dt_s": records.dt,
+        "hysteresis": records.plant.get("hysteresis", "unknown (measured records)"),
+        "noise_bound_um": records.noise_bound_um,
+        "stroke_um": records.stroke_um,
+        "drive_range_V": list(records.drive_range_V),
+        "records": dict(records.source),
     }
 
 
@@ -213,14 +216,14 @@ BODE_CHECK_HZ = (1.0, 10.0, 50.0, 100.0, 200.0, 400.0)
 
 
 def _refinement_section(
-    env: gym.Env, est: ArxEstimate, refinement: LinearRefinement | None, val: Validation
+    true: Any, est: ArxEstimate, refinement: LinearRefinement | None, val: Validation
 ) -> dict[str, Any] | None:
-    """Step b' before and after: fits, zeros, poles, and the frequency response against the
-    true plant's linear part (normalised to each model's static gain: z is in equivalent volts,
-    so the identified gain differs from the plant's by the NLS's small-signal gain)."""
+    """Step b' before and after: fits, zeros, poles, and, given the true plant's linear part,
+    the frequency response against it (normalised to each model's static gain: z is in
+    equivalent volts, so the identified gain differs from the plant's by the NLS's small-signal
+    gain)."""
     if refinement is None:
         return None
-    true = env.unwrapped.model.state_space()
     models = {"before": est.model, "after": refinement.model}
     section: dict[str, Any] = {
         "method": "output-error (prediction error, free-run least squares from the "
@@ -231,7 +234,9 @@ def _refinement_section(
         "output_noise_std_um": refinement.fit.output_error_rms,
         "output_error_bound_um": refinement.fit.output_error_bound,
         "frequencies_hz": list(BODE_CHECK_HZ),
-        "true_plant": {"zeros": complex_list(_ss_zeros(true)), "poles": complex_list(true.poles())},
+        "true_plant": None
+        if true is None
+        else {"zeros": complex_list(_ss_zeros(true)), "poles": complex_list(true.poles())},
     }
     prbs_rms = {
         "before": refinement.unrefined_output_error_rms,
@@ -257,7 +262,7 @@ def _refinement_section(
 
 def _linear_part_entry(model: ARXModel, true: Any, **extra: Any) -> dict[str, Any]:
     """A linear part in the report: order, coefficients, zeros and poles, ``extra``, and its
-    response error against the true plant's at :data:`BODE_CHECK_HZ`."""
+    response error against the true plant's at :data:`BODE_CHECK_HZ` (None without one)."""
     return {
         "order": model.na,
         "a": model.a.tolist(),
@@ -265,7 +270,9 @@ def _linear_part_entry(model: ARXModel, true: Any, **extra: Any) -> dict[str, An
         "zeros": complex_list(model.zeros()),
         "poles": complex_list(model.poles()),
         **extra,
-        "response_error_vs_plant": relative_response_error(model, true, BODE_CHECK_HZ).tolist(),
+        "response_error_vs_plant": None
+        if true is None
+        else relative_response_error(model, true, BODE_CHECK_HZ).tolist(),
     }
 
 
@@ -289,11 +296,19 @@ def relative_response_error(model: ARXModel, true: Any, frequencies_hz: Any) -> 
     return np.abs(g - p) / np.abs(p)
 
 
-def _validation_section(config: IdentificationConfig, val: Validation) -> dict[str, Any]:
+def validation_signal(config: IdentificationConfig, records: Records) -> str:
+    """What the validation record is, in words: the RAND of step f, or the held-out end of a
+    split record."""
+    if records.shared:
+        return "the last part of the split record (after the selection part)"
+    return f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold} samples"
+
+
+def _validation_section(
+    config: IdentificationConfig, records: Records, val: Validation
+) -> dict[str, Any]:
     return {
-        "signal": (
-            f"RAND +-{config.validation_amplitude:g} V, hold {config.validation_hold} samples"
-        ),
+        "signal": validation_signal(config, records),
         "samples": len(val.u),
         **val.metrics,
         "rmse_ratio_hammerstein_to_arx": (

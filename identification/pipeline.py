@@ -29,14 +29,20 @@ e') :func:`refine_nonlinearity`: refine the selected network and the linear part
 f) :func:`validate`: validate the Hammerstein model by free-run simulation on fresh RAND data.
 
 The steps and their results live in :mod:`identification.steps`, the experiments on the
-environment in :mod:`identification.experiment` (:func:`collect`), the settings in
-:mod:`identification.config`, the report and files in :mod:`identification.outputs`.
+environment in :mod:`identification.experiment` (:func:`collect`), records as files in
+:mod:`identification.records`, the settings in :mod:`identification.config`, the report and
+files in :mod:`identification.outputs`.
+
+One path for simulation and bench: :func:`identify` measures the records on the environment
+(:func:`identification.records.records_from_env`), then runs steps b-f on them as
+:func:`identify_records` does on records measured elsewhere (a folder written by a bench or
+by ``piezo simulate --records``, or arrays). The same records give the same model.
 
 Scale (Bai 2004). Under a two-level input a rate-independent nonlinearity is affine, so the
 ARX part fitted to (u, y) of the PRBS run is the linear part up to a gain; taking it as is fixes
 the scale: the NLS has unit small-signal gain and z is in equivalent volts.
 
-Every record comes from the environment through its Gymnasium interface, as from a real
+Every record comes from the bender through its input and its sensor, as from a real
 bender: the measured (noisy) deflection is all the identification sees. The records follow the
 env's sample time (the bender's default unless ``dt`` is given): the PRBS is counted in samples,
 the rich and validation records and their RAND hold in seconds
@@ -45,22 +51,40 @@ the rich and validation records and their RAND hold in seconds
 
 from __future__ import annotations
 
+import dataclasses
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from numpy.typing import ArrayLike
 
 from identification.config import IdentificationConfig
-from identification.experiment import collect, identification_env, sample_time
+from identification.experiment import (
+    collect,
+    experiment_inputs,
+    identification_env,
+    sample_time,
+    step_seeds,
+)
 from identification.outputs import (
     IdentificationResult,
     build_report,
     figure_data,
     jsonable,
     model_metadata,
+    validation_signal,
     write_outputs,
+)
+from identification.records import (
+    EXCITATION_FIELDS,
+    Records,
+    read_manifest,
+    read_records,
+    records_from_arrays,
+    records_from_env,
 )
 from identification.report import format_free_run
 from identification.steps import (
@@ -72,18 +96,22 @@ from identification.steps import (
     Validation,
     estimate_arx,
     estimate_hidden_signal,
-    excite_prbs,
-    excite_rich,
     fit_nonlinearity,
     refine_linear_part,
     refine_nonlinearity,
-    step_seeds,
     validate,
 )
 
 # collect, IdentificationConfig and write_outputs: the public names of their own modules,
 # importable from here as well (the command line and the benchmarks do)
-__all__ = ["IdentificationConfig", "IdentificationResult", "collect", "identify", "write_outputs"]
+__all__ = [
+    "IdentificationConfig",
+    "IdentificationResult",
+    "collect",
+    "identify",
+    "identify_records",
+    "write_outputs",
+]
 
 
 def identify(
@@ -94,6 +122,10 @@ def identify(
     **overrides: Any,
 ) -> IdentificationResult:
     """Identify the Hammerstein model of a bender (paper section 3.4, steps a-f).
+
+    Measures the records of the experiment on ``env`` (step a's PRBS, step c's rich record,
+    the selection and validation records), then runs steps b-f on them as
+    :func:`identify_records` does on records measured elsewhere.
 
     Parameters
     ----------
@@ -111,16 +143,121 @@ def identify(
     IdentificationResult
         ``.model`` (HammersteinModel), ``.report`` (metrics, estimates, timings), ``.data``.
     """
-    if config is None:
-        config = IdentificationConfig(**overrides)
-    elif overrides:
-        raise ValueError("pass either config or keyword overrides, not both")
+    config = _settings(config, overrides)
+    log = _StepLog(progress)
     env = env if env is not None else identification_env(config)
-    seeds, dt, log = step_seeds(config.seed), sample_time(env), _StepLog(progress)
+    dt = sample_time(env)
     config = config.at_sample_time(dt)
+    records = records_from_env(env, experiment_inputs(config, dt), config.seed)
+    return _identify(records, config, log, true_plant=env.unwrapped.model.state_space())
 
-    u_prbs, y_prbs = excite_prbs(env, config, seeds)
-    log("a_prbs_experiment", _prbs_line(config, y_prbs))
+
+def identify_records(
+    records: str
+    | os.PathLike[str]
+    | Records
+    | Mapping[str, tuple[ArrayLike, ArrayLike]]
+    | tuple[ArrayLike, ArrayLike],
+    *,
+    split: float | None = None,
+    seed: int | None = None,
+    dt: float | None = None,
+    drive_range_V: tuple[float, float] | None = None,
+    bender: str | None = None,
+    config: IdentificationConfig | None = None,
+    progress: Callable[[str], None] | None = None,
+    **overrides: Any,
+) -> IdentificationResult:
+    """Identify the Hammerstein model from measured records (steps b-f of section 3.4).
+
+    Parameters
+    ----------
+    records : path, Records or mapping
+        A records folder (``records.json`` and the files it lists,
+        :func:`identification.records.read_records`); :class:`Records`; or arrays: record
+        name (``prbs``, ``rich``, ``selection``, ``validation``) -> ``(u, y)``, applied
+        voltage (V) and measured deflection (um, ``y[k]`` read before ``u[k]`` is applied),
+        or one ``(u, y)`` pair with ``split``.
+    split : float, optional
+        For a single record: the fraction (0-1) that is the estimation record; the rest is
+        held out, its first half selecting the network (step e), its second half validating
+        (step f) (:mod:`identification.records`).
+    seed : int, optional
+        Seed of the network's training; default the records' (the seed their inputs were
+        drawn with, so that records measured on the env give the model :func:`identify` gives).
+    dt, drive_range_V, bender
+        For arrays: sample time (s), drive range (V) and bender name (a catalogue name gives
+        the datasheet the model files record). A folder's manifest holds them.
+    config : IdentificationConfig, optional
+        Settings of the steps (orders, network, refinements); keyword ``overrides`` build one
+        when it is not given. The settings of the input signals and the record lengths come
+        from the records (a manifest written by ``piezo excite`` carries the former).
+    progress : callable, optional
+        Called with one line of text per step.
+
+    Returns
+    -------
+    IdentificationResult
+        As :func:`identify`; the model's metadata names the records' source (the manifest's
+        path and SHA-256). The report's comparisons with the true plant are absent: a bench has
+        none.
+
+    Raises
+    ------
+    identification.records.RecordsError
+        A malformed record (one line naming the file and the line or field), before any work.
+    """
+    config = _settings(config, overrides)
+    log = _StepLog(progress)
+    if isinstance(records, (str, os.PathLike)):
+        excitation = read_manifest(records).get("excitation")
+        if isinstance(excitation, dict):  # the signals the bench was driven with
+            known = {k: v for k, v in excitation.items() if k in EXCITATION_FIELDS}
+            config = dataclasses.replace(config, **known)
+        records = read_records(records, config, split=split)
+    elif not isinstance(records, Records):
+        missing = [k for k, v in (("dt", dt), ("drive_range_V", drive_range_V)) if v is None]
+        if missing or bender is None:
+            raise ValueError(
+                "arrays need dt (s), drive_range_V (V) and bender; missing "
+                + ", ".join(missing + ([] if bender is not None else ["bender"]))
+            )
+        records = records_from_arrays(
+            records, dt=dt, drive_range_V=drive_range_V, bender=bender, config=config, split=split
+        )
+    if seed is not None:
+        records = dataclasses.replace(records, seed=int(seed))
+    config = dataclasses.replace(config, seed=records.seed).at_sample_time(records.dt)
+    lengths = {
+        name: len(u) - records.lead_in.get(name, 0) for name, (u, _) in records.records.items()
+    }
+    config = dataclasses.replace(
+        config,
+        prbs_samples=lengths["prbs"],
+        rich_samples=lengths["rich"],
+        validation_samples=lengths["validation"],
+    )
+    return _identify(records, config, log, true_plant=None)
+
+
+def _settings(
+    config: IdentificationConfig | None, overrides: dict[str, Any]
+) -> IdentificationConfig:
+    if config is None:
+        return IdentificationConfig(**overrides)
+    if overrides:
+        raise ValueError("pass either config or keyword overrides, not both")
+    return config
+
+
+def _identify(
+    records: Records, config: IdentificationConfig, log: _StepLog, *, true_plant: Any
+) -> IdentificationResult:
+    """Steps b-f on measured records (``true_plant``: the simulated plant's linear part, for
+    the report's comparisons only, or None)."""
+    seeds, dt = step_seeds(config.seed), records.dt
+    u_prbs, y_prbs = records.records["prbs"]
+    log("a_prbs_experiment", _prbs_line(config, records, y_prbs))
     est = estimate_arx(u_prbs, y_prbs, config, dt=dt)
     log("b_arx_estimation", _arx_line(est))
     refinement = None
@@ -128,40 +265,72 @@ def identify(
         refinement = refine_linear_part(est, u_prbs, y_prbs)
         log("b2_output_error", _refinement_line(refinement))
     linear = est.model if refinement is None else refinement.model
-    u_rich, y_rich = excite_rich(env, config, seeds)
-    log("c_rich_experiment", _rich_line(config, u_rich))
+    u_rich, y_rich = records.records["rich"]
+    log("c_rich_experiment", _rich_line(config, records, u_rich))
     hidden = estimate_hidden_signal(linear, y_rich, y_prbs)
     log("d_inverse_arx", _hidden_line(hidden))
-    u_train, z_train = np.r_[u_prbs, u_rich], np.r_[hidden.z_prbs, hidden.z_rich]
-    nls = fit_nonlinearity(env, linear, u_train, z_train, config, seeds, say=log.say)
+    if records.shared:  # one record split: the PRBS record is the rich record
+        u_train, z_train, training = u_prbs, hidden.z_prbs, [(u_prbs, y_prbs)]
+    else:
+        u_train, z_train = np.r_[u_prbs, u_rich], np.r_[hidden.z_prbs, hidden.z_rich]
+        training = [(u_prbs, y_prbs), (u_rich, y_rich)]
+    nls = fit_nonlinearity(
+        linear,
+        u_train,
+        z_train,
+        records.records["selection"],
+        config,
+        seeds,
+        u_max=records.u_max,
+        u_prbs=u_prbs,
+        lead_in=records.lead_in.get("selection", 0),
+        say=log.say,
+    )
     log("e_nls_training", _gain_line(nls))
     nls_refinement = None
     if config.nls_refinement == "output-error":
-        records = [(u_prbs, y_prbs), (u_rich, y_rich)]
-        nls_refinement = refine_nonlinearity(nls, records, config)
+        nls_refinement = refine_nonlinearity(nls, training, config)
         log("e2_nls_output_error", _nls_refinement_line(nls_refinement))
     model = nls.model if nls_refinement is None else nls_refinement.model
     model.metadata.update(
-        model_metadata(env, config, nls.features, hidden, refinement, nls_refinement)
+        model_metadata(records, config, nls.features, hidden, refinement, nls_refinement)
     )
-    val = validate(env, model, config, seeds, unrefined=est.model, unrefined_nls=nls.model)
-    log("f_validation", _validation_line(config, val))
+    val = validate(
+        records.records["validation"],
+        model,
+        stroke_um=records.stroke_um,
+        unrefined=est.model,
+        unrefined_nls=nls.model,
+        lead_in=records.lead_in.get("validation", 0),
+    )
+    log("f_validation", _validation_line(validation_signal(config, records), val))
 
     report = build_report(
-        env, config, est, hidden, nls, val, log.timings(), refinement, nls_refinement
+        records,
+        config,
+        est,
+        hidden,
+        nls,
+        val,
+        log.timings(),
+        refinement,
+        nls_refinement,
+        true_plant=true_plant,
     )
     data = figure_data(u_prbs, y_prbs, u_rich, y_rich, hidden, model, val, est.model)
     data["arx_step_b2"] = linear if refinement is not None else None
     data["linear_refined_by_e2"] = model.arx is not nls.model.arx
-    data["plant_linear"] = env.unwrapped.model.state_space()  # the report's Bode figure only
+    data["plant_linear"] = true_plant  # the report's Bode figure only
     return IdentificationResult(model=model, report=jsonable(report), data=data)
 
 
-def _prbs_line(config: IdentificationConfig, y_prbs: np.ndarray) -> str:
-    return (
-        f"a) PRBS +-{config.prbs_amplitude:g} V, {len(y_prbs)} samples: peak |y| = "
-        f"{np.abs(y_prbs).max():.1f} um"
+def _prbs_line(config: IdentificationConfig, records: Records, y_prbs: np.ndarray) -> str:
+    what = (
+        "estimation part of the split record"
+        if records.shared
+        else f"PRBS +-{config.prbs_amplitude:g} V"
     )
+    return f"a) {what}, {len(y_prbs)} samples: peak |y| = {np.abs(y_prbs).max():.1f} um"
 
 
 def _arx_line(est: ArxEstimate) -> str:
@@ -185,7 +354,9 @@ def _refinement_line(refinement: LinearRefinement) -> str:
     )
 
 
-def _rich_line(config: IdentificationConfig, u_rich: np.ndarray) -> str:
+def _rich_line(config: IdentificationConfig, records: Records, u_rich: np.ndarray) -> str:
+    if records.shared:
+        return f"c) the estimation part again as the rich record, {len(u_rich)} samples"
     return f"c) {config.rich_signal} {config.rich_amplitude:g} V, {len(u_rich)} samples"
 
 
@@ -223,11 +394,10 @@ def _nls_refinement_line(refinement: NlsRefinement) -> str:
     )
 
 
-def _validation_line(config: IdentificationConfig, val: Validation) -> str:
+def _validation_line(signal: str, val: Validation) -> str:
     hammer, linear = val.metrics["hammerstein"], val.metrics["linear_arx"]
     return (
-        f"f) validation on RAND +-{config.validation_amplitude:g} V "
-        f"(hold {config.validation_hold} samples): Hammerstein fit {hammer['fit_percent']:.2f} %, "
+        f"f) validation on {signal}: Hammerstein fit {hammer['fit_percent']:.2f} %, "
         f"RMSE {hammer['rmse']:.2f} um; linear ARX fit {linear['fit_percent']:.2f} %, "
         f"RMSE {linear['rmse']:.2f} um"
     )

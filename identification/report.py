@@ -31,12 +31,15 @@ def _inversion_error(inversion: dict[str, Any], r: float) -> str:
 def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
     """Render the report as Markdown, with the figure files linked."""
     env = report["environment"]
+    noise = env["noise_bound_um"]
     lines = [
         f"# Hammerstein identification of {env['bender']}",
         "",
         f"dt = {env['dt_s'] * 1e3:g} ms, plant hysteresis {env['hysteresis']}, sensor noise "
-        f"+-{env['noise_bound_um']:g} um, stroke {env['stroke_um']:g} um.",
+        + ("not given" if noise is None else f"+-{noise:g} um")
+        + f", stroke {env['stroke_um']:g} um.",
         "",
+        *_source_section(env.get("records")),
         *_validation_section(report["validation"]),
         *_arx_section(report["arx"], report["inversion"]),
         *_refinement_section(report.get("refinement")),
@@ -54,6 +57,20 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
     return "\n".join(lines)
 
 
+def _source_section(source: dict[str, Any] | None) -> list[str]:
+    """Where the records came from, when not from the simulated env."""
+    if not source or source.get("kind") == "env":
+        return []
+    if source.get("kind") == "records":
+        split = source.get("split")
+        how = "" if split is None else f", one record split at {split:g}"
+        return [
+            f"Records: {source['manifest']} (SHA-256 {source['manifest_sha256'][:12]}...{how}).",
+            "",
+        ]
+    return ["Records: arrays passed to identify_records.", ""]
+
+
 def _final_linear_part(report: dict[str, Any]) -> dict[str, Any] | None:
     """The linear part the model ships (after step e' when it was kept, else after b')."""
     refined = (report["nls"].get("output_error") or {}).get("linear_part")
@@ -66,7 +83,8 @@ def _final_linear_part(report: dict[str, Any]) -> dict[str, Any] | None:
 def _scope_section(report: dict[str, Any]) -> list[str]:
     """What the identified model is good for and what not, from this run's own figures."""
     config, val, env = report["config"], report["validation"], report["environment"]
-    noise_rms = env["noise_bound_um"] / 3**0.5  # uniform sensor noise
+    noise = env["noise_bound_um"]
+    noise_rms = None if noise is None else noise / 3**0.5  # uniform sensor noise
     fit, rmse = val["hammerstein"]["fit_percent"], val["hammerstein"]["rmse"]
     rich = config["rich_signal"]
     band = ""
@@ -79,21 +97,28 @@ def _scope_section(report: dict[str, Any]) -> list[str]:
         "decaying-multisine": "nested loops of every size",
         "sine": "one major loop only",
     }.get(rich, "what that record drew")
-    if rmse <= 1.1 * noise_rms:
+    if noise_rms is None:
+        check = "the sensor's noise bound is not given (noise_bound_um in records.json)"
+    elif rmse <= 1.1 * noise_rms:
         check = "what a measurement can check of it, it predicts"
     else:
         check = "the model misses part of what the sensor sees"
+    against = (
+        "the sensor noise (not given)"
+        if noise_rms is None
+        else f"{noise_rms:.2f} um RMS of sensor noise"
+    )
     good = [
         f"- **Good for** model-based control of this bender (MPC, feedforward) with drive "
         f"voltages within +-{config['rich_amplitude']:g} V, the range of the rich record"
         f"{band}: the network saw {loops} there ({rich} record). On fresh data (RAND "
         f"+-{config['validation_amplitude']:g} V) the free run errs by {rmse:.2f} um RMS (fit "
-        f"{fit:.2f} %), against {noise_rms:.2f} um RMS of sensor noise: {check}. What it costs "
+        f"{fit:.2f} %), against {against}: {check}. What it costs "
         "an MPC against the plant's own model is measured in "
         "`benchmarks/results/identification_precision.md`.",
     ]
     linear = _final_linear_part(report)
-    if linear is not None:
+    if linear is not None and linear.get("response_error_vs_plant") is not None:
         pairs = list(zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True))
         within = [e for f, e in pairs if f <= 100.0]
         above = [f"{100 * e:.2f} % at {f:g} Hz" for f, e in pairs if f > 100.0]
@@ -267,6 +292,9 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
         _row(["zeros", _roots(before["zeros"]), _roots(after["zeros"])]),
         _row(["poles", _roots(before["poles"]), _roots(after["poles"])]),
     ]
+    plant = refinement["true_plant"]
+    if plant is None:  # measured records: no true plant to compare with
+        return [*lines, ""]
     for i, f in enumerate(freqs):
         lines.append(
             _row(
@@ -277,7 +305,6 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
                 ]
             )
         )
-    plant = refinement["true_plant"]
     return [
         *lines,
         "",
@@ -289,7 +316,9 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
     ]
 
 
-def _nls_refinement_section(refinement: dict[str, Any] | None, noise_bound: float) -> list[str]:
+def _nls_refinement_section(
+    refinement: dict[str, Any] | None, noise_bound: float | None
+) -> list[str]:
     """Step e': the model before and after the output-error refinement of both blocks."""
     if refinement is None:
         return []
@@ -310,9 +339,20 @@ def _nls_refinement_section(refinement: dict[str, Any] | None, noise_bound: floa
         _row(["held-out selection record", *_um_pair(selection)]),
     ]
     linear = refinement["linear_part"]
-    errors = ", ".join(
-        f"{f:g} Hz: {100 * e:.2f} %"
-        for f, e in zip(linear["frequencies_hz"], linear["response_error_vs_plant"], strict=True)
+    response = linear["response_error_vs_plant"]
+    errors = (
+        "; response error against the true plant's linear part (as in step b'): "
+        + ", ".join(
+            f"{f:g} Hz: {100 * e:.2f} %"
+            for f, e in zip(linear["frequencies_hz"], response, strict=True)
+        )
+        if response is not None
+        else ""
+    )
+    floor = (
+        f"The sensor noise alone gives r/sqrt(3) = {noise_bound / 3**0.5:.3f} um RMS."
+        if noise_bound is not None
+        else "The sensor's noise bound was not given."
     )
     note = f" {refinement['note'].capitalize()}." if refinement.get("note") else ""
     return [
@@ -325,14 +365,12 @@ def _nls_refinement_section(refinement: dict[str, Any] | None, noise_bound: floa
         *rows,
         "",
         f"The model's linear part: zeros {_roots(linear['zeros'])}; poles "
-        f"{_roots(linear['poles'])}; response error against the true plant's linear part "
-        f"(as in step b'): {errors}.",
+        f"{_roots(linear['poles'])}{errors}.",
         "",
         "Step e fits z_hat, which weighs an error of z the same at every frequency, while the "
         "deflection sees it through the linear part, most where a reference's harmonics meet "
         "the first bending mode; and step b' saw only the small PRBS. Step e' minimises the "
-        "deflection's error itself, over both blocks. The sensor noise alone gives "
-        f"r/sqrt(3) = {noise_bound / 3**0.5:.3f} um RMS.",
+        f"deflection's error itself, over both blocks. {floor}",
         "",
     ]
 
@@ -344,7 +382,7 @@ def _um_pair(values: dict[str, float | None]) -> list[str]:
     ]
 
 
-def _nls_section(nls: dict[str, Any], noise_bound: float) -> list[str]:
+def _nls_section(nls: dict[str, Any], noise_bound: float | None) -> list[str]:
     return [
         *_nls_section_head(nls),
         *_nls_refinement_section(nls.get("output_error"), noise_bound),

@@ -1,8 +1,10 @@
 """The steps a-f of the paper's procedure (section 3.4), one function each, and their results.
 
-Each step takes what the earlier steps returned and the settings; the experiments (steps a and
-c, and the selection and validation records of e and f) run on the environment through
-:func:`identification.experiment.collect`.
+Each step takes what the earlier steps returned, the measured records and the settings. The
+records come from a bender, simulated or real: :func:`identification.experiment.measure`
+drives the environment with the inputs of :func:`identification.experiment.experiment_inputs`
+(:func:`excite_prbs` and :func:`excite_rich` measure one record each), and
+:mod:`identification.records` reads them from files.
 """
 
 from __future__ import annotations
@@ -17,15 +19,20 @@ import numpy as np
 from identification.arx import ARXModel
 from identification.config import ORDER_TIE_PERCENT, IdentificationConfig
 from identification.estimation import fit_arx
-from identification.experiment import collect, sample_time
+from identification.experiment import (
+    collect,
+    experiment_inputs,
+    rand_signal,
+    sample_time,
+    step_seeds,
+)
 from identification.features import FEATURE_SETS
 from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
-from identification.nls.output_error import free_run_rms, move_gain, refine_nls_output_error
+from identification.nls.output_error import move_gain, refine_nls_output_error
 from identification.refine import OutputErrorFit, refine_output_error
-from piezo_env.signals import make_signal
 
 __all__ = [
     "ArxEstimate",
@@ -146,6 +153,10 @@ class NlsFit:
         Slope of z against u on the PRBS record (1 by the scale convention).
     selection_record : tuple of numpy.ndarray
         The selection record (u V, y um), held out from the training; step e' is judged on it.
+    selection_lead_in : int
+        Samples at the start of the selection record that the model runs over but that are
+        not scored (the estimation part before a split record's held-out part: the model
+        starts from rest where the record starts).
     """
 
     model: HammersteinModel
@@ -153,6 +164,7 @@ class NlsFit:
     selection_scores: dict[str, float]
     small_signal_gain: float
     selection_record: tuple[np.ndarray, np.ndarray]
+    selection_lead_in: int = 0
 
 
 @dataclass
@@ -247,14 +259,7 @@ def excite_prbs(
     env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step a: drive the bender with a PRBS of level ``config.prbs_amplitude`` (V); (u, y)."""
-    u = make_signal(
-        "prbs",
-        config.prbs_samples,
-        dt=sample_time(env),
-        rng=np.random.default_rng(seeds["prbs"]),
-        amplitude=config.prbs_amplitude,
-        clock_period=config.prbs_clock,
-    )
+    u = experiment_inputs(config, sample_time(env), seeds)["prbs"]
     return collect(env, u, seed=seeds["env"])
 
 
@@ -359,16 +364,7 @@ def excite_rich(
     env: gym.Env, config: IdentificationConfig, seeds: dict[str, int]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Step c: drive the bender with the rich signal of ``config`` (V); (u, y)."""
-    dt = sample_time(env)
-    config = config.at_sample_time(dt)
-    u = make_signal(
-        config.rich_signal,
-        config.rich_samples,
-        dt=dt,
-        rng=np.random.default_rng(seeds["rich"]),
-        amplitude=config.rich_amplitude,
-        **config.rich_signal_params(dt),
-    )
+    u = experiment_inputs(config, sample_time(env), seeds)["rich"]
     return collect(env, u, seed=seeds["env"] + 1)
 
 
@@ -385,25 +381,27 @@ def estimate_hidden_signal(arx: ARXModel, y_rich: np.ndarray, y_prbs: np.ndarray
 
 
 def fit_nonlinearity(
-    env: gym.Env,
     arx: ARXModel,
     u_train: np.ndarray,
     z_train: np.ndarray,
+    selection: tuple[np.ndarray, np.ndarray],
     config: IdentificationConfig,
     seeds: dict[str, int],
     *,
+    u_max: float,
+    u_prbs: np.ndarray,
+    lead_in: int = 0,
     say: Callable[[str], None] = lambda _msg: None,
 ) -> NlsFit:
-    """Step e: fit the NLS to (u, z_hat); choose its features on a fresh RAND selection record.
+    """Step e: fit the NLS to (u, z_hat); choose its features on the held-out selection record.
 
     Every feature set of ``config.features`` ("auto": all of them) is trained and the Hammerstein
-    model it makes with ``arx`` scored by free-run fit (%) on the selection record.
+    model it makes with ``arx`` scored by free-run fit (%) on ``selection`` (u V, y um).
+    ``u_max`` (V) bounds the drive range the network is scaled to; ``u_prbs`` (V), the PRBS
+    record, measures its small-signal gain; the first ``lead_in`` samples of ``selection`` are
+    run over but not scored.
     """
-    u_max = float(env.action_space.high[0])
-    config = config.at_sample_time(sample_time(env))
-    n = config.validation_samples // 2
-    record = rand_signal(config, n, sample_time(env), seeds["selection"])
-    u_sel, y_sel = collect(env, record, seed=seeds["env"] + 2)
+    u_sel, y_sel = selection
     candidates = FEATURE_SETS if config.features == "auto" else (config.features,)
     fitted, scores = {}, {}
     for features in candidates:
@@ -418,12 +416,12 @@ def fit_nonlinearity(
             u_range=(-u_max, u_max),
         )
         y_hat = HammersteinModel(fitted[features], arx).simulate(u_sel)
-        scores[features] = float(fit_metrics(y_sel, y_hat)["fit_percent"])
+        scores[features] = float(fit_metrics(y_sel[lead_in:], y_hat[lead_in:])["fit_percent"])
         say(f"e) NLS with {features} features: selection fit {scores[features]:.2f} %")
     best = max(scores, key=scores.get)
     model = HammersteinModel(fitted[best], arx)
-    gain = _small_signal_gain(model, u_train[: config.prbs_samples])
-    return NlsFit(model, best, scores, gain, (u_sel, y_sel))
+    gain = _small_signal_gain(model, u_prbs)
+    return NlsFit(model, best, scores, gain, (u_sel, y_sel), lead_in)
 
 
 def refine_nonlinearity(
@@ -443,7 +441,7 @@ def refine_nonlinearity(
     feedforward invert B) is dropped for the network-only stage, and ``note`` says so.
     """
     start = nls.model
-    selection = {"before": free_run_rms(start.nls, start.arx, [nls.selection_record])}
+    selection = {"before": _selection_rms(start, nls)}
     if not start.arx.is_stable():
         return NlsRefinement(
             model=start,
@@ -466,7 +464,7 @@ def refine_nonlinearity(
         refusal = f"the refined network's small-signal gain is {gain:.3g}, not positive"
     else:
         refined = HammersteinModel(*move_gain(fit.nls, fit.arx, gain))
-        selection["after"] = free_run_rms(refined.nls, refined.arx, [nls.selection_record])
+        selection["after"] = _selection_rms(refined, nls)
         if selection["after"] < selection["before"]:
             model = refined
         else:
@@ -487,31 +485,49 @@ def refine_nonlinearity(
     return result
 
 
+def _selection_rms(model: HammersteinModel, nls: NlsFit) -> float:
+    """Free-run RMS output error (um) of ``model`` on step e's selection record, after its
+    lead-in (:func:`identification.nls.output_error.free_run_rms` of one record when there is
+    none)."""
+    u, y = nls.selection_record
+    error = model.arx.simulate(model.nls.evaluate(u)) - np.asarray(y, dtype=np.float64)
+    error = error[nls.selection_lead_in :]
+    return float(np.sqrt(float(error @ error) / error.size))
+
+
 def _small_signal_gain(model: HammersteinModel, u_prbs: np.ndarray) -> float:
     """Slope of z against u on the PRBS record (1 by the scale convention)."""
     return float(np.polyfit(u_prbs, model.nls_output(u_prbs), 1)[0])
 
 
 def validate(
-    env: gym.Env,
+    record: tuple[np.ndarray, np.ndarray],
     model: HammersteinModel,
-    config: IdentificationConfig,
-    seeds: dict[str, int],
     *,
+    stroke_um: float | None,
     unrefined: ARXModel | None = None,
     unrefined_nls: HammersteinModel | None = None,
+    lead_in: int = 0,
 ) -> Validation:
-    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh RAND data.
+    """Step f: free-run simulation of the model (and of its ARX part alone) on fresh data.
 
-    ``unrefined``: the step b estimate when step b' replaced it, run free as well (its metrics
-    are None when it is unstable: it has no free run); ``unrefined_nls``: step e's model when
-    step e' replaced it, run free as well.
+    ``record``: the validation record (u V, y um), aligned as by :func:`collect`;
+    ``stroke_um``: the bender's one-sided stroke (um) the metrics' percentages refer to (None:
+    no percentages); ``unrefined``: the step b estimate when step b' replaced it, run free as
+    well (its metrics are None when it is unstable: it has no free run); ``unrefined_nls``:
+    step e's model when step e' replaced it, run free as well; ``lead_in``: samples at the
+    start of ``record`` that every model runs over from rest but that are not scored (the
+    estimation and selection parts before a split record's validation part).
     """
-    config = config.at_sample_time(sample_time(env))
-    record = rand_signal(config, config.validation_samples, sample_time(env), seeds["validation"])
-    u, y = collect(env, record, seed=seeds["env"] + 3)
-    y_sim, y_lin, y_pred = model.simulate(u), model.arx.simulate(u), model.predict(u, y)
-    stroke = env.unwrapped.model.stroke_um
+    full = record[0]
+    u, y = (np.asarray(x)[lead_in:] for x in record)
+    runs = (model.simulate(full), model.arx.simulate(full), model.predict(*record))
+    y_sim, y_lin, y_pred = (x[lead_in:] for x in runs)
+
+    def tail(x: np.ndarray) -> np.ndarray:
+        return x[lead_in:]
+
+    stroke = stroke_um  # the metrics' percentages refer to it
     metrics = {
         "hammerstein": fit_metrics(y, y_sim, stroke=stroke),
         "linear_arx": fit_metrics(y, y_lin, stroke=stroke),
@@ -519,37 +535,16 @@ def validate(
     }
     if unrefined is not None and unrefined is not model.arx:
         metrics["linear_arx_unrefined"] = (
-            fit_metrics(y, unrefined.simulate(u), stroke=stroke) if unrefined.is_stable() else None
+            fit_metrics(y, tail(unrefined.simulate(full)), stroke=stroke)
+            if unrefined.is_stable()
+            else None
         )
     if unrefined_nls is not None and unrefined_nls is not model:
         metrics["hammerstein_unrefined_nls"] = fit_metrics(
-            y, unrefined_nls.simulate(u), stroke=stroke
+            y, tail(unrefined_nls.simulate(full)), stroke=stroke
         )
         if unrefined_nls.arx is not model.arx:
             metrics["linear_arx_before_e2"] = fit_metrics(
-                y, unrefined_nls.arx.simulate(u), stroke=stroke
+                y, tail(unrefined_nls.arx.simulate(full)), stroke=stroke
             )
     return Validation(u, y, y_sim, y_lin, y_pred, metrics)
-
-
-# -- seeds and signals shared by the steps -----------------------------------------------------
-
-
-def step_seeds(seed: int) -> dict[str, int]:
-    """Independent seeds of the steps' signals, the env's noise and the training, from one."""
-    names = ("prbs", "rich", "selection", "validation", "env", "nls")
-    children = np.random.SeedSequence(seed).spawn(len(names))
-    return {name: int(c.generate_state(1)[0]) for name, c in zip(names, children, strict=True)}
-
-
-def rand_signal(config: IdentificationConfig, n: int, dt: float, seed: int) -> np.ndarray:
-    """``n`` samples of the RAND input of the selection and validation records, V (``dt`` in
-    s counts the default hold, :data:`identification.config.RAND_HOLD_S`)."""
-    return make_signal(
-        "random",
-        n,
-        dt=dt,
-        rng=np.random.default_rng(seed),
-        amplitude=config.validation_amplitude,
-        hold=config.at_sample_time(dt).validation_hold,
-    )

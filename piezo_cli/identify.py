@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from piezo_cli.arguments import add_env_arguments, env_kwargs, seed
-from piezo_cli.command import Subcommand
+from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
 
 __all__ = ["FEATURES", "IDENTIFY", "summary"]
@@ -17,7 +17,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo identify``."""
     parser.add_argument("--out", default="out/identify", metavar="DIR", help="output folder")
     parser.add_argument(
-        "--seed", type=seed, default=0, help="seed of every signal, the noise and the training"
+        "--seed",
+        type=seed,
+        default=None,
+        help="seed of every signal, the noise and the training (default: 0; with --records, "
+        "the seed in records.json, so that records measured on the simulated bender give the "
+        "model 'piezo identify' gives)",
+    )
+    parser.add_argument(
+        "--records",
+        default=None,
+        metavar="DIR",
+        help="identify from measured records (a folder with records.json listing NAME.csv "
+        "files of time_s,voltage_V,deflection_um, as a bench or 'piezo simulate --records' "
+        "writes them) instead of the simulated bender; the bender options are then not used",
+    )
+    parser.add_argument(
+        "--split",
+        type=_fraction,
+        default=None,
+        metavar="FRACTION",
+        help="with --records holding a single long record: its first FRACTION is the "
+        "estimation record (steps b-e'), the first half of the rest the selection record "
+        "(step e), the second half the validation record (step f)",
     )
     parser.add_argument(
         "--features",
@@ -28,15 +50,47 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_env_arguments(parser)
 
 
-def run(args: argparse.Namespace) -> int:
-    """Check the output folder, then identify, write the model and report, and summarise."""
-    out = prepare_output_dir(args.out)
-    from identification.pipeline import IdentificationConfig, identify, write_outputs
+def _fraction(text: str) -> float:
+    """A number strictly between 0 and 1 (argparse type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction between 0 and 1, got {text!r}")
+    return value
 
-    config = IdentificationConfig(
-        seed=args.seed, features=args.features, env_kwargs=env_kwargs(args)
+
+def run(args: argparse.Namespace) -> int:
+    """Check the call and the output folder, then identify (from the simulated bender or from
+    measured records), write the model and report, and summarise."""
+    if args.split is not None and args.records is None:
+        raise CommandLineError(
+            "--split applies to --records (a single long record); add --records DIR"
+        )
+    out = prepare_output_dir(args.out)
+    from identification.pipeline import (
+        IdentificationConfig,
+        identify,
+        identify_records,
+        write_outputs,
     )
-    result = identify(config=config, progress=print)
+
+    if args.records is None:
+        config = IdentificationConfig(
+            seed=0 if args.seed is None else args.seed,
+            features=args.features,
+            env_kwargs=env_kwargs(args),
+        )
+        result = identify(config=config, progress=print)
+    else:
+        result = identify_records(
+            args.records,
+            split=args.split,
+            seed=args.seed,
+            config=IdentificationConfig(features=args.features),
+            progress=print,
+        )
     paths = write_outputs(result, out)
     print()
     print(summary(result.report))
@@ -85,12 +139,16 @@ IDENTIFY = Subcommand(
         "output error), rich excitation, hidden signal by the inverse ARX model, neural "
         "nonlinearity (then the whole model refined by output error), free-run validation. "
         "Writes the model (model/), report.json, report.md and figures into --out; takes "
-        "10-20 s on 2 cores, most of it the network's training and refinement."
+        "10-20 s on 2 cores, most of it the network's training and refinement. With --records "
+        "the same steps b-f run on measured records (see 'piezo excite'), checked first: a "
+        "malformed record is refused in one line naming the file and the line."
     ),
     add_arguments=add_arguments,
     run=run,
     examples=(
         "piezo identify --out out/pl140",
         "piezo identify --bender PL122 --noise-bound 0.5 --out out/pl122",
+        "piezo identify --records out/measured-pl140 --out out/pl140-bench",
+        "piezo identify --records out/one-long-run --split 0.7 --out out/long",
     ),
 )

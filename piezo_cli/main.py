@@ -20,6 +20,7 @@ from typing import NoReturn
 from piezo_cli.benchmark import BENCHMARK
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.compare import COMPARE
+from piezo_cli.excite import EXCITE
 from piezo_cli.identify import IDENTIFY
 from piezo_cli.output import missing_folders, remove_if_empty
 from piezo_cli.simulate import SIMULATE
@@ -27,7 +28,7 @@ from piezo_cli.train_rl import TRAIN_RL
 
 __all__ = ["SUBCOMMANDS", "build_parser", "main"]
 
-SUBCOMMANDS: list[Subcommand] = [SIMULATE, IDENTIFY, BENCHMARK, COMPARE, TRAIN_RL]
+SUBCOMMANDS: list[Subcommand] = [SIMULATE, EXCITE, IDENTIFY, BENCHMARK, COMPARE, TRAIN_RL]
 """Every ``piezo`` subcommand, in the order ``piezo --help`` lists them."""
 
 _DESCRIPTION = (

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 from piezo_cli.arguments import (
     add_env_arguments,
@@ -70,6 +71,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=seed, default=0, help="seed of noise and random signals")
     parser.add_argument("--out", default="out/simulate", metavar="DIR", help="output folder")
+    parser.add_argument(
+        "--records",
+        default=None,
+        metavar="DIR",
+        help="play the input records of an excitation folder ('piezo excite') instead of "
+        "--signal, each from rest at its dt, and write the measured records "
+        "(time_s,voltage_V,deflection_um, records.json) into --out, as a bench would; the "
+        "bender options set the plant, --bender must be the folder's, --dt its dt if given",
+    )
     add_env_arguments(parser)
 
 
@@ -116,6 +126,8 @@ def check_arguments(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Check the call and the output folder, then run, write and summarise the open-loop run."""
+    if args.records is not None:
+        return _measure_records(args)
     check_arguments(args)
     out = prepare_output_dir(args.out)
     from piezo_env.simulate import plot_record, run_open_loop, write_csv
@@ -137,6 +149,38 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _measure_records(args: argparse.Namespace) -> int:
+    """``--records``: measure an excitation folder's records on the simulated bender."""
+    import gymnasium as gym
+
+    from identification.records import MANIFEST, read_excitation, records_from_env, write_measured
+
+    manifest, inputs = read_excitation(args.records)
+    sheet = get_datasheet(args.bender)
+    if get_datasheet(str(manifest["bender"])).name != sheet.name:
+        raise CommandLineError(
+            f"the records in {args.records} were made for the {manifest['bender']}, not the "
+            f"{sheet.name}: pass --bender {str(manifest['bender']).split('.')[0]}"
+        )
+    dt = float(manifest["dt"])
+    if args.dt is not None and abs(args.dt - dt) > 1e-12 * dt:
+        raise CommandLineError(
+            f"--dt {args.dt:g} s differs from the records' dt {dt:g} s; drop --dt (the records "
+            "set it)"
+        )
+    out = prepare_output_dir(args.out)
+    kwargs = {**env_kwargs(args), "dt": dt}
+    env = gym.make("piezo_env:PiezoBender-v0", reference=None, max_episode_steps=-1, **kwargs)
+    records = records_from_env(env, inputs, int(manifest.get("seed", 0)))
+    paths = write_measured(out, records, excitation=Path(args.records) / MANIFEST)
+    for name, (u, y) in records.records.items():
+        print(
+            f"{name}: {len(u)} samples, peak |y| {abs(y).max():.1f} um, |u| <= {abs(u).max():.3g} V"
+        )
+    print(f"files in {out}: {', '.join(p.name for p in paths)}")
+    return 0
+
+
 SIMULATE = Subcommand(
     name="simulate",
     help="drive the bender open loop with a test signal; write CSV and PNG",
@@ -151,5 +195,6 @@ SIMULATE = Subcommand(
         "piezo simulate --signal sine --amplitude 30 --frequency 1",
         "piezo simulate --signal chirp --amplitude 10 --duration 5 --out out/chirp",
         "piezo simulate --bender PL122 --hysteresis none --noise-bound 0",
+        "piezo simulate --records out/excite --hysteresis rate-dependent --out out/measured",
     ),
 )

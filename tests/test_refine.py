@@ -146,8 +146,10 @@ def test_an_unstable_step_b_estimate_is_reported_without_a_free_run():
     ramp = np.linspace(-30.0, 30.0, 400)
     nls = fit_nls(ramp, ramp, features="past-inputs", max_epochs=0, u_range=(-30.0, 30.0))
     model = HammersteinModel(nls, ARXModel([0.5], [1.0], dt=1e-3))
-    config = IdentificationConfig(validation_samples=400)
-    val = validate(env, model, config, {"validation": 1, "env": 2}, unrefined=unstable)
+    from identification.experiment import collect, rand_signal
+
+    record = collect(env, rand_signal(IdentificationConfig(), 400, 1e-3, seed=1), seed=2)
+    val = validate(record, model, stroke_um=1000.0, unrefined=unstable)
     assert val.metrics["linear_arx_unrefined"] is None
     assert np.isfinite(val.metrics["hammerstein"]["fit_percent"])
 
