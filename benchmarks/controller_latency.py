@@ -235,6 +235,7 @@ def main() -> None:
                 ]
             )
         fast = ten_khz_rows(cart_median, fast_record)
+        machine = machine_line()  # inside the thread limit, as the header's
         lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
     lines += [
         f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
@@ -256,7 +257,7 @@ def main() -> None:
                 "median / CartPole step",
                 "p99 / CartPole step",
                 "QP solve median (us)",
-                "QP iterations (max)",
+                "solver iterations (max)",
                 "inverse median (us)",
                 "RMSE (% stroke)",
             ],
@@ -282,7 +283,7 @@ def main() -> None:
     write_result("controller_latency", lines)
     summary = {
         "date": datetime.date.today().isoformat(),
-        "machine": machine_line(),
+        "machine": machine,
         "cartpole_median_us": cart_median,
         "cartpole_p99_us": float(np.quantile(cart, 0.99)),
         "controllers": record,

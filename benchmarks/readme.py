@@ -54,7 +54,8 @@ def _label(row: str, data: dict[str, Any], members: dict[str, list[str]]) -> str
     solver = described.get("qp_solver") or described.get("solver")
     if row in ("mpc", "nmpc") and solver:
         name = str(solver).split()[0].upper()
-        return f"`{row}` ({'RTI, ' if row == 'nmpc' else ''}{name})"
+        rti = row == "nmpc" and described.get("settings", {}).get("solver") == "rti"
+        return f"`{row}` ({'RTI, ' if rti else ''}{name})"
     return f"`{row}`"
 
 
@@ -327,14 +328,16 @@ def latency(data: dict[str, Any]) -> str:
         f"step took {data['cartpole_median_us']:.1f} us in the same run.",
         "",
         "| controller | step median (us) | median / CartPole | p99 / CartPole | deadline misses "
-        "| QP iterations (max) |",
+        "| solver iterations (max) |",
         "|---|---|---|---|---|---|",
     ]
     for label in LATENCY_ROWS:
         if label in rows:
             r = rows[label]
+            name, _, detail = label.partition(" ")
+            shown = f"`{name}` {detail}".rstrip()
             lines.append(
-                f"| `{label}` | {r['median_us']:.1f} | {r['median_ratio']:.1f} | "
+                f"| {shown} | {r['median_us']:.1f} | {r['median_ratio']:.1f} | "
                 f"{r['p99_ratio']:.1f} | {r['misses']} of {r['steps']} | {r['qp_iterations_max']} |"
             )
     fast = data.get("mpc_10khz", [])
@@ -359,7 +362,7 @@ def latency(data: dict[str, Any]) -> str:
         missed.append(f"`nmpc`'s median {nmpc['median_ratio']:.1f}x (target 10x)")
     if mpc and adaptive and adaptive["median_us"] > 1.5 * mpc["median_us"]:
         ratio = adaptive["median_us"] / mpc["median_us"]
-        missed.append(f"`mpc-adaptive`'s median {ratio:.1f}x `mpc`'s (target 1.5x)")
+        missed.append(f"`mpc-adaptive`'s median {ratio:.2f}x `mpc`'s (target 1.5x)")
     if missed:
         lines += ["", "Speed targets missed in this run: " + "; ".join(missed) + "."]
     return "\n".join(lines)

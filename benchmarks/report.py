@@ -487,10 +487,11 @@ def _markdown(
             else "."
         ),
         "",
-        "Solver iterations (max): the worst step's QP iterations over the nominal episodes "
-        "(each controller's QP solver is in its description below; a DAQP iteration adds or "
-        "removes one active constraint, so this bounds the work of a step on a real-time "
-        "target), 0 for a controller without a solver.",
+        "Solver iterations (max): the worst step's solver iterations over the nominal episodes "
+        "(each controller's solver is in its description below): for `mpc` its QP's (a DAQP "
+        "iteration adds or removes one active constraint, so this sizes a step's work on a "
+        "real-time target), for `nmpc` the sum over its SQP iterations' QPs, for IPOPT its "
+        "iterations; 0 for a controller without a solver.",
         "",
     ]
     if figures:

@@ -211,6 +211,7 @@ class DAQPBoxQP(BoxQP):
             )
         self._model.settings = {"iter_limit": int(max_iter)}
         self._no_active_set = np.zeros(low.size, dtype=np.intc)
+        self._failed = False
 
     def solve(
         self,
@@ -228,13 +229,16 @@ class DAQPBoxQP(BoxQP):
             data["blower"], data["bupper"] = low, high
         if hessian is not None:
             data["H"] = hessian
-        if not warm_duals.any():
+        if not warm_duals.any() or self._failed:
             data["sense"] = self._no_active_set
-        self._model.update(**data)
-        x, _, flag, info = self._model.solve()
-        iterations = int(info["iterations"])
-        status = DAQP_STATUS.get(int(flag), f"exit flag {int(flag)}")
-        if flag <= 0 or not np.isfinite(x).all():
+        flag = int(self._model.update(**data))
+        iterations = 0
+        if flag >= 0:  # data accepted (crossed bounds or an indefinite P are refused here)
+            x, _, flag, info = self._model.solve()
+            flag, iterations = int(flag), int(info["iterations"])
+        status = DAQP_STATUS.get(flag, f"exit flag {flag}")
+        self._failed = flag <= 0 or not np.isfinite(x).all()
+        if self._failed:  # the next solve starts from no active set, not this one's
             return BoxQPSolution(None, None, status, iterations)
         return BoxQPSolution(np.clip(x, self.lower, self.upper), info["lam"], status, iterations)
 

@@ -66,16 +66,21 @@ def move_blocks(moves: int, samples: int) -> tuple[int, ...]:
     Raises
     ------
     ValueError
-        If ``samples < moves`` or ``moves < 1``.
+        If ``samples < moves`` or ``moves < 1``, or one move over several samples.
     """
     if not 1 <= moves <= samples:
         raise ValueError(
             f"a plan of {moves} moves needs at least as many prediction samples, got {samples}"
         )
-    single = moves // 2 if samples > moves else moves
-    rest = moves - single
-    if rest == 0:
+    if samples == moves:
         return (1,) * moves
+    if moves < 2:
+        raise ValueError(
+            f"blocking one move over {samples} samples leaves no single-sample first move; "
+            "plan at least 2 moves"
+        )
+    single = moves // 2
+    rest = moves - single
     edges = np.floor(np.linspace(0.0, samples - single, rest + 1) + 0.5).astype(int)
     return (1,) * single + tuple(sorted(int(length) for length in np.diff(edges)))
 

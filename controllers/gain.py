@@ -45,7 +45,7 @@ import math
 
 import numpy as np
 
-from controllers.native.step_kernels import MAX_STATES, kernels
+from controllers.native.step_kernels import MAX_STATES, kernels, too_many_states
 
 __all__ = ["CREDIBLE_Z", "GainEstimate"]
 
@@ -104,8 +104,9 @@ class GainEstimate:
         batch = a.ndim == 3
         self._a = a if batch else a[None]
         k, n = self._a.shape[0], self._a.shape[1]
-        self._b = np.asarray(b, dtype=float).reshape(k, n)
-        self._c = np.asarray(c, dtype=float).reshape(k, n)
+        # C-contiguous float64 copies: the compiled kernels read them through raw pointers.
+        self._b = np.ascontiguousarray(np.asarray(b, dtype=float).reshape(k, n))
+        self._c = np.ascontiguousarray(np.asarray(c, dtype=float).reshape(k, n))
         self.bounds = (1.0 - tolerance, 1.0 + tolerance)
         self._prior_precision = 3.0 / tolerance**2
         self._floor = noise_std**2
@@ -128,32 +129,30 @@ class GainEstimate:
         self._sums = self._state[11 * k :]  # s_yy, count
         self._x = np.zeros((k, n))
         self._a = np.ascontiguousarray(self._a)
-        self.native: list = []
         self._update_native = self._advance_native = None
-        if n <= MAX_STATES:
-            library, build = kernels()
-            self.native = [build]
-            if library is not None:
-                dims = np.array([k, n], dtype=np.int64)
-                par = np.array(
-                    [self._prior_precision, self._floor, *self.bounds, CREDIBLE_Z], dtype=float
-                )
-                self._kernel_data = (dims, par)  # kept alive: the kernels hold their pointers
-                self._update_native = functools.partial(
-                    library.gain_update,
-                    dims.ctypes.data,
-                    par.ctypes.data,
-                    self._c.ctypes.data,
-                    self._x.ctypes.data,
-                    self._state.ctypes.data,
-                )
-                self._advance_native = functools.partial(
-                    library.gain_advance,
-                    dims.ctypes.data,
-                    self._a.ctypes.data,
-                    self._b.ctypes.data,
-                    self._x.ctypes.data,
-                )
+        library, build = kernels() if n <= MAX_STATES else too_many_states(n)
+        self.native = [build]
+        if library is not None:
+            dims = np.array([k, n], dtype=np.int64)
+            par = np.array(
+                [self._prior_precision, self._floor, *self.bounds, CREDIBLE_Z], dtype=float
+            )
+            self._kernel_data = (dims, par)  # kept alive: the kernels hold their pointers
+            self._update_native = functools.partial(
+                library.gain_update,
+                dims.ctypes.data,
+                par.ctypes.data,
+                self._c.ctypes.data,
+                self._x.ctypes.data,
+                self._state.ctypes.data,
+            )
+            self._advance_native = functools.partial(
+                library.gain_advance,
+                dims.ctypes.data,
+                self._a.ctypes.data,
+                self._b.ctypes.data,
+                self._x.ctypes.data,
+            )
         self.reset(np.zeros(n))
 
     @property

@@ -63,7 +63,7 @@ from controllers.settings import (
 from controllers.tolerance_box import RESONANCE_TOLERANCE
 from piezo_env.checks import require_int
 
-__all__ = ["LinearMPC", "MPCSettings", "covering_samples", "smallest_slope"]
+__all__ = ["LONGEST_PERIOD_S", "LinearMPC", "MPCSettings", "covering_samples", "smallest_slope"]
 
 
 @dataclass(frozen=True)
@@ -336,8 +336,7 @@ class LinearMPC(PredictiveController):
         if low <= u <= high:
             z, self._memory = inverse.z, inverse.state
         else:  # the inverse's tolerance or float32 rounding at the window's edge
-            u = float(np.float32(min(max(u, low), high)))
-            u = min(max(u, low), high)
+            u = float32_within(min(max(u, low), high), low, high)
             z, self._memory = nonlinearity.step(u, self._memory)
             self.stats.inverse["slew-window"] += 1
         self._applied(z)
@@ -419,18 +418,32 @@ class LinearMPC(PredictiveController):
         }
 
 
+LONGEST_PERIOD_S = 0.1
+"""Longest first-mode period :func:`covering_samples` accepts (s): 10 Hz, more than ten times
+below the lowest first resonance the catalogue's datasheets allow (the PL140's 160 Hz less its
+20 % tolerance, 128 Hz)."""
+
+
 def covering_samples(a: np.ndarray, dt: float, moves: int) -> int:
     """Samples covering one period of the slowest first resonance the datasheet allows, and at
     least ``moves``.
 
-    The first bending mode is the model's complex pole pair of largest modulus (the lightest
-    damped), at ``f = |ln p| / (2 pi dt)``; the datasheet allows a bender whose first
+    The first bending mode is taken as the model's complex pole pair of largest modulus (the
+    slowest decaying, which is the first mode on every model identified or built here), at
+    ``f = |ln p| / (2 pi dt)``; the datasheet allows a bender whose first
     resonance is :data:`controllers.tolerance_box.RESONANCE_TOLERANCE` lower, whose period is
     ``1 / (f (1 - s))``. A prediction that sees one whole period of the ringing it must damp
     is what lets a plan damp it rather than excite it; at the catalogue's default sample times
     (a resonance at most a quarter of the sampling rate) that is fewer than 20 samples, at
     0.1 ms on the PL140 79. Without a complex pole: ``moves``. (What it buys and costs:
     :class:`MPCSettings`' ``prediction_horizon``.)
+
+    Raises
+    ------
+    ValueError
+        If that period exceeds :data:`LONGEST_PERIOD_S`: no catalogue bender's first mode is
+        that slow (the slowest, the PL140's, is at 160 Hz), so the pole is not a bending
+        mode, and the prediction would be that many samples long.
 
     Parameters
     ----------
@@ -447,7 +460,25 @@ def covering_samples(a: np.ndarray, dt: float, moves: int) -> int:
         return moves
     pole = upper[np.argmax(np.abs(upper))]
     slowest_hz = abs(np.log(pole)) / (2.0 * math.pi * dt) * (1.0 - RESONANCE_TOLERANCE)
+    if 1.0 / slowest_hz > LONGEST_PERIOD_S:
+        raise ValueError(
+            f"the model's slowest complex mode is at {slowest_hz:.3g} Hz (datasheet's low end), "
+            f"a period over {LONGEST_PERIOD_S:g} s: not a bending mode; give "
+            "prediction_horizon as a number of samples instead of 'resonance'"
+        )
     return max(moves, math.ceil(1.0 / (slowest_hz * dt)))
+
+
+def float32_within(u: float, low: float, high: float) -> float:
+    """``u`` (V, inside ``[low, high]``) rounded to the float32 the plant receives, kept inside
+    the window: rounding that steps out is replaced by the next float32 towards the inside
+    (one float32 step, 2e-6 V at 30 V, within the window whenever it is wider than that)."""
+    rounded = np.float32(u)
+    if rounded > high:
+        rounded = np.nextafter(rounded, np.float32(-np.inf))
+    elif rounded < low:
+        rounded = np.nextafter(rounded, np.float32(np.inf))
+    return float(rounded)
 
 
 def smallest_slope(nonlinearity: Any, step: float, legs: int = 3) -> float:

@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 
 from controllers.box_qp import box_qp, solver_version, within
+from controllers.mpc import float32_within
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
@@ -118,8 +119,9 @@ class NMPCSettings:
         OSQP tolerances (DAQP ends on an exact active set and takes none).
     max_qp_iterations : int
         The QP solver's iteration cap per QP; reaching it is a fallback. 1000, as the linear
-        MPC's: at 200, one OSQP solve of a step beyond the drive range (the bound binding over
-        the horizon) needed 290 iterations.
+        MPC's: chosen for OSQP (at 200, one OSQP solve of a step beyond the drive range needed
+        290 iterations); DAQP, one active-set change per iteration, has needed at most a few
+        tens on the benchmark's references (``solver_iterations_max`` in each episode).
     shortcut : bool
         Try the unconstrained optimum of each QP first and skip the QP solver when it meets
         every bound (exact: see :mod:`controllers.box_qp`).
@@ -247,10 +249,9 @@ class NonlinearMPC(PredictiveController):
             self.stats.fallbacks += 1
             plan = shifted
         self._plan = plan
-        # The plant gets float32 volts: step the memory and the observer with exactly those
-        # (kept in the window: the QP meets it to rounding, float32 rounding may step out).
-        u = float(np.float32(min(max(plan[0], low), high)))
-        u = min(max(u, low), high)
+        # The plant gets float32 volts: step the memory and the observer with exactly those,
+        # kept in the window (the QP meets it to rounding; float32 rounding may step out).
+        u = float32_within(min(max(plan[0], low), high), low, high)
         z, self._memory = self.model.nonlinearity.step(u, self._memory)
         self.observer.predict(z)
         self._u_prev = u

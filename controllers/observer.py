@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from controllers.native.step_kernels import MAX_STATES, kernels
+from controllers.native.step_kernels import MAX_STATES, kernels, too_many_states
 from controllers.riccati import filter_riccati
 from controllers.settings import measurement_std
 
@@ -414,7 +414,7 @@ class ObserverBank:
         self.a_aug, self.b_aug, self.c_aug = first.a_aug, first.b_aug, first.c_aug
         self._a_aug_t = first.a_aug.T.copy()
         self.noise_levels = [(f.process_std, f.disturbance_std) for f in filters]
-        self.gains = np.array([f.gain for f in filters])
+        self._gains = np.array([f.gain for f in filters])
         variance = np.array([f.innovation_var for f in filters])
         self._half_inverse_var = 0.5 / variance
         self._half_log_var = 0.5 * np.log(variance)
@@ -449,15 +449,12 @@ class ObserverBank:
         self._a_aug = np.ascontiguousarray(self.a_aug, dtype=float)
         self._b_aug = np.ascontiguousarray(self.b_aug, dtype=float)
         self._c_aug = np.ascontiguousarray(self.c_aug, dtype=float)
-        self.gains = np.ascontiguousarray(self.gains, dtype=float)
+        self._gains = np.ascontiguousarray(self._gains, dtype=float)
         self._parameters = np.array(
             [self._keep, self._guard_keep, RUNAWAY_NIS, RUNAWAY_CORRELATION], dtype=float
         )
         self._correct_native = self._predict_native = None
-        self.native: list = []
-        if size > MAX_STATES:
-            return
-        library, build = kernels()
+        library, build = kernels() if size <= MAX_STATES else too_many_states(size)
         self.native = [build]
         if library is None:
             return
@@ -467,7 +464,7 @@ class ObserverBank:
             pointer,
             self._parameters.ctypes.data,
             self._c_aug.ctypes.data,
-            self.gains.ctypes.data,
+            self._gains.ctypes.data,
             self._half_log_var.ctypes.data,
             self._half_inverse_var.ctypes.data,
             self._state.ctypes.data,
@@ -481,6 +478,11 @@ class ObserverBank:
             self._b_aug.ctypes.data,
             self._state.ctypes.data,
         )
+
+    @property
+    def gains(self) -> np.ndarray:
+        """(F, m) every filter's steady-state gain (read-only: the kernels hold its memory)."""
+        return self._gains
 
     @property
     def selected(self) -> int:
@@ -612,7 +614,7 @@ class ObserverBank:
             self._correct_native(y_measured)
             return self._estimates[self._counters[0]]
         innovation = y_measured - self._estimates @ self.c_aug
-        self._estimates += self.gains * innovation[:, None]
+        self._estimates += self._gains * innovation[:, None]
         log_likelihood = -self._half_log_var - innovation**2 * self._half_inverse_var
         keep, new = self._keep, 1.0 - self._keep
         self._score[:] = keep * self._score + new * log_likelihood

@@ -407,3 +407,41 @@ def test_resonance_prediction_covers_the_slowest_first_mode_of_the_datasheet():
     assert default.prediction_samples == 20 and default.blocks == (1,) * 20
     with pytest.raises(ValueError, match="at least horizon"):
         MPCSettings(horizon=20, prediction_horizon=10)
+
+
+def test_daqp_refuses_crossed_bounds_and_starts_afresh_after_a_failure():
+    """Data DAQP refuses at update (lower above upper) give no solution, never the previous
+    one; the next solve of a good QP starts from no active set and is right."""
+    from controllers.box_qp import box_qp
+
+    n = 5
+    hessian = np.eye(n) + 0.1
+    qp = box_qp(
+        "daqp",
+        np.full(n, -1.0),
+        np.full(n, 1.0),
+        hessian=hessian,
+        eps_abs=1e-6,
+        eps_rel=1e-6,
+        max_iter=100,
+    )
+    good = qp.solve(np.full(n, 5.0), np.zeros(n), np.zeros(n))
+    assert good.status == "solved" and np.allclose(good.x, -1.0, atol=1e-12)
+    crossed = (np.full(n, 1.0), np.full(n, -1.0))
+    failed = qp.solve(np.full(n, 5.0), np.zeros(n), np.ones(n), bounds=crossed)
+    assert failed.x is None and failed.status != "solved"
+    again = qp.solve(np.zeros(n), np.zeros(n), np.ones(n), bounds=(np.full(n, -1.0), np.ones(n)))
+    assert again.status == "solved" and np.allclose(again.x, 0.0)
+
+
+def test_resonance_horizon_refuses_a_pole_that_is_no_bending_mode():
+    from controllers.mpc import covering_samples
+
+    slow = np.exp(1e-3 * (-0.01 + 2j * np.pi * 1.0))  # a lightly damped 1 Hz pair at 1 ms
+    a = np.array([[2 * slow.real, -(abs(slow) ** 2)], [1.0, 0.0]])
+    with pytest.raises(ValueError, match="not a bending mode"):
+        covering_samples(a, 1e-3, 20)
+    with pytest.raises(ValueError, match="at least 2 moves"):
+        from controllers.condensed import move_blocks
+
+        move_blocks(1, 10)

@@ -114,3 +114,26 @@ def test_closed_loop_episodes_with_the_kernels_equal_numpy(monkeypatch, name):
         got = controllers.run_episode(env, compiled, seed=3, reference=ref, max_steps=800)
         expected = controllers.run_episode(env, reference, seed=3, reference=ref, max_steps=800)
         np.testing.assert_allclose(got.voltage_V, expected.voltage_V, rtol=0, atol=4e-6)
+
+
+def test_estimators_beyond_the_kernels_size_say_numpy_runs_them():
+    from controllers.native.step_kernels import MAX_STATES
+
+    n = MAX_STATES + 1
+    estimate = GainEstimate(np.eye(n) * 0.5, np.ones(n), np.ones(n), tolerance=0.2, noise_std=1.0)
+    assert estimate._update_native is None
+    assert estimate.native[0].path == NUMPY and "more than" in estimate.native[0].reason
+
+
+def test_gain_kernel_propagates_nan_as_numpy(monkeypatch):
+    """A NaN measurement makes every derived quantity NaN in both paths (numpy's maximum and
+    minimum propagate NaN; a C comparison would not)."""
+    a, b, c = np.array([[0.5]]), np.array([1.0]), np.array([1.0])
+    compiled = GainEstimate(a, b, c, tolerance=0.2, noise_std=0.5)
+    numpy_only(monkeypatch)
+    reference = GainEstimate(a, b, c, tolerance=0.2, noise_std=0.5)
+    for estimate in (compiled, reference):
+        estimate.advance(1.0)
+        estimate.update(float("nan"))
+    np.testing.assert_array_equal(compiled._state, reference._state)  # NaN == NaN here
+    assert np.isnan(compiled.value).all()

@@ -25,9 +25,15 @@ import ctypes
 import functools
 from typing import Any
 
-from controllers.native.codegen import DEFAULT_FLAGS, NativeBuild, compile_source, native_policy
+from controllers.native.codegen import (
+    DEFAULT_FLAGS,
+    NUMPY,
+    NativeBuild,
+    compile_source,
+    native_policy,
+)
 
-__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "kernels"]
+__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "kernels", "too_many_states"]
 
 MAX_STATES = 64
 """Largest state size the kernels take (their time updates use a stack buffer of this size)."""
@@ -37,6 +43,10 @@ SOURCE = r"""
 #include <stdint.h>
 
 #define MAX_STATES 64
+
+/* numpy's maximum and minimum: NaN if either operand is NaN. */
+static double np_max(double a, double b) { return (a != a || b != b) ? a + b : (a < b ? b : a); }
+static double np_min(double a, double b) { return (a != a || b != b) ? a + b : (a > b ? b : a); }
 
 /* controllers.gain.GainEstimate.update: K parts of order n.
    dims = {K, n}; par = {prior precision, variance floor, low bound, high bound, z_975};
@@ -62,22 +72,16 @@ void gain_update(const int64_t *dims, const double *par, const double *c, const 
         res[k] = r;
         s_ss[k] += s * s;
         s_sy[k] += s * y;
-        double variance = s_ee[k] / *count;
-        if (variance < floor_) variance = floor_;
+        double variance = np_max(s_ee[k] / *count, floor_);
         double precision = pp + s_ss[k] / variance;
         double m = (pp + s_sy[k] / variance) / precision;
         mean[k] = m;
         sd[k] = 1.0 / sqrt(precision);
         double half = zc * sd[k];
-        double l = m - half, h = m + half;
-        l = l < lo ? lo : l;
-        l = l > hi ? hi : l;
-        h = h < lo ? lo : h;
-        h = h > hi ? hi : h;
+        double l = np_min(np_max(m - half, lo), hi), h = np_min(np_max(m + half, lo), hi);
         low[k] = l;
         high[k] = h;
-        double v = 1.0 < l ? l : 1.0;
-        value[k] = v > h ? h : v;
+        value[k] = np_min(np_max(1.0, l), h);
         misfit[k] = (*s_yy - 2.0 * m * s_sy[k] + m * m * s_ss[k]) / *count;
     }
 }
@@ -125,11 +129,12 @@ void bank_correct(const int64_t *dims, const double *par, const double *c, const
     }
     counters[1] += 1;
     if (counters[3] < 0) {
+        /* numpy's argmax: the first maximum, or the first NaN */
         int64_t best = 0;
         double top = score[0] + penalty[0];
-        for (int64_t f = 1; f < F; ++f) {
+        for (int64_t f = 1; f < F && top == top; ++f) {
             double v = score[f] + penalty[f];
-            if (v > top) { top = v; best = f; }
+            if (v > top || v != v) { top = v; best = f; }
         }
         double n = nis[best];
         int suspect = best != fallback && n > par[2] && lag[best] < par[3] * n;
@@ -188,3 +193,10 @@ def kernels() -> tuple[Any, NativeBuild]:
     """The compiled kernels (None without native code) and the record of their build, once
     per process and ``PIEZO_NATIVE`` policy."""
     return _build(native_policy())
+
+
+def too_many_states(size: int) -> tuple[None, NativeBuild]:
+    """No kernels for an estimator of ``size`` states beyond :data:`MAX_STATES`: the record
+    that says numpy runs it, and why."""
+    reason = f"{size} states, more than the kernels' {MAX_STATES}: numpy runs the estimator"
+    return None, NativeBuild("step_kernels", NUMPY, reason)
