@@ -339,6 +339,15 @@ class Checkpoint:
         self.finished[tuple(group)] = decoded = json.loads(line)["output"]
         return decoded
 
+    def kept(self) -> int:
+        """Groups the file holds: what :attr:`finished` holds, and also a group whose line was
+        written when an interruption stopped :meth:`append` before it returned."""
+        try:
+            data = self.path.read_bytes()
+        except FileNotFoundError:
+            return 0
+        return max(0, data.count(b"\n") - 1)
+
     def remove(self) -> None:
         """Delete the file (a run that finished nothing leaves nothing behind)."""
         self.path.unlink(missing_ok=True)

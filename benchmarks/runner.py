@@ -51,7 +51,7 @@ from benchmarks.plants import (
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
 from piezo_env.checks import require_int
-from piezo_parallel.backends import BACKENDS, run_tasks
+from piezo_parallel.backends import BACKENDS, DEFAULT_RETRIES, run_tasks
 
 __all__ = [
     "BOX_CORNERS",
@@ -475,6 +475,7 @@ def run_benchmark(
     *,
     progress: Callable[[int, int, str], None] | None = None,
     checkpoint: Checkpoint | None = None,
+    retries: int = DEFAULT_RETRIES,
 ) -> BenchmarkResult:
     """Run the benchmark on the identified model saved in ``model_dir``.
 
@@ -490,6 +491,9 @@ def run_benchmark(
         Groups it holds are taken from it, not run; each group that finishes is appended to
         it at once, so an interruption loses only the groups still running. The result is
         bitwise the same with or without it, resumed or not.
+    retries : int
+        Reruns of a group whose worker process died, each on a new worker (see
+        :func:`piezo_parallel.backends.run_tasks`).
 
     Returns
     -------
@@ -542,6 +546,7 @@ def run_benchmark(
         labels=[f"{groups[i][1]} on {groups[i][0]}" for i in todo],
         progress=show if progress else None,
         on_result=keep,
+        retries=retries,
     )
     episodes, described, traces = [], {}, {}
     for (plant, controller, _), (eps, description, trace) in zip(groups, outputs, strict=True):

@@ -7,7 +7,7 @@ import dataclasses
 import os
 import time
 
-from piezo_cli.arguments import bender_name, positive_int, seed
+from piezo_cli.arguments import bender_name, non_negative_int, positive_int, seed
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import clear_incomplete, mark_incomplete, prepare_output_dir
 
@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo benchmark``."""
     from benchmarks.references import REFERENCES
     from benchmarks.runner import DEFAULT_CONTROLLERS, PLANTS
-    from piezo_parallel.backends import default_jobs
+    from piezo_parallel.backends import DEFAULT_RETRIES, default_jobs
 
     parser.add_argument("--out", default="out/benchmark", metavar="DIR", help="output folder")
     parser.add_argument(
@@ -139,6 +139,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ROW.KEY=VALUE",
         help="an option of one controller row, e.g. mpc.horizon=10 or MyController.gain=2 "
         "(repeatable; numbers, true/false and none are read as such, anything else as text)",
+    )
+    parser.add_argument(
+        "--retries",
+        type=non_negative_int,
+        default=DEFAULT_RETRIES,
+        help="reruns of a group whose worker process died (killed by the out-of-memory killer, "
+        "a crash), each on a new worker; the results are the same",
     )
     parser.add_argument(
         "--resume",
@@ -366,18 +373,19 @@ def _left_behind(out, checkpoint, total: int, error: BaseException) -> None:
     goes too)."""
     from piezo_cli.output import INCOMPLETE
 
-    if not checkpoint.finished:
+    kept = checkpoint.kept()
+    if not kept:
         checkpoint.remove()
         (out / INCOMPLETE).unlink(missing_ok=True)
         return
     if isinstance(error, KeyboardInterrupt):
-        what = str(error) if str(error).startswith("interrupted") else "interrupted by SIGINT"
+        what = str(error) if str(error).startswith("interrupted") else "interrupted"
     else:
         what = f"stopped: {' '.join(str(error).split()) or type(error).__name__}"
     mark_incomplete(
         out,
         "piezo benchmark",
-        f"was {what} after {len(checkpoint.finished)} of {total} groups",
+        f"was {what} after {kept} of {total} groups",
         hint=_resume_hint(checkpoint),
     )
 
@@ -416,7 +424,11 @@ def run(args: argparse.Namespace) -> int:
     timing["checkpoint_s"] = round(time.perf_counter() - start, 2)
     try:
         result = run_benchmark(
-            config, model_dir, progress=terminal_progress(args.quiet), checkpoint=checkpoint
+            config,
+            model_dir,
+            progress=terminal_progress(args.quiet),
+            checkpoint=checkpoint,
+            retries=args.retries,
         )
     except BaseException as error:
         _left_behind(out, checkpoint, len(config.groups()), error)

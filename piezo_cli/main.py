@@ -23,7 +23,7 @@ from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.compare import COMPARE
 from piezo_cli.identify import IDENTIFY
 from piezo_cli.output import clear_incomplete, mark_incomplete, missing_folders, remove_if_empty
-from piezo_cli.signals import signals_interrupt
+from piezo_cli.signals import Caught, signals_interrupt
 from piezo_cli.simulate import SIMULATE
 from piezo_cli.train_rl import TRAIN_RL
 
@@ -146,8 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     prefix = f"piezo {args.command}"
     out = getattr(args, "out", None)
     new_folders = missing_folders(out)
+    caught = Caught()
     try:
-        with signals_interrupt():
+        with signals_interrupt() as caught:
             status = args.subcommand.run(args)
         clear_incomplete(out, prefix)
         return status
@@ -166,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prefix}: {error}", file=sys.stderr)
         return 1
     except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM / SIGHUP as piezo_cli.signals
-        signum = getattr(stop, "signum", signal.SIGINT)
+        signum = getattr(stop, "signum", None) or caught.signum or signal.SIGINT
         how = f"interrupted by {signal.Signals(signum).name}"
         remove_if_empty(new_folders)
         mark_incomplete(out, prefix, f"was {how}", replace=False)

@@ -14,9 +14,10 @@ import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from types import FrameType
 
-__all__ = ["SIGNALS", "Interrupted", "signals_interrupt"]
+__all__ = ["SIGNALS", "Caught", "Interrupted", "signals_interrupt"]
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 """The signals that interrupt a command."""
@@ -50,29 +51,48 @@ class Interrupted(KeyboardInterrupt):
         return f"interrupted by {self.name}"
 
 
+@dataclass
+class Caught:
+    """The signal that interrupted a :func:`signals_interrupt` block (None: none did).
+
+    Code between the signal and the ``except`` may turn :class:`Interrupted` into a plain
+    ``KeyboardInterrupt`` (Ray's C++ core does when a signal handler raises inside
+    ``ray.wait``); this record keeps which signal it was.
+    """
+
+    signum: int | None = None
+
+
 @contextmanager
-def signals_interrupt() -> Iterator[None]:
+def signals_interrupt() -> Iterator[Caught]:
     """Raise :class:`Interrupted` on SIGINT, SIGTERM and SIGHUP inside the block.
 
     The first signal raises; later ones are ignored until the block is left, so that the
     clean-up it started (stopping workers, marking the output folder) is not cut short by a
     second Ctrl-C or a scheduler's repeated SIGTERM. The previous handlers are restored on
     exit. Outside the main thread (where Python cannot set handlers) the block runs unchanged.
+
+    Yields
+    ------
+    Caught
+        Which signal interrupted the block.
     """
+    caught = Caught()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield caught
         return
 
     def stop(signum: int, frame: FrameType | None) -> None:
         for number in SIGNALS:
             signal.signal(number, signal.SIG_IGN)
+        caught.signum = signum
         raise Interrupted(signum)
 
     saved = {number: signal.getsignal(number) for number in SIGNALS}
     for number in SIGNALS:
         signal.signal(number, stop)
     try:
-        yield
+        yield caught
     finally:
         for number, handler in saved.items():
             signal.signal(number, handler if handler is not None else signal.SIG_DFL)

@@ -209,10 +209,8 @@ def _run_ray(
                 result = ray.get(ready)
             except (WorkerCrashedError, OutOfMemoryError, NodeDiedError) as lost:
                 cause = " ".join(str(lost).split())[:200]
-                raise WorkerLost(
-                    f"the Ray worker running {labels[i]!r} died on each of {retries + 1} "
-                    f"attempts ({type(lost).__name__}: {cause})"
-                ) from None
+                how = f"died ({type(lost).__name__}: {cause})"
+                raise WorkerLost.of(labels[i], how, retries) from None
             finished(i, result)
     finally:
         for ref in pending:

@@ -50,6 +50,14 @@ class WorkerLost(RuntimeError):
     The message is one line naming the task and how its worker ended (``killed by SIGKILL``).
     """
 
+    @classmethod
+    def of(cls, label: str, how: str, retries: int) -> WorkerLost:
+        """The error for task ``label`` whose worker ``how`` (``"was killed by SIGKILL"``)."""
+        if retries == 0:
+            return cls(f"the worker running {label!r} {how} (no retries allowed)")
+        times = "its one retry" if retries == 1 else f"each of its {retries} retries"
+        return cls(f"the worker running {label!r} {how}, on its first attempt and on {times}")
+
 
 class RemoteTraceback(Exception):
     """The traceback of a task's exception in its worker, chained as the ``__cause__``."""
@@ -128,10 +136,7 @@ def run_pool(
                     workers.remove(worker)
                     how = _ending(worker)
                     if attempts[index] > retries:
-                        raise WorkerLost(
-                            f"the worker running {labels[index]!r} {how} on each of "
-                            f"{attempts[index]} attempts (retries: {retries})"
-                        )
+                        raise WorkerLost.of(labels[index], how, retries)
                     queue.appendleft(index)
                     continue
                 worker.task = None
