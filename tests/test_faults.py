@@ -115,12 +115,12 @@ def _wait_for(condition, timeout_s: float) -> bool:
 # -- SIGTERM -----------------------------------------------------------------------------------
 
 
-def test_sigterm_stops_a_benchmark_leaves_no_process_and_resume_finishes_it(
-    tmp_path, uninterrupted
-):
-    out = tmp_path / "out"
+def _terminate_benchmark(out: Path, backend: str) -> tuple[int, str, list[int]]:
+    """Start ``piezo benchmark`` (two workers), send it SIGTERM once a group has finished;
+    its exit status, its stderr (read to the end) and the processes it had started."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(PROJECT), *sys.path]))}
     command = [sys.executable, "-m", "piezo_cli.main", *ARGV, "--jobs", "2", "--out", str(out)]
+    command += ["--backend", backend]
     run = subprocess.Popen(
         command, cwd=PROJECT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
@@ -136,16 +136,31 @@ def test_sigterm_stops_a_benchmark_leaves_no_process_and_resume_finishes_it(
         _, err = run.communicate(timeout=60)  # read to the end: nothing holds the pipes
     finally:
         run.kill()
-    assert run.returncode == 128 + signal.SIGTERM
+    return run.returncode, err, processes
+
+
+def _assert_stopped_cleanly(status: int, err: str, processes: list[int], out: Path) -> int:
+    """Exit 143 with one line, every process gone, what finished kept and marked incomplete;
+    the number of groups kept."""
+    assert status == 128 + signal.SIGTERM, err[-2000:]
     assert err.splitlines()[-1] == "piezo benchmark: interrupted by SIGTERM"
     assert "Traceback" not in err and "leaked" not in err
     assert _wait_for(lambda: not any(_running(p) for p in processes), 10)
     names = {p.name for p in out.iterdir()}
     assert "benchmark.json" not in names and "benchmark.md" not in names
     marker = (out / "INCOMPLETE.txt").read_text()
-    assert "interrupted by SIGTERM" in marker and "--resume" in marker
-    kept = checkpoint.read_text().count("\n") - 1
+    assert "was interrupted" in marker and "--resume" in marker
+    kept = (out / "checkpoint.jsonl").read_text().count("\n") - 1
     assert 1 <= kept < 4
+    return kept
+
+
+def test_sigterm_stops_a_benchmark_leaves_no_process_and_resume_finishes_it(
+    tmp_path, uninterrupted
+):
+    out = tmp_path / "out"
+    kept = _assert_stopped_cleanly(*_terminate_benchmark(out, "local"), out)
+    assert "interrupted by SIGTERM" in (out / "INCOMPLETE.txt").read_text()
 
     # Resumed with the same --out: only the missing groups run, and the result is the
     # uninterrupted run's, bit for bit.
@@ -154,6 +169,22 @@ def test_sigterm_stops_a_benchmark_leaves_no_process_and_resume_finishes_it(
     assert data["meta"]["resumed_groups"] == kept
     assert json.dumps(data["results"]) == json.dumps(deterministic_json(uninterrupted))
     assert not (out / "INCOMPLETE.txt").exists()
+
+
+@pytest.mark.slow
+def test_sigterm_on_ray_cancels_the_tasks_and_shuts_the_private_instance_down(tmp_path):
+    out = tmp_path / "out"
+    _assert_stopped_cleanly(*_terminate_benchmark(out, "ray"), out)
+
+
+@pytest.mark.slow
+def test_ray_retries_a_task_whose_worker_was_killed(tmp_path):
+    results = run_tasks(
+        faulty.die_once, [(i, str(tmp_path)) for i in range(4)], jobs=2, backend="ray"
+    )
+    assert results == [0, 3, 6, 9] and [p.name for p in tmp_path.iterdir()] == ["died-2"]
+    with pytest.raises(WorkerLost, match=r"'b' died .*on its first attempt and on its one retry"):
+        run_tasks(faulty.always_die, [(0,), (1,)], jobs=2, backend="ray", retries=1, labels="ab")
 
 
 def test_signals_raise_interrupted_once_and_handlers_come_back():
