@@ -344,9 +344,14 @@ def _checkpoint(args: argparse.Namespace, out, config, model_dir: str):
     until this run writes its own, so that neither a kill that nothing can catch (SIGKILL) nor
     an interruption leaves a report that looks finished.
     """
-    from benchmarks.checkpoint import Checkpoint, CheckpointMismatch, run_identity
+    from benchmarks.checkpoint import CHECKPOINT, Checkpoint, CheckpointMismatch, run_identity
 
     identity = run_identity(config, model_dir)
+    if not args.resume and (out / CHECKPOINT).exists():
+        print(
+            f"starting afresh: the checkpoint of an earlier run in {out} is replaced (--resume "
+            "would have continued it)"
+        )
     try:
         checkpoint = (Checkpoint.resume if args.resume else Checkpoint.start)(out, identity)
     except CheckpointMismatch as error:
