@@ -59,6 +59,8 @@ CODE_PACKAGES = ("piezo_env", "identification", "controllers", "benchmarks", "pi
 """The packages whose modules compute a group: their sources are part of the identity (of
 ``benchmarks``, the harness's own modules, not its studies and speed scripts)."""
 
+_SOURCES = (".py", ".c", ".h")
+
 LIBRARIES = ("numpy", "scipy", "casadi", "osqp", "torch", "gymnasium", "control")
 """Numerical libraries whose versions are part of the identity."""
 
@@ -108,15 +110,16 @@ def _folder_digests(folder: str | os.PathLike[str]) -> dict[str, str]:
 
 
 def _code_digests() -> dict[str, str]:
-    """SHA-256 of every module of :data:`CODE_PACKAGES`, by path relative to the project."""
+    """SHA-256 of every source file (Python and C) of :data:`CODE_PACKAGES`, by path relative
+    to the project."""
     import importlib.util
 
     digests = {}
     for package in CODE_PACKAGES:
         spec = importlib.util.find_spec(package)
         folder = Path(spec.origin).parent
-        found = folder.glob("*.py") if package == "benchmarks" else folder.rglob("*.py")
-        for path in sorted(found):
+        found = folder.glob("*") if package == "benchmarks" else folder.rglob("*")
+        for path in sorted(p for p in found if p.suffix in _SOURCES and p.is_file()):
             digests[str(path.relative_to(folder.parent))] = _sha256(path)
     return digests
 
