@@ -137,8 +137,9 @@ def run_tasks(
     retries : int
         Reruns of a task whose worker process died (killed by the out-of-memory killer, a
         crash in native code), each on a new worker: the local pool replaces the worker, Ray
-        retries the task (``max_retries``). A task's own exception is never retried. Tasks
-        must be deterministic functions of their arguments for a rerun to give the same
+        retries the task (``max_retries``). A task's own exception is never retried, and
+        ``jobs == 1`` on the local backend runs in this process, with no worker to replace.
+        Tasks must be deterministic functions of their arguments for a rerun to give the same
         result.
 
     Raises
