@@ -188,8 +188,11 @@ def _run_ray(
     address: str | None,
     retries: int,
 ) -> None:
-    """Every task a Ray task; on any exit the unfinished ones are cancelled and a private
-    instance is shut down (its processes stopped)."""
+    """Every task a Ray task; on any exit a private instance is shut down (its processes, the
+    running tasks' workers among them, stopped) or, on a cluster that keeps running, the
+    unfinished tasks are cancelled. (Cancelling tasks of a private instance just before its
+    shutdown is not only needless: a task's reply racing the cancellation can abort the
+    driver inside Ray's core, "Tried to complete task that was not pending".)"""
     import ray
     from ray.exceptions import NodeDiedError, OutOfMemoryError, WorkerCrashedError
 
@@ -214,10 +217,11 @@ def _run_ray(
                 raise WorkerLost.of(labels[i], how, retries) from None
             finished(i, result)
     finally:
-        for ref in pending:
-            ray.cancel(ref, force=True)
-        if started:
+        if started:  # its processes, the tasks' workers among them, all stop with it
             ray.shutdown()
+        else:  # a cluster that keeps running: the unfinished tasks are cancelled there
+            for ref in pending:
+                ray.cancel(ref, force=True)
 
 
 def _call(function: Callable[..., Any], *args: Any) -> Any:
