@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.cells import TIE, aggregate
+from benchmarks.checkpoint import write_text_atomic
 from benchmarks.descriptions import controller_tables, loop_table
 from benchmarks.figures import draw_figures
 from benchmarks.reference_checks import (
@@ -526,6 +527,9 @@ def write_benchmark(
 ) -> list[Path]:
     """Write ``benchmark.md``, ``benchmark.json`` and (optionally) the figures into ``out``.
 
+    The report and the JSON are each written to a temporary file renamed into place, the JSON
+    last: a ``benchmark.json`` is always whole and comes after everything else.
+
     ``meta`` holds ``model``, ``dt`` (s), ``noise_bound_um``, ``stroke_um`` (one-sided, um),
     ``machine`` and ``timing``, and optionally ``policies_left_out`` (folder -> reason). A
     figure with nothing to show is not written; the report says why.
@@ -536,7 +540,7 @@ def write_benchmark(
     checks = check_targets(result)
     drawn = draw_figures(result, out) if figures else {}
     md = out / "benchmark.md"
-    md.write_text(_markdown(result, meta, checks, drawn), encoding="utf-8")
+    write_text_atomic(md, _markdown(result, meta, checks, drawn))
     data = {
         "schema": SCHEMA,
         "schema_version": SCHEMA_VERSION,
@@ -550,5 +554,5 @@ def write_benchmark(
         "targets": checks,
     }
     path = out / "benchmark.json"
-    path.write_text(json.dumps(data, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
     return [md, path, *(v for v in drawn.values() if isinstance(v, Path))]

@@ -16,7 +16,10 @@ distance between the two rows is what identification costs.
 Reproducibility. Episodes are grouped by (plant, controller); each group builds its env and its
 controller afresh and runs its references in a fixed order, in a worker process (``jobs``).
 Nothing depends on which worker runs a group or when, so the tracking results are bitwise the
-same for any ``jobs``; only the measured compute times differ from run to run.
+same for any ``jobs``; only the measured compute times differ from run to run. Every group is
+seeded from its own key (the config's seed, the draw and the seed index), so a group rerun
+because its worker died (:mod:`piezo_parallel.pool`) or taken from the checkpoint of an
+interrupted run (:mod:`benchmarks.checkpoint`) gives the same bits.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.checkpoint import Checkpoint
 from benchmarks.plants import (
     BOX_CORNERS,
     DEFAULT_BENDER,
@@ -47,7 +51,7 @@ from benchmarks.plants import (
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
 from piezo_env.checks import require_int
-from piezo_parallel.backends import BACKENDS, run_tasks
+from piezo_parallel.backends import BACKENDS, DEFAULT_RETRIES, run_tasks
 
 __all__ = [
     "BOX_CORNERS",
@@ -470,6 +474,8 @@ def run_benchmark(
     model_dir: str | Path,
     *,
     progress: Callable[[int, int, str], None] | None = None,
+    checkpoint: Checkpoint | None = None,
+    retries: int = DEFAULT_RETRIES,
 ) -> BenchmarkResult:
     """Run the benchmark on the identified model saved in ``model_dir``.
 
@@ -479,7 +485,15 @@ def run_benchmark(
     model_dir : str or pathlib.Path
         Folder of a saved :class:`identification.HammersteinModel` (workers load it).
     progress : callable, optional
-        ``progress(done, total, label)`` after each group.
+        ``progress(done, total, label)`` after each group (groups taken from ``checkpoint``
+        count as done from the start).
+    checkpoint : benchmarks.checkpoint.Checkpoint, optional
+        Groups it holds are taken from it, not run; each group that finishes is appended to
+        it at once, so an interruption loses only the groups still running. The result is
+        bitwise the same with or without it, resumed or not.
+    retries : int
+        Reruns of a group whose worker process died, each on a new worker (see
+        :func:`piezo_parallel.backends.run_tasks`).
 
     Returns
     -------
@@ -509,13 +523,30 @@ def run_benchmark(
         nominal = _make_env(config, "nominal")
         _build(label, str(model_dir), nominal, config)
         nominal.close()
-    outputs = run_tasks(
+    finished = checkpoint.finished if checkpoint is not None else {}
+    outputs = [finished.get((p, c)) for p, c, _ in groups]
+    todo = [i for i, (p, c, _) in enumerate(groups) if (p, c) not in finished]
+
+    def keep(j: int, output: Any) -> None:
+        i = todo[j]
+        outputs[i] = output if checkpoint is None else checkpoint.append(groups[i][:2], output)
+
+    def show(done: int, total: int, label: str) -> None:
+        skipped = len(groups) - len(todo)
+        progress(skipped + done, skipped + total, label)  # type: ignore[misc]
+
+    run_tasks(
         _run_group,
-        [(p, c, {r: arrays[r] for r in refs}, str(model_dir), config) for p, c, refs in groups],
+        [
+            (p, c, {r: arrays[r] for r in refs}, str(model_dir), config)
+            for p, c, refs in (groups[i] for i in todo)
+        ],
         jobs=config.jobs,
         backend=config.backend,
-        labels=[f"{c} on {p}" for p, c, _ in groups],
-        progress=progress,
+        labels=[f"{groups[i][1]} on {groups[i][0]}" for i in todo],
+        progress=show if progress else None,
+        on_result=keep,
+        retries=retries,
     )
     episodes, described, traces = [], {}, {}
     for (plant, controller, _), (eps, description, trace) in zip(groups, outputs, strict=True):

@@ -7,9 +7,9 @@ import dataclasses
 import os
 import time
 
-from piezo_cli.arguments import bender_name, positive_int, seed
+from piezo_cli.arguments import bender_name, non_negative_int, positive_int, seed
 from piezo_cli.command import CommandLineError, Subcommand
-from piezo_cli.output import prepare_output_dir
+from piezo_cli.output import clear_incomplete, mark_incomplete, prepare_output_dir
 
 __all__ = ["BENCHMARK"]
 
@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo benchmark``."""
     from benchmarks.references import REFERENCES
     from benchmarks.runner import DEFAULT_CONTROLLERS, PLANTS
-    from piezo_parallel.backends import default_jobs
+    from piezo_parallel.backends import DEFAULT_RETRIES, default_jobs
 
     parser.add_argument("--out", default="out/benchmark", metavar="DIR", help="output folder")
     parser.add_argument(
@@ -139,6 +139,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="ROW.KEY=VALUE",
         help="an option of one controller row, e.g. mpc.horizon=10 or MyController.gain=2 "
         "(repeatable; numbers, true/false and none are read as such, anything else as text)",
+    )
+    parser.add_argument(
+        "--retries",
+        type=non_negative_int,
+        default=DEFAULT_RETRIES,
+        help="reruns of a group whose worker process died (killed by the out-of-memory killer, "
+        "a crash), each on a new worker; the results are the same",
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run interrupted in --out: run only the groups its checkpoint "
+        "(OUT/checkpoint.jsonl) lacks, with the model it identified; refused if anything that "
+        "decides the results changed (configuration, model, code, libraries, native code). "
+        "Without it a run starts afresh",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument(
@@ -281,9 +296,23 @@ def _check_model_bender(folder: str, model, bender: str) -> None:
 
 
 def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
-    """The model folder to benchmark (loaded once to check it), identifying one if needed."""
+    """The model folder to benchmark (loaded once to check it), identifying one if needed.
+
+    With ``--resume`` a model the interrupted run identified in ``OUT/model`` is used again.
+    """
     from identification.hammerstein import HammersteinModel
 
+    if args.model is None and args.resume and (out / "model" / "model.json").is_file():
+        model_dir = out / "model"
+        try:
+            HammersteinModel.load(model_dir)
+        except (OSError, ValueError) as error:
+            raise CommandLineError(
+                f"--resume: cannot load the model the run identified in {model_dir}: {error}; "
+                "run without --resume to start afresh"
+            ) from None
+        print(f"resuming with the model identified in {model_dir}")
+        return str(model_dir), {}
     if args.model is not None:
         try:
             model = HammersteinModel.load(args.model)
@@ -303,6 +332,67 @@ def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
     fit = result.report["validation"]["hammerstein"]["fit_percent"]
     print(f"identified model saved in {model_dir} (validation fit {fit:.2f} %)")
     return str(model_dir), {"identification_s": round(time.perf_counter() - start, 1)}
+
+
+_RESULTS = ("benchmark.json", "benchmark.md")
+
+
+def _checkpoint(args: argparse.Namespace, out, config, model_dir: str):
+    """The run's checkpoint in ``out``: resumed with ``--resume``, else started afresh.
+
+    The results of an earlier run in ``out`` are removed and the folder is marked incomplete
+    until this run writes its own, so that neither a kill that nothing can catch (SIGKILL) nor
+    an interruption leaves a report that looks finished.
+    """
+    from benchmarks.checkpoint import CHECKPOINT, Checkpoint, CheckpointMismatch, run_identity
+
+    identity = run_identity(config, model_dir)
+    if not args.resume and (out / CHECKPOINT).exists():
+        print(
+            f"starting afresh: the checkpoint of an earlier run in {out} is replaced (--resume "
+            "would have continued it)"
+        )
+    try:
+        checkpoint = (Checkpoint.resume if args.resume else Checkpoint.start)(out, identity)
+    except CheckpointMismatch as error:
+        raise CommandLineError(f"--resume: {error}") from None
+    total = len(config.groups())
+    if args.resume:
+        print(f"resuming: {len(checkpoint.finished)} of {total} groups done in {checkpoint.path}")
+    for name in _RESULTS:
+        (out / name).unlink(missing_ok=True)
+    mark_incomplete(out, "piezo benchmark", "has not finished", hint=_resume_hint(checkpoint))
+    return checkpoint
+
+
+def _resume_hint(checkpoint) -> str:
+    return (
+        f"The groups that finished are kept in {checkpoint.path.name}: run the same command "
+        "with --resume to run only the others."
+    )
+
+
+def _left_behind(out, checkpoint, total: int, error: BaseException) -> None:
+    """After a run stopped early: a checkpoint with finished groups stays and the folder says
+    the run is incomplete; one with none is removed with the mark (an empty new folder then
+    goes too)."""
+    from piezo_cli.output import INCOMPLETE
+
+    kept = checkpoint.kept()
+    if not kept:
+        checkpoint.remove()
+        (out / INCOMPLETE).unlink(missing_ok=True)
+        return
+    if isinstance(error, KeyboardInterrupt):
+        what = str(error) if str(error).startswith("interrupted") else "interrupted"
+    else:
+        what = f"stopped: {' '.join(str(error).split()) or type(error).__name__}"
+    mark_incomplete(
+        out,
+        "piezo benchmark",
+        f"was {what} after {kept} of {total} groups",
+        hint=_resume_hint(checkpoint),
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -334,7 +424,20 @@ def run(args: argparse.Namespace) -> int:
         config = dataclasses.replace(
             config, policies=tuple(os.path.abspath(p) for p in config.policies)
         )
-    result = run_benchmark(config, model_dir, progress=terminal_progress(args.quiet))
+    checkpoint = _checkpoint(args, out, config, model_dir)
+    resumed = len(checkpoint.finished)
+    timing["checkpoint_s"] = round(time.perf_counter() - start, 2)
+    try:
+        result = run_benchmark(
+            config,
+            model_dir,
+            progress=terminal_progress(args.quiet),
+            checkpoint=checkpoint,
+            retries=args.retries,
+        )
+    except BaseException as error:
+        _left_behind(out, checkpoint, len(config.groups()), error)
+        raise
     timing["benchmark_s"] = round(time.perf_counter() - start, 1)
     task = TaskConfig(bender=config.bender, dt=config.dt)
     meta = {
@@ -349,7 +452,10 @@ def run(args: argparse.Namespace) -> int:
     }
     if left_out:
         meta["policies_left_out"] = left_out
+    if resumed:
+        meta["resumed_groups"] = resumed
     paths = write_benchmark(result, out, meta)
+    clear_incomplete(out, "piezo benchmark")
     print("verdict (nominal plant, RMSE in % of the full stroke):")
     print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result, meta)))
     print()
@@ -381,5 +487,6 @@ BENCHMARK = Subcommand(
         "piezo benchmark --out out/benchmark",
         "piezo benchmark --model out/pl140/model --controllers mpc,pid-ff --plants nominal",
         "piezo benchmark --model out/pl140/model --backend ray --address auto",
+        "piezo benchmark --out out/benchmark --resume",
     ),
 )

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
 import textwrap
 from importlib.metadata import PackageNotFoundError, version
@@ -22,7 +23,8 @@ from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.compare import COMPARE
 from piezo_cli.excite import EXCITE
 from piezo_cli.identify import IDENTIFY
-from piezo_cli.output import missing_folders, remove_if_empty
+from piezo_cli.output import clear_incomplete, mark_incomplete, missing_folders, remove_if_empty
+from piezo_cli.signals import Caught, signals_interrupt
 from piezo_cli.simulate import SIMULATE
 from piezo_cli.train_rl import TRAIN_RL
 
@@ -134,13 +136,23 @@ def main(argv: list[str] | None = None) -> int:
     -------
     int
         Exit status: 0 done, 2 refused call (one line on stderr, nothing done), 1 a file or
-        folder failed during the work, 130 interrupted.
+        folder failed or a worker process was lost for good during the work, 128 + the
+        signal's number when interrupted by SIGINT (130), SIGTERM (143) or SIGHUP (129): the
+        workers are stopped, and an output folder that holds anything says in
+        ``INCOMPLETE.txt`` that the run did not finish.
     """
+    from piezo_parallel.pool import WorkerLost
+
     args = build_parser().parse_args(argv)
     prefix = f"piezo {args.command}"
-    new_folders = missing_folders(getattr(args, "out", None))
+    out = getattr(args, "out", None)
+    new_folders = missing_folders(out)
+    caught = Caught()
     try:
-        return args.subcommand.run(args)
+        with signals_interrupt() as caught:
+            status = args.subcommand.run(args)
+        clear_incomplete(out, prefix)
+        return status
     except (CommandLineError, ValueError) as error:
         remove_if_empty(new_folders)
         print(f"{prefix}: {_for_terminal(str(error))}", file=sys.stderr)
@@ -150,10 +162,18 @@ def main(argv: list[str] | None = None) -> int:
         where = f" {error.filename}" if error.filename else ""
         print(f"{prefix}: cannot write{where}: {error.strerror or error}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
+    except WorkerLost as error:
         remove_if_empty(new_folders)
-        print(f"{prefix}: interrupted", file=sys.stderr)
-        return 130
+        mark_incomplete(out, prefix, f"stopped: {error}", replace=False)
+        print(f"{prefix}: {error}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt as stop:  # Ctrl-C, or SIGTERM / SIGHUP as piezo_cli.signals
+        signum = getattr(stop, "signum", None) or caught.signum or signal.SIGINT
+        how = f"interrupted by {signal.Signals(signum).name}"
+        remove_if_empty(new_folders)
+        mark_incomplete(out, prefix, f"was {how}", replace=False)
+        print(f"{prefix}: {how}", file=sys.stderr)
+        return 128 + signum
 
 
 if __name__ == "__main__":

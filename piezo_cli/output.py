@@ -6,13 +6,25 @@ from __future__ import annotations
 import errno
 import os
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 from tempfile import mkstemp
 
 from piezo_cli.command import CommandLineError
 
-__all__ = ["missing_folders", "prepare_output_dir", "remove_if_empty", "terminal_progress"]
+__all__ = [
+    "INCOMPLETE",
+    "clear_incomplete",
+    "mark_incomplete",
+    "missing_folders",
+    "prepare_output_dir",
+    "remove_if_empty",
+    "terminal_progress",
+]
+
+INCOMPLETE = "INCOMPLETE.txt"
+"""The file in an output folder that says the command writing it did not finish."""
 
 _REASONS = {
     errno.EACCES: "permission denied",
@@ -86,6 +98,63 @@ def remove_if_empty(folders: list[Path]) -> None:
             folder.rmdir()
         except OSError:
             return
+
+
+def mark_incomplete(
+    path: str | os.PathLike[str] | None,
+    command: str,
+    what: str,
+    *,
+    hint: str = "",
+    replace: bool = True,
+) -> None:
+    """Say in ``path``/:data:`INCOMPLETE` that ``command`` did not finish what it writes there.
+
+    Written only into a folder that exists and holds something (a folder left empty is
+    removed instead), so that no partial output looks like a finished one. A folder that cannot
+    be written to any more is left as it is: the command's own error says why.
+
+    Parameters
+    ----------
+    path : str or path-like or None
+        The output folder (None: nothing to mark).
+    command : str
+        ``"piezo benchmark"``: :func:`clear_incomplete` of the same command removes the file.
+    what : str
+        What happened, ``"was interrupted by SIGTERM"``.
+    hint : str
+        How to go on, ``"run the same command with --resume to finish it"``.
+    replace : bool
+        Whether to replace a mark that is there (False keeps a subcommand's own, more
+        precise one).
+    """
+    from benchmarks.checkpoint import write_text_atomic
+
+    if path is None or not os.fspath(path).strip():
+        return
+    folder = Path(os.fspath(path))
+    try:
+        if not folder.is_dir() or not any(folder.iterdir()):
+            return
+        if not replace and (folder / INCOMPLETE).exists():
+            return
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime())
+        text = f"{command} {what} ({stamp}): the files in this folder are not its result."
+        write_text_atomic(folder / INCOMPLETE, text + (f"\n{hint}" if hint else "") + "\n")
+    except OSError:
+        return
+
+
+def clear_incomplete(path: str | os.PathLike[str] | None, command: str) -> None:
+    """Remove ``path``/:data:`INCOMPLETE` if ``command`` wrote it (it has now finished)."""
+    if path is None or not os.fspath(path).strip():
+        return
+    marker = Path(os.fspath(path)) / INCOMPLETE
+    try:
+        if marker.read_text(encoding="utf-8").startswith(f"{command} "):
+            marker.unlink()
+    except OSError:
+        return
 
 
 class _Refused(Exception):

@@ -2,12 +2,15 @@
 
 One home for distributed execution, used by the benchmark harness (episode groups) and by RL
 training (one seed per task); it imports nothing else of the project. See
-:mod:`piezo_parallel.backends`.
+:mod:`piezo_parallel.backends` and, for the local pool that replaces a lost worker,
+:mod:`piezo_parallel.pool`.
 """
 
 from piezo_parallel.backends import (
     BACKENDS,
+    DEFAULT_RETRIES,
     RAY_INSTALL_HINT,
+    WorkerLost,
     check_backend,
     connect_ray,
     default_jobs,
@@ -16,7 +19,9 @@ from piezo_parallel.backends import (
 
 __all__ = [
     "BACKENDS",
+    "DEFAULT_RETRIES",
     "RAY_INSTALL_HINT",
+    "WorkerLost",
     "check_backend",
     "connect_ray",
     "default_jobs",

@@ -24,22 +24,37 @@ Backends
     workers use this Python environment and working directory. Ray sets ``OMP_NUM_THREADS`` to
     the task's one CPU, and the benchmark limits BLAS to one thread itself, so the numbers are
     bitwise those of the local backend.
+
+Faults
+------
+A task whose worker process dies (SIGKILL from the out-of-memory killer, a crash in native
+code) runs again on a new worker, up to ``retries`` times (the local pool replaces the worker,
+Ray retries the task); after that :class:`piezo_parallel.pool.WorkerLost` names the task and
+how its worker ended. Whatever ends a call early (that error, a task's exception, an
+interruption raised in this process by a signal handler), the workers are stopped before it
+returns: the local pool's processes are terminated and reaped, unfinished Ray tasks are
+cancelled and a private Ray instance is shut down.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import os
+import signal
 import socket
 import sys
-from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
+
+from piezo_parallel.pool import DEFAULT_RETRIES, WorkerLost, run_pool
 
 __all__ = [
     "BACKENDS",
+    "DEFAULT_RETRIES",
     "RAY_INSTALL_HINT",
+    "WorkerLost",
     "check_backend",
     "connect_ray",
     "default_jobs",
@@ -90,6 +105,8 @@ def run_tasks(
     labels: Sequence[str] | None = None,
     progress: Progress | None = None,
     address: str | None = None,
+    on_result: Callable[[int, Any], None] | None = None,
+    retries: int = DEFAULT_RETRIES,
 ) -> list[Any]:
     """``[function(*task) for task in tasks]``, possibly in parallel, in the tasks' order.
 
@@ -103,16 +120,27 @@ def run_tasks(
         Workers: processes of the local pool (1 runs in this process) or CPUs of the private
         Ray instance.
     backend : str
-        ``"local"`` (a process pool of ``jobs`` spawned workers: no forked BLAS or torch thread
-        state; a script using it needs the ``if __name__ == "__main__":`` guard) or ``"ray"``
-        (see the module docstring).
+        ``"local"`` (a pool of ``jobs`` spawned workers, :mod:`piezo_parallel.pool`: no forked
+        BLAS or torch thread state; a script using it needs the ``if __name__ ==
+        "__main__":`` guard) or ``"ray"`` (see the module docstring).
     labels : sequence of str, optional
-        One label per task for ``progress``.
+        One label per task for ``progress`` and for the error of a lost worker.
     progress : callable, optional
         ``progress(done, total, label)`` after each task.
     address : str, optional
         Ray only: the cluster to run on (``"auto"``, ``"HOST:PORT"`` or ``"ray://HOST:PORT"``);
         default ``RAY_ADDRESS`` from the environment, else a private local instance.
+    on_result : callable, optional
+        ``on_result(index, result)`` in this process as each task finishes (before
+        ``progress``), so that a caller can keep finished work (a checkpoint) while the rest
+        runs.
+    retries : int
+        Reruns of a task whose worker process died (killed by the out-of-memory killer, a
+        crash in native code), each on a new worker: the local pool replaces the worker, Ray
+        retries the task (``max_retries``). A task's own exception is never retried, and
+        ``jobs == 1`` on the local backend runs in this process, with no worker to replace.
+        Tasks must be deterministic functions of their arguments for a rerun to give the same
+        result.
 
     Raises
     ------
@@ -120,53 +148,34 @@ def run_tasks(
         An unknown backend.
     RuntimeError
         The ray backend without Ray installed.
+    WorkerLost
+        A task's worker died on its first attempt and on each retry.
     """
     check_backend(backend)
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
+    if retries < 0:
+        raise ValueError(f"retries must be at least 0, got {retries}")
     labels = list(labels) if labels is not None else [str(i) for i in range(len(tasks))]
-    if backend == "ray":
-        return _run_ray(function, tasks, jobs, labels, progress, address)
-    if jobs == 1:
-        return _run_here(function, tasks, labels, progress)
-    return _run_pool(function, tasks, jobs, labels, progress)
-
-
-def _run_here(
-    function: Callable[..., Any],
-    tasks: Sequence[tuple],
-    labels: list[str],
-    progress: Progress | None,
-) -> list[Any]:
-    results: list[Any] = []
-    for i, task in enumerate(tasks):
-        results.append(function(*task))
-        if progress:
-            progress(i + 1, len(tasks), labels[i])
-    return results
-
-
-def _run_pool(
-    function: Callable[..., Any],
-    tasks: Sequence[tuple],
-    jobs: int,
-    labels: list[str],
-    progress: Progress | None,
-) -> list[Any]:
     results: list[Any] = [None] * len(tasks)
-    pool = ProcessPoolExecutor(jobs, mp_context=get_context("spawn"))
-    try:
-        futures = {pool.submit(function, *task): i for i, task in enumerate(tasks)}
-        for done, future in enumerate(as_completed(futures), start=1):
-            i = futures[future]
-            results[i] = future.result()  # the first failure raises here, at once
-            if progress:
-                progress(done, len(tasks), labels[i])
-    except BaseException:
-        # Cancel what has not started instead of waiting for every task before raising.
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-    pool.shutdown()
+    done = 0
+
+    def finished(index: int, result: Any) -> None:
+        nonlocal done
+        results[index] = result
+        done += 1
+        if on_result:
+            on_result(index, result)
+        if progress:
+            progress(done, len(tasks), labels[index])
+
+    if backend == "ray":
+        _run_ray(function, tasks, jobs, labels, finished, address, retries)
+    elif jobs == 1:
+        for i, task in enumerate(tasks):
+            finished(i, function(*task))
+    else:
+        run_pool(function, tasks, jobs, finished, labels=labels, retries=retries)
     return results
 
 
@@ -175,33 +184,42 @@ def _run_ray(
     tasks: Sequence[tuple],
     jobs: int,
     labels: list[str],
-    progress: Progress | None,
+    finished: Callable[[int, Any], None],
     address: str | None,
-) -> list[Any]:
+    retries: int,
+) -> None:
+    """Every task a Ray task; on any exit a private instance is shut down (its processes, the
+    running tasks' workers among them, stopped) or, on a cluster that keeps running, the
+    unfinished tasks are cancelled. (Cancelling tasks of a private instance just before its
+    shutdown is not only needless: a task's reply racing the cancellation can abort the
+    driver inside Ray's core, "Tried to complete task that was not pending".)"""
     import ray
+    from ray.exceptions import NodeDiedError, OutOfMemoryError, WorkerCrashedError
 
     started = connect_ray(address, jobs=jobs)
     pending: list[Any] = []
     try:
-        remote = ray.remote(_call).options(num_cpus=1, max_retries=0)
+        remote = ray.remote(_call).options(num_cpus=1, max_retries=retries)
         index = {}
         for i, task in enumerate(tasks):
             ref = remote.remote(function, *task)
             index[ref] = i
             pending.append(ref)
-        results: list[Any] = [None] * len(tasks)
-        for done in range(1, len(tasks) + 1):
+        while pending:
             # One at a time, so a failed task raises as soon as it ends.
             (ready,), pending = ray.wait(pending, num_returns=1)
             i = index[ready]
-            results[i] = ray.get(ready)
-            if progress:
-                progress(done, len(tasks), labels[i])
-        return results
+            try:
+                result = ray.get(ready)
+            except (WorkerCrashedError, OutOfMemoryError, NodeDiedError) as lost:
+                cause = " ".join(str(lost).split())[:200]
+                how = f"died ({type(lost).__name__}: {cause})"
+                raise WorkerLost.of(labels[i], how, retries) from None
+            finished(i, result)
     finally:
-        if started:
+        if started:  # its processes, the tasks' workers among them, all stop with it
             ray.shutdown()
-        else:
+        else:  # a cluster that keeps running: the unfinished tasks are cancelled there
             for ref in pending:
                 ray.cancel(ref, force=True)
 
@@ -243,11 +261,17 @@ def connect_ray(address: str | None = None, *, jobs: int = 1) -> bool:
 
     if ray.is_initialized():
         return False
+    with _keeping_sigterm_handler():
+        _init_ray(ray, address, jobs)
+    return True
+
+
+def _init_ray(ray: Any, address: str | None, jobs: int) -> None:
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
         _probe(address)
         ray.init(address=address, log_to_driver=False)
-        return True
+        return
     # "local" starts a private instance even if `ray start` left one running on this machine.
     # Its processes inherit the environment at start: usage statistics stay off for them unless
     # the user asked for them, and this process's environment is left as it was.
@@ -269,7 +293,21 @@ def connect_ray(address: str | None = None, *, jobs: int = 1) -> bool:
     finally:
         if saved is None:
             del os.environ["RAY_USAGE_STATS_ENABLED"]
-    return True
+
+
+@contextmanager
+def _keeping_sigterm_handler() -> Iterator[None]:
+    """Put back this process's SIGTERM handler after ``ray.init``, which replaces it with one
+    that exits at once: the caller's handler (``piezo`` stops its work and cleans up) stays."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = signal.getsignal(signal.SIGTERM)
+    try:
+        yield
+    finally:
+        if saved is not None:
+            signal.signal(signal.SIGTERM, saved)
 
 
 def _probe(address: str, timeout_s: float = 5.0) -> None:

@@ -1,0 +1,239 @@
+"""A local pool of spawned worker processes that replaces a worker lost in the middle of a task.
+
+Each worker is one :class:`multiprocessing.Process` (``spawn`` start method: no forked BLAS or
+torch thread state) with its own :func:`multiprocessing.Pipe`, and runs one task at a time. The
+pool waits on every worker's pipe and process sentinel at once
+(:func:`multiprocessing.connection.wait`), so a worker that dies (the out-of-memory killer's
+SIGKILL, a crash in native code) is known together with the task it was running and how it
+ended. That worker alone is replaced and its task runs again, up to ``retries`` more times;
+the other workers go on undisturbed. :class:`concurrent.futures.ProcessPoolExecutor` cannot do
+this: one dead worker breaks the whole executor, every running task is lost with it, and which
+task the dead worker held is not reported.
+
+Stopping is explicit. However the pool is left (results complete, a task's exception, an
+interruption such as ``KeyboardInterrupt`` raised by a signal handler), every worker still
+alive is sent SIGTERM, then SIGKILL after a grace period, and reaped; nothing is left running.
+Workers ignore SIGINT (a Ctrl-C at a terminal reaches the whole process group; the parent
+decides) and exit on their own within a second if their parent disappears without stopping
+them (killed by SIGKILL).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from multiprocessing import get_context
+from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+__all__ = ["DEFAULT_RETRIES", "RemoteTraceback", "WorkerLost", "run_pool"]
+
+DEFAULT_RETRIES = 2
+"""Reruns of a task whose worker died, after its first attempt."""
+
+STOP_GRACE_S = 3.0
+"""How long stopped workers get to exit after SIGTERM before they are sent SIGKILL."""
+
+_PARENT_POLL_S = 1.0
+
+
+class WorkerLost(RuntimeError):
+    """A task's worker died on every attempt: the first run and all its retries.
+
+    The message is one line naming the task and how its worker ended (``killed by SIGKILL``).
+    """
+
+    @classmethod
+    def of(cls, label: str, how: str, retries: int) -> WorkerLost:
+        """The error for task ``label`` whose worker ``how`` (``"was killed by SIGKILL"``)."""
+        if retries == 0:
+            return cls(f"the worker running {label!r} {how} (no retries allowed)")
+        times = "its one retry" if retries == 1 else f"each of its {retries} retries"
+        return cls(f"the worker running {label!r} {how}, on its first attempt and on {times}")
+
+
+class RemoteTraceback(Exception):
+    """The traceback of a task's exception in its worker, chained as the ``__cause__``."""
+
+    def __str__(self) -> str:
+        return "\n" + str(self.args[0])
+
+
+@dataclass
+class _Worker:
+    process: BaseProcess
+    conn: Connection
+    task: int | None = None
+
+
+def run_pool(
+    function: Callable[..., Any],
+    tasks: Sequence[tuple],
+    jobs: int,
+    on_result: Callable[[int, Any], None],
+    *,
+    labels: Sequence[str],
+    retries: int = DEFAULT_RETRIES,
+) -> None:
+    """Run ``function(*task)`` for every task on ``jobs`` spawned workers.
+
+    Parameters
+    ----------
+    function : callable
+        A module-level (picklable) function; the workers import it by its module.
+    tasks : sequence of tuple
+        Positional arguments of each call.
+    jobs : int
+        Worker processes (at most one per task is started).
+    on_result : callable
+        ``on_result(index, result)``, called in this process as each task finishes, in the
+        order they finish.
+    labels : sequence of str
+        One label per task, named when its worker is lost for good.
+    retries : int
+        Reruns of a task whose worker died, each on a new worker.
+
+    Raises
+    ------
+    WorkerLost
+        A task's worker died ``retries + 1`` times; the tasks still running are stopped.
+    Exception
+        The first exception a task raised (its worker's traceback chained as the cause); the
+        tasks still running are stopped and the rest not started.
+    """
+    context = get_context("spawn")
+    queue = deque(range(len(tasks)))
+    attempts = [0] * len(tasks)
+    workers: list[_Worker] = []
+    try:
+        while queue or any(w.task is not None for w in workers):
+            while queue and len(workers) < min(jobs, len(tasks)):
+                workers.append(_start(context, function))
+            for worker in workers:
+                if worker.task is None and queue:
+                    index = queue.popleft()
+                    attempts[index] += 1
+                    worker.task = index
+                    try:
+                        worker.conn.send(tasks[index])
+                    except (BrokenPipeError, ConnectionResetError):
+                        pass  # the worker is gone: its sentinel says so below
+            busy = [w for w in workers if w.task is not None]
+            ready = set(wait([x for w in busy for x in (w.conn, w.process.sentinel)]))
+            for worker in busy:
+                if worker.conn not in ready and worker.process.sentinel not in ready:
+                    continue
+                index = worker.task
+                outcome = _receive(worker)
+                if outcome is None:  # the worker died
+                    workers.remove(worker)
+                    how = _ending(worker)
+                    if attempts[index] > retries:
+                        raise WorkerLost.of(labels[index], how, retries)
+                    queue.appendleft(index)
+                    continue
+                worker.task = None
+                kind, value, text = outcome
+                if kind == "error":
+                    raise value from RemoteTraceback(text)
+                on_result(index, value)
+    finally:
+        _stop(workers)
+
+
+def _start(context: Any, function: Callable[..., Any]) -> _Worker:
+    here, there = context.Pipe()
+    process = context.Process(target=_serve, args=(there, function, os.getpid()), daemon=False)
+    process.start()
+    there.close()
+    return _Worker(process, here)
+
+
+def _receive(worker: _Worker) -> tuple[str, Any, str] | None:
+    """The worker's answer, or None when it died (its pipe closed before an answer came)."""
+    try:
+        if worker.conn.poll():
+            return worker.conn.recv()
+    except (EOFError, OSError):
+        return None
+    return None
+
+
+def _ending(worker: _Worker) -> str:
+    """How a dead worker ended: ``was killed by SIGKILL`` or ``exited with status 1``."""
+    worker.process.join()
+    worker.conn.close()
+    code = worker.process.exitcode
+    if code is not None and code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with status {code}"
+
+
+def _stop(workers: list[_Worker]) -> None:
+    """Stop every worker: idle ones are told to exit, busy ones sent SIGTERM, and any still
+    alive after :data:`STOP_GRACE_S` sent SIGKILL; all are reaped and their pipes closed."""
+    for worker in workers:
+        try:
+            if worker.task is None:
+                worker.conn.send(None)
+            else:
+                worker.process.terminate()
+        except OSError:
+            worker.process.terminate()
+    deadline = time.monotonic() + STOP_GRACE_S
+    for worker in workers:
+        worker.process.join(max(0.0, deadline - time.monotonic()))
+        if worker.process.is_alive():
+            worker.process.terminate()
+    deadline = time.monotonic() + STOP_GRACE_S
+    for worker in workers:
+        worker.process.join(max(0.0, deadline - time.monotonic()))
+        if worker.process.is_alive():
+            worker.process.kill()
+            worker.process.join()
+        worker.conn.close()
+    workers.clear()
+
+
+def _serve(conn: Connection, function: Callable[..., Any], parent: int) -> None:
+    """A worker's loop: run each task received, send back ("ok", result, "") or ("error",
+    exception, traceback); exit on None or when the parent's end of the pipe closes."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for number in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(number, signal.SIG_DFL)
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+    while True:
+        try:
+            task = conn.recv()
+        except (EOFError, OSError):
+            return
+        if task is None:
+            return
+        try:
+            answer: tuple[str, Any, str] = ("ok", function(*task), "")
+        except Exception as error:
+            answer = ("error", error, traceback.format_exc())
+        try:
+            conn.send(answer)
+        except (BrokenPipeError, ConnectionResetError):
+            return
+        except Exception as error:  # an unpicklable result or exception
+            failure = RuntimeError(f"cannot send the task's outcome back: {error}")
+            conn.send(("error", failure, traceback.format_exc()))
+
+
+def _exit_with_parent(parent: int) -> None:
+    """End this worker at once when its parent is gone (it was killed without stopping us)."""
+    while os.getppid() == parent:
+        time.sleep(_PARENT_POLL_S)
+    os._exit(1)

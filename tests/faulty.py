@@ -1,0 +1,70 @@
+"""Tasks and a controller whose worker process dies, as the out-of-memory killer would end it
+(SIGKILL): the fault tests run them in spawned workers, which import this module by name, so it
+imports nothing heavy at the top."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+from pathlib import Path
+from typing import Any
+
+KILL_AT_STEP = 40
+
+
+def die_once(i: int, folder: str) -> int:
+    """``3 * i``; task 2's first attempt kills its worker (and leaves ``died-2`` in ``folder``)."""
+    marker = Path(folder) / f"died-{i}"
+    if i == 2 and not marker.exists():
+        marker.touch()
+        os.kill(os.getpid(), signal.SIGKILL)
+    return 3 * i
+
+
+def always_die(i: int) -> int:
+    """``i``; task 1 kills its worker on every attempt."""
+    if i == 1:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return i
+
+
+class KilledWorker:
+    """``mpc`` on the benchmark's model; in a worker process it sends itself SIGKILL at step
+    :data:`KILL_AT_STEP` (inside its first episode, after the warm-up), on each attempt until
+    ``kills`` attempts have died.
+
+    Parameters
+    ----------
+    model, env
+        As every controller factory gets them.
+    marker : str
+        A folder: one file per kill is left there, so a rerun of the same task (a new worker)
+        knows how many attempts have died.
+    kills : int
+        How many attempts die.
+    """
+
+    def __init__(self, model: Any, env: Any, *, marker: str, kills: int = 1) -> None:
+        import controllers
+
+        self.inner = controllers.make("mpc", model, env)
+        self.marker = Path(marker)
+        self.kills = int(kills)
+        self.steps = 0
+
+    def reset(self, observation: Any) -> None:
+        self.inner.reset(observation)
+
+    def act(self, observation: Any) -> Any:
+        self.steps += 1
+        in_worker = multiprocessing.parent_process() is not None
+        if in_worker and self.steps == KILL_AT_STEP:
+            done = len(list(self.marker.iterdir()))
+            if done < self.kills:
+                (self.marker / f"killed-{done}").touch()
+                os.kill(os.getpid(), signal.SIGKILL)
+        return self.inner.act(observation)
+
+    def describe(self) -> dict:
+        return {"name": "KilledWorker", "inner": "mpc"}

@@ -1,0 +1,322 @@
+"""Long runs that survive: SIGTERM stops a benchmark cleanly, a lost worker is replaced and its
+task rerun, and an interrupted benchmark resumes to the bits of an uninterrupted one.
+
+Processes are watched through /proc (Linux): the run's descendants are listed before the
+signal and must all be gone (or zombies awaiting their reaper: no longer running) after it.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import multiprocessing
+import operator
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import faulty
+import pytest
+
+from benchmarks.checkpoint import Checkpoint, CheckpointMismatch, run_identity
+from benchmarks.report import deterministic_json, tracking_tables
+from benchmarks.runner import BenchmarkConfig, run_benchmark
+from piezo_cli.main import main
+from piezo_cli.signals import Interrupted, signals_interrupt
+from piezo_parallel.backends import WorkerLost, run_tasks
+
+pytestmark = pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+
+MODEL_DIR = "docs/benchmark/model"
+PROJECT = Path(__file__).resolve().parents[1]
+
+SMALL = dict(
+    controllers=("mpc",),
+    references=("sine-10Hz", "steps"),
+    plants=("nominal", "damping-0.01", "damping-0.04", "stiffness+20%"),
+    steps=120,
+)
+"""Four groups of two short episodes each: the cheapest controller to build."""
+
+ARGV = [
+    "benchmark",
+    "--model",
+    MODEL_DIR,
+    "--policies",
+    "none",
+    "--controllers",
+    "mpc",
+    "--references",
+    "sine-10Hz,steps",
+    "--plants",
+    "nominal,damping-0.01,damping-0.04,stiffness+20%",
+    "--quiet",
+    "--steps",
+    "120",
+]
+
+
+def _same(a, b) -> bool:
+    """Bitwise equal tracking results, traces and controller descriptions."""
+    return (
+        json.dumps(deterministic_json(a)) == json.dumps(deterministic_json(b))
+        and json.dumps(a.traces) == json.dumps(b.traces)
+        and json.dumps(a.controllers) == json.dumps(b.controllers)
+        and tracking_tables(a) == tracking_tables(b)
+    )
+
+
+@pytest.fixture(scope="module")
+def uninterrupted():
+    """The small benchmark run in one go, in this process."""
+    return run_benchmark(BenchmarkConfig(**SMALL, jobs=1), MODEL_DIR)
+
+
+# -- processes, as a test sees them ------------------------------------------------------------
+
+
+def _descendants(pid: int) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            children.setdefault(int(stat.rpartition(")")[2].split()[1]), []).append(int(entry))
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
+def _running(pid: int) -> bool:
+    """Alive and not a zombie (a zombie has ended; only its exit status waits for a reaper)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _wait_for(condition, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+# -- SIGTERM -----------------------------------------------------------------------------------
+
+
+def _terminate_benchmark(out: Path, backend: str) -> tuple[int, str, list[int]]:
+    """Start ``piezo benchmark`` (two workers), send it SIGTERM once a group has finished;
+    its exit status, its stderr (read to the end) and the processes it had started."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(PROJECT), *sys.path]))}
+    command = [sys.executable, "-m", "piezo_cli.main", *ARGV, "--jobs", "2", "--out", str(out)]
+    command += ["--backend", backend]
+    run = subprocess.Popen(
+        command, cwd=PROJECT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    checkpoint = out / "checkpoint.jsonl"
+    try:
+        started = _wait_for(
+            lambda: checkpoint.exists() and checkpoint.read_text().count("\n") >= 2, 120
+        )
+        assert started, "no group finished"
+        processes = _descendants(run.pid)
+        assert len(processes) >= 2  # the workers (and multiprocessing's resource tracker)
+        run.send_signal(signal.SIGTERM)
+        _, err = run.communicate(timeout=60)  # read to the end: nothing holds the pipes
+    finally:
+        run.kill()
+    return run.returncode, err, processes
+
+
+def _assert_stopped_cleanly(status: int, err: str, processes: list[int], out: Path) -> int:
+    """Exit 143 with one line, every process gone, what finished kept and marked incomplete;
+    the number of groups kept."""
+    assert status == 128 + signal.SIGTERM, err[-2000:]
+    assert err.splitlines()[-1] == "piezo benchmark: interrupted by SIGTERM"
+    assert "Traceback" not in err and "leaked" not in err
+    assert _wait_for(lambda: not any(_running(p) for p in processes), 10)
+    names = {p.name for p in out.iterdir()}
+    assert "benchmark.json" not in names and "benchmark.md" not in names
+    marker = (out / "INCOMPLETE.txt").read_text()
+    assert "was interrupted" in marker and "--resume" in marker
+    kept = (out / "checkpoint.jsonl").read_text().count("\n") - 1
+    assert 1 <= kept < 4
+    return kept
+
+
+def test_sigterm_stops_a_benchmark_leaves_no_process_and_resume_finishes_it(
+    tmp_path, uninterrupted
+):
+    out = tmp_path / "out"
+    kept = _assert_stopped_cleanly(*_terminate_benchmark(out, "local"), out)
+    assert "interrupted by SIGTERM" in (out / "INCOMPLETE.txt").read_text()
+
+    # Resumed with the same --out: only the missing groups run, and the result is the
+    # uninterrupted run's, bit for bit.
+    assert main([*ARGV, "--jobs", "1", "--out", str(out), "--resume"]) == 0
+    data = json.loads((out / "benchmark.json").read_text())
+    assert data["meta"]["resumed_groups"] == kept
+    assert json.dumps(data["results"]) == json.dumps(deterministic_json(uninterrupted))
+    assert not (out / "INCOMPLETE.txt").exists()
+
+
+@pytest.mark.slow
+def test_sigterm_on_ray_cancels_the_tasks_and_shuts_the_private_instance_down(tmp_path):
+    out = tmp_path / "out"
+    _assert_stopped_cleanly(*_terminate_benchmark(out, "ray"), out)
+
+
+@pytest.mark.slow
+def test_ray_retries_a_task_whose_worker_was_killed(tmp_path):
+    results = run_tasks(
+        faulty.die_once, [(i, str(tmp_path)) for i in range(4)], jobs=2, backend="ray"
+    )
+    assert results == [0, 3, 6, 9] and [p.name for p in tmp_path.iterdir()] == ["died-2"]
+    with pytest.raises(WorkerLost, match=r"'b' died .*on its first attempt and on its one retry"):
+        run_tasks(faulty.always_die, [(0,), (1,)], jobs=2, backend="ray", retries=1, labels="ab")
+
+
+def test_signals_raise_interrupted_once_and_handlers_come_back():
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Interrupted) as stopped:
+        with signals_interrupt() as caught:
+            os.kill(os.getpid(), signal.SIGHUP)
+            time.sleep(1)
+    assert (stopped.value.status, stopped.value.name, caught.signum) == (129, "SIGHUP", 1)
+    assert signal.getsignal(signal.SIGTERM) == before
+
+
+# -- a lost worker -----------------------------------------------------------------------------
+
+
+def test_the_local_pool_replaces_a_killed_worker_and_reruns_its_task(tmp_path):
+    results = run_tasks(faulty.die_once, [(i, str(tmp_path)) for i in range(6)], jobs=2)
+    assert results == [3 * i for i in range(6)]
+    assert [p.name for p in tmp_path.iterdir()] == ["died-2"]
+    message = "'t1' was killed by SIGKILL, on its first attempt and on its one retry"
+    with pytest.raises(WorkerLost, match=message):
+        run_tasks(
+            faulty.always_die, [(i,) for i in range(4)], jobs=2, retries=1, labels=["t0", "t1"] * 2
+        )
+    assert multiprocessing.active_children() == []
+    with pytest.raises(ValueError, match="retries must be at least 0"):
+        run_tasks(operator.neg, [(1,)], retries=-1)
+
+
+def test_a_worker_killed_mid_episode_is_replaced_and_the_results_are_unchanged(tmp_path):
+    config = dict(SMALL, controllers=("killed=faulty:KilledWorker",), plants=("nominal",))
+    options = {"killed": {"marker": str(tmp_path)}}
+    disturbed = run_benchmark(
+        BenchmarkConfig(**config, jobs=2, controller_options=options), MODEL_DIR
+    )
+    assert [p.name for p in tmp_path.iterdir()] == ["killed-0"]  # one worker died
+    undisturbed = run_benchmark(  # the marker is there: nobody dies
+        BenchmarkConfig(**config, jobs=1, controller_options=options), MODEL_DIR
+    )
+    assert _same(disturbed, undisturbed)
+
+
+def test_a_worker_lost_for_good_stops_the_run_in_one_line(tmp_path, capsys):
+    out, marker = tmp_path / "out", tmp_path / "marker"
+    marker.mkdir()
+    argv = [*ARGV, "--controllers", "killed=faulty:KilledWorker", "--plants", "nominal"]
+    argv += ["--option", f"killed.marker={marker}", "--retries", "0", "--jobs", "2"]
+    assert main([*argv, "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        "piezo benchmark: the worker running 'killed on nominal' was killed by SIGKILL (no "
+        "retries allowed)"
+    ]
+    assert [p.name for p in marker.iterdir()] == ["killed-0"]
+    assert not out.exists()  # nothing had finished: nothing is left
+    assert multiprocessing.active_children() == []
+
+
+# -- resume ------------------------------------------------------------------------------------
+
+
+def test_interrupted_twice_then_resumed_equals_the_uninterrupted_run(tmp_path, uninterrupted):
+    config = BenchmarkConfig(**SMALL, jobs=1)
+    identity = run_identity(config, MODEL_DIR)
+    path = tmp_path / "checkpoint.jsonl"
+
+    def stop_at(group: int):
+        def progress(done: int, total: int, label: str) -> None:
+            if done == group:
+                raise KeyboardInterrupt
+
+        return progress
+
+    checkpoint = Checkpoint.start(tmp_path, identity)
+    for group in (1, 3):  # interrupted after the first group, then resumed and interrupted again
+        with pytest.raises(KeyboardInterrupt):
+            run_benchmark(config, MODEL_DIR, progress=stop_at(group), checkpoint=checkpoint)
+        checkpoint = Checkpoint.resume(tmp_path, identity)
+        assert len(checkpoint.finished) == group
+    with path.open("ab") as file:  # a write cut short by a crash: dropped on resume
+        file.write(b'{"digest": "')
+    checkpoint = Checkpoint.resume(tmp_path, identity)
+    seen = []
+    resumed = run_benchmark(
+        config, MODEL_DIR, checkpoint=checkpoint, progress=lambda *a: seen.append(a)
+    )
+    assert seen == [(4, 4, "mpc on stiffness+20%")]  # only the missing group ran
+    assert _same(resumed, uninterrupted)
+    assert path.read_text().count("\n") == 1 + 4
+
+
+def test_a_checkpoint_of_another_run_is_refused_saying_what_changed(tmp_path, capsys):
+    config = BenchmarkConfig(**SMALL, jobs=1)
+    identity = run_identity(config, MODEL_DIR)
+    Checkpoint.start(tmp_path, identity)
+    changed = json.loads(json.dumps(identity))
+    changed["code"]["controllers/predictive.py"] = "0" * 64
+    changed["native"]["compiler"] = "/usr/bin/cc: other 1.0"
+    with pytest.raises(CheckpointMismatch) as refused:
+        Checkpoint.resume(tmp_path, changed)
+    message = str(refused.value)
+    assert "the code (controllers/predictive.py)" in message
+    assert "native-code identity (compiler:" in message and "\n" not in message
+    argv = [*ARGV[:-1], "200", "--out", str(tmp_path), "--resume"]  # --steps 200, not 120
+    assert main(argv) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "the configuration (steps: 120 -> 200) changed" in err[0]
+
+
+def test_an_output_folder_unwritable_mid_run_is_one_clean_error(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    append = Checkpoint.append
+
+    def lose_the_folder(self, group, output):
+        if self.finished:  # the second group: the folder has become read-only
+            out.chmod(0o500)
+            self.path.chmod(0o400)
+            if os.geteuid() == 0:  # root writes anyway: fail as the file system would
+                raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self.path))
+        return append(self, group, output)
+
+    monkeypatch.setattr(Checkpoint, "append", lose_the_folder)
+    try:
+        status = main([*ARGV, "--plants", "nominal,damping-0.04", "--jobs", "1", "--out", str(out)])
+    finally:
+        out.chmod(0o755)
+        (out / "checkpoint.jsonl").chmod(0o644)
+    assert status == 1
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        f"piezo benchmark: cannot write {out / 'checkpoint.jsonl'}: Permission denied"
+    ]
+    assert (out / "checkpoint.jsonl").read_text().count("\n") == 2  # the first group is kept
+    assert not (out / "benchmark.json").exists()
+    assert multiprocessing.active_children() == []
