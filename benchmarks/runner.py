@@ -50,7 +50,7 @@ from benchmarks.plants import (
 )
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
-from piezo_env.checks import require_int
+from piezo_env.checks import require_int, require_number
 from piezo_parallel.backends import BACKENDS, DEFAULT_RETRIES, run_tasks
 
 __all__ = [
@@ -140,6 +140,10 @@ class BenchmarkConfig:
         ``"PL127"``, ``"PL128"``): its references are scaled to its stroke, its robustness
         plants derived from its datasheet, and every env steps at its sample time :attr:`dt`.
         A policy trained at another sample time is refused.
+    dt : float or None
+        Sample time of every env of the benchmark (s); None (the default): the bender's,
+        :func:`benchmarks.plants.sample_time`. Resolved at construction, as ``steps``. The
+        model must have been identified at it.
     """
 
     controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
@@ -155,6 +159,7 @@ class BenchmarkConfig:
     draws: int = 10
     bender: str = DEFAULT_BENDER
     seeds: int = 1
+    dt: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("controllers", "references", "plants"):
@@ -174,6 +179,9 @@ class BenchmarkConfig:
         from piezo_env import get_datasheet
 
         get_datasheet(self.bender)  # an unknown bender is refused with the catalogue's names
+        if self.dt is None:
+            object.__setattr__(self, "dt", sample_time(self.bender))
+        object.__setattr__(self, "dt", require_number("dt", self.dt, low=0.0, low_open=True))
         if self.steps is None:
             object.__setattr__(self, "steps", max(1, round(EPISODE_S / self.dt)))
         for name in ("steps", "jobs", "draws", "preview", "seeds"):
@@ -264,11 +272,6 @@ class BenchmarkConfig:
                     f"samples but the benchmark shows {self.preview}; raise --preview to at "
                     f"least {policy.observation.preview} or leave the policy out"
                 )
-
-    @property
-    def dt(self) -> float:
-        """Sample time of every env of the benchmark (s): the bender's default."""
-        return sample_time(self.bender)
 
     @property
     def stroke_um(self) -> float:

@@ -6,8 +6,15 @@ import argparse
 import dataclasses
 import os
 import time
+from pathlib import Path
 
-from piezo_cli.arguments import bender_name, non_negative_int, positive_int, seed
+from piezo_cli.arguments import (
+    bender_name,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    seed,
+)
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import clear_incomplete, mark_incomplete, prepare_output_dir
 
@@ -103,6 +110,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         " 2000 on the PL140, 8000 on the PL127)",
     )
     parser.add_argument(
+        "--dt",
+        type=positive_float,
+        default=None,
+        metavar="S",
+        help="sample time of every env (s); default: the --model's, else the bender's "
+        "(piezo_env.default_dt); without --model the default model is identified at it "
+        "(--dt 1e-4: the PL140 at 10 kHz)",
+    )
+    parser.add_argument(
         "--preview", type=int, default=20, help="reference samples every controller sees ahead"
     )
     parser.add_argument(
@@ -181,6 +197,7 @@ def _config(args: argparse.Namespace, policies: tuple[str, ...]):
             controller_options=_options(args.option),
             bender=args.bender,
             seeds=args.seeds,
+            dt=args.dt,
             **({} if args.draws is None else {"draws": args.draws}),
         )
     except ValueError as error:
@@ -195,7 +212,22 @@ def _options(options: list[tuple[str, str, object]]) -> dict[str, dict[str, obje
     return grouped
 
 
-def _policies(text: str, bender: str) -> tuple[tuple[str, ...], dict[str, str]]:
+def _model_dt(folder: str) -> float | None:
+    """The sample time (s) a saved model was identified at (None when its file does not say:
+    the model is then checked, and refused with the reason, when it is loaded)."""
+    import json
+
+    try:
+        metadata = json.loads((Path(folder) / "model.json").read_text(encoding="utf-8"))
+        value = metadata["metadata"].get("task", {}).get("dt_s", metadata["metadata"].get("dt"))
+        return None if value is None else float(value)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def _policies(
+    text: str, bender: str, dt: float | None = None
+) -> tuple[tuple[str, ...], dict[str, str]]:
     """Policy folders from ``--policies`` ('none', a glob, or comma-separated folders), and
     the folders a glob found but left out, each with the reason.
 
@@ -216,7 +248,7 @@ def _policies(text: str, bender: str) -> tuple[tuple[str, ...], dict[str, str]]:
             for match in matches:
                 if not os.path.isfile(os.path.join(match, "policy.json")):
                     continue
-                reason = _policy_misfit(match, bender)
+                reason = _policy_misfit(match, bender, dt)
                 if reason is None:
                     folders.append(match)  # also one that does not load: refused with why
                 else:
@@ -226,9 +258,10 @@ def _policies(text: str, bender: str) -> tuple[tuple[str, ...], dict[str, str]]:
     return tuple(folders), left_out
 
 
-def _policy_misfit(folder: str, bender: str) -> str | None:
+def _policy_misfit(folder: str, bender: str, dt: float | None = None) -> str | None:
     """Why the policy in ``folder`` does not fit the ``bender`` benchmark's task (its stroke
-    and sample time), or None: also when it does not load (the config then says why)."""
+    and sample time ``dt``, default the bender's), or None: also when it does not load (the
+    config then says why)."""
     from benchmarks.plants import sample_time
     from controllers.policy import load_policy
     from piezo_env import get_datasheet
@@ -238,7 +271,8 @@ def _policy_misfit(folder: str, bender: str) -> str | None:
     except ValueError:
         return None
     sheet = get_datasheet(bender)
-    stroke_um, dt = sheet.free_deflection * 1e6, sample_time(bender)
+    stroke_um = sheet.free_deflection * 1e6
+    dt = sample_time(bender) if dt is None else dt
     trained_dt = policy.metadata.get("task", {}).get("dt_s")
     reasons = []
     if abs(policy.observation.stroke_um - stroke_um) > 1e-9 * stroke_um:
@@ -280,13 +314,15 @@ def _check_backend(args: argparse.Namespace) -> None:
         ) from None
 
 
-def _check_model_bender(folder: str, model, bender: str) -> None:
-    """Refuse, before any work, a model identified on another bender or sample time."""
+def _check_model_bender(folder: str, model, bender: str, dt: float | None = None) -> None:
+    """Refuse, before any work, a model identified on another bender or sample time (``dt``,
+    default the bender's)."""
     import gymnasium as gym
 
     from controllers.registry import check_model_fits_env
 
-    env = gym.make("piezo_env:PiezoBender-v0", preview=1, bender=bender)
+    rate = {} if dt is None else {"dt": dt}
+    env = gym.make("piezo_env:PiezoBender-v0", preview=1, bender=bender, **rate)
     try:
         check_model_fits_env(model.metadata, env)
     except ValueError as error:
@@ -320,12 +356,13 @@ def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
             raise CommandLineError(
                 f"--model {args.model}: cannot load the model: {error}"
             ) from None
-        _check_model_bender(args.model, model, args.bender)
+        _check_model_bender(args.model, model, args.bender, args.dt)
         return str(args.model), {}
     from identification.pipeline import IdentificationConfig, identify
 
     start = time.perf_counter()
-    config = IdentificationConfig(seed=args.seed, env_kwargs={"bender": args.bender})
+    env = {"bender": args.bender, **({} if args.dt is None else {"dt": args.dt})}
+    config = IdentificationConfig(seed=args.seed, env_kwargs=env)
     result = identify(config=config, progress=print)
     model_dir = out / "model"
     result.model.save(model_dir)
@@ -397,7 +434,9 @@ def _left_behind(out, checkpoint, total: int, error: BaseException) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Check everything, identify (or load) the model, run the benchmark, write the report."""
-    policies, left_out = _policies(args.policies, args.bender)
+    if args.dt is None and args.model is not None:
+        args.dt = _model_dt(args.model)
+    policies, left_out = _policies(args.policies, args.bender, args.dt)
     config = _config(args, policies)
     for folder, reason in left_out.items():
         print(f"policy {folder} left out: {reason}")

@@ -54,3 +54,53 @@ def test_mpc_at_10_khz_tracks_a_smooth_reference_at_the_noise_floor(env):
     episode = controllers.run_episode(env, mpc, seed=0, reference=reference, max_steps=2000)
     assert episode.metrics["rmse_percent"] < 0.02  # measured 0.0052 % over these 0.2 s
     assert episode.controller["stats"]["fallbacks"] == 0
+
+
+def test_piezo_benchmark_runs_at_the_models_sample_time(tmp_path, capsys):
+    """``piezo benchmark --model`` of a 0.1 ms model steps every env at 0.1 ms (no --dt
+    needed); a --dt the model was not identified at is refused in one line, nothing written."""
+    import json
+
+    from piezo_cli.main import main
+
+    out = tmp_path / "b"
+    common = ["--controllers", "mpc", "--plants", "nominal", "--references", "steps"]
+    status = main(
+        [
+            "benchmark",
+            "--model",
+            MODEL_10KHZ,
+            *common,
+            "--steps",
+            "300",
+            "--policies",
+            "none",
+            "--out",
+            str(out),
+            "--quiet",
+            "--jobs",
+            "1",
+        ]
+    )
+    assert status == 0
+    data = json.loads((out / "benchmark.json").read_text())
+    assert data["meta"]["dt"] == DT and data["results"]["config"]["dt"] == DT
+    assert data["results"]["episodes"][0]["solver_iterations_max"] > 0
+    capsys.readouterr()
+    refused = tmp_path / "refused"
+    status = main(
+        [
+            "benchmark",
+            "--model",
+            MODEL_10KHZ,
+            "--dt",
+            "1e-3",
+            *common,
+            "--policies",
+            "none",
+            "--out",
+            str(refused),
+        ]
+    )
+    assert status == 2 and not refused.exists()
+    assert "identified at dt = 0.0001 s" in capsys.readouterr().err
