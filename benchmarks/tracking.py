@@ -38,6 +38,8 @@ def main() -> int:
     ]
     status = subprocess.run([*command, *args], check=False).returncode
     if status == 0:
+        # The checkpoint serves --resume of this run only; the committed folder holds results.
+        (out / "checkpoint.jsonl").unlink(missing_ok=True)
         RESULTS.mkdir(parents=True, exist_ok=True)
         target = RESULTS / f"tracking{suffix}.md"
         shutil.copyfile(out / "benchmark.md", target)
