@@ -86,6 +86,7 @@ from controllers.settings import MS_MAX, check_settings, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import DAMPING_RANGE, RESONANCE_TOLERANCE, Vertex, box_model
 from identification.arx import ARXModel
+from identification.correction import first_mode_pole
 
 __all__ = [
     "NORMAL_95",
@@ -191,23 +192,17 @@ def arx_from_realization(model: PredictionModel) -> ARXModel:
     )
 
 
-def _first_pole(arx: ARXModel) -> complex | None:
-    poles = arx.poles()
-    upper = poles[poles.imag > 1e-9]
-    return None if upper.size == 0 else complex(upper[np.argmax(np.abs(upper))])
-
-
 def first_resonance_hz(arx: ARXModel) -> float:
     """Natural frequency (Hz) of the model's first bending mode: the complex pole pair of
     largest modulus, ``|ln p| / (2 pi dt)``; NaN without a complex pair."""
-    p = _first_pole(arx)
+    p = first_mode_pole(arx.poles())
     return math.nan if p is None else float(abs(np.log(p)) / (2.0 * math.pi * arx.dt))
 
 
 def first_damping_ratio(arx: ARXModel) -> float:
     """Damping ratio (-) of the model's first bending mode, ``-Re ln p / |ln p|``; NaN without
     a complex pair."""
-    p = _first_pole(arx)
+    p = first_mode_pole(arx.poles())
     return math.nan if p is None else float(-np.log(p).real / abs(np.log(p)))
 
 

@@ -61,6 +61,7 @@ from controllers.settings import (
     measurement_std,
 )
 from controllers.tolerance_box import RESONANCE_TOLERANCE
+from identification.correction import first_mode_pole
 from piezo_env.checks import require_int
 
 __all__ = ["LONGEST_PERIOD_S", "LinearMPC", "MPCSettings", "covering_samples", "smallest_slope"]
@@ -428,9 +429,8 @@ def covering_samples(a: np.ndarray, dt: float, moves: int) -> int:
     """Samples covering one period of the slowest first resonance the datasheet allows, and at
     least ``moves``.
 
-    The first bending mode is taken as the model's complex pole pair of largest modulus (the
-    slowest decaying, which is the first mode on every model identified or built here), at
-    ``f = |ln p| / (2 pi dt)``; the datasheet allows a bender whose first
+    The first bending mode is the model's :func:`identification.correction.first_mode_pole`,
+    at ``f = |ln p| / (2 pi dt)``; the datasheet allows a bender whose first
     resonance is :data:`controllers.tolerance_box.RESONANCE_TOLERANCE` lower, whose period is
     ``1 / (f (1 - s))``. A prediction that sees one whole period of the ringing it must damp
     is what lets a plan damp it rather than excite it; at the catalogue's default sample times
@@ -454,11 +454,9 @@ def covering_samples(a: np.ndarray, dt: float, moves: int) -> int:
     moves : int
         The plan's moves M.
     """
-    poles = np.linalg.eigvals(a)
-    upper = poles[poles.imag > 1e-9]
-    if upper.size == 0:
+    pole = first_mode_pole(np.linalg.eigvals(a))
+    if pole is None:
         return moves
-    pole = upper[np.argmax(np.abs(upper))]
     slowest_hz = abs(np.log(pole)) / (2.0 * math.pi * dt) * (1.0 - RESONANCE_TOLERANCE)
     if 1.0 / slowest_hz > LONGEST_PERIOD_S:
         raise ValueError(

@@ -39,6 +39,7 @@ from identification.arx import ARXModel
 __all__ = [
     "ModalCorrection",
     "ModalSplit",
+    "first_mode_pole",
     "fit_modal_correction",
     "multi_step_errors",
     "scale_modes",
@@ -106,15 +107,28 @@ class ModalCorrection:
         )
 
 
-def _first_mode(poles: np.ndarray) -> int:
-    """Index of the first bending mode's upper pole: the complex pole of largest modulus."""
+def first_mode_pole(poles: np.ndarray) -> complex | None:
+    """The first bending mode's upper pole: the complex pole of largest modulus (the slowest
+    decaying, the first mode on every model identified or built here); None without a
+    complex pair."""
+    index = _first_mode_index(poles)
+    return None if index is None else complex(poles[index])
+
+
+def _first_mode_index(poles: np.ndarray) -> int | None:
     upper = np.flatnonzero(poles.imag > 1e-9)
-    if upper.size == 0:
+    return None if upper.size == 0 else int(upper[np.argmax(np.abs(poles[upper]))])
+
+
+def _first_mode(poles: np.ndarray) -> int:
+    """Index of the first bending mode's upper pole (:func:`first_mode_pole`), or ValueError."""
+    index = _first_mode_index(poles)
+    if index is None:
         raise ValueError(
             "the model has no complex pole pair: there is no bending mode to correct "
             f"(poles {np.round(poles, 4).tolist()})"
         )
-    return int(upper[np.argmax(np.abs(poles[upper]))])
+    return index
 
 
 class ModalSplit:
