@@ -124,6 +124,7 @@ class BoxQP:
         n = lower.size
         self.lower, self.upper = lower, upper
         self._rate = None if rate is None else np.full(n - 1, rate)
+        self.failed = False  # the last solve gave no usable solution
 
     def solve(
         self,
@@ -149,6 +150,24 @@ class BoxQP:
         bounds : (numpy.ndarray, numpy.ndarray), optional
             New (lower, upper).
         """
+        if bounds is not None:
+            self.lower, self.upper = bounds
+        x, duals, status, iterations = self._solve(q, warm_x, warm_duals, hessian, bounds)
+        self.failed = x is None or not np.isfinite(x).all()
+        if self.failed:
+            return BoxQPSolution(None, None, status, iterations)
+        return BoxQPSolution(np.clip(x, self.lower, self.upper), duals, status, iterations)
+
+    def _solve(
+        self,
+        q: np.ndarray,
+        warm_x: np.ndarray,
+        warm_duals: np.ndarray,
+        hessian: np.ndarray | None,
+        bounds: tuple[np.ndarray, np.ndarray] | None,
+    ) -> tuple[np.ndarray | None, np.ndarray | None, str, int]:
+        """The solver's own step, the box already in :attr:`lower`/:attr:`upper`: (x or None
+        when the solver says it is not usable, multipliers, status, iterations)."""
         raise NotImplementedError
 
     def set_rate(self, rate: float) -> None:
@@ -211,36 +230,22 @@ class DAQPBoxQP(BoxQP):
             )
         self._model.settings = {"iter_limit": int(max_iter)}
         self._no_active_set = np.zeros(low.size, dtype=np.intc)
-        self._failed = False
 
-    def solve(
-        self,
-        q: np.ndarray,
-        warm_x: np.ndarray,
-        warm_duals: np.ndarray,
-        *,
-        hessian: np.ndarray | None = None,
-        bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> BoxQPSolution:
+    def _solve(self, q, warm_x, warm_duals, hessian, bounds):
         data: dict[str, np.ndarray] = {"f": q}
         if bounds is not None:
-            self.lower, self.upper = bounds
-            low, high = self._rows()
-            data["blower"], data["bupper"] = low, high
+            data["blower"], data["bupper"] = self._rows()
         if hessian is not None:
             data["H"] = hessian
-        if not warm_duals.any() or self._failed:
+        if not warm_duals.any() or self.failed:  # after a failure: from no active set
             data["sense"] = self._no_active_set
         flag = int(self._model.update(**data))
-        iterations = 0
-        if flag >= 0:  # data accepted (crossed bounds or an indefinite P are refused here)
-            x, _, flag, info = self._model.solve()
-            flag, iterations = int(flag), int(info["iterations"])
-        status = DAQP_STATUS.get(flag, f"exit flag {flag}")
-        self._failed = flag <= 0 or not np.isfinite(x).all()
-        if self._failed:  # the next solve starts from no active set, not this one's
-            return BoxQPSolution(None, None, status, iterations)
-        return BoxQPSolution(np.clip(x, self.lower, self.upper), info["lam"], status, iterations)
+        if flag < 0:  # data refused (crossed bounds, an indefinite P)
+            return None, None, DAQP_STATUS.get(flag, f"exit flag {flag}"), 0
+        x, _, flag, info = self._model.solve()
+        status = DAQP_STATUS.get(int(flag), f"exit flag {int(flag)}")
+        usable = flag > 0
+        return (x if usable else None), info["lam"], status, int(info["iterations"])
 
 
 class OSQPBoxQP(BoxQP):
@@ -305,29 +310,18 @@ class OSQPBoxQP(BoxQP):
             warm_starting=True,
         )
 
-    def solve(
-        self,
-        q: np.ndarray,
-        warm_x: np.ndarray,
-        warm_duals: np.ndarray,
-        *,
-        hessian: np.ndarray | None = None,
-        bounds: tuple[np.ndarray, np.ndarray] | None = None,
-    ) -> BoxQPSolution:
+    def _solve(self, q, warm_x, warm_duals, hessian, bounds):
         data = {"q": q}
         if bounds is not None:
-            self.lower, self.upper = bounds
             data["l"], data["u"] = self._rows()
         if hessian is not None:
             data["Px"] = hessian[self._upper_triangle]
         self._solver.update(**data)
         self._solver.warm_start(x=warm_x, y=warm_duals)
         result = self._solver.solve(raise_error=False)
-        status, iterations = result.info.status, int(result.info.iter)
-        if status not in USABLE_OSQP_STATUS or not np.all(np.isfinite(result.x)):
-            return BoxQPSolution(None, None, status, iterations)
-        x = np.clip(result.x, self.lower, self.upper)
-        return BoxQPSolution(x, result.y, status, iterations)
+        status = result.info.status
+        usable = status in USABLE_OSQP_STATUS
+        return (result.x if usable else None), result.y, status, int(result.info.iter)
 
 
 def box_qp(
