@@ -322,11 +322,6 @@ class LinearMPC(PredictiveController):
         self._z_prev = self._g * z
         self.observer.predict(self._z_prev)
 
-    def _slew_window(self) -> tuple[float, float]:
-        """Voltages (V) reachable this sample: u_t-1 +- S dt within the drive range."""
-        step = self._slew_step
-        return max(self._u_prev - step, -self._u_max), min(self._u_prev + step, self._u_max)
-
     def _act_slewing(self, z_target: float) -> float:
         """The inverse of ``z_target`` kept inside the slew window (slew limit only)."""
         nonlinearity = self.model.nonlinearity

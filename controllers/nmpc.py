@@ -222,14 +222,6 @@ class NonlinearMPC(PredictiveController):
         self._plan = np.full(s.horizon, start.u)
         self._u_prev = float(np.float32(start.u))
 
-    def _slew_window(self) -> tuple[float, float]:
-        """Voltages (V) the first move may take: the drive range, and with a slew limit
-        u_t-1 +- S dt within it."""
-        if self._slew_step is None:
-            return -self._u_max, self._u_max
-        step = self._slew_step
-        return max(self._u_prev - step, -self._u_max), min(self._u_prev + step, self._u_max)
-
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
         n = self.model.n_states

@@ -263,6 +263,15 @@ class PredictiveController(Controller):
             "box_screen": self.screen,
         }
 
+    def _slew_window(self) -> tuple[float, float]:
+        """Voltages (V) this sample's move may take: the drive range, and with the amplifier's
+        slew limit S (``self._slew_step`` = S dt, set by the subclass) u_t-1 +- S dt within it
+        (``self._u_prev`` = u_t-1)."""
+        if self._slew_step is None:
+            return -self._u_max, self._u_max
+        step = self._slew_step
+        return max(self._u_prev - step, -self._u_max), min(self._u_prev + step, self._u_max)
+
     def _set_up(self) -> None:
         """Build what stays fixed over episodes (called once, before the first reset)."""
         raise NotImplementedError
