@@ -45,7 +45,7 @@ import math
 
 import numpy as np
 
-from controllers.native.step_kernels import MAX_STATES, kernels, too_many_states
+from controllers.native.step_kernels import kernels_for
 
 __all__ = ["CREDIBLE_Z", "GainEstimate"]
 
@@ -130,7 +130,7 @@ class GainEstimate:
         self._x = np.zeros((k, n))
         self._a = np.ascontiguousarray(self._a)
         self._update_native = self._advance_native = None
-        library, build = kernels() if n <= MAX_STATES else too_many_states(n)
+        library, build = kernels_for(n)
         self.native = [build]
         if library is not None:
             dims = np.array([k, n], dtype=np.int64)

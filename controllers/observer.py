@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from controllers.native.step_kernels import MAX_STATES, kernels, too_many_states
+from controllers.native.step_kernels import kernels_for
 from controllers.riccati import filter_riccati
 from controllers.settings import measurement_std
 
@@ -454,7 +454,7 @@ class ObserverBank:
             [self._keep, self._guard_keep, RUNAWAY_NIS, RUNAWAY_CORRELATION], dtype=float
         )
         self._correct_native = self._predict_native = None
-        library, build = kernels() if size <= MAX_STATES else too_many_states(size)
+        library, build = kernels_for(size)
         self.native = [build]
         if library is None:
             return

@@ -27,11 +27,11 @@ pytestmark = pytest.mark.skipif(
 def numpy_only(monkeypatch: pytest.MonkeyPatch) -> None:
     """Objects built from now on run their numpy code."""
 
-    def switched_off():
+    def switched_off(states):
         return None, NativeBuild("step_kernels", NUMPY, "switched off by the test")
 
-    monkeypatch.setattr(gain_module, "kernels", switched_off)
-    monkeypatch.setattr(observer_module, "kernels", switched_off)
+    monkeypatch.setattr(gain_module, "kernels_for", switched_off)
+    monkeypatch.setattr(observer_module, "kernels_for", switched_off)
 
 
 def random_parts(rng: np.random.Generator, k: int, n: int):

@@ -33,7 +33,7 @@ from controllers.native.codegen import (
     native_policy,
 )
 
-__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "kernels", "too_many_states"]
+__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "kernels", "kernels_for"]
 
 MAX_STATES = 64
 """Largest state size the kernels take (their time updates use a stack buffer of this size)."""
@@ -195,8 +195,10 @@ def kernels() -> tuple[Any, NativeBuild]:
     return _build(native_policy())
 
 
-def too_many_states(size: int) -> tuple[None, NativeBuild]:
-    """No kernels for an estimator of ``size`` states beyond :data:`MAX_STATES`: the record
-    that says numpy runs it, and why."""
-    reason = f"{size} states, more than the kernels' {MAX_STATES}: numpy runs the estimator"
+def kernels_for(states: int) -> tuple[Any, NativeBuild]:
+    """:func:`kernels` for an estimator of ``states`` states; beyond :data:`MAX_STATES` none,
+    and the record that says numpy runs it, and why."""
+    if states <= MAX_STATES:
+        return kernels()
+    reason = f"{states} states, more than the kernels' {MAX_STATES}: numpy runs the estimator"
     return None, NativeBuild("step_kernels", NUMPY, reason)
