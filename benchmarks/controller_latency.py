@@ -23,7 +23,6 @@ Run: ``python -m benchmarks.controller_latency`` (a few minutes).
 from __future__ import annotations
 
 import datetime
-import gc
 import json
 import time
 
@@ -44,6 +43,7 @@ from benchmarks._common import (
 from benchmarks.corners import vertex_env
 from benchmarks.plants import EPISODE_S, sample_time
 from benchmarks.references import REFERENCES, make_reference
+from benchmarks.runner import no_collection
 
 MODEL_DIR = "docs/identify/model"
 PL127_MODEL = "tests/data/pl127-model"
@@ -108,16 +108,10 @@ def controller_times(
 
 def quiet_episode(env, controller, reference: np.ndarray, steps: int, stroke: float):
     """One episode with the garbage collector frozen and off (the benchmark's way)."""
-    gc.collect()
-    gc.freeze()
-    gc.disable()
-    try:
+    with no_collection():
         return controllers.run_episode(
             env, controller, seed=0, reference=reference, max_steps=steps, stroke_um=stroke
         )
-    finally:
-        gc.enable()
-        gc.unfreeze()
 
 
 def ten_khz_rows(cart_median: float, record: list[dict]) -> list[list[str]]:

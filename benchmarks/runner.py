@@ -61,6 +61,7 @@ __all__ = [
     "PLANTS",
     "BenchmarkConfig",
     "BenchmarkResult",
+    "no_collection",
     "run_benchmark",
 ]
 
@@ -395,7 +396,7 @@ def _run_group(
     with threadpool_limits(1):
         built = _build(controller, model_dir, env, config)
         _warm_up(env, built, next(iter(references.values())), config.seed)
-        with _no_collection():
+        with no_collection():
             seeds = [0] if plant in DRAWN_PLANTS else range(config.seeds)
             for ref_name, reference in references.items():
                 for draw in draws:
@@ -458,7 +459,7 @@ def _warm_up(env: Any, controller: Any, reference: np.ndarray, seed: int, steps:
 
 
 @contextmanager
-def _no_collection() -> Iterator[None]:
+def no_collection() -> Iterator[None]:
     """Collect and freeze what set-up left, and keep the collector off inside."""
     gc.collect()
     gc.freeze()
