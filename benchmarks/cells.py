@@ -1,9 +1,13 @@
-"""Table cells from episodes: every metric averaged over the noise seeds, with a 95 % interval.
+"""Table cells from episodes: every metric averaged over the seeds, with a 95 % interval.
 
-One cell is one (plant, controller, reference) and, on the random plants, one draw. With N
-noise seeds (``piezo benchmark --seeds N``) each cell holds the mean of every numeric metric
-and ``rmse_ci95_percent``, the half-width of the 95 % confidence interval of the mean RMSE
-(Student's t with N - 1 degrees of freedom); with one seed there is no interval (None).
+One cell is one (plant, controller, reference) and, on the random plants, one draw. Its N
+episodes are its noise seeds (``piezo benchmark --seeds``) times, for a row built on the
+identified model, its identification seeds (``--identification-seeds``: each reruns the
+identification on other data, so it varies the model as the noise seeds vary the sensor
+noise). The cell holds the mean of every numeric metric and ``rmse_ci95_percent``, the
+half-width of the 95 % confidence interval of the mean RMSE (Student's t with N - 1 degrees of
+freedom, the N episodes taken as independent draws); with one episode there is no interval
+(None). Wherever the project prints "mean +- x", x is this half-width.
 
 Two cells are told apart only when their difference exceeds the combined half-widths (with
 one seed: more than :data:`TIE` relative); otherwise they are a tie, and nothing is bolded.
@@ -16,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["KEYS", "TIE", "aggregate", "different"]
+__all__ = ["KEYS", "TIE", "aggregate", "ci95_half_width", "different"]
 
 KEYS = ("plant", "controller", "reference", "draw")
 """What names a cell (``draw`` only on the random plants)."""
@@ -25,10 +29,21 @@ TIE = 0.02
 """Relative RMSE difference under which two single-seed cells are called a tie."""
 
 
-def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One cell per (plant, controller, reference, draw), in the order first seen."""
+def ci95_half_width(values: Any) -> float | None:
+    """Half-width of the 95 % confidence interval of the mean of ``values`` (Student's t with
+    n - 1 degrees of freedom); None for fewer than two values."""
     import scipy.stats
 
+    values = np.asarray(values, dtype=float)
+    n = values.size
+    if n < 2:
+        return None
+    t_975 = float(scipy.stats.t.ppf(0.975, n - 1))
+    return t_975 * float(np.std(values, ddof=1)) / math.sqrt(n)
+
+
+def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One cell per (plant, controller, reference, draw), in the order first seen."""
     groups: dict[tuple, list[dict[str, Any]]] = {}
     for e in episodes:
         groups.setdefault(tuple(e.get(k) for k in KEYS), []).append(e)
@@ -36,7 +51,7 @@ def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
     for members in groups.values():
         cell = {k: members[0][k] for k in KEYS if k in members[0]}
         for key, value in members[0].items():
-            if key in KEYS or key == "seed_index":
+            if key in KEYS or key in ("seed_index", "identification_seed"):
                 continue
             if key == "observer_fallback_step":  # a step per episode: count the episodes
                 cell["observer_fallbacks"] = sum(m.get(key) is not None for m in members)
@@ -46,11 +61,8 @@ def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
             cell[key] = float(np.mean(values)) if numeric and values else value
         n = len(members)
         cell["seeds"] = n
-        cell["rmse_ci95_percent"] = None
-        if n > 1:
-            spread = float(np.std([m["rmse_percent"] for m in members], ddof=1))
-            t_975 = float(scipy.stats.t.ppf(0.975, n - 1))
-            cell["rmse_ci95_percent"] = t_975 * spread / math.sqrt(n)
+        cell["identification_seeds"] = len({m.get("identification_seed") for m in members})
+        cell["rmse_ci95_percent"] = ci95_half_width([m["rmse_percent"] for m in members])
         cells.append(cell)
     return cells
 

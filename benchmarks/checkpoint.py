@@ -12,7 +12,8 @@ identity. :class:`Checkpoint` keeps them in ``OUT/checkpoint.jsonl`` (JSON lines
   and the native code's identity (``PIEZO_NATIVE``, compiler, flags, architecture, casadi and
   Python ABI: what :func:`controllers.native.codegen.cache_key` names a compiled library by);
   ``digest`` is the SHA-256 of the identity;
-- then one line per finished group: ``{"digest", "group": [plant, controller], "output"}``.
+- then one line per finished group: ``{"digest", "group": [plant, controller], "output"}``
+  (``[plant, controller, model index]`` when the run has several identification seeds).
 
 Each group's line is written by a single ``write`` to the file opened for appending, then
 ``fsync``: a crash leaves at most one unterminated last line, which a resume drops. The header
@@ -35,6 +36,7 @@ import shlex
 import shutil
 import sys
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +111,16 @@ def _folder_digests(folder: str | os.PathLike[str]) -> dict[str, str]:
     return {str(p.relative_to(root)): _sha256(p) for p in sorted(root.rglob("*")) if p.is_file()}
 
 
+def _models_digests(model_dir: Any) -> Any:
+    """One model folder's digests, a list of them for one folder per identification seed, or
+    a mapping of either per plant (:func:`benchmarks.runner.model_folders`)."""
+    if isinstance(model_dir, (str, os.PathLike)):
+        return _folder_digests(model_dir)
+    if isinstance(model_dir, Mapping):
+        return {plant: _models_digests(folders) for plant, folders in model_dir.items()}
+    return [_folder_digests(folder) for folder in model_dir]
+
+
 def _code_digests() -> dict[str, str]:
     """SHA-256 of every source file (Python and C) of :data:`CODE_PACKAGES`, by path relative
     to the project."""
@@ -180,15 +192,15 @@ def _native_identity() -> dict[str, str]:
     }
 
 
-def run_identity(config: Any, model_dir: str | os.PathLike[str]) -> dict[str, Any]:
+def run_identity(config: Any, model_dir: Any) -> dict[str, Any]:
     """Everything that decides a group's result, as plain JSON data (see the module docstring).
 
     Parameters
     ----------
     config : benchmarks.runner.BenchmarkConfig
         The run's configuration.
-    model_dir : str or path-like
-        The identified model's folder.
+    model_dir : str, path-like, sequence of them, or mapping
+        The identified model's folder, one per identification seed, or either per plant.
 
     Returns
     -------
@@ -201,7 +213,7 @@ def run_identity(config: Any, model_dir: str | os.PathLike[str]) -> dict[str, An
         fields.pop(name)
     identity = {
         "configuration": json.loads(json.dumps(fields, sort_keys=True)),
-        "model": _folder_digests(model_dir),
+        "model": _models_digests(model_dir),
         "policies": {
             label: _folder_digests(folder) for label, folder in config.policy_folders.items()
         },
@@ -321,7 +333,7 @@ class Checkpoint:
                 file.truncate(len(complete))
         return cls(path, digest, finished)
 
-    def append(self, group: tuple[str, str], output: Any) -> Any:
+    def append(self, group: tuple[Any, ...], output: Any) -> Any:
         """Add a finished group (one ``write`` of one line, then ``fsync``).
 
         Returns

@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.cells import TIE, aggregate
+from benchmarks.cells import TIE, aggregate, ci95_half_width
 from benchmarks.checkpoint import write_text_atomic
 from benchmarks.descriptions import controller_tables, loop_table
 from benchmarks.figures import draw_figures
@@ -133,7 +133,8 @@ def _table(rows: list[str], columns: list[str], cell, header: str) -> str:
 
 
 def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]):
-    """Table cell of one metric: a row's value, or mean +- sample std over a recipe's seeds;
+    """Table cell of one metric: a row's value, or the mean over a recipe's training seeds +-
+    the half-width of its 95 % interval (:func:`benchmarks.cells.ci95_half_width`);
     the single best row of an RMSE column in bold (a tie bolds nothing)."""
     bold = {}
     if key == "rmse_percent":
@@ -156,7 +157,10 @@ def _cell(index, plant: str, key: str, digits: int, groups: dict[str, list[str]]
             ]
             if not values:
                 return ""
-            return f"{np.mean(values):.{digits}f} +- {np.std(values, ddof=1):.{digits}f}"
+            ci = ci95_half_width(values)
+            return f"{np.mean(values):.{digits}f}" + (
+                f" +- {ci:.{digits}f}" if ci is not None else ""
+            )
         e = index.get((plant, row, ref))
         if e is None:
             return ""
@@ -175,7 +179,8 @@ def tracking_tables(
 ) -> str:
     """RMSE and max-error tables per plant (deterministic: bitwise equal for any ``jobs``).
 
-    Several seeds of one trained recipe also get a row ``NAME (seeds)`` with mean +- std.
+    Several seeds of one trained recipe also get a row ``NAME (seeds)``: the mean over the
+    training seeds +- the half-width of its 95 % interval.
     ``plants`` selects the plants (default all but the Monte Carlo draws); ``max_errors``
     adds the nominal plant's max-error table.
     """
@@ -340,11 +345,25 @@ def _step_table(result: BenchmarkResult, dt: float) -> str:
 
 def _seeds_sentence(cfg: Any) -> str:
     seeds = getattr(cfg, "seeds", 1)
-    if seeds == 1:
+    models = getattr(cfg, "identification_seeds", 1)
+    noise = (
+        f"noise seed {cfg.seed}"
+        if seeds == 1
+        else f"noise seeds {cfg.seed} .. {cfg.seed + seeds - 1}"
+    )
+    if models == 1 and seeds == 1:
         return f"Noise seed {cfg.seed}, one per cell;"
+    if models > 1:
+        what = (
+            f"identification seeds {cfg.seed} .. {cfg.seed + models - 1} (the rows built on the "
+            f"identified model; the oracles and policies have none) x {noise}"
+        )
+    else:
+        what = noise
+    count = f"{models} x {seeds}" if models > 1 else f"{seeds}"
     return (
-        f"Noise seeds {cfg.seed} .. {cfg.seed + seeds - 1}: every cell is the mean over {seeds} "
-        "seeds +- the half-width of its 95 % interval (Student's t);"
+        f"{what[0].upper() + what[1:]}: every cell is the mean over {count} seeds +- the "
+        "half-width of its 95 % interval (Student's t), the same meaning of +- everywhere;"
     )
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import gc
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +61,7 @@ __all__ = [
     "PLANTS",
     "BenchmarkConfig",
     "BenchmarkResult",
+    "model_folders",
     "no_collection",
     "run_benchmark",
 ]
@@ -136,6 +137,12 @@ class BenchmarkConfig:
     seeds : int
         Noise seeds per cell (seed .. seed+seeds-1): the tables give the mean and its 95 %
         interval. The random plants keep one seed per draw (the draws are their spread).
+    identification_seeds : int
+        Identified models the run is given (``run_benchmark``'s ``model_dir``, one folder per
+        identification seed, seed .. seed+identification_seeds-1): every row built on the
+        identified model runs on each of them with the same noise seeds, and a cell's mean and
+        interval are over identification seeds x noise seeds. The oracles and the policies do
+        not use the identified model and run once.
     bender : str
         Catalogue name of the nominal bender (``"PL140"``, ``"PL112"``, ``"PL122"``,
         ``"PL127"``, ``"PL128"``): its references are scaled to its stroke, its robustness
@@ -161,6 +168,7 @@ class BenchmarkConfig:
     bender: str = DEFAULT_BENDER
     seeds: int = 1
     dt: float | None = None
+    identification_seeds: int = 1
 
     def __post_init__(self) -> None:
         for name in ("controllers", "references", "plants"):
@@ -185,7 +193,7 @@ class BenchmarkConfig:
         object.__setattr__(self, "dt", require_number("dt", self.dt, low=0.0, low_open=True))
         if self.steps is None:
             object.__setattr__(self, "steps", max(1, round(EPISODE_S / self.dt)))
-        for name in ("steps", "jobs", "draws", "preview", "seeds"):
+        for name in ("steps", "jobs", "draws", "preview", "seeds", "identification_seeds"):
             require_int(name, getattr(self, name))  # preview >= 1: a_t is scored against r_t+1
         if self.backend not in BACKENDS:
             raise ValueError(f"unknown backend {self.backend!r}; valid: {', '.join(BACKENDS)}")
@@ -289,6 +297,25 @@ class BenchmarkConfig:
         """Every controller row: the named controllers, then the policies."""
         return (*self.controller_rows, *self.policy_folders)
 
+    def identified(self, controller: str) -> bool:
+        """Whether the row ``controller`` is built on the identified model (so runs once per
+        identification seed): every row but the oracles and the policies."""
+        return not controller.endswith("-oracle") and controller not in self.policy_folders
+
+    def runs(self) -> list[tuple[str, str, tuple[str, ...], int]]:
+        """(plant, controller, references, model index) of every run of a group: a row built
+        on the identified model once per identification seed, any other row once."""
+        return [
+            (plant, controller, refs, k)
+            for plant, controller, refs in self.groups()
+            for k in range(self.identification_seeds if self.identified(controller) else 1)
+        ]
+
+    def run_key(self, plant: str, controller: str, k: int) -> tuple[Any, ...]:
+        """The checkpoint's name of a run: (plant, controller), and the model index when the
+        run has several identification seeds."""
+        return (plant, controller) if self.identification_seeds == 1 else (plant, controller, k)
+
     def groups(self) -> list[tuple[str, str, tuple[str, ...]]]:
         """(plant, controller, references) of every group, in report order."""
         out = []
@@ -370,8 +397,10 @@ def _run_group(
     references: dict[str, np.ndarray],
     model_dir: str,
     config: BenchmarkConfig,
+    model_index: int = 0,
 ) -> tuple[list[dict[str, Any]], dict[str, Any], dict[str, dict[str, list[float]]]]:
-    """Run one controller on one plant over its references (in a worker process).
+    """Run one controller on one plant over its references (in a worker process), on the
+    identified model ``model_dir`` of identification seed ``config.seed + model_index``.
 
     The loop does what a real-time Python loop does: one BLAS thread, a warm-up before the
     timed episodes (a first call may load generated code or fill caches), and no garbage
@@ -413,6 +442,8 @@ def _run_group(
                             record["draw"] = draw
                         if config.seeds > 1:
                             record["seed_index"] = seed_index
+                        if config.identification_seeds > 1 and config.identified(controller):
+                            record["identification_seed"] = config.seed + model_index
                         episodes.append({**record, **episode.metrics})
                         if seed_index == 0:
                             traced = episode  # the figures draw the first seed
@@ -473,28 +504,64 @@ def no_collection() -> Iterator[None]:
         gc.unfreeze()
 
 
+def model_folders(config: BenchmarkConfig, model_dir: Any) -> dict[str, tuple[str, ...]]:
+    """The identified models' folders of each plant that has its own, one per identification
+    seed: ``{plant: folders}``. ``model_dir`` is one folder, a sequence of them (one per
+    identification seed), or a mapping from plant to either; a plain folder or sequence is
+    every plant's, and a plant without its own model runs the mapping's first (ValueError if a
+    later plant of the mapping is not run or a number of folders is not
+    ``config.identification_seeds``)."""
+    if isinstance(model_dir, Mapping):
+        given = dict(model_dir)
+    else:
+        given = {config.plants[0]: model_dir}
+    out = {}
+    for i, (plant, folders) in enumerate(given.items()):
+        if i and plant not in config.plants:
+            raise ValueError(
+                f"a model was given for the plant {plant!r}, which is not run (plants: "
+                f"{', '.join(config.plants)})"
+            )
+        folders = (
+            (str(folders),) if isinstance(folders, (str, Path)) else tuple(map(str, folders))
+        )
+        if len(folders) != config.identification_seeds:
+            raise ValueError(
+                f"the run has identification_seeds = {config.identification_seeds} but "
+                f"{len(folders)} model folder(s) were given for the {plant} plant; pass one "
+                "folder per identification seed"
+            )
+        out[plant] = folders
+    return out
+
+
 def run_benchmark(
     config: BenchmarkConfig,
-    model_dir: str | Path,
+    model_dir: str | Path | Sequence[str | Path] | Mapping[str, Any],
     *,
     progress: Callable[[int, int, str], None] | None = None,
     checkpoint: Checkpoint | None = None,
     retries: int = DEFAULT_RETRIES,
 ) -> BenchmarkResult:
-    """Run the benchmark on the identified model saved in ``model_dir``.
+    """Run the benchmark on the identified model(s) saved in ``model_dir``.
 
     Parameters
     ----------
     config : BenchmarkConfig
-    model_dir : str or pathlib.Path
-        Folder of a saved :class:`identification.HammersteinModel` (workers load it).
+    model_dir : str, pathlib.Path, sequence of them, or mapping
+        Folder of a saved :class:`identification.HammersteinModel` (workers load it), or one
+        folder per identification seed (``config.identification_seeds`` of them, in seed
+        order); or a mapping from plant to either, for plants that have their own model (a
+        model identified on that plant, as on a user's bench: ``piezo benchmark
+        --identify-on``), the others running the first plant's (:func:`model_folders`). The
+        figures, the traces and the controllers' descriptions come from each plant's first.
     progress : callable, optional
-        ``progress(done, total, label)`` after each group (groups taken from ``checkpoint``
-        count as done from the start).
+        ``progress(done, total, label)`` after each run of a group (runs taken from
+        ``checkpoint`` count as done from the start).
     checkpoint : benchmarks.checkpoint.Checkpoint, optional
-        Groups it holds are taken from it, not run; each group that finishes is appended to
-        it at once, so an interruption loses only the groups still running. The result is
-        bitwise the same with or without it, resumed or not.
+        Runs it holds are taken from it, not run; each run that finishes is appended to it at
+        once, so an interruption loses only the runs still going. The result is bitwise the
+        same with or without it, resumed or not.
     retries : int
         Reruns of a group whose worker process died, each on a new worker (see
         :func:`piezo_parallel.backends.run_tasks`).
@@ -502,7 +569,7 @@ def run_benchmark(
     Returns
     -------
     BenchmarkResult
-        Episodes ordered by plant, controller and reference, whatever ``jobs`` is.
+        Episodes ordered by plant, controller, model and reference, whatever ``jobs`` is.
 
     Notes
     -----
@@ -510,7 +577,10 @@ def run_benchmark(
     thread state), so a script calling this must do so under ``if __name__ == "__main__":``.
     See :mod:`piezo_parallel.backends`.
     """
-    groups = config.groups()
+    models = model_folders(config, model_dir)
+    default = next(iter(models.values()))
+    runs = config.runs()
+    keys = [config.run_key(p, c, k) for p, c, _, k in runs]
     start = time.perf_counter()
     # Built here, not in the workers, so references registered in this process run anywhere.
     arrays = {
@@ -525,36 +595,43 @@ def run_benchmark(
     }
     for label in config.entry_points:  # built once here: a broken one stops before episodes
         nominal = _make_env(config, "nominal")
-        _build(label, str(model_dir), nominal, config)
+        _build(label, default[0], nominal, config)
         nominal.close()
     finished = checkpoint.finished if checkpoint is not None else {}
-    outputs = [finished.get((p, c)) for p, c, _ in groups]
-    todo = [i for i, (p, c, _) in enumerate(groups) if (p, c) not in finished]
+    outputs = [finished.get(key) for key in keys]
+    todo = [i for i, key in enumerate(keys) if key not in finished]
 
     def keep(j: int, output: Any) -> None:
         i = todo[j]
-        outputs[i] = output if checkpoint is None else checkpoint.append(groups[i][:2], output)
+        outputs[i] = output if checkpoint is None else checkpoint.append(keys[i], output)
 
     def show(done: int, total: int, label: str) -> None:
-        skipped = len(groups) - len(todo)
+        skipped = len(runs) - len(todo)
         progress(skipped + done, skipped + total, label)  # type: ignore[misc]
+
+    def label(i: int) -> str:
+        plant, controller, _, k = runs[i]
+        model = f" (identification seed {config.seed + k})" if len(default) > 1 else ""
+        return f"{controller} on {plant}{model}"
 
     run_tasks(
         _run_group,
         [
-            (p, c, {r: arrays[r] for r in refs}, str(model_dir), config)
-            for p, c, refs in (groups[i] for i in todo)
+            (p, c, {r: arrays[r] for r in refs}, models.get(p, default)[k], config, k)
+            for p, c, refs, k in (runs[i] for i in todo)
         ],
         jobs=config.jobs,
         backend=config.backend,
-        labels=[f"{groups[i][1]} on {groups[i][0]}" for i in todo],
+        labels=[label(i) for i in todo],
         progress=show if progress else None,
         on_result=keep,
         retries=retries,
     )
     episodes, described, traces = [], {}, {}
-    for (plant, controller, _), (eps, description, trace) in zip(groups, outputs, strict=True):
+    for (plant, controller, _, k), (eps, description, trace) in zip(runs, outputs, strict=True):
         episodes.extend(eps)
+        if k:
+            continue  # the figures and the descriptions are the first model's
         if plant == "nominal" or controller not in described:
             described[controller] = description
         for ref, data in trace.items():

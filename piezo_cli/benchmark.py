@@ -96,6 +96,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "and call differences within them ties",
     )
     parser.add_argument(
+        "--identification-seeds",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="identify the model K times (seeds --seed .. --seed+K-1, each on its own data) and "
+        "run every row built on it on each: the tables' means and 95 %% intervals are then "
+        "over identification seeds x noise seeds (not with --model)",
+    )
+    parser.add_argument(
+        "--identify-on",
+        type=_names,
+        default=("nominal",),
+        metavar="P,Q",
+        help="the plant(s) the model is identified on, as a user can only identify on their "
+        "own bench: the first's model runs on every plant, and each later one (which must be "
+        "run) gets its own, e.g. nominal,bench runs the bench on a model identified on the "
+        "bench; plants of the bender itself only (default nominal; not with --model)",
+    )
+    parser.add_argument(
         "--draws",
         type=positive_int,
         default=None,
@@ -198,6 +217,7 @@ def _config(args: argparse.Namespace, policies: tuple[str, ...]):
             bender=args.bender,
             seeds=args.seeds,
             dt=args.dt,
+            identification_seeds=args.identification_seeds,
             **({} if args.draws is None else {"draws": args.draws}),
         )
     except ValueError as error:
@@ -331,24 +351,82 @@ def _check_model_bender(folder: str, model, bender: str, dt: float | None = None
         env.close()
 
 
-def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
-    """The model folder to benchmark (loaded once to check it), identifying one if needed.
+def identification_plants(bender: str) -> tuple[str, ...]:
+    """The plants a model can be identified on (``--identify-on``): those of the bender itself
+    under other conditions (an amplifier, a sensor, another hysteresis, noise, creep, drift).
+    A plant with other datasheet values (the tolerance plants) or a distribution of plants
+    would give a model of another bender, which the controllers, built for this one, refuse."""
+    from benchmarks.plants import DRAWN_PLANTS, PLANTS
 
-    With ``--resume`` a model the interrupted run identified in ``OUT/model`` is used again.
+    return tuple(
+        name
+        for name, options in PLANTS.items()
+        if name not in DRAWN_PLANTS and options(bender).get("bender") == bender
+    )
+
+
+def _check_identification(args: argparse.Namespace) -> None:
+    """Refuse, before any work, identification options that cannot be honoured."""
+    plants = identification_plants(args.bender)
+    for i, plant in enumerate(args.identify_on):
+        if plant not in plants:
+            raise CommandLineError(
+                f"--identify-on {plant}: not a plant a model of the {args.bender} can be "
+                f"identified on; choose from {', '.join(plants)}"
+            )
+        if i and plant not in args.plants:
+            raise CommandLineError(
+                f"--identify-on {plant}: a later plant gets its own model for its own rows, "
+                f"and the {plant} plant is not run; add it to --plants or put it first"
+            )
+    if len(set(args.identify_on)) != len(args.identify_on):
+        raise CommandLineError(f"--identify-on names a plant twice: {','.join(args.identify_on)}")
+    if args.model is not None and args.identification_seeds > 1:
+        raise CommandLineError(
+            f"--identification-seeds {args.identification_seeds} identifies the model "
+            f"{args.identification_seeds} times, and --model gives one: drop one of the two"
+        )
+    if args.model is not None and args.identify_on != ("nominal",):
+        raise CommandLineError(
+            "--identify-on chooses where the model is identified, and --model gives one "
+            "identified already: drop one of the two"
+        )
+
+
+def _model_folder(out, plant: str, k: int, first: bool):
+    """Where the run keeps the model identified on ``plant`` with its k-th identification
+    seed (``OUT/model`` for the first plant's first seed)."""
+    name = "model" if first else f"model-{plant}"
+    return out / (name if k == 0 else f"{name}-{k}")
+
+
+def _models(
+    args: argparse.Namespace, out
+) -> tuple[dict[str, list[str]], dict[str, float]]:
+    """The model folders to benchmark, per plant identified on and one per identification seed
+    (each loaded once to check it), identifying them if needed.
+
+    With ``--resume`` the models the interrupted run identified in ``OUT`` are used again.
     """
     from identification.hammerstein import HammersteinModel
 
-    if args.model is None and args.resume and (out / "model" / "model.json").is_file():
-        model_dir = out / "model"
-        try:
-            HammersteinModel.load(model_dir)
-        except (OSError, ValueError) as error:
-            raise CommandLineError(
-                f"--resume: cannot load the model the run identified in {model_dir}: {error}; "
-                "run without --resume to start afresh"
-            ) from None
-        print(f"resuming with the model identified in {model_dir}")
-        return str(model_dir), {}
+    count = args.identification_seeds
+    folders = {
+        plant: [_model_folder(out, plant, k, i == 0) for k in range(count)]
+        for i, plant in enumerate(args.identify_on)
+    }
+    every = [f for fs in folders.values() for f in fs]
+    if args.model is None and args.resume and all((f / "model.json").is_file() for f in every):
+        for folder in every:
+            try:
+                HammersteinModel.load(folder)
+            except (OSError, ValueError) as error:
+                raise CommandLineError(
+                    f"--resume: cannot load the model the run identified in {folder}: {error}; "
+                    "run without --resume to start afresh"
+                ) from None
+        print(f"resuming with the model(s) identified in {', '.join(map(str, every))}")
+        return {p: [str(f) for f in fs] for p, fs in folders.items()}, {}
     if args.model is not None:
         try:
             model = HammersteinModel.load(args.model)
@@ -357,24 +435,32 @@ def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
                 f"--model {args.model}: cannot load the model: {error}"
             ) from None
         _check_model_bender(args.model, model, args.bender, args.dt)
-        return str(args.model), {}
+        return {"nominal": [str(args.model)]}, {}
+    from benchmarks.plants import PLANTS
     from identification.pipeline import IdentificationConfig, identify
 
     start = time.perf_counter()
-    env = {"bender": args.bender, **({} if args.dt is None else {"dt": args.dt})}
-    config = IdentificationConfig(seed=args.seed, env_kwargs=env)
-    result = identify(config=config, progress=print)
-    model_dir = out / "model"
-    result.model.save(model_dir)
-    fit = result.report["validation"]["hammerstein"]["fit_percent"]
-    print(f"identified model saved in {model_dir} (validation fit {fit:.2f} %)")
-    return str(model_dir), {"identification_s": round(time.perf_counter() - start, 1)}
+    rate = {} if args.dt is None else {"dt": args.dt}
+    for plant, plant_folders in folders.items():
+        env = {**PLANTS[plant](args.bender), **rate}
+        where = "" if plant == "nominal" else f" on the {plant} plant"
+        for k, folder in enumerate(plant_folders):
+            config = IdentificationConfig(seed=args.seed + k, env_kwargs=env)
+            result = identify(config=config, progress=print)
+            result.model.save(folder)
+            fit = result.report["validation"]["hammerstein"]["fit_percent"]
+            print(
+                f"identified{where} with seed {args.seed + k}, saved in {folder} (validation "
+                f"fit {fit:.2f} %)"
+            )
+    timing = {"identification_s": round(time.perf_counter() - start, 1)}
+    return {p: [str(f) for f in fs] for p, fs in folders.items()}, timing
 
 
 _RESULTS = ("benchmark.json", "benchmark.md")
 
 
-def _checkpoint(args: argparse.Namespace, out, config, model_dir: str):
+def _checkpoint(args: argparse.Namespace, out, config, model_dir):
     """The run's checkpoint in ``out``: resumed with ``--resume``, else started afresh.
 
     The results of an earlier run in ``out`` are removed and the folder is marked incomplete
@@ -393,7 +479,7 @@ def _checkpoint(args: argparse.Namespace, out, config, model_dir: str):
         checkpoint = (Checkpoint.resume if args.resume else Checkpoint.start)(out, identity)
     except CheckpointMismatch as error:
         raise CommandLineError(f"--resume: {error}") from None
-    total = len(config.groups())
+    total = len(config.runs())
     if args.resume:
         print(f"resuming: {len(checkpoint.finished)} of {total} groups done in {checkpoint.path}")
     for name in _RESULTS:
@@ -438,6 +524,7 @@ def run(args: argparse.Namespace) -> int:
         args.dt = _model_dt(args.model)
     policies, left_out = _policies(args.policies, args.bender, args.dt)
     config = _config(args, policies)
+    _check_identification(args)
     for folder, reason in left_out.items():
         print(f"policy {folder} left out: {reason}")
     _check_backend(args)
@@ -456,13 +543,18 @@ def run(args: argparse.Namespace) -> int:
     from piezo_cli.output import terminal_progress
     from piezo_env import TaskConfig
 
-    model_dir, timing = _model(args, out)
+    models, timing = _models(args, out)
     start = time.perf_counter()
     if args.backend == "ray":  # workers on other nodes do not share this working directory
-        model_dir = os.path.abspath(model_dir)
+        models = {p: [os.path.abspath(f) for f in fs] for p, fs in models.items()}
         config = dataclasses.replace(
             config, policies=tuple(os.path.abspath(p) for p in config.policies)
         )
+    first = next(iter(models.values()))
+    if len(models) > 1:
+        model_dir = models
+    else:
+        model_dir = first[0] if len(first) == 1 else first
     checkpoint = _checkpoint(args, out, config, model_dir)
     resumed = len(checkpoint.finished)
     timing["checkpoint_s"] = round(time.perf_counter() - start, 2)
@@ -475,12 +567,12 @@ def run(args: argparse.Namespace) -> int:
             retries=args.retries,
         )
     except BaseException as error:
-        _left_behind(out, checkpoint, len(config.groups()), error)
+        _left_behind(out, checkpoint, len(config.runs()), error)
         raise
     timing["benchmark_s"] = round(time.perf_counter() - start, 1)
     task = TaskConfig(bender=config.bender, dt=config.dt)
     meta = {
-        "model": model_dir,
+        "model": first[0],
         "dt": task.dt,
         "noise_bound_um": task.noise_bound,
         "stroke_um": config.stroke_um,
@@ -489,6 +581,12 @@ def run(args: argparse.Namespace) -> int:
         "machine": machine(),
         "timing": timing,
     }
+    if len(models) > 1 or len(first) > 1:
+        meta["models"] = models
+    meta["identify_on"] = list(args.identify_on) if args.model is None else None
+    meta["identification_seeds"] = (
+        None if args.model is not None else [args.seed + k for k in range(len(first))]
+    )
     if left_out:
         meta["policies_left_out"] = left_out
     if resumed:
