@@ -92,23 +92,48 @@ def monte_carlo_table(result: BenchmarkResult, plant: str = MONTE_CARLO) -> str:
         return " / ".join(f"{v:.3f}" for v in _order_statistics(values))
 
     rows = rows + [f"{name} (seeds)" for name in groups]
+    ratios = _oracle_ratio_table(draws, rows, refs, per_draw)
     if plant == BOX_CORNERS:
         head = (
             f"### Corners of the datasheet's tolerance box: the {n} vertices of free deflection "
             "+-20 % x first resonance +-20 % x damping 0.01 / 0.04, RMSE (% of the full "
             f"stroke): {_order_statistics_names(n)}\n\n"
-            "Every controller built for the nominal bender runs unchanged on each vertex "
-            "(`benchmarks/results/corners.md` gives each vertex, with the MPC on the vertex's "
-            "own model).\n"
+            "Every controller built for the nominal bender runs unchanged on each vertex; "
+            "`mpc-oracle` is the MPC on the vertex's own model (`benchmarks/results/corners.md` "
+            "gives each vertex).\n"
         )
-        return head + "\n" + _table(rows, refs, cell, "controller") + "\n"
+        return head + "\n" + _table(rows, refs, cell, "controller") + "\n" + ratios
     head = (
         f"### Monte Carlo: {n} plants drawn from the datasheet tolerances, RMSE (% of the full "
         f"stroke): {_order_statistics_names(n)}\n\n"
         f"Order statistics of the {n} draws, not quantiles: an upper percentile such as the "
-        f"90th needs many more draws than {n} to be estimated (`BenchmarkConfig.draws`).\n"
+        f"90th needs many more draws than {n} to be estimated (`BenchmarkConfig.draws`). "
+        "`mpc-oracle` is the MPC on each draw's own model.\n"
     )
-    return head + "\n" + _table(rows, refs, cell, "controller") + "\n"
+    return head + "\n" + _table(rows, refs, cell, "controller") + "\n" + ratios
+
+
+ORACLE = "mpc-oracle"
+"""The row a distribution of plants is measured against: the MPC on each draw's own model."""
+
+
+def _oracle_ratio_table(draws: list[dict[str, Any]], rows: list[str], refs: list[str],
+                        per_draw: Any) -> str:
+    """Each row's RMSE over the oracle's on the same draw, as order statistics of the draws:
+    what not knowing that plant costs (empty without the oracle row)."""
+    if not any(e["controller"] == ORACLE for e in draws):
+        return ""
+    plain = [r for r in rows if not r.endswith(" (seeds)") and not r.endswith("-oracle")]
+
+    def cell(row: str, ref: str) -> str:
+        mine, oracle = per_draw(row, ref), per_draw(ORACLE, ref)
+        values = sorted(mine[d] / oracle[d] for d in set(mine) & set(oracle) if oracle[d] > 0)
+        return " / ".join(f"{v:.3g}" for v in _order_statistics(values))
+
+    return (
+        f"\nRatio to `{ORACLE}` on the same plant (1 = as good as knowing the plant), "
+        "same order statistics:\n\n" + _table(plain, refs, cell, "controller") + "\n"
+    )
 
 
 def _order_statistics(values: list[float]) -> list[float]:

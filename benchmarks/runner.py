@@ -325,9 +325,8 @@ class BenchmarkConfig:
             refs = self.references if nominal else tuple(r for r in self.references if r in chosen)
             robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders, *self.entry_points)
             for controller in self.rows:
-                # An oracle's model is one plant: it has no meaning over many plants.
-                oracle_on_random = plant in DRAWN_PLANTS and controller.endswith("-oracle")
-                if refs and (nominal or controller in robust) and not oracle_on_random:
+                # On a distribution of plants an oracle runs each draw's own model.
+                if refs and (nominal or controller in robust):
                     out.append((plant, controller, refs))
         return out
 
@@ -425,6 +424,13 @@ def _run_group(
     with threadpool_limits(1):
         built = _build(controller, model_dir, env, config)
         _warm_up(env, built, next(iter(references.values())), config.seed)
+        oracles = {}
+        if plant in DRAWN_PLANTS and controller.endswith("-oracle"):
+            # The oracle of a distribution of plants is each draw's own: built on the plant
+            # the env draws from the episode's seed (a reset with that seed draws it again).
+            for draw in draws:
+                envs[draw].reset(seed=config.seed + draw)
+                oracles[draw] = _build(controller, model_dir, envs[draw], config)
         with no_collection():
             seeds = [0] if plant in DRAWN_PLANTS else range(config.seeds)
             for ref_name, reference in references.items():
@@ -432,7 +438,7 @@ def _run_group(
                     for seed_index in seeds:
                         episode = ctl.run_episode(
                             envs[draw],
-                            built,
+                            oracles.get(draw, built),
                             seed=config.seed + (draw or 0) + seed_index,
                             reference=reference,
                             stroke_um=config.stroke_um,
