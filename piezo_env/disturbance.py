@@ -235,7 +235,7 @@ def vibration_filter(rms_um: float, band: tuple[float, float], dt: float) -> Vib
     a, b, c = _cascade_state_space(sos)
     lam, vec = np.linalg.eig(a)
     radius = np.abs(lam)
-    n = int(math.ceil(math.log(_DECAY) / math.log(radius.max())))
+    n = math.ceil(math.log(_DECAY) / math.log(float(radius.max())))
     if n > _MAX_SAMPLES:
         raise ValueError(
             f"Disturbance.vibration_band_Hz low edge {band[0]:g} Hz is too low for dt = {dt:g} s: "

@@ -79,8 +79,8 @@ class BenderTask:
             )
             beyond = self.noise_bound + self.vibration.peak_um
         self.bound = observation_bound(self.model, beyond)
-        self.sensor_range = None if disturbance is None else disturbance.sensor_range(
-            self.model.stroke_um
+        self.sensor_range = (
+            None if disturbance is None else disturbance.sensor_range(self.model.stroke_um)
         )
         self.drift_plan = None
         if config.drift is not None:
