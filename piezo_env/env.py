@@ -110,8 +110,8 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     ## Bench options (amplifier, sensor, rate-dependent hysteresis, drift, disturbance)
     Off by default; each is documented with its physics in its module and in
     :class:`piezo_env.TaskConfig`. With any of ``amplifier``, ``sensor``, ``drift`` or
-    ``disturbance`` on, the env
-    steps through a second path chosen at construction (the default path is unchanged).
+    ``disturbance`` on, the env steps through a second path chosen at construction (the default
+    path is unchanged).
 
     - ``amplifier`` (:mod:`piezo_env.amplifier`): the action is the amplifier's command; the
       bender gets v_t = v_{t-1} + (1 - p) clip(c_t - v_{t-1}, +-S dt) with the slew limit
