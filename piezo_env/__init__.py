@@ -9,8 +9,8 @@ vectorization_mode="vector_entry_point")``. The task settings and their defaults
 (:func:`default_dt`: 1 ms for the PL140, finer for the faster benders). ``randomize=True``
 (or a :class:`DomainRandomization`) draws the plant from the datasheet tolerances at each
 reset. The bench options (:class:`Amplifier`,
-:class:`Sensor`, :class:`Drift`, ``hysteresis="rate-dependent"``) make the plant behave like a
-real bench; all are off by default.
+:class:`Sensor`, :class:`Drift`, :class:`Disturbance`, ``hysteresis="rate-dependent"``) make the
+plant behave like a real bench; all are off by default.
 
 The package is light to import: registering the ids needs only
 ``gymnasium.envs.registration``, and every public name below is imported from its submodule on
@@ -29,6 +29,7 @@ if TYPE_CHECKING:
     from piezo_env.amplifier import Amplifier
     from piezo_env.datasheet import CATALOGUE, BenderDatasheet, get_datasheet
     from piezo_env.discrete import Creep
+    from piezo_env.disturbance import Disturbance
     from piezo_env.drift import Drift
     from piezo_env.env import PiezoBenderEnv
     from piezo_env.hysteresis import (
@@ -53,6 +54,7 @@ __all__ = [
     "BenderSimulator",
     "BoucWen",
     "Creep",
+    "Disturbance",
     "DomainRandomization",
     "Drift",
     "NoHysteresis",
@@ -76,6 +78,7 @@ _HOMES = {
     "BenderDatasheet": "piezo_env.datasheet",
     "get_datasheet": "piezo_env.datasheet",
     "Creep": "piezo_env.discrete",
+    "Disturbance": "piezo_env.disturbance",
     "PiezoBenderEnv": "piezo_env.env",
     "BoucWen": "piezo_env.hysteresis",
     "NoHysteresis": "piezo_env.hysteresis",

@@ -17,6 +17,7 @@ from piezo_env.amplifier import Amplifier
 from piezo_env.checks import require_int, require_number
 from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.discrete import Creep
+from piezo_env.disturbance import Disturbance
 from piezo_env.drift import Drift
 from piezo_env.fem import DEFAULT_ELEMENTS, check_damping_ratio
 from piezo_env.hysteresis import HYSTERESIS_NAMES, Hysteresis, make_hysteresis
@@ -120,6 +121,15 @@ class TaskConfig:
         (:class:`~piezo_env.drift.Drift`, factors relative to the datasheet, linear in time):
         None or False (the default): a constant plant; True: piezoelectric coefficient 1 ->
         1.05, stiffness 1 -> 0.95 over 2 s. Not with ``randomize``. Stored as a Drift or None.
+    disturbance : bool, Disturbance or None
+        The bench's disturbances (:class:`~piezo_env.disturbance.Disturbance`): amplifier
+        output voltage noise (white, on the voltage the bender gets, held within the rails),
+        band-limited tip vibration (on the deflection the sensor sees and the reward scores)
+        and sensor quantisation (the measured deflection held within the sensor's range and
+        rounded to its ADC's LSB). None or False (the default): none; True: the typical bench
+        values (0.7 mV RMS, 0.08 um RMS in 8-80 Hz, 16 bits over +-2 strokes); a Disturbance
+        sets each. The vibration's
+        band must lie below 0.5 / dt. Stored as a Disturbance or None.
     """
 
     bender: str | BenderDatasheet = "PL140"
@@ -137,6 +147,7 @@ class TaskConfig:
     amplifier: bool | Amplifier | None = None
     sensor: bool | Sensor | None = None
     drift: bool | Drift | None = None
+    disturbance: bool | Disturbance | None = None
 
     def __post_init__(self) -> None:
         sheet = get_datasheet(self.bender)
@@ -173,6 +184,10 @@ class TaskConfig:
         object.__setattr__(self, "amplifier", _check_option("amplifier", self.amplifier, Amplifier))
         object.__setattr__(self, "sensor", _check_option("sensor", self.sensor, Sensor))
         object.__setattr__(self, "drift", _check_option("drift", self.drift, Drift))
+        disturbance = _check_option("disturbance", self.disturbance, Disturbance)
+        object.__setattr__(self, "disturbance", disturbance)
+        if disturbance is not None:
+            disturbance.check_sample_time(self.dt)
         if self.drift is not None and self.randomize is not None:
             raise ValueError(
                 "drift and randomize cannot be combined: the observation bound is proven for "
@@ -181,8 +196,14 @@ class TaskConfig:
 
     @property
     def bench_options(self) -> bool:
-        """Whether an amplifier, a sensor or a drift is on (the env then steps through them)."""
-        return self.amplifier is not None or self.sensor is not None or self.drift is not None
+        """Whether an amplifier, a sensor, a drift or a disturbance is on (the env then steps
+        through them)."""
+        return (
+            self.amplifier is not None
+            or self.sensor is not None
+            or self.drift is not None
+            or self.disturbance is not None
+        )
 
     @classmethod
     def from_kwargs(cls, config: TaskConfig | None = None, /, **settings: Any) -> TaskConfig:

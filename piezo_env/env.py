@@ -15,6 +15,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
+from piezo_env.disturbance import DisturbanceState
 from piezo_env.model import BenderSimulator, DriftingSimulator
 from piezo_env.reference import ReferenceStream
 from piezo_env.task import (
@@ -106,10 +107,11 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     reports the draw: ``free_deflection_um``, ``blocking_force_N``, ``stiffness_N_per_m``,
     ``resonance_Hz``, ``damping_ratio``, ``hysteresis_scale``.
 
-    ## Bench options (amplifier, sensor, rate-dependent hysteresis, drift)
+    ## Bench options (amplifier, sensor, rate-dependent hysteresis, drift, disturbance)
     Off by default; each is documented with its physics in its module and in
-    :class:`piezo_env.TaskConfig`. With any of ``amplifier``, ``sensor`` or ``drift`` on, the env
-    steps through a second path chosen at construction (the default path is unchanged).
+    :class:`piezo_env.TaskConfig`. With any of ``amplifier``, ``sensor``, ``drift`` or
+    ``disturbance`` on, the env steps through a second path chosen at construction (the default
+    path is unchanged).
 
     - ``amplifier`` (:mod:`piezo_env.amplifier`): the action is the amplifier's command; the
       bender gets v_t = v_{t-1} + (1 - p) clip(c_t - v_{t-1}, +-S dt) with the slew limit
@@ -127,9 +129,18 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
       over the episode (restarting at each reset); ``model`` stays the start plant's
       datasheet model. The observation bound is proven for the drifted plant.
 
+    - ``disturbance`` (:mod:`piezo_env.disturbance`): the amplifier's white output voltage
+      noise on the voltage the bender gets (held within the rails +-U_r), a band-limited tip
+      vibration added to the deflection that the sensor sees and the reward scores, and the
+      measured deflection held within a sensor's range and rounded to its ADC's LSB.
+      Info adds ``voltage_noise_V`` (the noise that reached the bender) and ``vibration_um``;
+      ``deflection_um`` is then bending plus vibration. Its draws come from ``np_random`` after
+      the sensor noise's; a disturbance that is off draws nothing.
+
     Every bound above still holds: the amplifier keeps |v| <= U_r, the sensor's output is a
     convex combination of true deflections, the rate-dependent map has the quasi-static one's
-    bound, and the drift bound is proven in :mod:`piezo_env.drift`.
+    bound, the drift bound is proven in :mod:`piezo_env.drift`, the voltage noise stays within
+    the rails, the bound adds the vibration's proven peak and covers the ADC's range.
 
     ## Reset options
     ``reference``: an array (um) for this episode; ``initial_voltage``: start at rest under this
@@ -146,7 +157,8 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         default (``help(piezo_env.TaskConfig)``): ``bender``, ``n_elements``, ``dt``,
         ``hysteresis``, ``creep``, ``noise_bound``, ``reference``, ``reference_band``,
         ``preview``, ``deflection_limit``, ``damping_ratio``, ``randomize``, ``amplifier``,
-        ``sensor``, ``drift``. An unknown keyword raises TypeError naming the valid ones.
+        ``sensor``, ``drift``, ``disturbance``. An unknown keyword raises TypeError naming the
+        valid ones.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"], "render_fps": 30}
@@ -173,6 +185,7 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         self._plant = BenderSimulator(self.model)
         self._amplifier = None
         self._sensor = None
+        self._disturbance = None
         self._charge = 0.0
         self.slew_limit: float | None = None
         if self.config.bench_options:
@@ -213,7 +226,10 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         measured_um = deflection_um
         if self.config.bench_options:
             measured_um = self._reset_bench(voltage, deflection_um, info)
-        return self._observe(measured_um + self._next_noise()), info
+        measured_um = measured_um + self._next_noise()
+        if self._disturbance is not None:
+            measured_um = self._disturbance.quantise(measured_um)
+        return self._observe(measured_um), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         voltage, saturated = self._drive_voltage(action)
@@ -228,19 +244,32 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     def _step_bench(
         self, action: np.ndarray
     ) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """``step`` with an amplifier, a sensor or a drift (chosen at construction)."""
+        """``step`` with an amplifier, a sensor, a drift or a disturbance (chosen at
+        construction)."""
         command, saturated = self._drive_voltage(action)
         amplifier = self._amplifier
         if amplifier is None:
             voltage, limited = command, False
         else:
             voltage, limited = amplifier.apply(command)
+        disturbance = self._disturbance
+        if disturbance is not None:
+            voltage, voltage_noise = disturbance.drive(voltage, self.np_random)
         deflection, u_eff, charge = self._plant.step(voltage)
+        if disturbance is not None:
+            vibration_um = disturbance.next_vibration(self.np_random)
+            deflection += vibration_um * 1e-6
         deflection_um, reward, terminated = self._advance(deflection)
         sensor = self._sensor
         measured_um = deflection_um if sensor is None else sensor.measure(deflection_um)
-        observation = self._observe(measured_um + self._next_noise())
+        measured_um += self._next_noise()
+        if disturbance is not None:
+            measured_um = disturbance.quantise(measured_um)
+        observation = self._observe(measured_um)
         info = self._info(deflection_um, voltage, u_eff, charge * 1e6, saturated)
+        if disturbance is not None:
+            info["voltage_noise_V"] = voltage_noise
+            info["vibration_um"] = vibration_um
         info["command_V"] = command
         info["slew_limited"] = limited
         info["current_mA"] = (charge - self._charge) / self.config.dt * 1e3
@@ -318,12 +347,27 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
             self.slew_limit = config.amplifier.slew_limit(capacitance)
         if config.sensor is not None:
             self._sensor = config.sensor.state(config.dt)
+        if config.disturbance is not None:
+            self._disturbance = DisturbanceState(
+                config.disturbance,
+                self.task.vibration,
+                self._u_max,
+                self.task.sensor_range,
+                NOISE_BLOCK,
+            )
         self.step = self._step_bench  # the default path stays PiezoBenderEnv.step
 
     def _reset_bench(self, voltage: float, deflection_um: float, info: dict[str, Any]) -> float:
-        """Amplifier and sensor at rest; the bench keys of the reset info; the measured um."""
+        """Amplifier and sensor at rest, the disturbance's first draws (after the sensor
+        noise's); the bench keys of the reset info; the measured um."""
         if self._amplifier is not None:
             self._amplifier.reset(voltage)
+        if self._disturbance is not None:
+            vibration_um = self._disturbance.reset(self.np_random)
+            deflection_um += vibration_um
+            info["deflection_um"] = deflection_um
+            info["voltage_noise_V"] = 0.0
+            info["vibration_um"] = vibration_um
         self._charge = self._plant.charge(voltage)
         info["command_V"] = voltage
         info["slew_limited"] = False

@@ -18,6 +18,7 @@ from gymnasium import spaces
 from piezo_env.blas import single_blas_thread
 from piezo_env.checks import require_int, require_number
 from piezo_env.config import DEFAULT_HORIZON, NOISE_BLOCK, TaskConfig
+from piezo_env.disturbance import VibrationFilter, vibration_filter
 from piezo_env.drift import DriftPlan, drift_deflection_bound_um
 from piezo_env.model import PiezoBenderModel
 from piezo_env.randomization import PlantDraw, scale_hysteresis
@@ -46,7 +47,11 @@ class BenderTask:
     drifted plant too. With ``config.randomize`` each episode's plant comes from
     :meth:`draw_plant`, and the observation bound covers every plant the spread can draw;
     references and rewards keep the nominal stroke (``stroke_um``), so that episodes on
-    different plants score alike.
+    different plants score alike. With a vibration in ``config.disturbance``, ``vibration``
+    holds its filter (:func:`piezo_env.disturbance.vibration_filter`) and the bound adds its
+    proven peak to the sensor noise's (the amplifier's voltage noise stays within the rails, so
+    it adds nothing); with quantisation, ``sensor_range`` is the ADC's range (um), and the bound
+    is at least that.
     """
 
     def __init__(self, config: TaskConfig) -> None:
@@ -65,16 +70,29 @@ class BenderTask:
         self.reference = config.reference
         self.reference_band = config.reference_band
         self.randomization = config.randomize
-        self.bound = observation_bound(self.model, self.noise_bound)
+        self.vibration: VibrationFilter | None = None
+        beyond = self.noise_bound  # what the observation adds to the deflection bound (um)
+        disturbance = config.disturbance
+        if disturbance is not None and disturbance.vibration_um_rms > 0:
+            self.vibration = vibration_filter(
+                disturbance.vibration_um_rms, disturbance.vibration_band_Hz, config.dt
+            )
+            beyond = self.noise_bound + self.vibration.peak_um
+        self.bound = observation_bound(self.model, beyond)
+        self.sensor_range = (
+            None if disturbance is None else disturbance.sensor_range(self.model.stroke_um)
+        )
         self.drift_plan = None
         if config.drift is not None:
             self.drift_plan = DriftPlan(self.model, config.drift)
             with single_blas_thread():  # tiny matrices: threads only stall (see drawn_plant)
                 deflection = drift_deflection_bound_um(self.model, self.drift_plan)
-            self.bound = max(self.bound, _rounded_bound(deflection, self.noise_bound))
+            self.bound = max(self.bound, _rounded_bound(deflection, beyond))
         if self.randomization is not None:
             deflection = randomized_deflection_bound_um(self.model, self.randomization)
-            self.bound = max(self.bound, _rounded_bound(deflection, self.noise_bound))
+            self.bound = max(self.bound, _rounded_bound(deflection, beyond))
+        if self.sensor_range is not None:  # the quantised readings reach +-sensor_range
+            self.bound = max(self.bound, float(np.float32(math.ceil(self.sensor_range))))
         if isinstance(self.reference, np.ndarray):  # fail at construction, not at the first reset
             self.reference_stream(self.reference, None)
 

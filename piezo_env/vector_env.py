@@ -104,9 +104,10 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         self._adopt_task(config, settings)
         if self.config.bench_options:
             raise ValueError(
-                "the vector env does not model the amplifier, the sensor or the drift "
-                f"(amplifier={self.config.amplifier!r}, sensor={self.config.sensor!r}, "
-                f"drift={self.config.drift!r}); make single envs "
+                "the vector env does not model the amplifier, the sensor, the drift or the "
+                f"disturbance (amplifier={self.config.amplifier!r}, "
+                f"sensor={self.config.sensor!r}, drift={self.config.drift!r}, "
+                f"disturbance={self.config.disturbance!r}); make single envs "
                 '(gymnasium.make_vec(..., vectorization_mode="sync")) for these options'
             )
         self.render_mode = None
