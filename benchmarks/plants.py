@@ -93,7 +93,9 @@ PZT bender takes; compressed into one episode so that adaptation has to keep up.
 
 
 def _bench(bender: str) -> dict[str, Any]:
-    """Amplifier, sensor and rate-dependent hysteresis at their documented values."""
+    """Amplifier, sensor, rate-dependent hysteresis and a bench's disturbances (the
+    amplifier's output noise, the floor's vibration at the tip, the sensor's quantisation:
+    :class:`piezo_env.Disturbance`'s typical values) at their documented values."""
     from piezo_env import Amplifier, Sensor, get_datasheet
 
     sheet = get_datasheet(bender)
@@ -105,6 +107,7 @@ def _bench(bender: str) -> dict[str, Any]:
         "amplifier": Amplifier(current_limit_mA=current),
         "sensor": Sensor(delay=0, bandwidth_Hz=BENCH_SENSOR_HZ),
         "hysteresis": "rate-dependent",
+        "disturbance": True,
     }
 
 
@@ -139,9 +142,10 @@ its own seed; the report gives the distribution of each controller's RMSE over t
 :data:`VERTICES` (:func:`vertex_options`), the report giving the distribution and the worst.
 
 ``bench`` is a real bench: a current-limited amplifier (:data:`BENCH_CURRENT_MA`), a 20 kHz
-displacement sensor (:data:`BENCH_SENSOR_HZ`) and rate-dependent Prandtl-Ishlinskii hysteresis
-(loop 1.5x as wide at a full-stroke 50 Hz sine as quasi-static), each documented in
-:mod:`piezo_env`. A controller may know the amplifier's slew limit (a datasheet value:
+displacement sensor (:data:`BENCH_SENSOR_HZ`), rate-dependent Prandtl-Ishlinskii hysteresis
+(loop 1.5x as wide at a full-stroke 50 Hz sine as quasi-static) and the disturbances a bench
+has (:class:`piezo_env.Disturbance`: amplifier output noise, floor vibration at the tip, sensor
+quantisation), each documented in :mod:`piezo_env`. A controller may know the amplifier's slew limit (a datasheet value:
 ``env.unwrapped.slew_limit``); the rest it does not. ``drift`` moves the piezoelectric
 coefficient and the stiffness during the episode (:data:`DRIFT`).
 """
