@@ -1,0 +1,64 @@
+"""Fair tuning: the procedure never reads the test references, and its plant is the model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import benchmarks.references as test_references
+import controllers as ctl
+from benchmarks.tuning import KNOBS, TUNING_REFERENCES, ModelPlantEnv, choose, tuning_reference
+
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "benchmark" / "model")
+
+
+def test_tuning_references_are_not_test_references():
+    assert not set(TUNING_REFERENCES) & set(test_references.REFERENCES)
+    with pytest.raises(ValueError, match="a test reference: never tuned on"):
+        tuning_reference("sine-10Hz", 10, dt=1e-3, seed=0)
+
+
+def test_the_model_plant_follows_the_model_open_loop_and_scales_its_gain():
+    env = gym.make("piezo_env:PiezoBender-v0", preview=3, noise_bound=0.0)
+    model = ctl.PredictionModel.from_hammerstein(MODEL_DIR, float(env.action_space.high[0]))
+    u = 20.0 * np.sin(2 * np.pi * 7.0 * np.arange(300) * 1e-3)
+    expected = model.simulate(u)
+    for gain in (1.0, 1.2):
+        plant = ModelPlantEnv(model, env, gain=gain, steps=300)
+        plant.reset(seed=0, options={"reference": np.zeros(304)})
+        y = [plant.step(np.array([v]))[4]["deflection_um"] for v in u]
+        np.testing.assert_allclose(y, gain * expected, rtol=1e-12, atol=1e-9)
+    with pytest.raises(ValueError, match="gain must be"):
+        ModelPlantEnv(model, env, gain=0.0, steps=10)
+
+
+def test_the_choice_does_not_change_when_the_test_set_is_poisoned(monkeypatch):
+    """The procedure's choice is the same when every test reference is replaced by garbage:
+    it never builds one."""
+    clean = choose("pid-ff", MODEL_DIR, steps=200)
+
+    def poisoned(n, dt, rng):
+        raise AssertionError("the tuning procedure read a test reference")
+
+    for name, reference in list(test_references.REFERENCES.items()):
+        monkeypatch.setitem(
+            test_references.REFERENCES, name,
+            test_references.Reference(name, reference.description, poisoned, reference.smooth),
+        )
+    again = choose("pid-ff", MODEL_DIR, steps=200)
+    assert again.chosen == clean.chosen and again.scores == clean.scores
+    assert clean.chosen in KNOBS["pid-ff"].grid
+    assert all(np.isfinite(v) and v > 0 for v in clean.scores.values())
+
+
+def test_a_default_moves_only_for_a_clear_gain():
+    tuning = choose("pid-ff", MODEL_DIR, steps=200)
+    best = min(tuning.scores.values())
+    default = KNOBS["pid-ff"].default
+    if tuning.chosen != default:
+        assert tuning.scores[default] > 1.02 * best
+    else:
+        assert tuning.scores[default] <= 1.02 * best
