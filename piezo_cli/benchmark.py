@@ -331,8 +331,23 @@ def _check_model_bender(folder: str, model, bender: str, dt: float | None = None
         env.close()
 
 
+def _check_model(args: argparse.Namespace) -> None:
+    """Refuse a ``--model`` that does not load or was identified on another bender or sample
+    time, before the output folder is made."""
+    from identification.hammerstein import HammersteinModel
+
+    if args.model is None:
+        return
+    try:
+        model = HammersteinModel.load(args.model)
+    except (OSError, ValueError) as error:
+        raise CommandLineError(f"--model {args.model}: cannot load the model: {error}") from None
+    _check_model_bender(args.model, model, args.bender, args.dt)
+
+
 def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
-    """The model folder to benchmark (loaded once to check it), identifying one if needed.
+    """The model folder to benchmark (a ``--model`` is checked already), identifying one if
+    needed.
 
     With ``--resume`` a model the interrupted run identified in ``OUT/model`` is used again.
     """
@@ -349,14 +364,7 @@ def _model(args: argparse.Namespace, out) -> tuple[str, dict[str, float]]:
             ) from None
         print(f"resuming with the model identified in {model_dir}")
         return str(model_dir), {}
-    if args.model is not None:
-        try:
-            model = HammersteinModel.load(args.model)
-        except (OSError, ValueError) as error:
-            raise CommandLineError(
-                f"--model {args.model}: cannot load the model: {error}"
-            ) from None
-        _check_model_bender(args.model, model, args.bender, args.dt)
+    if args.model is not None:  # loaded and checked before the output folder: _check_model
         return str(args.model), {}
     from identification.pipeline import IdentificationConfig, identify
 
@@ -438,10 +446,11 @@ def run(args: argparse.Namespace) -> int:
         args.dt = _model_dt(args.model)
     policies, left_out = _policies(args.policies, args.bender, args.dt)
     config = _config(args, policies)
+    _check_backend(args)
+    _check_model(args)
+    out = prepare_output_dir(args.out)
     for folder, reason in left_out.items():
         print(f"policy {folder} left out: {reason}")
-    _check_backend(args)
-    out = prepare_output_dir(args.out)
     from benchmarks.machine import machine
     from benchmarks.report import (
         check_targets,

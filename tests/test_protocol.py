@@ -85,6 +85,15 @@ def test_broken_entry_points_are_refused_in_one_line(name, message, env):
     assert "\n" not in str(raised.value)
 
 
+def test_an_option_the_factory_does_not_take_is_refused_before_it_is_called(env):
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['kk'\].*valid: ki$") as raised:
+        controllers.make(EXAMPLE, MODEL_DIR, env, kk=1)
+    assert "\n" not in str(raised.value)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['kk'\]"):
+        BenchmarkConfig(controllers=(EXAMPLE,), controller_options={"FeedforwardPI": {"kk": 1}})
+    BenchmarkConfig(controllers=(EXAMPLE,), controller_options={"FeedforwardPI": {"ki": 0.3}})
+
+
 def test_rows_are_named_after_the_attribute_or_the_label():
     config = BenchmarkConfig(
         controllers=("mpc", EXAMPLE, f"mine={EXAMPLE}"),
