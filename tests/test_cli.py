@@ -243,6 +243,9 @@ def no_output_folder(monkeypatch: pytest.MonkeyPatch) -> None:
         (["identify", "--split", "0.5"], ["--split applies to --records"]),
         (["simulate", "--records", "/nonexistent/records"], ["records.json: missing"]),
         (["simulate", "--amplitude", "100"], ["--amplitude 100 V"]),
+        (["identify", "--dt", "-1e-3"], ["--dt", "greater than 0, got '-1e-3'"]),
+        (["benchmark", "--dt", "-1E-3"], ["--dt", "greater than 0, got '-1E-3'"]),
+        (["simulate", "--duration", "-.5e1"], ["--duration", "greater than 0, got '-.5e1'"]),
     ],
 )
 def test_bad_calls_are_refused_before_the_output_folder_is_made(
@@ -258,6 +261,18 @@ def test_bad_calls_are_refused_before_the_output_folder_is_made(
 def test_bender_accepts_catalogue_names_with_and_without_suffix(name):
     args = build_parser().parse_args(["simulate", "--bender", name])
     assert args.bender == name.upper()
+
+
+@pytest.mark.parametrize("text", ["-1", "-0.5", "-.5", "-1e-3", "-2.5E+2", "-1.e1"])
+def test_negative_numbers_in_any_notation_are_values(text):
+    args = build_parser().parse_args(["simulate", "--amplitude", text])
+    assert args.amplitude == float(text)
+
+
+@pytest.mark.parametrize("text", ["-inf", "-NaN"])
+def test_negative_non_finite_words_are_values_the_type_refuses(text, tmp_path, capsys):
+    status, stdout, err = run_cli(["simulate", "--amplitude", text, "--out", str(tmp_path)], capsys)
+    assert_refused(status, stdout, err, "simulate", "--amplitude", "finite")
 
 
 def test_off_words_keep_working():
