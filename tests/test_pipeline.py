@@ -218,6 +218,28 @@ def test_report_and_metadata_carry_the_z_error_bound(short_default_run):
     assert "z_noise_support_V" not in metadata
 
 
+def test_percentages_are_of_the_full_stroke_as_in_the_benchmark(short_default_run):
+    """The identification report and the benchmark share one scale: the full stroke, twice the
+    one-sided stroke that benchmarks.plants.stroke_um defines."""
+    from benchmarks.plants import stroke_um
+    from controllers.metrics import tracking_metrics
+    from identification.report import markdown_report
+
+    full = 2 * stroke_um("PL140")
+    fit = short_default_run.report["validation"]["hammerstein"]
+    assert fit["full_stroke"] == full == 2000.0
+    assert fit["rmse_percent_stroke"] == pytest.approx(100 * fit["rmse"] / full)
+    error = np.array([fit["rmse"], -fit["rmse"]])
+    tracked = tracking_metrics(
+        deflection_um=error, reference_um=np.zeros(2), voltage_v=np.zeros(2),
+        saturated=np.zeros(2, bool), compute_s=np.zeros(2), stroke_um=stroke_um("PL140"),
+    )
+    assert tracked["rmse_percent"] == pytest.approx(fit["rmse_percent_stroke"])
+    text = markdown_report(short_default_run.report, [])
+    assert "RMSE, % of the full stroke (2000 um)" in text
+    assert "stroke +-1000 um (full stroke 2000 um)" in text
+
+
 def test_markdown_report_names_only_existing_repository_files(short_default_run):
     import re
     from pathlib import Path
