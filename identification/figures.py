@@ -33,7 +33,7 @@ def write_figures(result: Any, out: str | Path) -> list[Path]:
         _arx_estimates(data, result.report, out / "arx_estimates.png"),
         _hysteresis(data, out / "hysteresis.png"),
         _validation(data, result.report, out / "validation.png"),
-        _residuals(data, out / "residuals.png"),
+        _residuals(data, result.report, out / "residuals.png"),
     ]
     if data.get("arx_unrefined") is not None and data.get("plant_linear") is not None:
         paths.append(_bode(data, result.model.arx, out / "linear_part_bode.png"))
@@ -261,17 +261,28 @@ def _zoom_panels(zoom, zoom_err, t, y, models, errors, val, noise, window) -> No
     zoom_err.legend(loc="upper right", fontsize=8, ncol=2)
 
 
-def _residuals(data: dict, path: Path) -> Path:
+def _residuals(data: dict, report: dict, path: Path) -> Path:
+    """Histograms of the validation residuals, each against the bound of its own noise: the
+    one-step-ahead residual is the linear part's equation error (bounded by its r_hat), the
+    free-run residual the sensor's output noise plus the model's error (the sensor's bound)."""
     plt = _pyplot()
-    r = data["noise_bound"]
+    r_model = report["validation"]["equation_error_bound_um"]
+    noise = report["environment"]["noise_bound_um"]
     one_step = data["y_val"] - data["prediction_val"]
     free_run = data["y_val"] - data["y_sim"]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=110)
-    for ax, res, title in ((axes[0], one_step, "one-step-ahead"), (axes[1], free_run, "free run")):
+    panels = (
+        (axes[0], one_step, "one-step-ahead", r_model, "r_hat of the model's linear part"),
+        (axes[1], free_run, "free run", noise, "sensor noise bound"),
+    )
+    for ax, res, title, bound, label in panels:
         ax.hist(res, bins=80, color="tab:gray")
-        for sign in (-1, 1):
-            ax.axvline(sign * r, color="tab:red", ls="--", lw=1)
-        ax.set_title(f"{title} residuals; dashed: +-r_hat = {r:.2f} um")
+        if bound is None:  # measured records without the sensor's bound
+            ax.set_title(f"{title} residuals")
+        else:
+            for sign in (-1, 1):
+                ax.axvline(sign * bound, color="tab:red", ls="--", lw=1)
+            ax.set_title(f"{title} residuals; dashed: {label} +-{bound:.2f} um", fontsize=9)
         ax.set_xlabel("residual (um)")
     axes[0].set_ylabel("count")
     fig.tight_layout()

@@ -195,11 +195,24 @@ def _validation_section(val: dict[str, Any]) -> list[str]:
                 ]
             )
         )
+    r_model = val.get("equation_error_bound_um")
+    bound = (
+        []
+        if r_model is None
+        else [
+            f"r_hat of the model's linear part +-{r_model:.2f} um: its largest equation error "
+            "A(q) y - B(q) z on the records it was fitted on, the bound of the one-step-ahead "
+            "residuals (residuals.png); the r_hat of step b below is of step b's estimate, "
+            "before steps b' and e' changed the linear part.",
+            "",
+        ]
+    )
     return [
         *lines,
         "",
         f"RMSE ratio Hammerstein / linear ARX: {val['rmse_ratio_hammerstein_to_arx']:.3f}.",
         "",
+        *bound,
     ]
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.signal
@@ -238,6 +240,38 @@ def test_percentages_are_of_the_full_stroke_as_in_the_benchmark(short_default_ru
     text = markdown_report(short_default_run.report, [])
     assert "RMSE, % of the full stroke (2000 um)" in text
     assert "stroke +-1000 um (full stroke 2000 um)" in text
+
+
+def test_residuals_figure_and_report_name_the_same_bounds(short_default_run, tmp_path, monkeypatch):
+    """Each residual histogram is drawn against the bound of its own noise, and the report
+    names the one-step bound with the figure's label and value."""
+    import matplotlib.figure
+
+    from identification.figures import write_figures
+    from identification.report import markdown_report
+
+    saved = {}
+    original = matplotlib.figure.Figure.savefig
+
+    def keep(self, path, *args, **kwargs):
+        saved[Path(path).name] = self
+        return original(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    write_figures(short_default_run, tmp_path)
+    one_step, free_run = saved["residuals.png"].axes
+    report = short_default_run.report
+    r_model = report["validation"]["equation_error_bound_um"]
+    assert r_model == short_default_run.model.arx.noise_bound
+    noise = report["environment"]["noise_bound_um"]
+    for ax, bound in ((one_step, r_model), (free_run, noise)):
+        assert sorted(line.get_xdata()[0] for line in ax.lines) == pytest.approx([-bound, bound])
+    label = f"r_hat of the model's linear part +-{r_model:.2f} um"
+    assert label in one_step.get_title() and label in markdown_report(report, [])
+    assert f"sensor noise bound +-{noise:.2f} um" in free_run.get_title()
+    data = short_default_run.data
+    residual = np.abs(data["y_val"] - data["prediction_val"])
+    assert np.quantile(residual, 0.99) < r_model  # the bound holds on fresh data too
 
 
 def test_markdown_report_names_only_existing_repository_files(short_default_run):
