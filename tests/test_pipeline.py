@@ -442,3 +442,22 @@ def test_markdown_report_names_an_unstable_order_instead_of_failing(short_defaul
     stored = json.loads(json.dumps(jsonable(report)))
     text = markdown_report(stored, [])
     assert f"n = {order}: unstable" in text
+
+
+def test_hysteresis_figure_draws_closed_loops_as_wide_as_the_plants():
+    """The loops of hysteresis.png, from the committed model: closed after the settling
+    period, counter-clockwise, and at full drive ~12 % of the peak-to-peak wide at u = 0, the
+    width the plant's calibration gives (piezo_env.hysteresis)."""
+    from identification.figures import hysteresis_loops
+    from identification.hammerstein import HammersteinModel
+
+    model = HammersteinModel.load(Path(__file__).resolve().parents[1] / "docs/identify/model")
+    widths = []
+    for u, z in hysteresis_loops(model, 30.0):
+        half = u.size // 2  # from the top down, then back up
+        down = np.interp(0.0, u[:half][::-1], z[:half][::-1])
+        up = np.interp(0.0, u[half:], z[half:])
+        assert abs(z[-1] - z[0]) < 0.01 * np.ptp(z)  # closed
+        widths.append((down - up) / np.ptp(z))
+    assert 0 < widths[0] < widths[1] < widths[2]  # wider with the amplitude
+    assert 0.08 < widths[2] < 0.18

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 import warnings
 from pathlib import Path
 
@@ -18,7 +19,7 @@ import pytest
 import benchmarks.figures as figures
 from benchmarks.figures import draw_figures
 from benchmarks.report import TIE, verdict, write_benchmark
-from benchmarks.rows import row_color
+from benchmarks.rows import row_color, row_colors
 from benchmarks.runner import BenchmarkConfig, BenchmarkResult
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -278,7 +279,32 @@ def test_colours_are_fixed_by_name():
         "#e377c2",
     ]  # the same in every run: a fixed map, not the draw order
     assert row_color("ppo-seed0") == row_color("ppo-seed2")  # one recipe, one colour
-    assert row_color("Mine") == row_color("Mine") and row_color("Mine") not in colours
+    with pytest.raises(ValueError, match="row_colors"):
+        row_color("Mine")  # a user's row has no fixed colour: it depends on the run's rows
+
+
+def test_every_recipe_of_a_full_row_set_has_its_own_colour():
+    """Every built-in row, both committed recipes (three seeds each) and more user rows than
+    the palette has colours left: pairwise distinct per recipe, seeds share their recipe's."""
+    from controllers.registry import CONTROLLERS
+
+    builtin = [n for n in CONTROLLERS if n != "policy"]
+    rows = [
+        *builtin,
+        *(f"{n}-oracle" for n in builtin if n.startswith(("mpc", "nmpc"))),
+        *(f"{recipe}-seed{k}" for recipe in ("ppo", "ppo-dr") for k in range(3)),
+        *(f"Mine{k}" for k in range(12)),
+        "mine-seed0",
+        "mine-seed1",
+    ]
+    colours = row_colors(rows)
+    recipes = {re.sub(r"-seed\d+$", "", r): colours[r] for r in rows}
+    assert len(set(recipes.values())) == len(recipes)
+    assert colours["mine-seed0"] == colours["mine-seed1"]
+    assert colours["ppo-seed1"] == row_color("ppo-seed0")
+    for fixed in (*builtin, "mpc-oracle", "nmpc-oracle", "ppo-seed2", "ppo-dr-seed0"):
+        assert colours[fixed] == row_color(fixed)  # the same in every run
+    assert row_colors(["Mine0"])["Mine0"] not in {row_color(r) for r in builtin}
 
 
 def _with_rmse(result: BenchmarkResult, values: dict[tuple[str, str], float]) -> BenchmarkResult:
