@@ -462,6 +462,7 @@ def run(args: argparse.Namespace) -> int:
         write_benchmark,
     )
     from benchmarks.runner import run_benchmark
+    from benchmarks.verdict import verdict_plant
     from piezo_cli.output import terminal_progress
     from piezo_env import TaskConfig
 
@@ -504,10 +505,12 @@ def run(args: argparse.Namespace) -> int:
         meta["resumed_groups"] = resumed
     paths = write_benchmark(result, out, meta)
     clear_incomplete(out, "piezo benchmark")
-    print("verdict (nominal plant, RMSE in % of the full stroke):")
+    plant = verdict_plant(result)
+    print(f"verdict ({plant or 'no single'} plant, RMSE in % of the full stroke):")
     print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result, meta)))
-    print()
-    print(tracking_tables(result, plants=("nominal",), max_errors=False).replace("**", ""))
+    if plant is not None:
+        print()
+        print(tracking_tables(result, plants=(plant,), max_errors=False).replace("**", ""))
     checks = check_targets(result)
     line = summary_line(checks)
     if line:

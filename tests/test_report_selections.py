@@ -7,6 +7,7 @@ without entries or a log axis without positive data warns, and none may.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import re
@@ -425,3 +426,56 @@ def test_selections_cover_every_plant_kind():
     chosen = {**SELECTIONS, **POLICY_SELECTIONS}.values()
     plants = set(itertools.chain.from_iterable(s[2] for s in chosen))
     assert {"nominal", "random-plants"} <= plants and len(plants) >= 5
+
+
+def test_without_the_nominal_plant_the_verdict_reads_the_first_plant_and_says_so(
+    tmp_path, capsys
+):
+    result = _result(("pid-ff", "mpc"), ("sine-10Hz", "steps"), ("damping-0.04", "creep"))
+    lines = verdict(result, META)
+    assert "`damping-0.04`" in lines[0] and "nominal plant was not in --plants" in lines[0]
+    assert [line.split(":")[0] for line in lines[1:]] == ["- sine-10Hz", "- steps"]
+    _, text = _write(result, tmp_path)
+    head = text.split("\n## ")[1]
+    assert "on the plant `damping-0.04`" in head and "- sine-10Hz: " in head
+    effort = text.split("## Effort and compute time")[1]
+    assert "| mpc |" in effort and "controller (damping-0.04," in effort
+    only_drawn = verdict(_result(("mpc",), ("sine-10Hz",), ("random-plants",)), META)
+    assert len(only_drawn) == 1 and "only drawn plants ran (random-plants)" in only_drawn[0]
+
+
+def test_the_reason_on_a_reference_with_jumps_comes_from_the_data():
+    """At the oracle's level on steps: at the noise floor with nothing saturated it is
+    noise-limited, whatever the reference's type; with steps at the drive limit it says how
+    many."""
+    result = _with_rmse(
+        _result(("mpc", "mpc-oracle"), ("steps",), ("nominal",)),
+        {("mpc", "steps"): 0.030, ("mpc-oracle", "steps"): 0.029},
+    )
+    for e in result.episodes:
+        e["saturated_fraction"] = 0.0
+    (line,) = verdict(result, META)
+    assert "noise-limited: 1.0x the sensor noise's RMS" in line and "oracle's level" in line
+    assert "jump" not in line and "drive limit" not in line
+    result = _with_rmse(result, {("mpc", "steps"): 0.3, ("mpc-oracle", "steps"): 0.29})
+    result.episodes[0]["saturated_fraction"] = 0.03  # below the drive-limited threshold
+    (line,) = verdict(result, META)
+    assert "jump-limited" in line and "3.0 % of the steps at the drive limit" in line
+
+
+@pytest.mark.parametrize(
+    ("bender", "dt", "applies"),
+    [("PL140", None, True), ("PL140", 5e-4, False), ("PL127", None, False)],
+)
+def test_the_reference_checks_say_when_they_apply_and_whether_this_run_does(bender, dt, applies):
+    from benchmarks.reference_checks import check_targets, reference_checks_section
+
+    result = _result(("mpc", "pid-notch"), ("sine-10Hz",), ("nominal",))
+    result.config = dataclasses.replace(result.config, bender=bender, dt=dt)
+    section = "\n".join(reference_checks_section(check_targets(result), result))
+    ms = f"{result.config.dt * 1e3:g} ms"
+    assert "The checks apply to a run on the PL140 at dt = 1 ms (its default)" in section
+    assert f"this run is on the {bender} at dt = {ms}" in section
+    assert ("so they apply" in section) == applies
+    assert ("so they do not apply" in section) == (not applies)
+    assert "PL140's default run" not in section
