@@ -414,7 +414,11 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
 
 
 def _left_out_lines(meta: dict[str, Any]) -> list[str]:
-    """The policies ``piezo benchmark`` found but did not run, and why (when any)."""
+    """The policies ``piezo benchmark`` added and left out, and why, in one line (when any):
+    ``meta["policies"]``, the line the command printed, else one made of
+    ``meta["policies_left_out"]``."""
+    if meta.get("policies"):
+        return [f"{meta['policies'][0].upper()}{meta['policies'][1:]}.", ""]
     left_out = meta.get("policies_left_out") or {}
     if not left_out:
         return []
