@@ -3,7 +3,8 @@ tuned PID loops, and the adaptive MPC's adaptation.
 
 Every figure copes with any selection of controllers, references and plants: a figure with
 nothing to show is not written, and :func:`draw_figures` says why instead. Each row keeps its
-colour in every figure and every run (:func:`benchmarks.rows.row_color`).
+colour in every figure; the project's rows keep theirs in every run, and the rows of a run
+have distinct colours (:func:`benchmarks.rows.row_colors`).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from benchmarks.cells import aggregate
 from benchmarks.references import REFERENCES
-from benchmarks.rows import row_color, seed_groups
+from benchmarks.rows import row_colors, seed_groups
 from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
 
 __all__ = ["draw_figures"]
@@ -49,6 +50,11 @@ def draw_figures(result: BenchmarkResult, out: Path) -> dict[str, Path | str]:
         reason = draw(result, path)
         done[name] = reason if reason else path
     return done
+
+
+def _colours(result: BenchmarkResult) -> dict[str, str]:
+    """Row -> colour for every row of the run."""
+    return row_colors(list(result.config.rows))
 
 
 def _bender(result: BenchmarkResult) -> str:
@@ -108,8 +114,8 @@ def _tracking(result: BenchmarkResult, path: Path) -> str | None:
         top, bottom = axes[0, j], axes[1, j]
         for name in shown:
             y = np.asarray(traces[name]["deflection_um"])
-            top.plot(t[window], y[window], lw=1.1, label=name, color=row_color(name))
-            bottom.plot(t[window], (y - reference)[window], lw=1.1, color=row_color(name))
+            top.plot(t[window], y[window], lw=1.1, label=name, color=_colours(result)[name])
+            bottom.plot(t[window], (y - reference)[window], lw=1.1, color=_colours(result)[name])
         top.plot(t[window], reference[window], "k--", lw=1.6, label="reference")
         top.set_title(ref)
         top.set_ylabel("deflection (um)")
@@ -159,7 +165,7 @@ def _summary(result: BenchmarkResult, path: Path) -> str | None:
             height,
             width,
             label=label,
-            color=row_color(members[0]),
+            color=_colours(result)[members[0]],
             yerr=spread,
             capsize=2,
         )
@@ -296,7 +302,7 @@ def _pid_loops(result: BenchmarkResult, path: Path) -> str | None:
         freqs = np.geomspace(0.1, 0.4999 / loop.dt, 3000)
         response = loop(np.exp(2j * np.pi * freqs * loop.dt))
         degrees = np.degrees(np.unwrap(np.angle(response)))
-        colour = row_color(name)
+        colour = _colours(result)[name]
         mag.loglog(freqs, np.abs(response), color=colour, label=_margins_label(name, d))
         phase.semilogx(freqs, degrees, color=colour)
         sens.loglog(freqs, np.abs(1.0 / (1.0 + response)), color=colour)
@@ -391,7 +397,7 @@ def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
         for name, row in rows.items():
             rms = 100.0 * _rolling_rms(row["error_um"], width) / full_stroke
             t = (np.arange(rms.size) + width) * dt
-            top.semilogy(t, rms, color=row_color(name), label=name, lw=1.2)
+            top.semilogy(t, rms, color=_colours(result)[name], label=name, lw=1.2)
         top.set_title(
             f"{plant}, {ADAPTATION_REFERENCE}: RMSE over {window_s * 1e3:g} ms", fontsize=9
         )

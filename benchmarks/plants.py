@@ -145,8 +145,8 @@ its own seed; the report gives the distribution of each controller's RMSE over t
 displacement sensor (:data:`BENCH_SENSOR_HZ`), rate-dependent Prandtl-Ishlinskii hysteresis
 (loop 1.5x as wide at a full-stroke 50 Hz sine as quasi-static) and the disturbances a bench
 has (:class:`piezo_env.Disturbance`: amplifier output noise, floor vibration at the tip, sensor
-quantisation), each documented in :mod:`piezo_env`. A controller may know the amplifier's slew limit (a datasheet value:
-``env.unwrapped.slew_limit``); the rest it does not. ``drift`` moves the piezoelectric
+quantisation), each documented in :mod:`piezo_env`. A controller may know the amplifier's slew
+limit (a datasheet value: ``env.unwrapped.slew_limit``); the rest it does not. ``drift`` moves the piezoelectric
 coefficient and the stiffness during the episode (:data:`DRIFT`).
 """
 

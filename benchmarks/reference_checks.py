@@ -18,7 +18,10 @@ from benchmarks.runner import BenchmarkResult
 from benchmarks.verdict import cell_index
 
 __all__ = [
+    "CHECKED_BENDER",
     "check_targets",
+    "checks_apply",
+    "condition_line",
     "missed_checks",
     "reference_checks_section",
     "strict_status",
@@ -49,12 +52,7 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
         ``target`` (what is checked, with its unit), ``value``, ``limit`` (the largest value
         expected) and ``holds``, for every check whose rows this run has.
     """
-    config = result.config
-    bender = getattr(config, "bender", "PL140")
-    if bender.split(".")[0] != "PL140":
-        return []
-    dt = getattr(config, "dt", None)
-    if dt is not None and abs(dt - sample_time(bender)) > 1e-12:
+    if not checks_apply(result):
         return []
     index = cell_index(result)
     checks: list[dict[str, Any]] = []
@@ -93,6 +91,33 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
     return checks
 
 
+CHECKED_BENDER = "PL140"
+"""The bender the checks were set on, at its default sample time (benchmarks.plants.sample_time)."""
+
+
+def checks_apply(result: BenchmarkResult) -> bool:
+    """Whether the run is on the checks' bender at its default sample time."""
+    bender = str(getattr(result.config, "bender", CHECKED_BENDER))
+    dt = getattr(result.config, "dt", None)
+    same_dt = dt is None or abs(dt - sample_time(CHECKED_BENDER)) <= 1e-12
+    return bender.split(".")[0] == CHECKED_BENDER and same_dt
+
+
+def condition_line(result: BenchmarkResult) -> str:
+    """One sentence: when the checks apply, and whether this run meets that condition."""
+    bender = str(getattr(result.config, "bender", CHECKED_BENDER)).split(".")[0]
+    dt = float(getattr(result.config, "dt", None) or sample_time(bender))
+    condition = (
+        f"The checks apply to a run on the {CHECKED_BENDER} at dt = "
+        f"{sample_time(CHECKED_BENDER) * 1e3:g} ms (its default), to the rows and plants each "
+        "names that the run has"
+    )
+    this = f"this run is on the {bender} at dt = {dt * 1e3:g} ms"
+    if checks_apply(result):
+        return f"{condition}; {this}, so they apply."
+    return f"{condition}; {this}, so they do not apply."
+
+
 def missed_checks(checks: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The reference checks that do not hold (``piezo benchmark --strict`` fails on any)."""
     return [c for c in checks if not c["holds"]]
@@ -115,18 +140,24 @@ def summary_line(checks: list[dict[str, Any]]) -> str:
     )
 
 
-def reference_checks_section(checks: list[dict[str, Any]]) -> list[str]:
-    """The report's section on the checks, framed as the project's expectations (lines)."""
+def reference_checks_section(
+    checks: list[dict[str, Any]], result: BenchmarkResult | None = None
+) -> list[str]:
+    """The report's section on the checks, framed as the project's expectations (lines), with
+    the condition under which they apply and whether ``result``'s run meets it."""
+    condition = [condition_line(result), ""] if result is not None else []
     if not checks:
-        return [
-            "## Reference checks",
-            "",
-            "None for this run: the project's expectations were set on the PL140's default run.",
-        ]
+        why = (
+            "none of the rows and plants they compare ran"
+            if result is not None and checks_apply(result)
+            else "the run is not the one they were set on"
+        )
+        return ["## Reference checks", "", *condition, f"None for this run: {why}."]
     missed = missed_checks(checks)
     lines = [
         "## Reference checks",
         "",
+        *condition,
         "The project's own expectations of this run: limits set from earlier measurements of "
         "the default run on a 2-core machine, kept to notice regressions. A miss is news about "
         "the controllers on this run, not an installation error; `piezo benchmark --strict` "

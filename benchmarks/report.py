@@ -22,7 +22,7 @@ from benchmarks.reference_checks import (
 )
 from benchmarks.rows import seed_groups
 from benchmarks.runner import BOX_CORNERS, DRAWN_PLANTS, MONTE_CARLO, BenchmarkResult
-from benchmarks.verdict import cell_index, tie_rule, verdict, winners
+from benchmarks.verdict import cell_index, tie_rule, verdict, verdict_plant, winners
 from controllers.observer import RUNAWAY_MEMORY, RUNAWAY_PERSISTENCE
 
 __all__ = [
@@ -298,8 +298,8 @@ def bench_gap_table(result: BenchmarkResult) -> str:
     )
 
 
-def _effort_table(result: BenchmarkResult) -> str:
-    nominal = [e for e in result.episodes if e["plant"] == "nominal"]
+def _effort_table(result: BenchmarkResult, plant: str) -> str:
+    nominal = [e for e in result.episodes if e["plant"] == plant]
     rows = [c for c in result.config.rows if any(e["controller"] == c for e in nominal)]
     columns = [
         "RMS voltage (V)",
@@ -334,15 +334,15 @@ def _effort_table(result: BenchmarkResult) -> str:
         v = values[col]
         return f"{v:d}" if isinstance(v, (int, np.integer)) else f"{v:.1f}"
 
-    return _table(rows, columns, cell, "controller (nominal, mean over references)")
+    return _table(rows, columns, cell, f"controller ({plant}, mean over references)")
 
 
-def _step_table(result: BenchmarkResult, dt: float) -> str:
-    """Rise time, overshoot and settling time on the nominal step references (``dt`` in s)."""
+def _step_table(result: BenchmarkResult, dt: float, plant: str = "nominal") -> str:
+    """Rise time, overshoot and settling time on ``plant``'s step references (``dt`` in s)."""
     episodes = [
         c
         for c in aggregate(result.episodes)
-        if c["plant"] == "nominal" and c.get("steps_settled") is not None
+        if c["plant"] == plant and c.get("steps_settled") is not None
     ]
     if not episodes:
         return ""
@@ -458,7 +458,11 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
 
 
 def _left_out_lines(meta: dict[str, Any]) -> list[str]:
-    """The policies ``piezo benchmark`` found but did not run, and why (when any)."""
+    """The policies ``piezo benchmark`` added and left out, and why, in one line (when any):
+    ``meta["policies"]``, the line the command printed, else one made of
+    ``meta["policies_left_out"]``."""
+    if meta.get("policies"):
+        return [f"{meta['policies'][0].upper()}{meta['policies'][1:]}.", ""]
     left_out = meta.get("policies_left_out") or {}
     if not left_out:
         return []
@@ -495,12 +499,14 @@ def _markdown(
     checks: list[dict],
     figures: dict[str, Any],
 ) -> str:
+    plant = verdict_plant(result) or "nominal"
+    where = "the nominal plant" if plant == "nominal" else f"the plant `{plant}`"
     lines = [
         f"# Closed-loop benchmark on PiezoBender-v0 ({_bender(result)})",
         "",
         "## Verdict",
         "",
-        "Best controller per reference on the nominal plant (RMSE, % of the full stroke), "
+        f"Best controller per reference on {where} (RMSE, % of the full stroke), "
         "winners in bold, and what limits it. " + tie_rule(getattr(result.config, "seeds", 1)),
         "",
         *verdict(result, meta),
@@ -515,10 +521,11 @@ def _markdown(
         monte_carlo_table(result),
         observer_fallback_section(result),
     ]
-    steps = _step_table(result, meta["dt"])
+    steps = _step_table(result, meta["dt"], plant)
     if steps:
-        lines += ["## Step responses (nominal)", "", steps]
-    lines += ["## Effort and compute time", "", _effort_table(result), ""]
+        lines += [f"## Step responses ({plant})", "", steps]
+    effort = _effort_table(result, plant)
+    lines += ["## Effort and compute time", "", effort or f"No episodes on `{plant}`.", ""]
     cores = meta["machine"]["cores"]
     jobs = result.config.jobs
     lines += [
@@ -552,7 +559,7 @@ def _markdown(
         title = "Tuned feedback loops (margins on the identified model; `pid_loops.png`):"
         lines += [title, "", loops, ""]
     lines += [controller_tables(result), ""]
-    lines += reference_checks_section(checks)
+    lines += reference_checks_section(checks, result)
     return "\n".join(lines) + "\n"
 
 

@@ -244,8 +244,10 @@ class BenchmarkConfig:
         return tuple(_row_name(entry) for entry in self.controllers)
 
     def _check_options(self) -> None:
-        """Every controller option is a valid setting of that controller (a user's factory
-        checks its own when it is built, before any episode: :func:`run_benchmark`)."""
+        """Every controller option is a valid setting of that controller: a built-in's
+        ``Settings`` field with a valid value, or a keyword a user's factory takes (its values
+        the factory checks when it is built, before any episode: :func:`run_benchmark`)."""
+        from controllers.protocol import check_factory_options
         from controllers.registry import resolve_controller
 
         for controller, options in self.controller_options.items():
@@ -254,7 +256,9 @@ class BenchmarkConfig:
                     f"options given for {controller!r}, which is not benchmarked (rows: "
                     f"{', '.join(self.controller_rows)})"
                 )
-            if controller not in self.entry_points:
+            if controller in self.entry_points:
+                check_factory_options(self.entry_points[controller], options)
+            else:
                 resolve_controller(controller.removesuffix("-oracle"), options)
 
     def _check_policies(self) -> None:

@@ -1,15 +1,17 @@
 """The benchmark's verdict: per reference, the best controller, its lead and what limits it.
 
-The verdict is read on the nominal plant. Oracle rows (``-oracle``: the controller on the true
-plant's model) are yardsticks, not contenders. Two rows whose RMSE cannot be told apart
+The verdict is read on the nominal plant, or, when the run has none, on the first plant it
+ran (:func:`verdict_plant`; the verdict says which). Oracle rows (``-oracle``: the controller
+on the true plant's model) are yardsticks, not contenders. Two rows whose RMSE cannot be told apart
 (:func:`benchmarks.cells.different`: within the 95 % intervals, or with one noise seed under
 :data:`benchmarks.cells.TIE` relative) are a tie, and a tie bolds nobody.
 
-What limits the best row, in this order of evidence: the drive (more than
-:data:`SATURATED` of the steps clipped); the oracle (the same reference on the true plant's
-model: near it, the floor is not the model); the sensor noise (RMSE against the noise's own RMS,
-r / sqrt(3) for noise uniform on [-r, r]); on a reference with jumps, the transients after
-them.
+What limits the best row, read from its cell's data in this order: the drive (more than
+:data:`SATURATED` of the steps clipped); the model (RMSE well above the same reference on the
+true plant's model, the oracle); the sensor noise (RMSE near the noise's own RMS, r / sqrt(3)
+for noise uniform on [-r, r]); on a reference with jumps, the transients after them, with the
+fraction of steps at the drive limit it measured; else the dynamics (at the oracle's level,
+above the noise).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from benchmarks.cells import TIE, aggregate, different
 from benchmarks.references import REFERENCES
 from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
 
-__all__ = ["SATURATED", "cell_index", "tie_rule", "verdict", "winners"]
+__all__ = ["SATURATED", "cell_index", "tie_rule", "verdict", "verdict_plant", "winners"]
 
 SATURATED = 0.05
 """Fraction of clipped steps above which the drive, not the controller, is called the limit."""
@@ -70,37 +72,59 @@ def tie_rule(seeds: int) -> str:
     )
 
 
+def verdict_plant(result: BenchmarkResult) -> str | None:
+    """The plant the verdict reads: ``nominal`` when run, else the first plant of the run with
+    cells of its own (None when only drawn plants ran: random plants, box corners)."""
+    index = cell_index(result)
+    plants = [p for p in result.config.plants if any(k[0] == p for k in index)]
+    if "nominal" in plants:
+        return "nominal"
+    return plants[0] if plants else None
+
+
 def verdict(result: BenchmarkResult, meta: dict[str, Any] | None = None) -> list[str]:
-    """Per nominal reference, one Markdown line: the best row, its lead, what limits it.
+    """Per reference of the verdict's plant, one Markdown line: the best row, its lead, what
+    limits it.
 
     Parameters
     ----------
     result : BenchmarkResult
     meta : dict, optional
         The run's facts (:func:`benchmarks.report.write_benchmark`); its ``noise_bound_um``
-        (sensor noise bound r, um) is the noise a row without an oracle is compared with.
-        Without it, the nominal plant's: the env's default (:class:`piezo_env.TaskConfig`).
+        (sensor noise bound r, um) is the noise a row is compared with. Without it, the
+        nominal plant's: the env's default (:class:`piezo_env.TaskConfig`).
 
     Returns
     -------
     list of str
         ``- REF: **`best`** (x %), L better than `next`; why`` per reference run on the
-        nominal plant; a tie names every tied row and bolds none.
+        verdict's plant (:func:`verdict_plant`), after a line naming that plant when it is not
+        the nominal one; a tie names every tied row and bolds none. Never empty: a run with
+        only drawn plants gets one line saying where its ranking is.
     """
+    plant = verdict_plant(result)
+    if plant is None:
+        return [
+            "- no verdict: only drawn plants ran "
+            f"({', '.join(result.config.plants)}); their tables rank the rows over the draws"
+        ]
     index = cell_index(result)
     rows = [r for r in result.config.rows if not r.endswith("-oracle")]
     noise = (meta or {}).get("noise_bound_um", _nominal_noise_bound())
     lines = []
+    if plant != "nominal":
+        lines.append(
+            f"- read on the plant `{plant}`, the first this run ran (the nominal plant was not "
+            "in --plants):"
+        )
     for ref in result.config.references:
         ranked = sorted(
-            (index[("nominal", r, ref)]["rmse_percent"], r)
-            for r in rows
-            if ("nominal", r, ref) in index
+            (index[(plant, r, ref)]["rmse_percent"], r) for r in rows if (plant, r, ref) in index
         )
         if not ranked:
             continue
         best_value, best = ranked[0]
-        tied = winners(index, "nominal", rows, ref)
+        tied = winners(index, plant, rows, ref)
         rest = [(v, r) for v, r in ranked if r not in tied]
         if len(tied) > 1:
             head = f"tie between {', '.join(f'`{t}`' for t in tied)} ({best_value:.3f} %)"
@@ -110,8 +134,10 @@ def verdict(result: BenchmarkResult, meta: dict[str, Any] | None = None) -> list
             head = f"`{best}` ({best_value:.3f} %), the only controller run"
         if rest:
             head += f", {_lead(rest[0][0] / best_value)} than `{rest[0][1]}`"
-        why = _why(index, best, ref, 2.0 * result.config.stroke_um, noise)
+        why = _why(index, (plant, best, ref), 2.0 * result.config.stroke_um, noise)
         lines.append(f"- {ref}: {head}; {why}")
+    if len(lines) == (plant != "nominal"):
+        lines.append(f"- no verdict: no controller other than an oracle ran on `{plant}`")
     return lines
 
 
@@ -128,47 +154,50 @@ def _lead(ratio: float) -> str:
 
 
 def _why(
-    index: dict, row: str, ref: str, full_stroke_um: float, noise_bound_um: float | None
+    index: dict, key: tuple[str, str, str], full_stroke_um: float, noise_bound_um: float | None
 ) -> str:
-    """What limits the best row on ``ref``: drive-, model-, noise- or jump-limited (one line)."""
-    cell = index[("nominal", row, ref)]
-    if cell["saturated_fraction"] > SATURATED:
+    """What limits the best row's cell ``key`` (plant, row, reference), from its data: drive-,
+    model-, noise-, jump- or dynamics-limited (one line)."""
+    plant, _, ref = key
+    cell = index[key]
+    saturated = cell["saturated_fraction"]
+    if saturated > SATURATED:
         return (
-            f"drive-limited: {100 * cell['saturated_fraction']:.0f} % of the steps saturated, "
+            f"drive-limited: {100 * saturated:.0f} % of the steps saturated, "
             "the amplifier's range sets the floor"
         )
-    oracle = index.get(("nominal", "mpc-oracle", ref))
-    smooth = REFERENCES[ref].smooth
-    if oracle is not None:
-        ratio = cell["rmse_percent"] / oracle["rmse_percent"]
-        if ratio >= _AT_ORACLE:
-            return f"model-limited: {ratio:.1f}x `mpc-oracle`, which predicts with the true plant"
-        if not smooth:
-            return (
-                f"jump-limited: at the oracle's level ({ratio:.2f}x `mpc-oracle`), a jump "
-                "takes several samples at the drive limit"
-            )
-        return f"noise-limited: at the oracle's level ({ratio:.2f}x `mpc-oracle`)"
-    if not smooth:
-        return _jump_reason(cell)
+    oracle = index.get((plant, "mpc-oracle", ref))
+    ratio = None if oracle is None else cell["rmse_percent"] / oracle["rmse_percent"]
+    if ratio is not None and ratio >= _AT_ORACLE:
+        return f"model-limited: {ratio:.1f}x `mpc-oracle`, which predicts with the true plant"
+    at_oracle = "" if ratio is None else f"; at the oracle's level ({ratio:.2f}x `mpc-oracle`)"
+    times = None
     if noise_bound_um:
         noise_rms = noise_bound_um / math.sqrt(3.0)  # uniform on [-r, r]
         times = cell["rmse_percent"] / 100.0 * full_stroke_um / noise_rms
+        noise_text = f"{times:.1f}x the sensor noise's RMS ({noise_rms:.2g} um)"
         if times < _NEAR_NOISE:
-            return f"noise-limited: {times:.1f}x the sensor noise's RMS ({noise_rms:.2g} um)"
-        return (
-            f"{times:.0f}x the sensor noise's RMS ({noise_rms:.2g} um): dynamics or model "
-            "error sets it (run `mpc-oracle` beside it to tell which)"
-        )
-    return "no oracle row or noise bound to compare it with"
+            return f"noise-limited: {noise_text}" + at_oracle
+    if not REFERENCES[ref].smooth:
+        return _jump_reason(cell) + at_oracle
+    if times is None:
+        return "no noise bound to compare it with" + at_oracle
+    if ratio is not None:
+        return f"dynamics-limited: {noise_text}" + at_oracle
+    return (
+        f"{times:.0f}x the sensor noise's RMS ({noise_rms:.2g} um): dynamics or model "
+        "error sets it (run `mpc-oracle` beside it to tell which)"
+    )
 
 
 def _jump_reason(cell: dict[str, Any]) -> str:
-    """Why a row's error on a reference with jumps is what it is, from its step figures."""
+    """Why a row's error on a reference with jumps is what it is, from its step figures and
+    the fraction of its steps at the drive limit."""
     rise, overshoot = cell.get("rise_time_ms"), cell.get("overshoot_percent")
+    saturated = f"{100 * cell['saturated_fraction']:.1f} % of the steps at the drive limit"
     if rise is None or overshoot is None:
-        return "jump-limited: the error sits in the transients after the jumps"
+        return f"jump-limited: the error sits in the transients after the jumps ({saturated})"
     return (
         f"jump-limited: the error sits in the transients after the jumps (rise {rise:.0f} ms, "
-        f"overshoot {overshoot:.0f} %; run `mpc-oracle` beside it to see the floor)"
+        f"overshoot {overshoot:.0f} %, {saturated})"
     )

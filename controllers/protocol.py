@@ -22,12 +22,19 @@ folder first, then the installed packages.
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import sys
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["check_protocol", "entry_point_label", "is_entry_point", "load_entry_point"]
+__all__ = [
+    "check_factory_options",
+    "check_protocol",
+    "entry_point_label",
+    "is_entry_point",
+    "load_entry_point",
+]
 
 
 def is_entry_point(name: str) -> bool:
@@ -85,3 +92,37 @@ def check_protocol(controller: Any, name: str) -> Any:
             "act(observation) -> array of shape (1,) in volts"
         )
     return controller
+
+
+def check_factory_options(spec: str, options: dict[str, Any]) -> None:
+    """Refuse ``options`` that the factory ``spec`` names cannot take, before it is called.
+
+    The factory is called as ``factory(model, env, **options)``: its signature is bound to two
+    positional placeholders and the options, so an unknown or misspelt keyword is refused
+    here (a factory taking ``**kwargs`` accepts any, and checks them itself when called).
+
+    Raises
+    ------
+    ValueError
+        One line naming the factory, the options it does not take and the ones it does.
+    """
+    factory = load_entry_point(spec)
+    try:
+        signature = inspect.signature(factory)
+    except (TypeError, ValueError):  # a builtin without a signature: it checks when called
+        return
+    try:
+        signature.bind(None, None, **options)
+    except TypeError as error:
+        params = list(signature.parameters.values())
+        named = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+        taken = [p.name for p in params[2:] if p.kind in named]
+        unknown = sorted(set(options) - set(taken))
+        if unknown:
+            raise ValueError(
+                f"unknown option(s) {unknown} for controller {spec!r}; valid: "
+                f"{', '.join(taken) or 'none (its factory takes no options)'}"
+            ) from None
+        raise ValueError(
+            f"controller {spec!r} cannot be called as factory(model, env, **options): {error}"
+        ) from None

@@ -8,7 +8,12 @@ from pathlib import Path
 from typing import Any
 
 from controllers.prediction import PredictionModel
-from controllers.protocol import check_protocol, is_entry_point, load_entry_point
+from controllers.protocol import (
+    check_factory_options,
+    check_protocol,
+    is_entry_point,
+    load_entry_point,
+)
 from controllers.task import ControlTask
 
 __all__ = ["CONTROLLERS", "check_model_fits_env", "make", "prediction_model", "resolve_controller"]
@@ -116,6 +121,7 @@ def make(name: str, model: Any, env: Any, **options: Any) -> Any:
     """
     if is_entry_point(name):  # a user's factory, named as gymnasium names envs
         factory = load_entry_point(name)
+        check_factory_options(name, options)
         return check_protocol(factory(prediction_model(model, env), env, **options), name)
     cls, settings = resolve_controller(name, options)
     task = ControlTask.from_env(env)

@@ -9,7 +9,7 @@ import numpy as np
 
 from identification.metrics import complex_response
 
-__all__ = ["write_figures"]
+__all__ = ["hysteresis_loops", "write_figures"]
 
 
 def _pyplot():
@@ -31,9 +31,9 @@ def write_figures(result: Any, out: str | Path) -> list[Path]:
     data = result.data
     paths = [
         _arx_estimates(data, result.report, out / "arx_estimates.png"),
-        _hysteresis(data, out / "hysteresis.png"),
+        _hysteresis(data, result.model, out / "hysteresis.png"),
         _validation(data, result.report, out / "validation.png"),
-        _residuals(data, out / "residuals.png"),
+        _residuals(data, result.report, out / "residuals.png"),
     ]
     if data.get("arx_unrefined") is not None and data.get("plant_linear") is not None:
         paths.append(_bode(data, result.model.arx, out / "linear_part_bode.png"))
@@ -134,16 +134,55 @@ def _arx_estimates(data: dict, report: dict, path: Path) -> Path:
     return path
 
 
-def _hysteresis(data: dict, path: Path) -> Path:
+LOOP_FRACTIONS = (1 / 3, 2 / 3, 1.0)
+"""Amplitudes of the loops in hysteresis.png, as fractions of the rich record's largest |u|."""
+
+LOOP_SAMPLES = 400
+"""Samples per quarter period of each loop's triangle: the memory features are rate
+independent, so only the drawing's smoothness depends on it."""
+
+
+def hysteresis_loops(model: Any, u_max: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The model's nonlinearity over one slow triangle period at each of
+    :data:`LOOP_FRACTIONS` of ``u_max`` (V): (u, z) pairs from the top of the loop down and
+    back up.
+
+    Each triangle starts at rest (0 V) and rises to its amplitude first; the period drawn
+    follows a settling one, so it runs on the closed loop, not on the first-loading curve
+    (a Bouc-Wen memory overshoots on its first cycle).
+    """
+    first = np.linspace(0.0, 1.0, LOOP_SAMPLES, endpoint=False)  # from rest to the top
+    down = np.linspace(1.0, -1.0, 2 * LOOP_SAMPLES, endpoint=False)
+    up = np.linspace(-1.0, 1.0, 2 * LOOP_SAMPLES, endpoint=False)
+    shape = np.r_[first, down, up, down, up, 1.0]  # a settling period, then the drawn one
+    drawn = down.size + up.size + 1
+    loops = []
+    for fraction in LOOP_FRACTIONS:
+        u = fraction * u_max * shape
+        z = np.asarray(model.nls_output(u))
+        loops.append((u[-drawn:], z[-drawn:]))
+    return loops
+
+
+def _hysteresis(data: dict, model: Any, path: Path) -> Path:
+    """The identified loops: z against u (left) and the loops' width, z - u (right), over
+    the rich record's z_hat; the network's small-signal gain is 1, so z - u is the hysteresis."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6, 5), dpi=110)
-    ax.plot(data["u_rich"], data["z_hat"], ".", ms=1.5, color="0.65", label="z_hat (inverse ARX)")
-    ax.plot(data["u_rich"], data["z_model"], lw=1, color="tab:red", label="NLS output")
-    ax.set_xlabel("drive voltage u (V)")
+    fig, (ax, ax_width) = plt.subplots(1, 2, figsize=(11, 5), dpi=110)
+    u_rich, z_hat = data["u_rich"], data["z_hat"]
+    loops = hysteresis_loops(model, float(np.max(np.abs(u_rich))))
+    for axis, offset in ((ax, 0.0), (ax_width, 1.0)):
+        axis.plot(
+            u_rich, z_hat - offset * u_rich, ".", ms=1, color="0.8", label="z_hat (inverse ARX)"
+        )
+        for (u, z), colour in zip(loops, ("tab:blue", "tab:orange", "tab:red"), strict=True):
+            axis.plot(u, z - offset * u, lw=1, color=colour, label=f"model, +-{u.max():.0f} V")
+        axis.set_xlabel("drive voltage u (V)")
+        axis.grid(alpha=0.3)
     ax.set_ylabel("hidden signal z (equivalent V)")
-    ax.set_title("Identified hysteresis (rich data)")
-    ax.legend(loc="upper left", markerscale=6)
-    ax.grid(alpha=0.3)
+    ax_width.set_ylabel("z - u (equivalent V): the hysteresis")
+    ax.legend(loc="upper left", markerscale=6, fontsize=8)
+    fig.suptitle("Identified hysteresis: one slow triangle period per amplitude, on the rich data")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -261,17 +300,28 @@ def _zoom_panels(zoom, zoom_err, t, y, models, errors, val, noise, window) -> No
     zoom_err.legend(loc="upper right", fontsize=8, ncol=2)
 
 
-def _residuals(data: dict, path: Path) -> Path:
+def _residuals(data: dict, report: dict, path: Path) -> Path:
+    """Histograms of the validation residuals, each against the bound of its own noise: the
+    one-step-ahead residual is the linear part's equation error (bounded by its r_hat), the
+    free-run residual the sensor's output noise plus the model's error (the sensor's bound)."""
     plt = _pyplot()
-    r = data["noise_bound"]
+    r_model = report["validation"]["equation_error_bound_um"]
+    noise = report["environment"]["noise_bound_um"]
     one_step = data["y_val"] - data["prediction_val"]
     free_run = data["y_val"] - data["y_sim"]
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=110)
-    for ax, res, title in ((axes[0], one_step, "one-step-ahead"), (axes[1], free_run, "free run")):
+    panels = (
+        (axes[0], one_step, "one-step-ahead", r_model, "r_hat of the model's linear part"),
+        (axes[1], free_run, "free run", noise, "sensor noise bound"),
+    )
+    for ax, res, title, bound, label in panels:
         ax.hist(res, bins=80, color="tab:gray")
-        for sign in (-1, 1):
-            ax.axvline(sign * r, color="tab:red", ls="--", lw=1)
-        ax.set_title(f"{title} residuals; dashed: +-r_hat = {r:.2f} um")
+        if bound is None:  # measured records without the sensor's bound
+            ax.set_title(f"{title} residuals")
+        else:
+            for sign in (-1, 1):
+                ax.axvline(sign * bound, color="tab:red", ls="--", lw=1)
+            ax.set_title(f"{title} residuals; dashed: {label} +-{bound:.2f} um", fontsize=9)
         ax.set_xlabel("residual (um)")
     axes[0].set_ylabel("count")
     fig.tight_layout()

@@ -103,15 +103,16 @@ def fit_metrics(y: ArrayLike, y_hat: ArrayLike, *, stroke: float | None = None) 
         Measured and model output, same unit (normally um).
     stroke : float, optional
         One-sided stroke of the actuator in the unit of ``y``: the datasheet free deflection
-        (1000 um for the +-1000 um PL140).
-        When given, RMSE and maximum error are also reported in percent of it.
+        (1000 um for the +-1000 um PL140). When given, RMSE and maximum error are also
+        reported in percent of the full stroke, ``2 * stroke`` (-stroke to +stroke), the scale
+        of the benchmark's percentages (:func:`controllers.metrics.tracking_metrics`).
 
     Returns
     -------
     dict
         ``fit_percent`` (%), ``rmse`` and ``max_abs_error`` (unit of ``y``), ``n_samples``, and
-        with ``stroke``: ``stroke``, ``rmse_percent_stroke``, ``max_abs_error_percent_stroke``
-        (%).
+        with ``stroke``: ``stroke``, ``full_stroke`` (``2 * stroke``), ``rmse_percent_stroke``,
+        ``max_abs_error_percent_stroke`` (% of the full stroke).
 
     Raises
     ------
@@ -129,9 +130,11 @@ def fit_metrics(y: ArrayLike, y_hat: ArrayLike, *, stroke: float | None = None) 
         stroke_value = float(stroke)
         if not np.isfinite(stroke_value) or stroke_value <= 0.0:
             raise ValueError(f"stroke must be a positive finite number; got {stroke!r}")
+        full_stroke = 2.0 * stroke_value
         result["stroke"] = stroke_value
-        result["rmse_percent_stroke"] = 100.0 * result["rmse"] / stroke_value
-        result["max_abs_error_percent_stroke"] = 100.0 * result["max_abs_error"] / stroke_value
+        result["full_stroke"] = full_stroke
+        result["rmse_percent_stroke"] = 100.0 * result["rmse"] / full_stroke
+        result["max_abs_error_percent_stroke"] = 100.0 * result["max_abs_error"] / full_stroke
     return result
 
 

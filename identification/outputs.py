@@ -311,6 +311,7 @@ def _validation_section(
         "signal": validation_signal(config, records),
         "samples": len(val.u),
         **val.metrics,
+        "equation_error_bound_um": val.equation_error_bound_um,
         "rmse_ratio_hammerstein_to_arx": (
             val.metrics["hammerstein"]["rmse"] / val.metrics["linear_arx"]["rmse"]
         ),
@@ -347,7 +348,6 @@ def figure_data(
         "y_sim": val.y_sim,
         "y_lin": val.y_lin,
         "dt": model.dt,
-        "noise_bound": model.arx.noise_bound,
         "z_error_bound": hidden.error["z_error_bound_V"],
         "prediction_val": val.y_pred,
     }

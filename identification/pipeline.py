@@ -110,6 +110,7 @@ __all__ = [
     "collect",
     "identify",
     "identify_records",
+    "read_records_folder",
     "write_outputs",
 ]
 
@@ -210,11 +211,7 @@ def identify_records(
     config = _settings(config, overrides)
     log = _StepLog(progress)
     if isinstance(records, (str, os.PathLike)):
-        excitation = read_manifest(records).get("excitation")
-        if isinstance(excitation, dict):  # the signals the bench was driven with
-            known = {k: v for k, v in excitation.items() if k in EXCITATION_FIELDS}
-            config = dataclasses.replace(config, **known)
-        records = read_records(records, config, split=split)
+        records, config = read_records_folder(records, config, split=split)
     elif not isinstance(records, Records):
         missing = [k for k, v in (("dt", dt), ("drive_range_V", drive_range_V)) if v is None]
         if missing or bender is None:
@@ -238,6 +235,44 @@ def identify_records(
         validation_samples=lengths["validation"],
     )
     return _identify(records, config, log, true_plant=None)
+
+
+def read_records_folder(
+    folder: str | os.PathLike[str],
+    config: IdentificationConfig,
+    *,
+    split: float | None = None,
+) -> tuple[Records, IdentificationConfig]:
+    """Read and check a records folder, and the settings its excitation was drawn with.
+
+    What :func:`identify_records` does first with a folder, callable on its own so that a
+    malformed folder is refused before anything is written; pass both results to
+    :func:`identify_records` to identify from them.
+
+    Parameters
+    ----------
+    folder : str or path-like
+        A folder holding ``records.json`` and the files it lists.
+    config : IdentificationConfig
+        Settings of the steps; the manifest's excitation settings (``piezo excite``) replace
+        its own.
+    split : float, optional
+        For a single record: the estimation fraction (see :func:`identify_records`).
+
+    Returns
+    -------
+    (Records, IdentificationConfig)
+
+    Raises
+    ------
+    identification.records.RecordsError
+        A malformed record (one line naming the file and the line or field).
+    """
+    excitation = read_manifest(folder).get("excitation")
+    if isinstance(excitation, dict):  # the signals the bench was driven with
+        known = {k: v for k, v in excitation.items() if k in EXCITATION_FIELDS}
+        config = dataclasses.replace(config, **known)
+    return read_records(folder, config, split=split), config
 
 
 def _settings(

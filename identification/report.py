@@ -37,7 +37,8 @@ def markdown_report(report: dict[str, Any], figures: list[str]) -> str:
         "",
         f"dt = {env['dt_s'] * 1e3:g} ms, plant hysteresis {env['hysteresis']}, sensor noise "
         + ("not given" if noise is None else f"+-{noise:g} um")
-        + f", stroke {env['stroke_um']:g} um.",
+        + _stroke_text(env.get("stroke_um"))
+        + ".",
         "",
         *_source_section(env.get("records")),
         *_validation_section(report["validation"]),
@@ -156,13 +157,22 @@ def format_free_run(value: float | None, spec: str) -> str:
     return "unstable (no free run)" if value is None else format(value, spec)
 
 
+def _stroke_text(stroke_um: float | None) -> str:
+    """The stroke in the report's first line: one-sided, and the full stroke percentages use."""
+    if stroke_um is None:
+        return ", stroke not given"
+    return f", stroke +-{stroke_um:g} um (full stroke {2 * stroke_um:g} um)"
+
+
 def _validation_section(val: dict[str, Any]) -> list[str]:
+    full = val["hammerstein"].get("full_stroke")
+    percent = "RMSE, % of the full stroke" + (f" ({full:g} um)" if full else " (not given)")
     lines = [
         "## Validation (free run on fresh data)",
         "",
         f"Signal: {val['signal']}, {val['samples']} samples.",
         "",
-        _row(["model", "fit %", "RMSE (um)", "RMSE (% stroke)", "max error (um)"]),
+        _row(["model", "fit %", "RMSE (um)", percent, "max error (um)"]),
         _row(["---"] * 5),
     ]
     for name, key in (
@@ -180,16 +190,29 @@ def _validation_section(val: dict[str, Any]) -> list[str]:
                     name,
                     f"{m['fit_percent']:.2f}",
                     f"{m['rmse']:.2f}",
-                    f"{m['rmse_percent_stroke']:.2f}",
+                    format(m["rmse_percent_stroke"], ".2f") if full else "-",
                     f"{m['max_abs_error']:.1f}",
                 ]
             )
         )
+    r_model = val.get("equation_error_bound_um")
+    bound = (
+        []
+        if r_model is None
+        else [
+            f"r_hat of the model's linear part +-{r_model:.2f} um: its largest equation error "
+            "A(q) y - B(q) z on the records it was fitted on, the bound of the one-step-ahead "
+            "residuals (residuals.png); the r_hat of step b below is of step b's estimate, "
+            "before steps b' and e' changed the linear part.",
+            "",
+        ]
+    )
     return [
         *lines,
         "",
         f"RMSE ratio Hammerstein / linear ARX: {val['rmse_ratio_hammerstein_to_arx']:.3f}.",
         "",
+        *bound,
     ]
 
 

@@ -245,6 +245,10 @@ class Validation:
         with an unrefined model given, also ``linear_arx_unrefined`` (its free run); with
         step e's model given, ``hammerstein_unrefined_nls`` and, when step e' changed the
         linear part, ``linear_arx_before_e2`` (step e's linear part alone).
+    equation_error_bound_um : float
+        r_hat of the model's linear part: its largest equation error A(q) y - B(q) z on the
+        records it was fitted on (um), the bound its one-step-ahead residuals are drawn
+        against. Step b's r_hat is of step b's estimate, before steps b' and e' changed it.
     """
 
     u: np.ndarray
@@ -253,6 +257,7 @@ class Validation:
     y_lin: np.ndarray
     y_pred: np.ndarray
     metrics: dict[str, dict[str, float]]
+    equation_error_bound_um: float
 
 
 def excite_prbs(
@@ -547,4 +552,4 @@ def validate(
             metrics["linear_arx_before_e2"] = fit_metrics(
                 y, tail(unrefined_nls.arx.simulate(full)), stroke=stroke
             )
-    return Validation(u, y, y_sim, y_lin, y_pred, metrics)
+    return Validation(u, y, y_sim, y_lin, y_pred, metrics, model.arx.noise_bound)

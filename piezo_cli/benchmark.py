@@ -18,9 +18,17 @@ from piezo_cli.arguments import (
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import clear_incomplete, mark_incomplete, prepare_output_dir
 
-__all__ = ["BENCHMARK"]
+__all__ = ["BENCHMARK", "COMMITTED_POLICIES", "policies_line"]
 
-_DEFAULT_POLICIES = "docs/policies/*"
+COMMITTED_POLICIES = ("ppo", "ppo-dr")
+"""Names in ``--controllers`` that select the project's committed policies by recipe
+(``ppo`` -> ``docs/policies/ppo-seed0..2``), found in the project folder from anywhere."""
+
+
+def committed_policy_folder() -> Path:
+    """The folder of the committed policies: ``docs/policies`` of the project (present in a
+    clone or an editable install, absent from an installed wheel)."""
+    return Path(__file__).resolve().parents[1] / "docs" / "policies"
 
 
 def _names(text: str) -> tuple[str, ...]:
@@ -71,10 +79,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--controllers",
         type=_names,
-        default=DEFAULT_CONTROLLERS,
+        default=(*DEFAULT_CONTROLLERS, *COMMITTED_POLICIES),  # the committed policies too
         metavar="A,B",
         help="comma-separated controllers (NAME-oracle runs NAME on the true plant's model; "
-        "also available: nmpc-ipopt, 20-60 ms per step); your own as package.module:Factory or "
+        "also available: nmpc-ipopt, 20-60 ms per step); ppo and ppo-dr: the committed PPO "
+        "policies (three seeds each, docs/policies; left out, with the reason, on a task they "
+        "were not trained for); your own as package.module:Factory or "
         "label=package.module:Factory (see examples/feedforward_pi.py)",
     )
     parser.add_argument(
@@ -160,11 +170,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--policies",
-        default=_DEFAULT_POLICIES,
+        default="none",
         metavar="GLOB",
-        help="folders of trained policies (piezo train-rl) to run as controllers, a glob or "
-        "comma-separated folders; 'none' for none (the default finds the committed PPO "
-        "policies when run from the project folder)",
+        help="folders of your trained policies (piezo train-rl) to run as controllers, a glob "
+        "or comma-separated folders (the committed ones are ppo and ppo-dr in --controllers)",
     )
     parser.add_argument(
         "--option",
@@ -204,7 +213,7 @@ def _config(args: argparse.Namespace, policies: tuple[str, ...]):
 
     try:
         return BenchmarkConfig(
-            controllers=args.controllers,
+            controllers=tuple(c for c in args.controllers if c not in COMMITTED_POLICIES),
             references=args.references,
             plants=args.plants,
             seed=args.seed,
@@ -278,6 +287,45 @@ def _policies(
     return tuple(folders), left_out
 
 
+def _committed_policies(
+    names: tuple[str, ...], bender: str, dt: float | None = None
+) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The committed policies of the recipes in ``names`` (``ppo``, ``ppo-dr``) that fit the
+    ``bender`` benchmark's task, and the ones left out (folder or recipe -> why)."""
+    folder = committed_policy_folder()
+    kept: list[str] = []
+    left_out: dict[str, str] = {}
+    found: list[Path] = []
+    for recipe in (n for n in COMMITTED_POLICIES if n in names):
+        matches = [p for p in folder.glob(f"{recipe}-seed*") if (p / "policy.json").is_file()]
+        if not matches:
+            left_out[recipe] = (
+                f"not found in {folder}: the committed policies come with the project's "
+                "repository, not with an installed package"
+            )
+        found += matches
+    for path in sorted(found):  # the order of the folders' names, as a glob lists them
+        shown = os.path.relpath(path) if path.is_relative_to(Path.cwd()) else str(path)
+        reason = _policy_misfit(str(path), bender, dt)
+        if reason is None:
+            kept.append(shown)
+        else:
+            left_out[shown] = reason
+    return tuple(kept), left_out
+
+
+def policies_line(added: tuple[str, ...], left_out: dict[str, str]) -> str:
+    """One line on the policies a run added and left out ('' when none were asked for)."""
+    parts = []
+    if added:
+        parts.append("running " + ", ".join(Path(f).name for f in added))
+    by_reason: dict[str, list[str]] = {}
+    for folder, reason in left_out.items():
+        by_reason.setdefault(reason, []).append(Path(folder).name)
+    parts += [f"left out {', '.join(names)}: {why}" for why, names in by_reason.items()]
+    return "policies: " + "; ".join(parts) if parts else ""
+
+
 def _policy_misfit(folder: str, bender: str, dt: float | None = None) -> str | None:
     """Why the policy in ``folder`` does not fit the ``bender`` benchmark's task (its stroke
     and sample time ``dt``, default the bender's), or None: also when it does not load (the
@@ -349,6 +397,20 @@ def _check_model_bender(folder: str, model, bender: str, dt: float | None = None
         raise CommandLineError(f"--model {folder}: {error}") from None
     finally:
         env.close()
+
+
+def _check_model(args: argparse.Namespace) -> None:
+    """Refuse a ``--model`` that does not load or was identified on another bender or sample
+    time, before the output folder is made."""
+    from identification.hammerstein import HammersteinModel
+
+    if args.model is None:
+        return
+    try:
+        model = HammersteinModel.load(args.model)
+    except (OSError, ValueError) as error:
+        raise CommandLineError(f"--model {args.model}: cannot load the model: {error}") from None
+    _check_model_bender(args.model, model, args.bender, args.dt)
 
 
 def identification_plants(bender: str) -> tuple[str, ...]:
@@ -427,14 +489,7 @@ def _models(
                 ) from None
         print(f"resuming with the model(s) identified in {', '.join(map(str, every))}")
         return {p: [str(f) for f in fs] for p, fs in folders.items()}, {}
-    if args.model is not None:
-        try:
-            model = HammersteinModel.load(args.model)
-        except (OSError, ValueError) as error:
-            raise CommandLineError(
-                f"--model {args.model}: cannot load the model: {error}"
-            ) from None
-        _check_model_bender(args.model, model, args.bender, args.dt)
+    if args.model is not None:  # loaded and checked before the output folder: _check_model
         return {"nominal": [str(args.model)]}, {}
     from benchmarks.plants import PLANTS
     from identification.pipeline import IdentificationConfig, identify
@@ -522,13 +577,18 @@ def run(args: argparse.Namespace) -> int:
     """Check everything, identify (or load) the model, run the benchmark, write the report."""
     if args.dt is None and args.model is not None:
         args.dt = _model_dt(args.model)
-    policies, left_out = _policies(args.policies, args.bender, args.dt)
+    committed, left_out = _committed_policies(args.controllers, args.bender, args.dt)
+    own, own_left_out = _policies(args.policies, args.bender, args.dt)
+    chosen = {os.path.realpath(p): p for p in (*committed, *own)}  # a folder named twice runs once
+    policies, left_out = tuple(chosen.values()), {**left_out, **own_left_out}
     config = _config(args, policies)
     _check_identification(args)
-    for folder, reason in left_out.items():
-        print(f"policy {folder} left out: {reason}")
     _check_backend(args)
+    _check_model(args)
     out = prepare_output_dir(args.out)
+    policy_line = policies_line(policies, left_out)
+    if policy_line:
+        print(policy_line)
     from benchmarks.machine import machine
     from benchmarks.report import (
         check_targets,
@@ -540,6 +600,7 @@ def run(args: argparse.Namespace) -> int:
         write_benchmark,
     )
     from benchmarks.runner import run_benchmark
+    from benchmarks.verdict import verdict_plant
     from piezo_cli.output import terminal_progress
     from piezo_env import TaskConfig
 
@@ -587,16 +648,20 @@ def run(args: argparse.Namespace) -> int:
     meta["identification_seeds"] = (
         None if args.model is not None else [args.seed + k for k in range(len(first))]
     )
+    if policy_line:
+        meta["policies"] = policy_line
     if left_out:
         meta["policies_left_out"] = left_out
     if resumed:
         meta["resumed_groups"] = resumed
     paths = write_benchmark(result, out, meta)
     clear_incomplete(out, "piezo benchmark")
-    print("verdict (nominal plant, RMSE in % of the full stroke):")
+    plant = verdict_plant(result)
+    print(f"verdict ({plant or 'no single'} plant, RMSE in % of the full stroke):")
     print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result, meta)))
-    print()
-    print(tracking_tables(result, plants=("nominal",), max_errors=False).replace("**", ""))
+    if plant is not None:
+        print()
+        print(tracking_tables(result, plants=(plant,), max_errors=False).replace("**", ""))
     checks = check_targets(result)
     line = summary_line(checks)
     if line:

@@ -68,14 +68,19 @@ def run(args: argparse.Namespace) -> int:
         raise CommandLineError(
             "--split applies to --records (a single long record); add --records DIR"
         )
-    out = prepare_output_dir(args.out)
     from identification.pipeline import (
         IdentificationConfig,
         identify,
         identify_records,
+        read_records_folder,
         write_outputs,
     )
 
+    if args.records is not None:  # a malformed folder is refused before --out is made
+        records, settings = read_records_folder(
+            args.records, IdentificationConfig(features=args.features), split=args.split
+        )
+    out = prepare_output_dir(args.out)
     if args.records is None:
         config = IdentificationConfig(
             seed=0 if args.seed is None else args.seed,
@@ -84,13 +89,7 @@ def run(args: argparse.Namespace) -> int:
         )
         result = identify(config=config, progress=print)
     else:
-        result = identify_records(
-            args.records,
-            split=args.split,
-            seed=args.seed,
-            config=IdentificationConfig(features=args.features),
-            progress=print,
-        )
+        result = identify_records(records, seed=args.seed, config=settings, progress=print)
     paths = write_outputs(result, out)
     print()
     print(summary(result.report))

@@ -69,8 +69,23 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return "\n\n".join(blocks)
 
 
+_NEGATIVE_NUMBER = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.I)
+"""What argparse reads as a negative number, not an option: any notation float() reads."""
+
+
 class _Parser(argparse.ArgumentParser):
-    """An argparse parser whose usage errors are one line: ``piezo simulate: <what is wrong>``."""
+    """An argparse parser whose usage errors are one line: ``piezo simulate: <what is wrong>``.
+
+    argparse takes an argument that starts with ``-`` for an option unless it matches its
+    negative-number pattern, which knows ``-1`` and ``-0.5`` but not ``-1e-3``, so
+    ``--dt -1e-3`` would end in "expected one argument". No option of ``piezo`` looks like a
+    number, so every number-looking argument is a value here, which the option's type then
+    checks (``--dt -1e-3``: "must be greater than 0").
+    """
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: {message} (see '{self.prog} --help')\n")

@@ -276,3 +276,50 @@ def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_th
     late = floor.copy()
     late[120:130] = 30.0  # the window 100-150 ms is the last one above twice the floor
     assert settling_ms(late) == 200.0  # the next one (150-200 ms) and all after stay within
+
+
+def test_the_committed_policies_run_when_asked_for_from_any_folder(tmp_path, monkeypatch):
+    from piezo_cli.benchmark import _committed_policies, policies_line
+
+    monkeypatch.chdir(tmp_path)  # not the project folder: found all the same
+    assert _committed_policies(("mpc", "pid-ff"), "PL140") == ((), {})  # not asked for
+    kept, left_out = _committed_policies(("mpc", "ppo"), "PL140")
+    assert [Path(k).name for k in kept] == ["ppo-seed0", "ppo-seed1", "ppo-seed2"]
+    assert not left_out and all(Path(k).is_dir() for k in kept)
+    kept, left_out = _committed_policies(("ppo", "ppo-dr"), "PL122")
+    line = policies_line(kept, left_out)
+    assert kept == () and len(left_out) == 6 and "\n" not in line
+    assert line.startswith("policies: left out ppo-dr-seed0, ppo-dr-seed1") and "PL122" in line
+    monkeypatch.setattr("piezo_cli.benchmark.committed_policy_folder", lambda: tmp_path / "no")
+    kept, left_out = _committed_policies(("ppo",), "PL140")
+    assert kept == () and "not found in" in left_out["ppo"]
+
+
+@pytest.mark.parametrize(
+    ("controllers", "expected"),
+    [
+        (None, ["ppo-dr-seed0", "ppo-dr-seed1", "ppo-dr-seed2", "ppo-seed0", "ppo-seed1",
+                "ppo-seed2"]),
+        ("mpc,pid-ff", []),
+        ("mpc,ppo", ["ppo-seed0", "ppo-seed1", "ppo-seed2"]),
+    ],
+)
+def test_the_command_runs_the_policies_asked_for_and_says_so_in_one_line(
+    controllers, expected, tmp_path, monkeypatch, capsys
+):
+    seen = {}
+
+    def stop(config, *args, **kwargs):
+        seen["config"] = config
+        raise ValueError("stopped before the episodes")
+
+    monkeypatch.setattr("benchmarks.runner.run_benchmark", stop)
+    monkeypatch.chdir(tmp_path)  # another folder than the project's
+    argv = ["benchmark", "--model", MODEL_DIR, "--out", str(tmp_path / "o")]
+    argv += [] if controllers is None else ["--controllers", controllers]
+    assert main(argv) == 2
+    config = seen["config"]
+    assert [Path(p).name for p in config.policies] == expected
+    assert "ppo" not in config.controllers and "ppo-dr" not in config.controllers
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("policies:")]
+    assert lines == ([f"policies: running {', '.join(expected)}"] if expected else [])

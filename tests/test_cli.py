@@ -8,6 +8,7 @@ import errno
 import json
 import os
 from importlib.metadata import version
+from pathlib import Path
 
 import pytest
 
@@ -201,10 +202,77 @@ def test_identify_refuses_bad_values_before_work(argv, tmp_path, capsys, no_work
     assert_refused(status, stdout, err, "identify", argv[0])
 
 
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = str(ROOT / "docs" / "identify" / "model")
+FEEDFORWARD_PI = "examples.feedforward_pi:FeedforwardPI"
+
+
+@pytest.fixture
+def no_output_folder(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Fail the test if a subcommand makes its output folder (the refusal must come first)."""
+
+    def must_not_make(*args: object, **kwargs: object) -> None:
+        pytest.fail("the output folder was made although the call should have been refused")
+
+    for module in ("benchmark", "identify", "simulate"):
+        monkeypatch.setattr(f"piezo_cli.{module}.prepare_output_dir", must_not_make)
+    monkeypatch.setattr("benchmarks.runner.run_benchmark", must_not_make)
+    monkeypatch.chdir(ROOT)  # entry points import from the current folder, as python -m does
+
+
+@pytest.mark.parametrize(
+    ("argv", "fragments"),
+    [
+        (
+            ["benchmark", "--model", MODEL, "--controllers", f"mpc,{FEEDFORWARD_PI}",
+             "--option", "FeedforwardPI.kk=1"],
+            ["unknown option(s) ['kk']", "valid: ki"],
+        ),
+        (
+            ["benchmark", "--model", MODEL, "--controllers", f"mine={FEEDFORWARD_PI}",
+             "--option", "mine.gain=2"],
+            ["unknown option(s) ['gain']", "FeedforwardPI"],
+        ),
+        (["benchmark", "--model", MODEL, "--option", "mpc.horizon=0"], ["horizon"]),
+        (["benchmark", "--model", MODEL, "--option", "lqr.q=1"], ["'lqr', which is not"]),
+        (["benchmark", "--model", "/nonexistent/model"], ["cannot load the model"]),
+        (["benchmark", "--model", MODEL, "--bender", "PL122"], ["identified on PL140.10"]),
+        (["benchmark", "--model", MODEL, "--dt", "1e-4"], ["identified at dt = 0.001 s"]),
+        (["benchmark", "--address", "auto"], ["--address is for --backend ray"]),
+        (["identify", "--records", "/nonexistent/records"], ["records.json: missing"]),
+        (["identify", "--split", "0.5"], ["--split applies to --records"]),
+        (["simulate", "--records", "/nonexistent/records"], ["records.json: missing"]),
+        (["simulate", "--amplitude", "100"], ["--amplitude 100 V"]),
+        (["identify", "--dt", "-1e-3"], ["--dt", "greater than 0, got '-1e-3'"]),
+        (["benchmark", "--dt", "-1E-3"], ["--dt", "greater than 0, got '-1E-3'"]),
+        (["simulate", "--duration", "-.5e1"], ["--duration", "greater than 0, got '-.5e1'"]),
+    ],
+)
+def test_bad_calls_are_refused_before_the_output_folder_is_made(
+    argv, fragments, tmp_path, capsys, no_work, no_output_folder
+):
+    out = tmp_path / "new" / "out"
+    status, stdout, err = run_cli([*argv, "--out", str(out)], capsys)
+    assert_refused(status, stdout, err, argv[0], *fragments)
+    assert not (tmp_path / "new").exists()
+
+
 @pytest.mark.parametrize("name", ["PL140", "PL140.10", "pl140", "PL112.10"])
 def test_bender_accepts_catalogue_names_with_and_without_suffix(name):
     args = build_parser().parse_args(["simulate", "--bender", name])
     assert args.bender == name.upper()
+
+
+@pytest.mark.parametrize("text", ["-1", "-0.5", "-.5", "-1e-3", "-2.5E+2", "-1.e1"])
+def test_negative_numbers_in_any_notation_are_values(text):
+    args = build_parser().parse_args(["simulate", "--amplitude", text])
+    assert args.amplitude == float(text)
+
+
+@pytest.mark.parametrize("text", ["-inf", "-NaN"])
+def test_negative_non_finite_words_are_values_the_type_refuses(text, tmp_path, capsys):
+    status, stdout, err = run_cli(["simulate", "--amplitude", text, "--out", str(tmp_path)], capsys)
+    assert_refused(status, stdout, err, "simulate", "--amplitude", "finite")
 
 
 def test_off_words_keep_working():

@@ -26,8 +26,9 @@ def test_closed_form_values():
 def test_fit_metrics_with_stroke():
     y = np.array([0.0, 2.0, 4.0])
     y_hat = np.array([1.0, 2.0, 3.0])
-    m = fit_metrics(y, y_hat, stroke=2000.0)
+    m = fit_metrics(y, y_hat, stroke=1000.0)  # one-sided: the full stroke is 2000
     assert m["fit_percent"] == pytest.approx(50.0)
+    assert m["full_stroke"] == 2000.0
     assert m["rmse_percent_stroke"] == pytest.approx(100 * math.sqrt(2 / 3) / 2000)
     assert m["max_abs_error_percent_stroke"] == pytest.approx(0.05)
     assert m["n_samples"] == 3

@@ -162,6 +162,19 @@ def test_a_cache_others_could_write_is_refused(cache, tmp_path, layout, message)
     assert compiled is None and message in build.reason
 
 
+def test_a_fresh_cache_root_and_its_parents_are_private(tmp_path, monkeypatch):
+    root = tmp_path / "new" / "cache"
+    monkeypatch.setenv("PIEZO_CACHE", str(root))
+    monkeypatch.delenv("PIEZO_NATIVE", raising=False)
+    old = os.umask(0o022)  # the usual umask, under which mkdir(parents=True) makes 0755 parents
+    try:
+        compile_function(_function(), cache="t")
+    finally:
+        os.umask(old)
+    for folder in (tmp_path / "new", root, root / "t"):
+        assert oct(folder.stat().st_mode & 0o777) == "0o700", folder
+
+
 def test_a_readable_cache_is_tightened_and_a_sticky_root_accepted(cache):
     cache.mkdir()
     os.chmod(cache, 0o1777)  # like /tmp: others may add entries but not replace ours

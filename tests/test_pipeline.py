@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.signal
@@ -218,6 +220,60 @@ def test_report_and_metadata_carry_the_z_error_bound(short_default_run):
     assert "z_noise_support_V" not in metadata
 
 
+def test_percentages_are_of_the_full_stroke_as_in_the_benchmark(short_default_run):
+    """The identification report and the benchmark share one scale: the full stroke, twice the
+    one-sided stroke that benchmarks.plants.stroke_um defines."""
+    from benchmarks.plants import stroke_um
+    from controllers.metrics import tracking_metrics
+    from identification.report import markdown_report
+
+    full = 2 * stroke_um("PL140")
+    fit = short_default_run.report["validation"]["hammerstein"]
+    assert fit["full_stroke"] == full == 2000.0
+    assert fit["rmse_percent_stroke"] == pytest.approx(100 * fit["rmse"] / full)
+    error = np.array([fit["rmse"], -fit["rmse"]])
+    tracked = tracking_metrics(
+        deflection_um=error, reference_um=np.zeros(2), voltage_v=np.zeros(2),
+        saturated=np.zeros(2, bool), compute_s=np.zeros(2), stroke_um=stroke_um("PL140"),
+    )
+    assert tracked["rmse_percent"] == pytest.approx(fit["rmse_percent_stroke"])
+    text = markdown_report(short_default_run.report, [])
+    assert "RMSE, % of the full stroke (2000 um)" in text
+    assert "stroke +-1000 um (full stroke 2000 um)" in text
+
+
+def test_residuals_figure_and_report_name_the_same_bounds(short_default_run, tmp_path, monkeypatch):
+    """Each residual histogram is drawn against the bound of its own noise, and the report
+    names the one-step bound with the figure's label and value."""
+    import matplotlib.figure
+
+    from identification.figures import write_figures
+    from identification.report import markdown_report
+
+    saved = {}
+    original = matplotlib.figure.Figure.savefig
+
+    def keep(self, path, *args, **kwargs):
+        saved[Path(path).name] = self
+        return original(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", keep)
+    write_figures(short_default_run, tmp_path)
+    one_step, free_run = saved["residuals.png"].axes
+    report = short_default_run.report
+    r_model = report["validation"]["equation_error_bound_um"]
+    assert r_model == short_default_run.model.arx.noise_bound
+    noise = report["environment"]["noise_bound_um"]
+    for ax, bound in ((one_step, r_model), (free_run, noise)):
+        assert sorted(line.get_xdata()[0] for line in ax.lines) == pytest.approx([-bound, bound])
+    label = f"r_hat of the model's linear part +-{r_model:.2f} um"
+    assert label in one_step.get_title() and label in markdown_report(report, [])
+    assert f"sensor noise bound +-{noise:.2f} um" in free_run.get_title()
+    data = short_default_run.data
+    residual = np.abs(data["y_val"] - data["prediction_val"])
+    assert np.quantile(residual, 0.99) < r_model  # the bound holds on fresh data too
+
+
 def test_markdown_report_names_only_existing_repository_files(short_default_run):
     import re
     from pathlib import Path
@@ -386,3 +442,22 @@ def test_markdown_report_names_an_unstable_order_instead_of_failing(short_defaul
     stored = json.loads(json.dumps(jsonable(report)))
     text = markdown_report(stored, [])
     assert f"n = {order}: unstable" in text
+
+
+def test_hysteresis_figure_draws_closed_loops_as_wide_as_the_plants():
+    """The loops of hysteresis.png, from the committed model: closed after the settling
+    period, counter-clockwise, and at full drive ~12 % of the peak-to-peak wide at u = 0, the
+    width the plant's calibration gives (piezo_env.hysteresis)."""
+    from identification.figures import hysteresis_loops
+    from identification.hammerstein import HammersteinModel
+
+    model = HammersteinModel.load(Path(__file__).resolve().parents[1] / "docs/identify/model")
+    widths = []
+    for u, z in hysteresis_loops(model, 30.0):
+        half = u.size // 2  # from the top down, then back up
+        down = np.interp(0.0, u[:half][::-1], z[:half][::-1])
+        up = np.interp(0.0, u[half:], z[half:])
+        assert abs(z[-1] - z[0]) < 0.01 * np.ptp(z)  # closed
+        widths.append((down - up) / np.ptp(z))
+    assert 0 < widths[0] < widths[1] < widths[2]  # wider with the amplitude
+    assert 0.08 < widths[2] < 0.18

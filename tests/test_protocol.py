@@ -57,8 +57,40 @@ def test_a_bare_protocol_object_runs_an_episode(env):
     )
     assert controller.gain == 0.03
     assert episode.compute_s.size == 400 and np.all(episode.compute_s > 0)
-    assert episode.metrics["fallbacks"] == 0 and episode.metrics["deadline_misses"] == 0
+    assert episode.metrics["fallbacks"] == 0
     assert np.isfinite(episode.metrics["rmse_percent"])
+
+
+class Scripted(Bare):
+    """A controller whose every act takes a scripted time on an injected clock."""
+
+    def __init__(self, clock: list[float], durations: np.ndarray) -> None:
+        super().__init__(None, None)
+        self.clock, self.durations, self.calls = clock, durations, 0
+
+    def act(self, observation):
+        self.clock[0] += self.durations[self.calls]
+        self.calls += 1
+        return super().act(observation)
+
+
+def test_deadline_misses_count_the_steps_whose_compute_time_exceeds_dt(env, monkeypatch):
+    """The miss accounting on an injected clock, so that the count is exact on any machine
+    (a wall-clock count of zero misses would depend on the machine's load)."""
+    clock = [0.0]
+    monkeypatch.setattr(
+        "controllers.episode.time", type("Clock", (), {"perf_counter": lambda: clock[0]})
+    )
+    dt = float(env.unwrapped.model.dt)
+    durations = np.full(400, 0.1 * dt)
+    durations[::10] = 2.0 * dt  # 40 misses
+    durations[5] = 0.99 * dt  # just within the deadline: not a miss
+    episode = controllers.run_episode(
+        env, Scripted(clock, durations), seed=0, reference=np.zeros(421), max_steps=400
+    )
+    np.testing.assert_allclose(episode.compute_s, durations, rtol=1e-12)
+    assert episode.metrics["deadline_misses"] == 40
+    assert episode.metrics["compute_max_us"] == pytest.approx(2e6 * dt)
 
 
 def test_the_example_controller_runs_through_make(env):
@@ -83,6 +115,15 @@ def test_broken_entry_points_are_refused_in_one_line(name, message, env):
     with pytest.raises(ValueError, match=message) as raised:
         controllers.make(name, MODEL_DIR, env)
     assert "\n" not in str(raised.value)
+
+
+def test_an_option_the_factory_does_not_take_is_refused_before_it_is_called(env):
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['kk'\].*valid: ki$") as raised:
+        controllers.make(EXAMPLE, MODEL_DIR, env, kk=1)
+    assert "\n" not in str(raised.value)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['kk'\]"):
+        BenchmarkConfig(controllers=(EXAMPLE,), controller_options={"FeedforwardPI": {"kk": 1}})
+    BenchmarkConfig(controllers=(EXAMPLE,), controller_options={"FeedforwardPI": {"ki": 0.3}})
 
 
 def test_rows_are_named_after_the_attribute_or_the_label():

@@ -7,8 +7,10 @@ without entries or a log axis without positive data warns, and none may.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
+import re
 import warnings
 from pathlib import Path
 
@@ -18,7 +20,7 @@ import pytest
 import benchmarks.figures as figures
 from benchmarks.figures import draw_figures
 from benchmarks.report import TIE, verdict, write_benchmark
-from benchmarks.rows import row_color
+from benchmarks.rows import row_color, row_colors
 from benchmarks.runner import BenchmarkConfig, BenchmarkResult
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -278,7 +280,32 @@ def test_colours_are_fixed_by_name():
         "#e377c2",
     ]  # the same in every run: a fixed map, not the draw order
     assert row_color("ppo-seed0") == row_color("ppo-seed2")  # one recipe, one colour
-    assert row_color("Mine") == row_color("Mine") and row_color("Mine") not in colours
+    with pytest.raises(ValueError, match="row_colors"):
+        row_color("Mine")  # a user's row has no fixed colour: it depends on the run's rows
+
+
+def test_every_recipe_of_a_full_row_set_has_its_own_colour():
+    """Every built-in row, both committed recipes (three seeds each) and more user rows than
+    the palette has colours left: pairwise distinct per recipe, seeds share their recipe's."""
+    from controllers.registry import CONTROLLERS
+
+    builtin = [n for n in CONTROLLERS if n != "policy"]
+    rows = [
+        *builtin,
+        *(f"{n}-oracle" for n in builtin if n.startswith(("mpc", "nmpc"))),
+        *(f"{recipe}-seed{k}" for recipe in ("ppo", "ppo-dr") for k in range(3)),
+        *(f"Mine{k}" for k in range(12)),
+        "mine-seed0",
+        "mine-seed1",
+    ]
+    colours = row_colors(rows)
+    recipes = {re.sub(r"-seed\d+$", "", r): colours[r] for r in rows}
+    assert len(set(recipes.values())) == len(recipes)
+    assert colours["mine-seed0"] == colours["mine-seed1"]
+    assert colours["ppo-seed1"] == row_color("ppo-seed0")
+    for fixed in (*builtin, "mpc-oracle", "nmpc-oracle", "ppo-seed2", "ppo-dr-seed0"):
+        assert colours[fixed] == row_color(fixed)  # the same in every run
+    assert row_colors(["Mine0"])["Mine0"] not in {row_color(r) for r in builtin}
 
 
 def _with_rmse(result: BenchmarkResult, values: dict[tuple[str, str], float]) -> BenchmarkResult:
@@ -399,3 +426,56 @@ def test_selections_cover_every_plant_kind():
     chosen = {**SELECTIONS, **POLICY_SELECTIONS}.values()
     plants = set(itertools.chain.from_iterable(s[2] for s in chosen))
     assert {"nominal", "random-plants"} <= plants and len(plants) >= 5
+
+
+def test_without_the_nominal_plant_the_verdict_reads_the_first_plant_and_says_so(
+    tmp_path, capsys
+):
+    result = _result(("pid-ff", "mpc"), ("sine-10Hz", "steps"), ("damping-0.04", "creep"))
+    lines = verdict(result, META)
+    assert "`damping-0.04`" in lines[0] and "nominal plant was not in --plants" in lines[0]
+    assert [line.split(":")[0] for line in lines[1:]] == ["- sine-10Hz", "- steps"]
+    _, text = _write(result, tmp_path)
+    head = text.split("\n## ")[1]
+    assert "on the plant `damping-0.04`" in head and "- sine-10Hz: " in head
+    effort = text.split("## Effort and compute time")[1]
+    assert "| mpc |" in effort and "controller (damping-0.04," in effort
+    only_drawn = verdict(_result(("mpc",), ("sine-10Hz",), ("random-plants",)), META)
+    assert len(only_drawn) == 1 and "only drawn plants ran (random-plants)" in only_drawn[0]
+
+
+def test_the_reason_on_a_reference_with_jumps_comes_from_the_data():
+    """At the oracle's level on steps: at the noise floor with nothing saturated it is
+    noise-limited, whatever the reference's type; with steps at the drive limit it says how
+    many."""
+    result = _with_rmse(
+        _result(("mpc", "mpc-oracle"), ("steps",), ("nominal",)),
+        {("mpc", "steps"): 0.030, ("mpc-oracle", "steps"): 0.029},
+    )
+    for e in result.episodes:
+        e["saturated_fraction"] = 0.0
+    (line,) = verdict(result, META)
+    assert "noise-limited: 1.0x the sensor noise's RMS" in line and "oracle's level" in line
+    assert "jump" not in line and "drive limit" not in line
+    result = _with_rmse(result, {("mpc", "steps"): 0.3, ("mpc-oracle", "steps"): 0.29})
+    result.episodes[0]["saturated_fraction"] = 0.03  # below the drive-limited threshold
+    (line,) = verdict(result, META)
+    assert "jump-limited" in line and "3.0 % of the steps at the drive limit" in line
+
+
+@pytest.mark.parametrize(
+    ("bender", "dt", "applies"),
+    [("PL140", None, True), ("PL140", 5e-4, False), ("PL127", None, False)],
+)
+def test_the_reference_checks_say_when_they_apply_and_whether_this_run_does(bender, dt, applies):
+    from benchmarks.reference_checks import check_targets, reference_checks_section
+
+    result = _result(("mpc", "pid-notch"), ("sine-10Hz",), ("nominal",))
+    result.config = dataclasses.replace(result.config, bender=bender, dt=dt)
+    section = "\n".join(reference_checks_section(check_targets(result), result))
+    ms = f"{result.config.dt * 1e3:g} ms"
+    assert "The checks apply to a run on the PL140 at dt = 1 ms (its default)" in section
+    assert f"this run is on the {bender} at dt = {ms}" in section
+    assert ("so they apply" in section) == applies
+    assert ("so they do not apply" in section) == (not applies)
+    assert "PL140's default run" not in section

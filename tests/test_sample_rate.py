@@ -136,17 +136,17 @@ def test_random_steps_hold_a_tenth_of_a_second_at_any_sample_time():
 
 
 def test_a_policy_trained_at_1_ms_is_refused_or_left_out_on_the_pl127(monkeypatch):
-    from piezo_cli.benchmark import _DEFAULT_POLICIES, _policies
+    from piezo_cli.benchmark import _committed_policies
 
     folder = str(ROOT / "docs" / "policies" / "ppo-seed0")
     with pytest.raises(ValueError, match=r"trained at dt = 0.001 s .* steps at dt = 0.00025 s"):
         _benchmark_config(bender="PL127", policies=(folder,))
     monkeypatch.chdir(ROOT)
-    kept, left_out = _policies(_DEFAULT_POLICIES, "PL127")
-    assert kept == () and left_out
+    kept, left_out = _committed_policies(("ppo", "ppo-dr"), "PL127")
+    assert kept == () and len(left_out) == 6
     assert all("PL127" in reason for reason in left_out.values())
-    kept, left_out = _policies(_DEFAULT_POLICIES, "PL140")
-    assert kept and not left_out
+    kept, left_out = _committed_policies(("ppo", "ppo-dr"), "PL140")
+    assert len(kept) == 6 and not left_out
 
 
 def test_the_benchmark_command_defaults_to_2_s_episodes():

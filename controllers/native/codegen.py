@@ -245,12 +245,20 @@ def cache_dir(name: str = "nmpc") -> Path:
 def _private_folder(folder: Path) -> Path:
     """Create ``folder`` (mode 0700) and check that only this user can write it, or raise.
 
+    Every folder created on the way (the cache root ``$PIEZO_CACHE`` and its missing
+    parents) is made 0700 too; a folder that exists keeps its mode.
+
     The folder must be a plain folder (not a symlink) owned by this user and writable by no
     one else; one that others may only read is tightened to 0700. Its parent (the cache root)
     must be owned by this user or root and writable by no one else unless sticky (like
     /tmp), so that nobody can swap the folder for another.
     """
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    for path in reversed((folder, *folder.parents)):
+        # mkdir(parents=True) would make the parents 0777 minus the umask (0755 under 022),
+        # and the umask may also take bits off 0700: each new folder is made and set here.
+        if not path.exists():
+            path.mkdir(mode=0o700, exist_ok=True)
+            path.chmod(0o700)
     uid = os.getuid()
     for path, owners, sticky_ok in ((folder, {uid}, False), (folder.parent, {uid, 0}, True)):
         info = path.lstat()
