@@ -146,8 +146,8 @@ displacement sensor (:data:`BENCH_SENSOR_HZ`), rate-dependent Prandtl-Ishlinskii
 (loop 1.5x as wide at a full-stroke 50 Hz sine as quasi-static) and the disturbances a bench
 has (:class:`piezo_env.Disturbance`: amplifier output noise, floor vibration at the tip, sensor
 quantisation), each documented in :mod:`piezo_env`. A controller may know the amplifier's slew
-limit (a datasheet value: ``env.unwrapped.slew_limit``); the rest it does not. ``drift`` moves the piezoelectric
-coefficient and the stiffness during the episode (:data:`DRIFT`).
+limit (a datasheet value: ``env.unwrapped.slew_limit``); the rest it does not. ``drift`` moves
+the piezoelectric coefficient and the stiffness during the episode (:data:`DRIFT`).
 """
 
 MONTE_CARLO = "random-plants"
