@@ -22,7 +22,14 @@ from benchmarks.reference_checks import (
 )
 from benchmarks.rows import seed_groups
 from benchmarks.runner import BOX_CORNERS, DRAWN_PLANTS, MONTE_CARLO, BenchmarkResult
-from benchmarks.verdict import cell_index, tie_rule, verdict, verdict_plant, winners
+from benchmarks.verdict import (
+    cell_index,
+    headline_plants,
+    tie_rule,
+    verdict,
+    verdict_plant,
+    winners,
+)
 from controllers.observer import RUNAWAY_MEMORY, RUNAWAY_PERSISTENCE
 
 __all__ = [
@@ -200,14 +207,19 @@ def _bender(result: BenchmarkResult) -> str:
 
 
 def tracking_tables(
-    result: BenchmarkResult, *, plants: tuple[str, ...] | None = None, max_errors: bool = True
+    result: BenchmarkResult,
+    *,
+    plants: tuple[str, ...] | None = None,
+    max_errors: bool = True,
+    identify_on: list[str] | tuple[str, ...] = (),
 ) -> str:
     """RMSE and max-error tables per plant (deterministic: bitwise equal for any ``jobs``).
 
     Several seeds of one trained recipe also get a row ``NAME (seeds)``: the mean over the
     training seeds +- the half-width of its 95 % interval.
     ``plants`` selects the plants (default all but the Monte Carlo draws); ``max_errors``
-    adds the nominal plant's max-error table.
+    adds the nominal plant's max-error table; ``identify_on`` (the run's ``--identify-on``)
+    names in each title the plant its model was identified on.
     """
     index = cell_index(result)
     cfg = result.config
@@ -224,7 +236,8 @@ def tracking_tables(
         max_error = _cell(index, plant, "max_error_um", 1, groups)
 
         title = f"Nominal {_bender(result)}" if plant == "nominal" else f"Plant: {plant}"
-        parts.append(f"### {title}: RMSE (% of the full stroke)\n")
+        source = _identified_on(plant, identify_on)
+        parts.append(f"### {title}{source}: RMSE (% of the full stroke)\n")
         parts.append(_table(controllers, refs, rmse, "controller") + "\n")
         if any("adaptive" in c for c in controllers):
             second = _cell(index, plant, "rmse_second_half_percent", 3, groups)
@@ -236,6 +249,39 @@ def tracking_tables(
             parts.append(f"### {title}: max |error| (um)\n")
             parts.append(_table(controllers, refs, max_error, "controller") + "\n")
     return "\n".join(parts)
+
+
+def _headline_sentence(headline: list[str]) -> str:
+    """What the headline tables are."""
+    if headline == ["nominal"]:
+        return "The paper's clean plant: the nominal bender, sensor noise only."
+    if headline[:1] == ["nominal"] and len(headline) > 1:
+        rest = ", ".join(f"`{p}`" for p in headline[1:])
+        return (
+            "The paper's clean plant (the nominal bender, sensor noise only), then "
+            f"{rest} as a user meets it: with a model identified on that plant itself."
+        )
+    return f"The plants this run reads its verdict on: {', '.join(f'`{p}`' for p in headline)}."
+
+
+def max_error_table(result: BenchmarkResult, plant: str) -> str:
+    """The max |error| table (um) of one plant."""
+    text = tracking_tables(result, plants=(plant,), max_errors=True)
+    head = text.find("max |error|")
+    if head < 0:
+        return ""
+    return text[text.rfind("### ", 0, head):]
+
+
+def _identified_on(plant: str, identify_on: list[str] | tuple[str, ...]) -> str:
+    """``, model identified on X`` for a plant whose model was not identified on the nominal
+    plant (empty otherwise, or when the run does not say)."""
+    if not identify_on:
+        return ""
+    source = plant if plant in identify_on[1:] else identify_on[0]
+    if source == "nominal":
+        return ""
+    return ", model identified on it" if source == plant else f", model identified on `{source}`"
 
 
 def observer_fallback_section(result: BenchmarkResult) -> str:
@@ -500,10 +546,24 @@ def _markdown(
     figures: dict[str, Any],
 ) -> str:
     plant = verdict_plant(result) or "nominal"
-    where = "the nominal plant" if plant == "nominal" else f"the plant `{plant}`"
-    lines = [
-        f"# Closed-loop benchmark on PiezoBender-v0 ({_bender(result)})",
-        "",
+    headline = headline_plants(result, meta)
+    identify_on = meta.get("identify_on") or ()
+    where = " and ".join(
+        "the nominal plant" if p == "nominal" else f"the plant `{p}`" for p in headline
+    ) or "the nominal plant"
+    lines = [f"# Closed-loop benchmark on PiezoBender-v0 ({_bender(result)})", ""]
+    if headline:
+        lines += [
+            "## Headline",
+            "",
+            _headline_sentence(headline),
+            "",
+            tracking_tables(
+                result, plants=tuple(headline), max_errors=False, identify_on=identify_on
+            ),
+        ]
+    others = tuple(p for p in result.config.plants if p not in headline)
+    lines += [
         "## Verdict",
         "",
         f"Best controller per reference on {where} (RMSE, % of the full stroke), "
@@ -515,7 +575,8 @@ def _markdown(
         "",
         "## Tracking",
         "",
-        tracking_tables(result),
+        max_error_table(result, plant) if plant in headline else "",
+        tracking_tables(result, plants=others, identify_on=identify_on),
         bench_gap_table(result),
         monte_carlo_table(result, BOX_CORNERS),
         monte_carlo_table(result),

@@ -23,7 +23,15 @@ from benchmarks.cells import TIE, aggregate, different
 from benchmarks.references import REFERENCES
 from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
 
-__all__ = ["SATURATED", "cell_index", "tie_rule", "verdict", "verdict_plant", "winners"]
+__all__ = [
+    "SATURATED",
+    "cell_index",
+    "headline_plants",
+    "tie_rule",
+    "verdict",
+    "verdict_plant",
+    "winners",
+]
 
 SATURATED = 0.05
 """Fraction of clipped steps above which the drive, not the controller, is called the limit."""
@@ -82,8 +90,23 @@ def verdict_plant(result: BenchmarkResult) -> str | None:
     return plants[0] if plants else None
 
 
+def headline_plants(result: BenchmarkResult, meta: dict[str, Any] | None = None) -> list[str]:
+    """The plants the report opens with and the verdict reads: :func:`verdict_plant` (the
+    paper's clean plant when run), then each plant that ran on a model identified on it
+    (``meta["identify_on"]`` after its first: ``piezo benchmark --identify-on nominal,bench``
+    gives the bench identified on the bench, as a user meets it)."""
+    first = verdict_plant(result)
+    if first is None:
+        return []
+    index = cell_index(result)
+    own = list((meta or {}).get("identify_on") or [])[1:]
+    return [first] + [
+        p for p in own if p != first and any(k[0] == p for k in index)
+    ]
+
+
 def verdict(result: BenchmarkResult, meta: dict[str, Any] | None = None) -> list[str]:
-    """Per reference of the verdict's plant, one Markdown line: the best row, its lead, what
+    """Per reference of each headline plant, one Markdown line: the best row, its lead, what
     limits it.
 
     Parameters
@@ -91,32 +114,44 @@ def verdict(result: BenchmarkResult, meta: dict[str, Any] | None = None) -> list
     result : BenchmarkResult
     meta : dict, optional
         The run's facts (:func:`benchmarks.report.write_benchmark`); its ``noise_bound_um``
-        (sensor noise bound r, um) is the noise a row is compared with. Without it, the
-        nominal plant's: the env's default (:class:`piezo_env.TaskConfig`).
+        (sensor noise bound r, um) is the noise a row is compared with (without it, the
+        nominal plant's: the env's default, :class:`piezo_env.TaskConfig`), and its
+        ``identify_on`` names the plants that ran on their own model (:func:`headline_plants`).
 
     Returns
     -------
     list of str
         ``- REF: **`best`** (x %), L better than `next`; why`` per reference run on the
         verdict's plant (:func:`verdict_plant`), after a line naming that plant when it is not
-        the nominal one; a tie names every tied row and bolds none. Never empty: a run with
-        only drawn plants gets one line saying where its ranking is.
+        the nominal one; then, for each further headline plant, a line naming it and its own
+        lines. A tie names every tied row and bolds none. Never empty: a run with only drawn
+        plants gets one line saying where its ranking is.
     """
-    plant = verdict_plant(result)
-    if plant is None:
+    plants = headline_plants(result, meta)
+    if not plants:
         return [
             "- no verdict: only drawn plants ran "
             f"({', '.join(result.config.plants)}); their tables rank the rows over the draws"
         ]
+    lines = []
+    if plants[0] != "nominal":
+        lines.append(
+            f"- read on the plant `{plants[0]}`, the first this run ran (the nominal plant was "
+            "not in --plants):"
+        )
+    lines += _plant_verdict(result, plants[0], meta)
+    for plant in plants[1:]:
+        lines.append(f"- on the plant `{plant}`, with the model identified on it:")
+        lines += ["  " + line for line in _plant_verdict(result, plant, meta)]
+    return lines
+
+
+def _plant_verdict(result: BenchmarkResult, plant: str, meta: dict[str, Any] | None) -> list[str]:
+    """The verdict's lines of one plant."""
     index = cell_index(result)
     rows = [r for r in result.config.rows if not r.endswith("-oracle")]
     noise = (meta or {}).get("noise_bound_um", _nominal_noise_bound())
     lines = []
-    if plant != "nominal":
-        lines.append(
-            f"- read on the plant `{plant}`, the first this run ran (the nominal plant was not "
-            "in --plants):"
-        )
     for ref in result.config.references:
         ranked = sorted(
             (index[(plant, r, ref)]["rmse_percent"], r) for r in rows if (plant, r, ref) in index
@@ -136,7 +171,7 @@ def verdict(result: BenchmarkResult, meta: dict[str, Any] | None = None) -> list
             head += f", {_lead(rest[0][0] / best_value)} than `{rest[0][1]}`"
         why = _why(index, (plant, best, ref), 2.0 * result.config.stroke_um, noise)
         lines.append(f"- {ref}: {head}; {why}")
-    if len(lines) == (plant != "nominal"):
+    if not lines:
         lines.append(f"- no verdict: no controller other than an oracle ran on `{plant}`")
     return lines
 

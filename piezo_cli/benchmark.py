@@ -600,7 +600,7 @@ def run(args: argparse.Namespace) -> int:
         write_benchmark,
     )
     from benchmarks.runner import run_benchmark
-    from benchmarks.verdict import verdict_plant
+    from benchmarks.verdict import headline_plants
     from piezo_cli.output import terminal_progress
     from piezo_env import TaskConfig
 
@@ -656,12 +656,15 @@ def run(args: argparse.Namespace) -> int:
         meta["resumed_groups"] = resumed
     paths = write_benchmark(result, out, meta)
     clear_incomplete(out, "piezo benchmark")
-    plant = verdict_plant(result)
-    print(f"verdict ({plant or 'no single'} plant, RMSE in % of the full stroke):")
+    headline = headline_plants(result, meta)
+    print(f"verdict ({' and '.join(headline) or 'no single'} plant, RMSE in % of the full stroke):")
     print("\n".join(line.replace("**", "").replace("`", "") for line in verdict(result, meta)))
-    if plant is not None:
+    if headline:
         print()
-        print(tracking_tables(result, plants=(plant,), max_errors=False).replace("**", ""))
+        tables = tracking_tables(
+            result, plants=tuple(headline), max_errors=False, identify_on=meta["identify_on"] or ()
+        )
+        print(tables.replace("**", ""))
     checks = check_targets(result)
     line = summary_line(checks)
     if line:

@@ -140,3 +140,29 @@ def test_a_plant_with_its_own_model_runs_it_and_the_others_run_the_first():
     assert mixed["bench"] == second["bench"] != first["bench"]
     with pytest.raises(ValueError, match="not run"):
         run_benchmark(config, {"nominal": MODELS[0], "creep": MODELS[1]})
+
+
+def test_the_report_opens_with_the_clean_plant_and_the_bench_identified_on_it(tmp_path):
+    from benchmarks.machine import machine
+    from benchmarks.report import write_benchmark
+    from benchmarks.verdict import verdict
+
+    config = BenchmarkConfig(
+        controllers=("mpc", "pid-ff", "mpc-oracle"), references=("sine-10Hz",),
+        plants=("nominal", "creep", "bench"), steps=60,
+    )
+    result = run_benchmark(config, {"nominal": MODELS[0], "bench": MODELS[1]})
+    meta = {"model": MODELS[0], "dt": 1e-3, "noise_bound_um": 1.0, "stroke_um": 1000.0,
+            "machine": machine(), "identify_on": ["nominal", "bench"]}
+    lines = verdict(result, meta)
+    assert lines[0].startswith("- sine-10Hz:")
+    assert lines[1] == "- on the plant `bench`, with the model identified on it:"
+    assert lines[2].startswith("  - sine-10Hz:")
+    write_benchmark(result, tmp_path, meta, figures=False)
+    text = (tmp_path / "benchmark.md").read_text()
+    headline = text[text.index("## Headline"):text.index("## Verdict")]
+    assert "### Nominal PL140: RMSE" in headline
+    assert "### Plant: bench, model identified on it: RMSE" in headline
+    assert "creep" not in headline  # the other plants come under Tracking, once
+    assert text.count("### Plant: bench, model identified on it: RMSE") == 1
+    assert "### Plant: creep: RMSE" in text[text.index("## Tracking"):]

@@ -363,12 +363,14 @@ def test_a_saturated_winner_is_drive_limited():
     assert "drive-limited: 30 % of the steps saturated" in verdict(result, META)[0]
 
 
-def test_the_report_opens_with_the_verdict_and_takes_its_numbers_from_the_task(tmp_path):
+def test_the_report_opens_with_the_headline_then_the_verdict_from_the_task(tmp_path):
     result = _result(("pid-ff", "mpc"), ("sine-10Hz",), ("nominal",))
     meta = {**META, "stroke_um": 450.0, "noise_bound_um": 0.5}
     write_benchmark(result, tmp_path, meta, figures=False)
     text = (tmp_path / "benchmark.md").read_text()
-    head = text.split("\n## ")[1]
+    sections = text.split("\n## ")
+    assert sections[1].startswith("Headline") and "| mpc |" in sections[1]
+    head = sections[2]
     assert head.startswith("Verdict") and "- sine-10Hz: **`" in head
     assert f"under {100 * TIE:g} % is called a tie" in head
     assert "2 x 450 um = 900 um" in text and "sensor noise +-0.5 um" in text
@@ -436,7 +438,7 @@ def test_without_the_nominal_plant_the_verdict_reads_the_first_plant_and_says_so
     assert "`damping-0.04`" in lines[0] and "nominal plant was not in --plants" in lines[0]
     assert [line.split(":")[0] for line in lines[1:]] == ["- sine-10Hz", "- steps"]
     _, text = _write(result, tmp_path)
-    head = text.split("\n## ")[1]
+    head = text.split("\n## ")[2]
     assert "on the plant `damping-0.04`" in head and "- sine-10Hz: " in head
     effort = text.split("## Effort and compute time")[1]
     assert "| mpc |" in effort and "controller (damping-0.04," in effort
