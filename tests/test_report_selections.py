@@ -481,3 +481,31 @@ def test_the_reference_checks_say_when_they_apply_and_whether_this_run_does(bend
     assert ("so they apply" in section) == applies
     assert ("so they do not apply" in section) == (not applies)
     assert "PL140's default run" not in section
+
+
+def test_the_oracle_ratio_table_divides_each_cell_by_the_oracles():
+    from benchmarks.report import oracle_ratio_table
+    from benchmarks.verdict import cell_index
+
+    result = _result(("mpc", "mpc-oracle"), ("sine-10Hz", "multisine"),
+                     ("nominal", "prandtl-ishlinskii"))
+    table = oracle_ratio_table(result)
+    index = cell_index(result)
+    for plant in ("nominal", "prandtl-ishlinskii"):
+        expected = [
+            index[(plant, "mpc", r)]["rmse_percent"]
+            / index[(plant, "mpc-oracle", r)]["rmse_percent"]
+            for r in ("sine-10Hz", "multisine")
+        ]
+        assert f"| {plant} | {expected[0]:.3g} | {expected[1]:.3g} |" in table
+    assert oracle_ratio_table(_result(("mpc",), ("sine-10Hz",), ("nominal",))) == ""
+
+
+def test_the_report_lists_every_default_chosen_on_the_benchmark(tmp_path):
+    from benchmarks.report import CHOSEN_ON_THE_BENCHMARK
+
+    _, text = _write(_result(("pid-ff", "mpc"), ("sine-10Hz",), ("nominal",)), tmp_path)
+    section = text[text.index("### Tuning disclosure"):]
+    assert len(CHOSEN_ON_THE_BENCHMARK) >= 7
+    for what, on in CHOSEN_ON_THE_BENCHMARK:
+        assert f"- {what}: {on}" in section
