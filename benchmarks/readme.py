@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.cells import aggregate
+from benchmarks.cells import aggregate, ci95_half_width
 from benchmarks.verdict import winners
 
 __all__ = [
@@ -78,35 +78,39 @@ def _rows(data: dict[str, Any]) -> tuple[list[str], dict[str, list[str]]]:
     return list(config["controllers"]) + list(labels), labels
 
 
-def headline_table(data: dict[str, Any]) -> str:
-    """Nominal RMSE (% of the full stroke) per controller and reference, and step medians.
+def headline_table(data: dict[str, Any], plant: str = "nominal") -> str:
+    """RMSE (% of the full stroke) on ``plant`` per controller and reference, and step medians.
 
     The winner of a column is bolded as in the report's verdict (:func:`benchmarks.verdict.
     winners`): oracles aside, and not when it ties; a trained recipe's seeds share one row,
-    mean +- std over the seeds.
+    their mean +- the half-width of its 95 % interval.
     """
     index = {
-        ("nominal", c["controller"], c["reference"]): c
+        (plant, c["controller"], c["reference"]): c
         for c in aggregate(data["results"]["episodes"])
-        if c["plant"] == "nominal"
+        if c["plant"] == plant
     }
-    refs = list(data["results"]["config"]["references"])
+    refs = [r for r in data["results"]["config"]["references"] if any(k[2] == r for k in index)]
     rows, members = _rows(data)
-    best = {ref: winners(index, "nominal", rows, ref) for ref in refs}
+    rows = [r for r in rows if any(k[1] in members.get(r, [r]) for k in index)]
+    best = {ref: winners(index, plant, rows, ref) for ref in refs}
     steps: dict[str, list[float]] = {}
     for t in data["timing"]:
-        if t["plant"] == "nominal":
+        if t["plant"] == plant:
             steps.setdefault(t["controller"], []).append(t["compute_median_us"])
 
     def cell(row: str, ref: str) -> str:
         values = [index[k]["rmse_percent"] for n in members.get(row, [row])
-                  if (k := ("nominal", n, ref)) in index]
+                  if (k := (plant, n, ref)) in index]
         if len(values) > 1:
-            return f"{np.mean(values):.2f} +- {np.std(values, ddof=1):.2f}"
+            ci = ci95_half_width(values)
+            return f"{np.mean(values):.2f} +- {ci:.2f}"
         text = f"{values[0]:.3f}" if values else ""
         return f"**{text}**" if text and best[ref] == [row] else text
 
-    head = "| controller | " + " | ".join(refs) + " | step median (us) |"
+    head = (
+        "| controller (RMSE, % of the full stroke) | " + " | ".join(refs) + " | step median (us) |"
+    )
     lines = [head, "|---" * (len(refs) + 2) + "|"]
     for row in rows:
         medians = [m for n in members.get(row, [row]) for m in steps.get(n, [])]
@@ -182,11 +186,33 @@ def headline(data: dict[str, Any]) -> str:
         "",
         headline_table(data),
         "",
+        *_own_model_tables(data),
         "The bad news of the same run:",
         "",
         *[f"- {line}" for line in bad_news(data)],
     ]
     return "\n".join(lines)
+
+
+def _own_model_tables(data: dict[str, Any]) -> list[str]:
+    """The table of each plant the run identified its own model on (``--identify-on``'s later
+    plants: the bench identified on the bench), after a line saying what it is."""
+    lines = []
+    for plant in (data["meta"].get("identify_on") or [])[1:]:
+        lines += [
+            f"The `{plant}` plant as a user meets it, with a model identified on it "
+            f"({_PLANT_WORDS.get(plant, 'see the report')}):",
+            "",
+            headline_table(data, plant),
+            "",
+        ]
+    return lines
+
+
+_PLANT_WORDS = {
+    "bench": "a current-limited amplifier, a 20 kHz sensor, rate-dependent hysteresis, the "
+    "amplifier's output noise, floor vibration and a 16-bit sensor",
+}
 
 
 ADAPTATION_REFERENCES = ("sine-10Hz", "sine-50Hz", "multisine")
