@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import controllers
-from benchmarks.corners import vertex_env
+from benchmarks.studies.corners import vertex_env
 from controllers.pid import PIDController
 from controllers.prediction import PredictionModel
 
