@@ -17,8 +17,12 @@ optional ``stats`` and ``describe``):
 - :mod:`benchmarks.readme`: the README's numbers, generated from the committed results.
 - :mod:`benchmarks.figures`: the figures of a run.
 
-The speed and accuracy scripts run as modules from the project folder, each printing a table
-and writing it with the machine and the date to ``benchmarks/results/``:
-``python -m benchmarks.env_speed`` (likewise ``controller_latency``, ``inverse_speed``,
-``arx_estimation``, ``identification_accuracy``, ``rl_throughput``, ``tracking``).
+The studies and speed scripts sit apart from the harness, each a module run from the project
+folder that prints a table and writes it with the machine and the date to
+``benchmarks/results/``: :mod:`benchmarks.studies` (what identification and the tolerance box
+cost: ``python -m benchmarks.studies.identification_accuracy``, likewise
+``identification_precision``, ``arx_estimation``, ``corners``) and :mod:`benchmarks.speed`
+(compute times: ``python -m benchmarks.speed.env_speed``, likewise ``controller_latency``,
+``inverse_speed``, ``rl_throughput``). ``python -m benchmarks.tracking`` runs the committed
+benchmark and ``python -m benchmarks.tuning`` the tuning sweep.
 """

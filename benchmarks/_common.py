@@ -31,14 +31,31 @@ def machine_line() -> str:
     )
 
 
-def header(title: str, script: str) -> list[str]:
-    """Title, date, machine and the command that produced the file."""
+def header(title: str, module: str, args: str = "") -> list[str]:
+    """Title, date, machine and the command that produced the file.
+
+    Parameters
+    ----------
+    title : str
+        The file's title.
+    module : str
+        Dotted name of the script's module (``__spec__.name`` when run with ``python -m``, e.g.
+        ``benchmarks.speed.env_speed``), so the file names the command that reproduces it.
+    args : str
+        The command's arguments, if any (e.g. ``--bender PL127 --model DIR``).
+    """
+    if not module.startswith("benchmarks.") or module.endswith(".py"):
+        raise ValueError(
+            f"module must be a dotted module name such as 'benchmarks.speed.env_speed', "
+            f"got {module!r}"
+        )
+    command = f"python -m {module}" + (f" {args}" if args else "")
     return [
         f"# {title}",
         "",
         f"Date: {datetime.date.today().isoformat()}  ",
         f"Machine: {machine_line()}  ",
-        f"Produced by `python -m benchmarks.{script.removesuffix('.py')}`.",
+        f"Produced by `{command}`.",
         "",
     ]
 

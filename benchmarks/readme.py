@@ -11,7 +11,7 @@
   plants, whole episode and second half, and the Monte Carlo worst cases;
 - ``identification`` from ``docs/identify/report.json`` (``piezo identify --out docs/identify``);
 - ``latency`` from ``benchmarks/results/controller_latency.json``
-  (``python -m benchmarks.controller_latency``): step times as ratios to a CartPole-v1 step of
+  (``python -m benchmarks.speed.controller_latency``): step times as ratios to a CartPole-v1 step of
   the same run, deadline misses, the MPC at 10 kHz, and the speed targets they miss.
 
 ``--check`` only compares (a test runs it).

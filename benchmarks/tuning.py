@@ -334,7 +334,7 @@ def sweep(controller: str, model_dir: str, *, bender: str = "PL140", seed: int =
 def _report(model_dir: str) -> list[str]:
     from benchmarks._common import header, markdown_table
 
-    lines = header("Fair tuning: each main knob by one procedure, and its sweep", "tuning")
+    lines = header("Fair tuning: each main knob by one procedure, and its sweep", __spec__.name)
     lines += [
         "The procedure (`benchmarks/tuning.py`) runs each setting on the identified model "
         f"(`{model_dir}`) as the plant, at its static gain x{' / x'.join(f'{g:g}' for g in GAINS)}"

@@ -71,7 +71,7 @@ loop is stable on every vertex's linear part (:func:`radii_matrix`, with the box
 every mode, aliases included, :mod:`controllers.tolerance_box`) and within the Ms bound on the
 model (:func:`controllers.predictive.screen_bank`). The MPCs learn the gain
 (:mod:`controllers.gain`), so the softer bender whose resonance the fast filters had to chase is
-a vertex the kept filters are stable on; :mod:`benchmarks.corners` measures the result
+a vertex the kept filters are stable on; :mod:`benchmarks.studies.corners` measures the result
 (``benchmarks/results/corners*.md``). The guard stays as the last line for what the box does not
 hold.
 

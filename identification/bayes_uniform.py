@@ -56,9 +56,9 @@ moves eq. 23's ``theta`` by several percent.
 
 What it costs
 -------------
-Measured with ``benchmarks/arx_estimation.py`` (PRBS input, lightly damped poles 0.99 at 50 Hz,
-1 kHz sampling; results in ``benchmarks/results/arx_estimation.md``) on ARX(2,2), ARX(3,2) and
-ARX(4,4) with ``r`` = 1 % and 5 % of the peak output and 2,000 or 20,000 samples:
+Measured with ``benchmarks/studies/arx_estimation.py`` (PRBS input, lightly damped poles 0.99 at
+50 Hz, 1 kHz sampling; results in ``benchmarks/results/arx_estimation.md``) on ARX(2,2),
+ARX(3,2) and ARX(4,4) with ``r`` = 1 % and 5 % of the peak output and 2,000 or 20,000 samples:
 
 * ``r_hat`` is within 1 % of the exact MAP (Chebyshev) bound in every case (-0.9 % ... -0.02 %
   from the true ``r``, where Chebyshev gives -0.6 % ... -0.02 %); least squares' largest residual

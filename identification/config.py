@@ -65,8 +65,8 @@ class IdentificationConfig:
         seeds 0-4), against 0.10-0.42 at 1 V. It sets the signal-to-noise ratio of steps b and
         b' (the linear part alone), and above the rich record's band (about 100 Hz) of step
         e'. Measured with the earlier defaults (3 x 32 network, decaying-multisine rich
-        record; ``benchmarks/identification_precision.py``, worst closed-loop ratio of ``mpc``
-        to the oracle over identification seeds 0-4, 1 V -> 2 V): 100 Hz sine PL140 2.96 ->
+        record; ``benchmarks/studies/identification_precision.py``, worst closed-loop ratio of
+        ``mpc`` to the oracle over identification seeds 0-4, 1 V -> 2 V): 100 Hz sine PL140 2.96 ->
         1.95, PL122 1.69 -> 1.42, but PL127 1.31 -> 1.37; 50 Hz sine PL140 2.93 -> 2.77, PL122
         1.33 -> 1.18, PL127 1.30 -> 1.22.
     prbs_clock : int
@@ -131,7 +131,7 @@ class IdentificationConfig:
         PL127 seeds 5-9 1.30 / 1.52 / 1.90 / 1.15 / 1.26 (one seed's network errs by 1e-4 of the
         stroke, invisible in the fit); 3 x 2, PL140 1.10 / 1.23 / 1.21 / 1.08 / 1.12, PL127
         1.13 / 1.21 / 1.06 / 1.09 / 1.18, PL122 1.09 / 1.14 / 1.11 / 1.10 / 1.09.
-        ``benchmarks.identification_precision`` keeps the comparison with 3 x 32.
+        ``benchmarks.studies.identification_precision`` keeps the comparison with 3 x 32.
     n_bouc_wen : int
         Number of Bouc-Wen operator features (``features="bouc-wen"``), their saturation levels
         spaced geometrically (:func:`identification.features.default_bouc_wen_levels`).

@@ -11,9 +11,9 @@ import pytest
 import scipy.stats
 
 import controllers
-from benchmarks.corners import vertex_env
 from benchmarks.plants import PLANTS
 from benchmarks.references import make_reference
+from benchmarks.studies.corners import vertex_env
 from controllers.adaptive import (
     SWITCH_CHI2,
     AdaptiveMPC,

@@ -269,7 +269,7 @@ def test_several_noise_seeds_give_means_with_intervals_and_honest_ties(tmp_path)
 
 
 def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_the_floor():
-    from benchmarks.corners import settling_ms
+    from benchmarks.studies.corners import settling_ms
 
     floor = np.ones(2000)
     assert settling_ms(floor) == 50.0

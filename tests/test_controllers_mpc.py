@@ -167,7 +167,9 @@ def test_mpc_on_the_bender_is_accurate_finite_and_deterministic(env):
     second = controllers.run_episode(env, controller, seed=4, reference=reference, max_steps=400)
     np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
     assert np.all(np.abs(first.voltage_V) <= 30.0) and np.all(np.isfinite(first.deflection_um))
-    assert first.metrics["rmse_percent"] < 0.06  # measured 0.039 %
+    # measured 0.0060 % on seed 4 (0.0033-0.0062 % over seeds 0-5), docs/identify/model,
+    # 400 steps of the 10 Hz 500 um sine
+    assert first.metrics["rmse_percent"] < 0.012
     assert first.controller["stats"]["fallbacks"] == 0
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import controllers
-from benchmarks.corners import vertex_env
+from benchmarks.studies.corners import vertex_env
 from controllers.pid import PIDController
 from controllers.prediction import PredictionModel
 
@@ -108,16 +108,15 @@ def test_antiwindup_bounds_integrator_and_recovers(built, model):
         us.append(u)
     integrals = np.array(integrals)
     # Without anti-windup the integrator would reach ki dt sum(e) ~ 1e4 V. With it, it is held
-    # at u_max - kp e - D: beyond u_max only while the derivative kick of the jump decays.
-    after_kicks = np.r_[50:590, 650:1199]
-    assert np.abs(integrals[after_kicks]).max() < 2 * u_max
-    assert np.abs(integrals).max() < 10 * u_max
+    # at u_max - kp e - D: measured max |integral| = u_max (30 V) on this run, jumps included.
+    assert np.abs(integrals).max() < 1.5 * u_max
     assert controller.stats.saturated == 0  # the controller clips itself, never the base
     assert us[590] == u_max  # pinned at the rail while the reference is out of reach
     # A wound-up integrator would hold the rail long after the reference returns (t = 600):
     # here the voltage leaves it at once, and what remains is the lightly damped mode ringing.
     assert max(us[602:610]) < u_max
-    assert np.abs(ys[1000:]).max() < 0.01 * controller.task.stroke_um
+    # measured 1.3e-11 strokes over steps 1000-1199: the ringing has died out
+    assert np.abs(ys[1000:]).max() < 4e-11 * controller.task.stroke_um
 
 
 def test_notch_reduces_loop_peak_at_resonance(built, model):
@@ -131,10 +130,12 @@ def test_notch_reduces_loop_peak_at_resonance(built, model):
     bare = np.abs(plant(z))
     filtered = np.abs((notch * plant)(z))
     dc = abs(float(np.real(plant(1.0))))
-    assert bare.max() / dc > 10.0  # the resonance stands > 20 dB over the static gain
-    assert filtered.max() < bare.max() / 10.0
-    assert notched.describe()["notch_depth_db"] < -20.0
-    assert notched.report["bandwidth_hz"] > 5 * plain.report["bandwidth_hz"]
+    # Measured on docs/identify/model: the resonance 21.4x (26.6 dB) over the static gain, the
+    # notch taking its peak down 100x, -42.4 dB deep, and a bandwidth 31.9x the pure-I loop's.
+    assert bare.max() / dc > 10.0
+    assert filtered.max() < bare.max() / 30.0
+    assert notched.describe()["notch_depth_db"] < -35.0  # 2.3x in amplitude
+    assert notched.report["bandwidth_hz"] > 15 * plain.report["bandwidth_hz"]
     assert notched.report["ms"] <= notched.settings.ms_max + 1e-3
 
 
@@ -149,9 +150,10 @@ def test_episode_finite_in_range_and_deterministic(name, built, env):
     assert np.isfinite(first.voltage_V).all() and np.isfinite(first.deflection_um).all()
     assert np.abs(first.voltage_V).max() <= u_max
     np.testing.assert_array_equal(first.voltage_V, second.voltage_V)
-    # Measured 17.3 / 4.8 / 0.008 % (pure-I PID, notch, feedforward; each loop tuned over the
-    # tolerance box, the notched one crossing over at about 25 Hz), limits about 1.2-1.5x.
-    assert first.metrics["rmse_percent"] < {"pid": 20.0, "pid-notch": 7.0, "pid-ff": 0.06}[name]
+    # Measured 17.27 / 4.82 / 0.0082 % on seed 3 (pure-I PID, notch, feedforward; each loop
+    # tuned over the tolerance box, the notched one crossing over at about 25 Hz; pid-ff 0.008-
+    # 0.011 % over seeds 0-3, the others within 0.01 %), limits 1.5x, 1.55x and 3x.
+    assert first.metrics["rmse_percent"] < {"pid": 26.0, "pid-notch": 7.5, "pid-ff": 0.025}[name]
     assert sum(controller.stats.status.values()) == 300
     info = first.controller
     assert {"gains", "ms", "gain_margin_db", "phase_margin_deg", "bandwidth_hz"} <= set(info)
@@ -167,7 +169,7 @@ def test_feedforward_tracks_far_better_than_feedback(built, env):
         for name in PRESETS
     }
     assert rmse["pid-ff"] < rmse["pid-notch"] < rmse["pid"]
-    assert rmse["pid-ff"] < 0.06  # measured 0.010 %
+    assert rmse["pid-ff"] < 0.03  # measured 0.0105 % on seed 0, 500 steps
 
 
 @pytest.mark.parametrize(
@@ -220,8 +222,10 @@ def test_the_worst_vertex_stays_bounded(name):
         controller = controllers.make(name, model, nominal, **options)
         episode = controllers.run_episode(plant, controller, seed=0, reference=ref, max_steps=1000)
         rmse[label] = episode.metrics["rmse_percent"]
-    assert rmse["box"] < 10.0, rmse
-    assert not rmse["nominal"] < 10.0, rmse  # what the box buys (NaN counts as diverged)
+    # Limits 2.3-2.6x from the measured values above (seeds 0 and 1 agree within 0.1 %).
+    assert rmse["box"] < {"pid-notch": 10.0, "pid-ff": 2.0}[name], rmse
+    # What the box buys (NaN counts as diverged).
+    assert not rmse["nominal"] < {"pid-notch": 50.0, "pid-ff": 100.0}[name], rmse
 
 
 def test_describe_reports_every_vertex(built):
@@ -246,4 +250,4 @@ def test_nominal_only_tuning_is_the_faster_narrower_loop(env, model, built):
         "vertices": [],
     }
     box_crossover = built["pid-notch"].report["crossover_hz"]
-    assert nominal["pid-notch"].report["crossover_hz"] > 3 * box_crossover
+    assert nominal["pid-notch"].report["crossover_hz"] > 2.7 * box_crossover  # measured 4.18x

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import controllers as ctl
-from benchmarks.corners import VERTICES, vertex_env
+from benchmarks.studies.corners import VERTICES, vertex_env
 from controllers.gain import CREDIBLE_Z, GainEstimate
 from controllers.loop import closed_loop_matrix, output_feedback
 from controllers.mpc import MPCSettings

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import controllers
-from benchmarks.corners import VERTICES, vertex_env
+from benchmarks.studies.corners import VERTICES, vertex_env
 from controllers.pid_tuning import PIDGains, TuningError, notch_filter, resonance, tune_pid
 from controllers.prediction import PredictionModel
 from controllers.tolerance_box import ToleranceBox, vertex_models

@@ -1,7 +1,7 @@
 """The MPC at 10 kHz: the PL140 at 0.1 ms (model identified there, committed in
 ``tests/data/pl140-0.1ms-model``), on a reference far beyond what the bender can follow, so that
 the QP solver runs at every step. Step counts and solver iterations, never wall-clock times
-(``benchmarks/controller_latency.py`` measures those)."""
+(``benchmarks/speed/controller_latency.py`` measures those)."""
 
 from __future__ import annotations
 

@@ -141,9 +141,9 @@ def test_fixed_mpc_holds_the_pl127_corner_it_diverged_on():
     """Regression: the fixed MPC on the PL127 at 0.25 ms, the corner with gain and resonance
     20 % up and damping 0.01, 10 Hz sine, reached hundreds of % of the stroke before the
     screen."""
-    from benchmarks.corners import vertex_env
     from benchmarks.plants import stroke_um
     from benchmarks.references import make_reference
+    from benchmarks.studies.corners import vertex_env
 
     dt = sample_time("PL127")
     nominal = gym.make("piezo_env:PiezoBender-v0", bender="PL127", preview=20, dt=dt)

@@ -39,7 +39,7 @@ The function is generated as C, compiled once (cached on disk, see
 :class:`CompiledInverse`; without a working compiler :class:`CompiledInverse` runs the numpy
 inverse instead, and says so in its ``native`` records
 (:class:`controllers.native.codegen.NativeBuild`). Measured on the shipped model
-(``benchmarks/inverse_speed.py``, one thread): 14.8 us median, 18.8 us p99 per call including
+(``benchmarks/speed/inverse_speed.py``, one thread): 14.8 us median, 18.8 us p99 per call including
 the Python wrapper, against 65 us for the numpy inverse; passes cost about 1.5 us (z) and 2.9
 us (z and dz/du) each, most of it the 96 tanh and the scalar products.
 """

@@ -6,8 +6,8 @@
    end-to-end figure) and once per NLS feature set ("play", "past-inputs", "bouc-wen"), all
    with the same seed, hence the same PRBS, rich and selection records and the same ARX part.
 2. Baselines on the same identification data: the linear ARX part alone, and a NARX network
-   without the Hammerstein split (``benchmarks/_narx.py``) trained one step ahead on the PRBS
-   and rich records of the pipeline, in two forms: an MLP with an affine skip initialised by
+   without the Hammerstein split (``benchmarks/studies/_narx.py``) trained one step ahead on the
+   PRBS and rich records of the pipeline, in two forms: an MLP with an affine skip initialised by
    least squares, and a plain MLP.
 3. Scores every model by free-run simulation on held-out test records, each collected fresh
    from the env from rest with its own seeds: RAND +-30 V (hold 1, 10, 50 samples), SINE
@@ -16,7 +16,7 @@
    (``features="auto"``) and scores them on held-out RAND (hold 10).
 
 Writes ``benchmarks/results/identification_accuracy.md``. Run:
-``python -m benchmarks.identification_accuracy`` (about three minutes on two cores).
+``python -m benchmarks.studies.identification_accuracy`` (about three minutes on two cores).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 
 import piezo_env  # noqa: F401  (registers PiezoBender-v0)
 from benchmarks._common import header, markdown_table, write_result
-from benchmarks._narx import NARXNetwork
+from benchmarks.studies._narx import NARXNetwork
 from identification.features import FEATURE_SETS
 from identification.metrics import fit_metrics
 from identification.pipeline import IdentificationConfig, collect, identify, write_outputs
@@ -129,7 +129,7 @@ def main() -> None:
         for label, (u, y) in tests.items()
     }
     lines = [
-        *header("Identification benchmark", "identification_accuracy.py"),
+        *header("Identification benchmark", __spec__.name),
         *_setup_lines(runs["auto"], base, stroke),
         *_timing_section(runs, tests),
         *_held_out_section(runs, models, tests, scores, narx, records),

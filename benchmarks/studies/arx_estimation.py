@@ -7,7 +7,7 @@ sampled at 1 kHz, PRBS input), prints a table of the relative parameter error
 recursive estimator (batch ``update_many`` and one sample at a time through ``update``). Writes the
 table to ``benchmarks/results/arx_estimation.md``.
 
-Run: ``python -m benchmarks.arx_estimation`` (about a minute on 2 cores).
+Run: ``python -m benchmarks.studies.arx_estimation`` (about a minute on 2 cores).
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ def main() -> None:
     )
     speed = markdown_table(["estimator", "samples", "time s", "samples/s"], speed_rows())
     lines = [
-        *header("ARX estimation benchmark", "arx_estimation.py"),
+        *header("ARX estimation benchmark", __spec__.name),
         "PRBS input +-1, lightly damped poles (0.99 at 50 Hz, 1 kHz sampling), uniform equation",
         "noise U(-r, r). theta error: ||theta_hat - theta|| / ||theta||; r error: r_hat / r - 1.",
         "The recursive estimator runs single-threaded BLAS (threadpoolctl), with default window 16",

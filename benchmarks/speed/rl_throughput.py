@@ -21,7 +21,7 @@ callback at the start and end of every rollout, against the raw env in the same 
 (random actions). The same split for the same rollout size (4096 samples) from 64 envs x 64
 steps shows what larger batches of envs buy.
 
-Writes ``benchmarks/results/rl_throughput.md``. Run: ``python -m benchmarks.rl_throughput``
+Writes ``benchmarks/results/rl_throughput.md``. Run: ``python -m benchmarks.speed.rl_throughput``
 (about four minutes).
 """
 
@@ -264,7 +264,7 @@ def main() -> None:
         ["SyncVectorEnv + SB3VectorEnv", f"{med['sync']:,.0f}", f"{med['raw-sync']:,.0f}"],
         ["DummyVecEnv + Monitor (SB3's usual)", f"{med['dummy']:,.0f}", "-"],
     ]
-    lines = header("RL throughput under stable-baselines3 PPO", "rl_throughput.py")
+    lines = header("RL throughput under stable-baselines3 PPO", __spec__.name)
     lines += [
         f"N = {NUM_ENVS} PiezoBender-v0 envs (preview {PREVIEW}, 2000-step episodes, random "
         "references, 1 um noise) in the training observation of piezo_env.wrappers. PPO: the "

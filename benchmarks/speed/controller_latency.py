@@ -17,7 +17,7 @@ a CartPole-v1 step through ``gymnasium.make``, the reference the ratios are take
 shorter episode. Writes ``benchmarks/results/controller_latency.md`` and the same numbers as
 ``controller_latency.json`` (the README's block is generated from it).
 
-Run: ``python -m benchmarks.controller_latency`` (a few minutes).
+Run: ``python -m benchmarks.speed.controller_latency`` (a few minutes).
 """
 
 from __future__ import annotations
@@ -40,10 +40,10 @@ from benchmarks._common import (
     single_env_step_times,
     write_result,
 )
-from benchmarks.corners import vertex_env
 from benchmarks.plants import EPISODE_S, sample_time
 from benchmarks.references import REFERENCES, make_reference
 from benchmarks.runner import no_collection
+from benchmarks.studies.corners import vertex_env
 
 MODEL_DIR = "docs/identify/model"
 PL127_MODEL = "tests/data/pl127-model"
@@ -230,7 +230,7 @@ def main() -> None:
             )
         fast = ten_khz_rows(cart_median, fast_record)
         machine = machine_line()  # inside the thread limit, as the header's
-        lines = header("Controller latency (one BLAS thread)", "controller_latency.py")
+        lines = header("Controller latency (one BLAS thread)", __spec__.name)
     lines += [
         f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
         f"{np.quantile(cart, 0.99):.1f} us. Episodes: 2 s, noise on, preview 20, half-stroke "

@@ -15,10 +15,10 @@ ratio left is what estimating the linear part from the identification records co
 from what the network's hysteresis costs on the real bender.
 
 Writes ``benchmarks/results/identification_precision.md``. Run:
-``python -m benchmarks.identification_precision [--jobs 2] [--cache DIR]`` (about 6 minutes on
-two cores; ``--cache`` keeps the identified models and reuses them on the next run with the
-same settings: a folder's name holds a digest of the plant and the whole identification
-configuration).
+``python -m benchmarks.studies.identification_precision [--jobs 2] [--cache DIR]`` (about 6
+minutes on two cores; ``--cache`` keeps the identified models and reuses them on the next run
+with the same settings: a folder's name holds a digest of the plant and the whole
+identification configuration).
 """
 
 from __future__ import annotations
@@ -365,7 +365,7 @@ LINEAR_TEXT = (
 def report(results: dict[str, Any]) -> list[str]:
     """The Markdown lines of the result file."""
     lines = [
-        *header("Identification precision in closed loop", "identification_precision.py"),
+        *header("Identification precision in closed loop", __spec__.name),
         'Each bender identified by `identify(env=gym.make("piezo_env:PiezoBender-v0", '
         "bender=B), seed=s)`: *before* with the paper's steps a-f and its excitation "
         '(`refinement="none", rich_signal="sine", nls_refinement="none", prbs_amplitude=1.0`)'

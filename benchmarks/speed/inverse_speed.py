@@ -12,7 +12,7 @@ CartPole-v1 step through ``gymnasium.make`` is measured in the same run, in alte
 as the reference. BLAS is limited to one thread (threadpoolctl) for the whole run. Writes
 ``benchmarks/results/inverse_speed.md``.
 
-Run: ``python -m benchmarks.inverse_speed`` (about ten seconds; the first run also compiles
+Run: ``python -m benchmarks.speed.inverse_speed`` (about ten seconds; the first run also compiles
 the inverse, a few seconds).
 """
 
@@ -29,7 +29,7 @@ from benchmarks._common import header, markdown_table, single_env_step_times, wr
 from controllers.native.compiled_inverse import CompiledInverse
 from identification.hammerstein import HammersteinModel
 
-MODEL = Path(__file__).resolve().parents[1] / "docs" / "identify" / "model"
+MODEL = Path(__file__).resolve().parents[2] / "docs" / "identify" / "model"
 FREQUENCIES = (10.0, 20.0, 50.0)
 SAMPLES = 1000  # per frequency, 1 kHz
 ROUNDS = 5
@@ -205,7 +205,7 @@ def main() -> None:
         results, errors = run_rounds(nls, solvers, u_true, z)
         mean_passes, pass_time = pass_statistics(nls, z)
         passes_c = compiled_passes(inverse, z)
-        head = header("NLS inverse speed", "inverse_speed.py")
+        head = header("NLS inverse speed", __spec__.name)
     cart = float(np.median([np.median(t) for t in results["cart"]]))
     lines = [
         *head,

@@ -8,7 +8,7 @@ faster. Every bench option on (amplifier with bandwidth, sensor with delay and b
 rate-dependent hysteresis): single-env step time as a ratio to the default env's, measured
 in alternating rounds (target <= 1.5). Writes ``benchmarks/results/env_speed.md``.
 
-Run: ``python -m benchmarks.env_speed`` (about a minute).
+Run: ``python -m benchmarks.speed.env_speed`` (about a minute).
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ def main() -> None:
         rows_vector.append([f"{n}", f"{p:,.0f}", f"{c:,.0f}", f"{ratio:.2f}"])
 
     lines = [
-        *header("Environment speed", "env_speed.py"),
+        *header("Environment speed", __spec__.name),
         "Default settings: FE beam (10 elements, reduced exactly to the modes that outlive one",
         "sample), Bouc-Wen hysteresis, 1 um sensor noise, random reference; random actions,",
         "autoreset included. CartPole-v1 is measured in the same run as the reference.",

@@ -16,9 +16,9 @@ came within twice the second half's: :func:`settling_ms`).
 
 Another bender runs at its own sample time (:func:`benchmarks.plants.sample_time`), on its
 own references (the PL140's scaled to its stroke), from a model identified on it:
-``python -m benchmarks.corners --bender PL127 --model DIR`` writes ``corners-PL127.md``.
+``python -m benchmarks.studies.corners --bender PL127 --model DIR`` writes ``corners-PL127.md``.
 
-Run: ``python -m benchmarks.corners`` (about three minutes on 2 cores).
+Run: ``python -m benchmarks.studies.corners`` (about three minutes on 2 cores).
 """
 
 from __future__ import annotations
@@ -119,7 +119,9 @@ def main(argv: list[str] | None = None) -> None:
     """Run every row on every vertex and write ``corners[-BENDER].md``."""
     import argparse
 
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.corners", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.studies.corners", description=__doc__
+    )
     parser.add_argument("--bender", default=BENDER, help="catalogue name (default: PL140)")
     parser.add_argument(
         "--model",
@@ -136,7 +138,7 @@ def main(argv: list[str] | None = None) -> None:
     results = {vertex: run_vertex(vertex, bender, model_dir) for vertex in VERTICES}
     title = f"Controllers on the corners of the {bender}'s tolerance box"
     lines = header(
-        title, "corners" + ("" if bender == BENDER else f" --bender {bender} --model DIR")
+        title, __spec__.name, "" if bender == BENDER else f"--bender {bender} --model DIR"
     )
     lines += [__doc__.split("\n\nRun:")[0].split("\n\n", 1)[1], ""]
     for ref_name in REFERENCES_RUN:
