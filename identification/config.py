@@ -15,6 +15,8 @@ from piezo_env.task import TaskConfig
 __all__ = [
     "NLS_REFINEMENTS",
     "ORDER_TIE_PERCENT",
+    "PLAY_RADII",
+    "RADIUS_ITERATIONS",
     "RAND_HOLD_S",
     "RECORD_SECONDS",
     "REFINEMENTS",
@@ -28,6 +30,15 @@ REFINEMENTS = ("output-error", "none")
 
 NLS_REFINEMENTS = ("output-error", "none")
 """Choices of ``IdentificationConfig.nls_refinement`` (step e')."""
+
+PLAY_RADII = ("learned", "grid")
+"""Choices of ``IdentificationConfig.play_radii`` (step e' with play features)."""
+
+RADIUS_ITERATIONS = 150
+"""L-BFGS iterations at most of step e''s radius stage (``play_radii="learned"``): enough for
+the learned radii of the Prandtl-Ishlinskii plant (plays of 3, 9 and 15 V on the PL140) to
+settle within 0.02 V of them from the grid of 10 radii; each iteration costs a play pass over
+the records' runs of equal input besides the free run."""
 
 RAND_HOLD_S = 0.01
 """Hold of the RAND records (s): the paper's 10 samples at 1 ms. A new level every 10 ms puts
@@ -158,6 +169,13 @@ class IdentificationConfig:
         time on a 2-core AMD EPYC). With the earlier 3 x 32 network more iterations did not
         pay (150 -> 100 moved the worst errors less than the seeds' spread): its own variance
         dominated.
+    play_radii : str
+        With play features selected: ``"learned"`` (default) starts step e' with a stage that
+        learns the play radii together with the network on the free-run output error (at most
+        :data:`RADIUS_ITERATIONS` L-BFGS iterations; :mod:`identification.nls.play_radii`),
+        so that plays between the grid's radii are represented by their own; ``"grid"`` keeps
+        the radii of :func:`identification.features.default_play_radii`. No effect with other
+        features or ``nls_refinement="none"``.
     validation_amplitude : float
         RAND amplitude C_R (V) of the selection and validation records.
     validation_hold : int or None
@@ -187,6 +205,7 @@ class IdentificationConfig:
     max_epochs: int = 200
     nls_refinement: str = "output-error"
     nls_refinement_iterations: int = 300
+    play_radii: str = "learned"
     validation_amplitude: float = 30.0
     validation_hold: int | None = None
     validation_samples: int | None = None
@@ -202,6 +221,8 @@ class IdentificationConfig:
             raise ValueError(
                 f"nls_refinement must be one of {NLS_REFINEMENTS}, got {self.nls_refinement!r}"
             )
+        if self.play_radii not in PLAY_RADII:
+            raise ValueError(f"play_radii must be one of {PLAY_RADII}, got {self.play_radii!r}")
         if not self.orders or not self.hidden:
             raise ValueError("orders and hidden must each list at least one value")
         for n in self.orders:

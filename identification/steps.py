@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 
 from identification.arx import ARXModel
-from identification.config import ORDER_TIE_PERCENT, IdentificationConfig
+from identification.config import ORDER_TIE_PERCENT, RADIUS_ITERATIONS, IdentificationConfig
 from identification.estimation import fit_arx
 from identification.experiment import (
     collect,
@@ -216,9 +216,9 @@ class NlsRefinement:
     def record(self) -> dict:
         """JSON-safe summary (for the report and the refined network's training record)."""
         return {
-            "method": "free-run output error: the network, then network and linear part, "
-            "L-BFGS from steps e and b'; the gain then moved to keep the network's unit "
-            "small-signal gain",
+            "method": "free-run output error: (with learned play radii) the radii and the "
+            "network, then the network, then network and linear part, L-BFGS from steps e and "
+            "b'; the gain then moved to keep the network's unit small-signal gain",
             "accepted": self.accepted,
             "refusal": self.refusal,
             "note": self.note,
@@ -455,7 +455,11 @@ def refine_nonlinearity(
             wall_time_s=0.0,
         )
     fit = refine_nls_output_error(
-        start.nls, start.arx, records, max_iterations=config.nls_refinement_iterations
+        start.nls,
+        start.arx,
+        records,
+        max_iterations=config.nls_refinement_iterations,
+        radius_iterations=RADIUS_ITERATIONS if config.play_radii == "learned" else 0,
     )
     refined = HammersteinModel(fit.nls, fit.arx)
     gain = _small_signal_gain(refined, records[0][0])
