@@ -47,6 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=FEATURES,
         help="memory features of the neural nonlinearity (auto: chosen on a selection record)",
     )
+    parser.add_argument(
+        "--rate",
+        default="off",
+        choices=("off", "on", "auto"),
+        help="with play features: plays whose radii grow with the drive's rate, the rate "
+        "constant learned with the radii in step e' (auto: kept only if the held-out selection "
+        "record's error falls by more than its noise allows)",
+    )
     add_env_arguments(parser)
 
 
@@ -80,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         config = IdentificationConfig(
             seed=0 if args.seed is None else args.seed,
             features=args.features,
+            rate=args.rate,
             env_kwargs=env_kwargs(args),
         )
         result = identify(config=config, progress=print)
@@ -88,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
             args.records,
             split=args.split,
             seed=args.seed,
-            config=IdentificationConfig(features=args.features),
+            config=IdentificationConfig(features=args.features, rate=args.rate),
             progress=print,
         )
     paths = write_outputs(result, out)

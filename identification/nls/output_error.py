@@ -54,13 +54,16 @@ from typing import Any
 import numpy as np
 
 from identification.arx import ARXModel
-from identification.features import FeatureMap, PlayFeatures
+from identification.features import FeatureMap, PlayFeatures, RatePlayFeatures
 from identification.nls.network import NLS
 from identification.nls.optimisation import torch_threads
 from identification.nls.play_radii import (
     PlayRadiusFunction,
+    RatePlayFunction,
     radii_from_coordinates,
     radius_coordinates,
+    rate_play_outputs,
+    rate_play_runs,
 )
 from identification.nls.torch_module import TorchNLS, load_torch
 
@@ -156,6 +159,7 @@ def refine_nls_output_error(
     max_iterations: int = 100,
     refine_linear: bool = True,
     radius_iterations: int = 0,
+    learn_rate: bool = False,
     num_threads: int = 1,
 ) -> NlsOutputErrorFit:
     """Refine ``NLS -> arx`` by minimising its free-run output error on ``records``.
@@ -178,6 +182,10 @@ def refine_nls_output_error(
         With play features: L-BFGS iterations at most of a first stage that learns the play
         radii and the network together, the linear part held (:mod:`identification.nls.
         play_radii`); the later stages run at the learned radii. 0 (default) keeps the radii.
+    learn_rate : bool
+        With ``radius_iterations``: the radius stage also learns a rate constant c >= 0 (s) and
+        the network then runs on rate-dependent plays of radii ``r_i + c |u_t-1 - u_t-2| / dt``
+        (:class:`identification.features.RatePlayFeatures`, ``dt`` the linear part's).
     num_threads : int
         Torch threads during the refinement (the previous setting is restored).
 
@@ -202,6 +210,8 @@ def refine_nls_output_error(
         )
     if int(radius_iterations) != radius_iterations or radius_iterations < 0:
         raise ValueError(f"radius_iterations must be an integer >= 0, got {radius_iterations!r}")
+    if learn_rate and not radius_iterations:
+        raise ValueError("learn_rate needs radius_iterations > 0: the rate is learned there")
     data = _check_records(records)
     torch = load_torch()
     start = time.perf_counter()
@@ -215,9 +225,15 @@ def refine_nls_output_error(
         b = torch.tensor(arx.b, dtype=torch.float64)
         stages = []
         if radius_iterations and isinstance(feature_map, PlayFeatures):
-            feature_map, stage = _learn_radii(
-                feature_map, module, data, (outputs, grids, count), (a, b), radius_iterations
-            )
+            targets = (outputs, grids, count)
+            if learn_rate:
+                feature_map, stage = _learn_rate_radii(
+                    feature_map, module, data, targets, (a, b), radius_iterations, arx.dt
+                )
+            else:
+                feature_map, stage = _learn_radii(
+                    feature_map, module, data, targets, (a, b), radius_iterations
+                )
             stages.append(stage)
         features = [
             torch.from_numpy(feature_map.features(u, feature_map.initial_state())[0])
@@ -332,6 +348,87 @@ def _learn_radii(
         learned = radii_from_coordinates(coordinates).numpy().copy()
     stage = {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
     return PlayFeatures(radii=tuple(learned), initial_input=rest), stage
+
+
+RATE_START = 0.1
+"""Rate constant (in sample times dt) the rate stage starts from: small against the plant's
+(0.716 dt at its default, :data:`piezo_env.hysteresis.RATE_TIME` at 1 ms), and away from 0,
+where the softplus that keeps it positive has no slope."""
+
+
+def _learn_rate_radii(
+    feature_map: PlayFeatures,
+    module: Any,
+    data: list[tuple[np.ndarray, np.ndarray]],
+    targets: tuple[list, list, int],
+    linear: tuple[Any, Any],
+    max_iterations: int,
+    dt: float,
+) -> tuple[RatePlayFeatures, dict[str, Any]]:
+    """The radius stage with a rate constant: L-BFGS on the base radii, the rate constant
+    ``c = dt softplus(s)`` (s) and the network (updated in place), the linear part held;
+    returns the rate-dependent feature map learned (rates over ``dt``, s) and the stage's
+    record."""
+    torch = load_torch()
+    outputs, grids, count = targets
+    a, b = linear
+    dt = float(dt)
+    plays = RatePlayFunction()
+    rest = feature_map.initial_input
+    # Plays move only when the input does: the features at each move, spread to the samples
+    # up to the next (a leading row for the samples before the first move, at rest).
+    moves, spread = [], []
+    for u, _ in data:
+        u_moves, direction, rate, last = rate_play_runs(u, dt, rest)
+        moves.append((u_moves, direction, rate))
+        spread.append(torch.from_numpy(last + 1))
+    start = np.asarray(feature_map.radii)
+    coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
+    rate_coordinate = torch.tensor(float(np.log(np.expm1(RATE_START))), requires_grad=True)
+    rest_row = torch.full((1, 1 + start.size), float(rest), dtype=torch.float64)
+
+    def rate_time() -> Any:
+        return dt * torch.nn.functional.softplus(rate_coordinate)
+
+    def objective() -> object:
+        radii = radii_from_coordinates(coordinates)
+        c = rate_time()
+        total = 0
+        for move, index, y, grid in zip(moves, spread, outputs, grids, strict=True):
+            u = torch.from_numpy(move[0])
+            f = torch.cat([rest_row, torch.cat([u[:, None], plays(radii, c, move, rest)], 1)])
+            error = grid.free_run(module(f)[index], a, b) - y
+            total = total + (error * error).sum()
+        return total / count
+
+    parameters = [coordinates, rate_coordinate, *module.parameters()]
+    stage = _lbfgs(parameters, objective, max_iterations, torch)
+    with torch.no_grad():
+        learned = radii_from_coordinates(coordinates).numpy().copy()
+        c = float(rate_time())
+    stage = {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
+    if not any(_rate_moves_a_play(move, learned, c, rest) for move in moves):
+        # No play edge was met right after a move: the objective does not depend on c, which
+        # would keep its start. A rate-independent map is what the records support.
+        c = 0.0
+        stage["rate_note"] = (
+            "no play met its edge at a sample following a move: the records do not determine "
+            "the rate constant; set to 0"
+        )
+    stage["rate_time_s"] = c
+    learned_map = RatePlayFeatures(radii=tuple(learned), rate_time=c, dt=dt, initial_input=rest)
+    return learned_map, stage
+
+
+def _rate_moves_a_play(
+    move: tuple[np.ndarray, np.ndarray, np.ndarray], radii: np.ndarray, c: float, rest: float
+) -> bool:
+    """Whether some play output of a record (its moves, :func:`rate_play_runs`) was set by its
+    edge at a move whose previous sample moved too: where the output depends on c."""
+    u, direction, rate = move
+    _, _, touch = rate_play_outputs(u, direction, c * rate, radii, rest)
+    at_edge = touch == np.arange(u.size)[:, None]
+    return bool(np.any(at_edge & (rate[:, None] > 0.0)))
 
 
 def _runs(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -24,6 +24,16 @@ per play), settle within a few tens of L-BFGS iterations, and the stages that fo
 the network and the linear part at the learned radii, with the features computed once. The
 radii are kept ordered and positive as cumulative sums of softplus increments, started from
 the grid (:func:`radius_coordinates`).
+
+Rate-dependent plays (``IdentificationConfig.rate``). The plays of
+:class:`identification.features.RatePlayFeatures` have radii ``r_i + c R_t`` with
+``R_t = |u_t-1 - u_t-2| / dt`` the previous sample's rate, and move only when the input does
+(a rising input raises an output to its lower edge, a falling one lowers it to its upper edge).
+The same reasoning gives their derivatives: an output last set by its edge at sample s has
+``dp/dr_i = -+1`` and ``dp/dc = -+R_s`` (the sign of that edge), so :class:`RatePlayFunction`
+needs the edge each output last touched and the rate there, from one pass over the record's
+moves (:func:`rate_play_runs`, :func:`rate_play_outputs`). The rate constant is learned as
+``c = dt softplus(s)``, positive, in units of the sample time.
 """
 
 from __future__ import annotations
@@ -36,9 +46,12 @@ from piezo_env.operators import play_sequence
 
 __all__ = [
     "PlayRadiusFunction",
+    "RatePlayFunction",
     "play_radius_derivatives",
     "radii_from_coordinates",
     "radius_coordinates",
+    "rate_play_outputs",
+    "rate_play_runs",
 ]
 
 
@@ -109,3 +122,93 @@ class PlayRadiusFunction:
 
     def __call__(self, radii: Any, u: Any, rest: float) -> Any:
         return self._function.apply(radii, u, rest)
+
+
+def rate_play_runs(
+    u: np.ndarray, dt: float, rest: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A record ``u`` (T,) from rest for the rate-dependent plays, reduced to its moves.
+
+    Rate-dependent plays (:class:`identification.features.RatePlayFeatures`) move only when the
+    input does, with radii grown by the previous sample's rate. Returns the indices of the
+    samples where the input changes (``moves``), their inputs (V), their direction (+1 rising,
+    -1 falling) and the previous sample's rate |u_t-1 - u_t-2| / dt there (V/s), and, for every
+    sample, the index into ``moves`` of the last move at or before it (-1 before the first).
+    """
+    previous = np.concatenate(([rest], u[:-1]))
+    rates = np.abs(u - previous) / dt
+    previous_rate = np.concatenate(([0.0], rates[:-1]))
+    moves = np.flatnonzero(u != previous)
+    direction = np.sign(u[moves] - previous[moves])
+    last = np.searchsorted(moves, np.arange(u.size), side="right") - 1
+    return u[moves], direction, previous_rate[moves], last
+
+
+def rate_play_outputs(
+    u: np.ndarray,
+    direction: np.ndarray,
+    lag: np.ndarray,
+    radii: np.ndarray,
+    rest: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Directional plays at the moves of a record (:func:`rate_play_runs`), the sign of the
+    edge each output last touched (-1 lower, +1 upper, 0 none: the derivative by the radius)
+    and the move where it touched it (-1 none).
+
+    ``lag`` (V) is the rate's share of the radius at each move, ``rate_time`` times the
+    previous rate; the edge of a rising move is ``u - (r + lag)``, of a falling one
+    ``u + (r + lag)``, as in :func:`piezo_env.operators.rate_play_sequence`.
+    """
+    p = np.full(radii.size, float(rest))
+    out = np.empty((u.size, radii.size))
+    edges = np.empty((u.size, radii.size))
+    for t in range(u.size):
+        if direction[t] > 0:
+            edges[t] = u[t] - (radii + lag[t])
+            np.maximum(edges[t], p, out=p)
+        else:
+            edges[t] = u[t] + (radii + lag[t])
+            np.minimum(edges[t], p, out=p)
+        out[t] = p
+    sign = np.where(out == edges, -direction[:, None], 0.0)
+    touched = sign != 0.0
+    index = np.where(touched, np.arange(u.size)[:, None], -1)
+    np.maximum.accumulate(index, axis=0, out=index)
+    columns = np.arange(radii.size)[None, :]
+    fill = np.maximum(index, 0)
+    return out, np.where(index >= 0, sign[fill, columns], 0.0), np.where(index >= 0, fill, -1)
+
+
+def _rate_play_function() -> Any:
+    import torch
+
+    class _RatePlay(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx: Any, radii: Any, rate_time: Any, moves: Any, rest: float) -> Any:
+            u, direction, rate = moves
+            r = radii.detach().numpy()
+            lag = float(rate_time) * rate
+            plays, sign, touch = rate_play_outputs(u, direction, lag, r, rest)
+            # d p / d rate_time: the sign of the edge last touched times the rate there.
+            by_rate = sign * np.where(touch >= 0, rate[np.maximum(touch, 0)], 0.0)
+            ctx.save_for_backward(torch.from_numpy(sign), torch.from_numpy(by_rate))
+            return torch.from_numpy(plays)
+
+        @staticmethod
+        def backward(ctx: Any, grad: Any) -> Any:
+            sign, by_rate = ctx.saved_tensors
+            return (grad * sign).sum(dim=0), (grad * by_rate).sum(), None, None
+
+    return _RatePlay
+
+
+class RatePlayFunction:
+    """Rate-dependent play outputs at a record's moves as a torch function of the base radii
+    (n,) and the rate constant (s): ``RatePlayFunction()(radii, rate_time, moves, rest)`` with
+    ``moves = (u, direction, previous rate)`` from :func:`rate_play_runs` (numpy arrays)."""
+
+    def __init__(self) -> None:
+        self._function = _rate_play_function()
+
+    def __call__(self, radii: Any, rate_time: Any, moves: tuple, rest: float) -> Any:
+        return self._function.apply(radii, rate_time, moves, rest)
