@@ -181,7 +181,8 @@ class IdentificationConfig:
         the radii of :func:`identification.features.default_play_radii`. No effect with other
         features or ``nls_refinement="none"``.
     rate : str
-        With play features and learned radii: ``"on"`` learns, with the radii, a rate constant
+        With play features and learned radii (with ``play_radii="grid"`` only ``"off"`` and
+        ``"auto"``, which then fits no rate): ``"on"`` learns, with the radii, a rate constant
         c >= 0 (s) and makes the plays rate-dependent, radii ``r_i + c |u_t-1 - u_t-2| / dt``
         with directional updates (:class:`identification.features.RatePlayFeatures`, the
         plays of the rate-dependent Prandtl-Ishlinskii model of Al Janaideh, Rakheja and Su
@@ -194,9 +195,11 @@ class IdentificationConfig:
         widening is a lag that the plays carry until the next reversal, which a static function
         of the current rate cannot draw, and the radii keep each play output non-decreasing in
         the input within a sample, so the inverse from a state stays that of a monotone map.
-        ``"auto"`` fits both and keeps the rate-dependent model only if its free-run RMS error
-        on the held-out selection record is lower by more than
-        :func:`identification.steps.rate_threshold`.
+        ``"auto"`` (default) fits both and keeps the rate-dependent model only if its free-run
+        mean squared error on the held-out selection record is lower by more than
+        :func:`identification.steps.rate_threshold`; when the records cannot determine a rate
+        constant (every move follows a held sample, as under RAND and a +-2 V PRBS without an
+        amplifier's slew) it fits only the rate-independent one, at no extra cost.
     validation_amplitude : float
         RAND amplitude C_R (V) of the selection and validation records.
     validation_hold : int or None
@@ -227,7 +230,7 @@ class IdentificationConfig:
     nls_refinement: str = "output-error"
     nls_refinement_iterations: int = 300
     play_radii: str = "learned"
-    rate: str = "off"
+    rate: str = "auto"
     validation_amplitude: float = 30.0
     validation_hold: int | None = None
     validation_samples: int | None = None
@@ -247,9 +250,9 @@ class IdentificationConfig:
             raise ValueError(f"play_radii must be one of {PLAY_RADII}, got {self.play_radii!r}")
         if self.rate not in RATES:
             raise ValueError(f"rate must be one of {RATES}, got {self.rate!r}")
-        if self.rate != "off" and self.play_radii != "learned":
+        if self.rate == "on" and self.play_radii != "learned":
             raise ValueError(
-                f"rate={self.rate!r} learns its rate constant with the play radii: set "
+                "rate='on' learns its rate constant with the play radii: set "
                 "play_radii='learned' (or rate='off')"
             )
         if not self.orders or not self.hidden:

@@ -402,7 +402,9 @@ def _radii_note(refinement: dict[str, Any]) -> str:
         if first.get("rate_note"):
             text += f" ({first['rate_note']})"
     choice = refinement.get("rate_choice")
-    if choice:
+    if choice and not choice.get("determined", True):
+        text += "; rate-dependent plays not fitted (the records do not determine a rate constant)"
+    elif choice:
         verdict = "kept" if choice["kept"] else "not kept"
         rate_rms = choice.get("rate_rms_um")
         text += (

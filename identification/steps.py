@@ -34,6 +34,7 @@ from identification.nls import fit_nls
 from identification.nls.output_error import (
     NlsOutputErrorFit,
     move_gain,
+    rate_is_determined,
     refine_nls_output_error,
 )
 from identification.refine import OutputErrorFit, refine_output_error
@@ -201,9 +202,11 @@ class NlsRefinement:
     wall_time_s : float
         Time of the refinement, s.
     rate_choice : dict or None
-        With ``rate="auto"``: the held-out RMS errors (um) of the rate-independent and the
-        rate-dependent model, the threshold (um^2, :func:`rate_threshold`) and whether the
-        rate-dependent one was kept, and the time of both refinements (s); None otherwise.
+        With ``rate="auto"``: whether the records determine a rate constant
+        (:func:`identification.nls.output_error.rate_is_determined`; if not, no rate-dependent
+        model is fitted), and if they do the held-out RMS errors (um) of the rate-independent
+        and the rate-dependent model, the threshold (um^2, :func:`rate_threshold`), the time of
+        both refinements (s); and whether the rate-dependent one was kept. None otherwise.
     """
 
     model: HammersteinModel
@@ -472,11 +475,17 @@ def refine_nonlinearity(
         and fit.stages
         and "radii_after" in fit.stages[0]
     ):
-        rate_fit, rate_refined, rate_gain = _refine(start, records, config, learn_rate=True)
-        rate_choice = _rate_choice(refined, rate_refined, nls)
-        rate_choice["wall_time_s"] = fit.wall_time_s + rate_fit.wall_time_s
-        if rate_choice["kept"]:
-            fit, refined, gain = rate_fit, rate_refined, rate_gain
+        rate_choice = {
+            "determined": rate_is_determined(fit.stages[0]["radii_after"], records, start.arx.dt)
+        }
+        if rate_choice["determined"]:
+            rate_fit, rate_refined, rate_gain = _refine(start, records, config, learn_rate=True)
+            rate_choice.update(_rate_choice(refined, rate_refined, nls))
+            rate_choice["wall_time_s"] = fit.wall_time_s + rate_fit.wall_time_s
+            if rate_choice["kept"]:
+                fit, refined, gain = rate_fit, rate_refined, rate_gain
+        else:
+            rate_choice["kept"] = False
     model, refusal = start, None
     if refined is None:
         refusal = f"the refined network's small-signal gain is {gain:.3g}, not positive"

@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--rate",
-        default="off",
+        default="auto",
         choices=("off", "on", "auto"),
         help="with play features: plays whose radii grow with the drive's rate, the rate "
         "constant learned with the radii in step e' (auto: kept only if the held-out selection "

@@ -409,7 +409,8 @@ def test_rate_threshold_and_settings():
 
     # 12 sigma rms / sqrt(N) with sigma = bound / sqrt(3).
     assert rate_threshold(np.sqrt(3.0), 2.0, 3600) == pytest.approx(12.0 * 2.0 / 60.0)
-    assert IdentificationConfig().rate == "off"
+    assert IdentificationConfig().rate == "auto"
+    assert IdentificationConfig(rate="auto", play_radii="grid").rate == "auto"
     with pytest.raises(ValueError, match="rate must be"):
         IdentificationConfig(rate="yes")
     with pytest.raises(ValueError, match="play_radii='learned'"):
@@ -417,6 +418,15 @@ def test_rate_threshold_and_settings():
     start, arx, records = _rate_plant(0.0)
     with pytest.raises(ValueError, match="learn_rate needs"):
         refine_nls_output_error(start, arx, records, learn_rate=True)
+
+
+def test_records_determine_a_rate_only_when_a_play_moves_right_after_a_move():
+    from identification.nls.output_error import rate_is_determined
+
+    _, _, held = _play_plant((7.0, 16.0))  # RAND held for 10 samples
+    _, _, smooth = _rate_plant(7e-4)  # a multisine: every sample moves
+    assert not rate_is_determined((10.0, 20.0), held, 1e-3)
+    assert rate_is_determined((10.0, 20.0), smooth, 1e-3)
 
 
 def test_rate_constant_is_zero_when_the_records_cannot_tell():

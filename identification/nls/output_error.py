@@ -67,7 +67,13 @@ from identification.nls.play_radii import (
 )
 from identification.nls.torch_module import TorchNLS, load_torch
 
-__all__ = ["NlsOutputErrorFit", "free_run_rms", "move_gain", "refine_nls_output_error"]
+__all__ = [
+    "NlsOutputErrorFit",
+    "free_run_rms",
+    "move_gain",
+    "rate_is_determined",
+    "refine_nls_output_error",
+]
 
 
 @dataclass(frozen=True)
@@ -418,6 +424,21 @@ def _learn_rate_radii(
     stage["rate_time_s"] = c
     learned_map = RatePlayFeatures(radii=tuple(learned), rate_time=c, dt=dt, initial_input=rest)
     return learned_map, stage
+
+
+def rate_is_determined(
+    radii: Sequence[float], records: Sequence[tuple[np.ndarray, np.ndarray]], dt: float
+) -> bool:
+    """Whether ``records`` (u V, y um) can determine a rate constant of plays of ``radii`` (V)
+    at sample time ``dt`` (s): some play is set by its edge at a move whose previous sample
+    moved too. Checked at c = 0; a positive c moves every such edge away from the play, so
+    records that fail here fail at every c."""
+    r = np.asarray(radii, dtype=np.float64)
+    for u, _ in _check_records(records):
+        moves = rate_play_runs(u, dt, 0.0)[:3]
+        if _rate_moves_a_play(moves, r, 0.0, 0.0):
+            return True
+    return False
 
 
 def _rate_moves_a_play(
