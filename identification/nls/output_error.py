@@ -49,6 +49,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -232,14 +233,10 @@ def refine_nls_output_error(
         stages = []
         if radius_iterations and isinstance(feature_map, PlayFeatures):
             targets = (outputs, grids, count)
-            if learn_rate:
-                feature_map, stage = _learn_rate_radii(
-                    feature_map, module, data, targets, (a, b), radius_iterations, arx.dt
-                )
-            else:
-                feature_map, stage = _learn_radii(
-                    feature_map, module, data, targets, (a, b), radius_iterations
-                )
+            learn = partial(_learn_rate_radii, dt=arx.dt) if learn_rate else _learn_radii
+            feature_map, stage = learn(
+                feature_map, module, data, targets, (a, b), radius_iterations
+            )
             stages.append(stage)
         features = [
             torch.from_numpy(feature_map.features(u, feature_map.initial_state())[0])
