@@ -9,6 +9,12 @@ it step by step, and serialises to a plain dict.
     ``r_i`` spread over the input range, ``p_i,t = max(u_t - r_i, min(u_t + r_i, p_i,t-1))``.
     Rate-independent memory: the output depends on the input's turning points, not on its speed.
     The feature state is the vector of play outputs.
+``"rate-play"``
+    ``F_t = [u_t, p_1,t, ..., p_n,t]`` with rate-dependent directional plays of radii
+    ``r_i + c |u_t-1 - u_t-2| / dt`` (the plays of
+    :class:`piezo_env.hysteresis.RateDependentPrandtlIshlinskii`): loops that widen with the
+    drive's rate. Learned in step e' (``IdentificationConfig.rate``), never chosen in step e.
+    The state is ``[u_t-1, rate_t-1, p_1, ..., p_n]``.
 ``"past-inputs"``
     ``F_t = [u_t, u_t-1, ..., u_t-k]``: the paper's nlarx regressors. The feature state is the
     buffer ``[u_t-1, ..., u_t-k]``.
@@ -40,6 +46,7 @@ from piezo_env.operators import (
     play,
     play_casadi,
     play_sequence,
+    rate_play_sequence,
 )
 
 __all__ = [
@@ -48,6 +55,7 @@ __all__ = [
     "FeatureMap",
     "PastInputFeatures",
     "PlayFeatures",
+    "RatePlayFeatures",
     "bouc_wen_update",
     "default_bouc_wen_levels",
     "default_play_radii",
@@ -235,6 +243,108 @@ class PlayFeatures(_StateChecks):
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe description."""
         return {"name": self.name, "radii": list(self.radii), "initial_input": self.initial_input}
+
+
+@dataclass(frozen=True)
+class RatePlayFeatures(_StateChecks):
+    """Rate-dependent play features ``F_t = [u_t, p_1,t, ..., p_n,t]``.
+
+    The plays of :class:`piezo_env.hysteresis.RateDependentPrandtlIshlinskii` (weights left to
+    the network): radii ``r_i + rate_time |u_t-1 - u_t-2| / dt``, directional updates. Within a
+    sample the radii are fixed by the state, so each play output is non-decreasing in ``u_t``
+    and the network's inverse from a state is that of a static map. State
+    ``[u_t-1 (V), rate_t-1 (V/s), p_1, ..., p_n (V)]``.
+
+    Attributes
+    ----------
+    radii : tuple of float
+        Base (zero-rate) play radii, V, positive.
+    rate_time : float
+        Radius growth per unit drive rate, s (V per V/s), >= 0.
+    dt : float
+        Sample time the rate is measured over, s, > 0.
+    initial_input : float
+        Rest input, V: the default state has u_t-1 and every play output equal to it, rate 0.
+    """
+
+    radii: tuple[float, ...]
+    rate_time: float
+    dt: float
+    initial_input: float = 0.0
+
+    name = "rate-play"
+
+    def __post_init__(self) -> None:
+        from piezo_env.hysteresis import RateDependentPrandtlIshlinskii
+
+        r = _freeze_operator_fields(self, "radii", "play radii")
+        object.__setattr__(self, "_r", r)
+        rate_time, dt = float(self.rate_time), float(self.dt)
+        object.__setattr__(self, "rate_time", rate_time)
+        object.__setattr__(self, "dt", dt)
+        plays = RateDependentPrandtlIshlinskii(
+            linear_weight=1.0,
+            radii=self.radii,
+            weights=(0.0,) * r.size,
+            rate_time=rate_time,
+            dt=dt,
+        )
+        object.__setattr__(self, "_plays", plays)
+
+    @property
+    def n_features(self) -> int:
+        """Number of features: the input plus one per play operator."""
+        return 1 + len(self.radii)
+
+    @property
+    def n_state(self) -> int:
+        """Length of the state vector: previous input, previous rate, play outputs."""
+        return 2 + len(self.radii)
+
+    def initial_state(self) -> np.ndarray:
+        """State at rest: previous input and plays at ``initial_input`` (V), rate 0."""
+        state = np.full(self.n_state, self.initial_input)
+        state[1] = 0.0
+        return state
+
+    def _state_text(self) -> str:
+        n = len(self.radii)
+        return f"rate-play feature state must be [u_t-1, rate_t-1, p_1, ..., p_{n}], finite"
+
+    def features(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Features of a validated input sequence ``u`` (T,) from ``state``: (T, n_f), state."""
+        plays, final = rate_play_sequence(u, self._r, self.rate_time, self.dt, state)
+        return np.column_stack([u, plays]), final
+
+    def candidates(self, u: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """Features of each candidate input ``u`` (N,) applied one step from the same state."""
+        new, _ = self._plays.step(np.broadcast_to(state, (u.size, self.n_state)), u)
+        return np.column_stack([u, new[:, 2:]])
+
+    def step(self, u: float, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One-step features ``(n_f,)`` and the next state for a scalar input ``u`` (V)."""
+        new, _ = self._plays.step(state, u)
+        f = np.empty(self.n_features)
+        f[0] = u
+        f[1:] = new[2:]
+        return f, new
+
+    def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
+        """Casadi expressions of the features and next state."""
+        import casadi
+
+        _, new = self._plays.casadi_step(u, state)
+        return casadi.vertcat(u, new[2:]), new
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe description."""
+        return {
+            "name": self.name,
+            "radii": list(self.radii),
+            "rate_time": self.rate_time,
+            "dt": self.dt,
+            "initial_input": self.initial_input,
+        }
 
 
 @dataclass(frozen=True)
@@ -430,7 +540,7 @@ def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
     return half * np.geomspace(0.1, 2.0, require_int("n_bouc_wen", n))
 
 
-FeatureMap = PlayFeatures | PastInputFeatures | BoucWenFeatures
+FeatureMap = PlayFeatures | RatePlayFeatures | PastInputFeatures | BoucWenFeatures
 
 
 def feature_map_from_dict(config: dict[str, Any]) -> FeatureMap:
@@ -438,6 +548,13 @@ def feature_map_from_dict(config: dict[str, Any]) -> FeatureMap:
     name = config.get("name")
     if name == "play":
         return PlayFeatures(radii=tuple(config["radii"]), initial_input=config["initial_input"])
+    if name == "rate-play":
+        return RatePlayFeatures(
+            radii=tuple(config["radii"]),
+            rate_time=config["rate_time"],
+            dt=config["dt"],
+            initial_input=config["initial_input"],
+        )
     if name == "past-inputs":
         return PastInputFeatures(n_past=config["n_past"], initial_input=config["initial_input"])
     if name == "bouc-wen":

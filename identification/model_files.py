@@ -248,6 +248,7 @@ def _check_arx_fields(arx: Any) -> None:
 
 _FEATURE_FIELDS = {
     "play": ("radii", "numbers"),
+    "rate-play": ("radii", "numbers"),
     "bouc-wen": ("levels", "numbers"),
     "past-inputs": ("n_past", "integer"),
 }
@@ -272,6 +273,8 @@ def _check_nls_fields(nls: Any) -> None:
     else:
         require_int(repr(f"nls.features.{key}"), features[key], minimum=0)
     _number(features["initial_input"], "nls.features.initial_input")
+    if name == "rate-play":
+        _rate_play_fields(features)
     hidden = nls["hidden"]
     if not isinstance(hidden, list) or not hidden:
         raise ValueError(f"'nls.hidden' must be a non-empty list of layer widths; got {hidden!r}")
@@ -283,6 +286,20 @@ def _check_nls_fields(nls: Any) -> None:
     training = nls.get("training")
     if training is not None and not isinstance(training, dict):
         raise ValueError(f"'nls.training' must be a JSON object or null; got {training!r}")
+
+
+def _rate_play_fields(features: dict) -> None:
+    """The rate constant (s, >= 0) and sample time (s, > 0) of rate-dependent play features."""
+    missing = [f"nls.features.{k}" for k in ("rate_time", "dt") if k not in features]
+    if missing:
+        raise ValueError(f"missing key(s) {missing} (feature set 'rate-play')")
+    _number(features["rate_time"], "nls.features.rate_time")
+    _number(features["dt"], "nls.features.dt")
+    if features["rate_time"] < 0 or features["dt"] <= 0:
+        raise ValueError(
+            "'nls.features.rate_time' must be >= 0 s and 'nls.features.dt' > 0 s; got "
+            f"{features['rate_time']!r} and {features['dt']!r}"
+        )
 
 
 def _read_weights(path: Path) -> dict[str, np.ndarray]:

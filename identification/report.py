@@ -81,6 +81,15 @@ def _final_linear_part(report: dict[str, Any]) -> dict[str, Any] | None:
     return None if refinement is None else refinement["after"]
 
 
+def _rate_dependent(report: dict[str, Any]) -> bool:
+    """Whether the kept network runs on rate-dependent plays (``rate`` on or kept by auto)."""
+    refinement = report["nls"].get("output_error") or {}
+    if not refinement.get("accepted"):
+        return False
+    stages = refinement.get("stages") or []
+    return bool(stages) and stages[0].get("rate_time_s", 0.0) > 0.0
+
+
 def _scope_section(report: dict[str, Any]) -> list[str]:
     """What the identified model is good for and what not, from this run's own figures."""
     config, val, env = report["config"], report["validation"], report["environment"]
@@ -135,7 +144,10 @@ def _scope_section(report: dict[str, Any]) -> list[str]:
         "- **Not good for** voltages beyond the identified range (the network continues along "
         "its affine part: the physics of small signals, not of saturation or depolarisation);",
         "- rate-dependent hysteresis or creep: the memory features are rate-independent, and "
-        "records of seconds do not show a drift over minutes;",
+        "records of seconds do not show a drift over minutes;"
+        if not _rate_dependent(report)
+        else "- creep: records of seconds do not show a drift over minutes (the plays' "
+        "rate dependence covers loops that widen with the drive's rate, not drift);",
     ]
     if one_step is not None:
         not_good.append(
@@ -378,6 +390,7 @@ def _nls_refinement_section(
         else "The sensor's noise bound was not given."
     )
     note = f" {refinement['note'].capitalize()}." if refinement.get("note") else ""
+    note += _radii_note(refinement)
     return [
         "### Output-error refinement of the whole model (step e')",
         "",
@@ -396,6 +409,34 @@ def _nls_refinement_section(
         f"deflection's error itself, over both blocks. {floor}",
         "",
     ]
+
+
+def _radii_note(refinement: dict[str, Any]) -> str:
+    """The learned play radii and rate constant of the radius stage, and the ``rate="auto"``
+    choice; empty when no radius stage ran."""
+    stages = refinement.get("stages") or []
+    if not stages or "radii_after" not in stages[0]:
+        return ""
+    first = stages[0]
+    radii = ", ".join(f"{r:.2f}" for r in first["radii_after"])
+    text = f" Play radii learned: {radii} V"
+    if "rate_time_s" in first:
+        text += f"; rate constant {first['rate_time_s']:.3g} s"
+        if first.get("rate_note"):
+            text += f" ({first['rate_note']})"
+    choice = refinement.get("rate_choice")
+    if choice and not choice.get("determined", True):
+        text += "; rate-dependent plays not fitted (the records do not determine a rate constant)"
+    elif choice:
+        verdict = "kept" if choice["kept"] else "not kept"
+        rate_rms = choice.get("rate_rms_um")
+        text += (
+            f"; rate-dependent plays {verdict} (held-out RMS "
+            f"{'n/a' if rate_rms is None else f'{rate_rms:.3f}'} um against "
+            f"{choice['plain_rms_um']:.3f} um, threshold {choice['threshold_um2']:.3g} um^2 on "
+            "the mean square)"
+        )
+    return text + "."
 
 
 def _um_pair(values: dict[str, float | None]) -> list[str]:

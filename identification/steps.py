@@ -17,7 +17,7 @@ import gymnasium as gym
 import numpy as np
 
 from identification.arx import ARXModel
-from identification.config import ORDER_TIE_PERCENT, IdentificationConfig
+from identification.config import ORDER_TIE_PERCENT, RADIUS_ITERATIONS, IdentificationConfig
 from identification.estimation import fit_arx
 from identification.experiment import (
     collect,
@@ -31,7 +31,12 @@ from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
 from identification.nls import fit_nls
-from identification.nls.output_error import move_gain, refine_nls_output_error
+from identification.nls.output_error import (
+    NlsOutputErrorFit,
+    move_gain,
+    rate_is_determined,
+    refine_nls_output_error,
+)
 from identification.refine import OutputErrorFit, refine_output_error
 
 __all__ = [
@@ -196,6 +201,12 @@ class NlsRefinement:
         Slope of the kept model's z against u on the PRBS record (1 after :func:`move_gain`).
     wall_time_s : float
         Time of the refinement, s.
+    rate_choice : dict or None
+        With ``rate="auto"``: whether the records determine a rate constant
+        (:func:`identification.nls.output_error.rate_is_determined`; if not, no rate-dependent
+        model is fitted), and if they do the held-out RMS errors (um) of the rate-independent
+        and the rate-dependent model, the threshold (um^2, :func:`rate_threshold`), the time of
+        both refinements (s); and whether the rate-dependent one was kept. None otherwise.
     """
 
     model: HammersteinModel
@@ -207,6 +218,7 @@ class NlsRefinement:
     stages: tuple[dict, ...]
     small_signal_gain: float
     wall_time_s: float
+    rate_choice: dict | None = None
 
     @property
     def iterations(self) -> int:
@@ -216,9 +228,9 @@ class NlsRefinement:
     def record(self) -> dict:
         """JSON-safe summary (for the report and the refined network's training record)."""
         return {
-            "method": "free-run output error: the network, then network and linear part, "
-            "L-BFGS from steps e and b'; the gain then moved to keep the network's unit "
-            "small-signal gain",
+            "method": "free-run output error: (with learned play radii) the radii and the "
+            "network, then the network, then network and linear part, L-BFGS from steps e and "
+            "b'; the gain then moved to keep the network's unit small-signal gain",
             "accepted": self.accepted,
             "refusal": self.refusal,
             "note": self.note,
@@ -227,6 +239,7 @@ class NlsRefinement:
             "stages": [dict(stage) for stage in self.stages],
             "small_signal_gain": self.small_signal_gain,
             "wall_time_s": self.wall_time_s,
+            **({"rate_choice": dict(self.rate_choice)} if self.rate_choice else {}),
         }
 
 
@@ -459,16 +472,29 @@ def refine_nonlinearity(
             small_signal_gain=_small_signal_gain(start, records[0][0]),
             wall_time_s=0.0,
         )
-    fit = refine_nls_output_error(
-        start.nls, start.arx, records, max_iterations=config.nls_refinement_iterations
-    )
-    refined = HammersteinModel(fit.nls, fit.arx)
-    gain = _small_signal_gain(refined, records[0][0])
+    fit, refined, gain = _refine(start, records, config, learn_rate=config.rate == "on")
+    rate_choice = None
+    if (
+        config.rate == "auto"
+        and refined is not None
+        and fit.stages
+        and "radii_after" in fit.stages[0]
+    ):
+        rate_choice = {
+            "determined": rate_is_determined(fit.stages[0]["radii_after"], records, start.arx.dt)
+        }
+        if rate_choice["determined"]:
+            rate_fit, rate_refined, rate_gain = _refine(start, records, config, learn_rate=True)
+            rate_choice.update(_rate_choice(refined, rate_refined, nls))
+            rate_choice["wall_time_s"] = fit.wall_time_s + rate_fit.wall_time_s
+            if rate_choice["kept"]:
+                fit, refined, gain = rate_fit, rate_refined, rate_gain
+        else:
+            rate_choice["kept"] = False
     model, refusal = start, None
-    if not (np.isfinite(gain) and gain > 0):
+    if refined is None:
         refusal = f"the refined network's small-signal gain is {gain:.3g}, not positive"
     else:
-        refined = HammersteinModel(*move_gain(fit.nls, fit.arx, gain))
         selection["after"] = _selection_rms(refined, nls)
         if selection["after"] < selection["before"]:
             model = refined
@@ -484,10 +510,66 @@ def refine_nonlinearity(
         stages=fit.stages,
         small_signal_gain=_small_signal_gain(model, records[0][0]),
         wall_time_s=fit.wall_time_s,
+        rate_choice=rate_choice,
     )
     if result.accepted:  # the saved network's training record tells what was done to it
         model.nls.training["output_error_refinement"] = result.record()
     return result
+
+
+def _refine(
+    start: HammersteinModel,
+    records: list[tuple[np.ndarray, np.ndarray]],
+    config: IdentificationConfig,
+    *,
+    learn_rate: bool,
+) -> tuple[NlsOutputErrorFit, HammersteinModel | None, float]:
+    """Step e''s refinement of ``start`` on ``records``: the fit, the refined model with the
+    gain moved to the linear part (None when its small-signal gain is not positive) and that
+    gain."""
+    fit = refine_nls_output_error(
+        start.nls,
+        start.arx,
+        records,
+        max_iterations=config.nls_refinement_iterations,
+        radius_iterations=RADIUS_ITERATIONS if config.play_radii == "learned" else 0,
+        learn_rate=learn_rate,
+    )
+    gain = _small_signal_gain(HammersteinModel(fit.nls, fit.arx), records[0][0])
+    if not (np.isfinite(gain) and gain > 0):
+        return fit, None, gain
+    return fit, HammersteinModel(*move_gain(fit.nls, fit.arx, gain)), gain
+
+
+def rate_threshold(noise_bound: float, rms_um: float, n_samples: int) -> float:
+    """Lowering of the held-out mean squared error (um^2) that ``rate="auto"`` asks of the
+    rate-dependent model before keeping it.
+
+    On a record y = m + v with model error m and white sensor noise v of standard deviation
+    sigma, the mean squared errors of two models differ by the difference of their own plus
+    2 <m_1 - m_2, v> / N, whose standard deviation is at most 2 sigma (rms_1 + rms_2) / sqrt(N)
+    <= 4 sigma rms / sqrt(N) with ``rms`` the larger RMS error. Three of those: a lowering that
+    noise alone gives with probability below about 0.3 %. The noise is uniform within
+    ``noise_bound`` (um; the linear part's bound, which holds the sensor's), so
+    sigma = noise_bound / sqrt(3).
+    """
+    sigma = noise_bound / np.sqrt(3.0)
+    return float(3.0 * 4.0 * sigma * rms_um / np.sqrt(n_samples))
+
+
+def _rate_choice(plain: HammersteinModel, rate: HammersteinModel | None, nls: NlsFit) -> dict:
+    """Whether ``rate="auto"`` keeps the rate-dependent model: its held-out mean squared error
+    lower than the rate-independent one's by more than :func:`rate_threshold`."""
+    plain_rms = _selection_rms(plain, nls)
+    n = nls.selection_record[0].size - nls.selection_lead_in
+    threshold = rate_threshold(plain.arx.noise_bound, plain_rms, n)
+    choice = {"plain_rms_um": plain_rms, "threshold_um2": threshold, "kept": False}
+    if rate is not None:
+        rate_rms = _selection_rms(rate, nls)
+        choice["rate_rms_um"] = rate_rms
+        choice["rate_time_s"] = rate.nls.feature_map.rate_time
+        choice["kept"] = bool(plain_rms**2 - rate_rms**2 > threshold)
+    return choice
 
 
 def _selection_rms(model: HammersteinModel, nls: NlsFit) -> float:

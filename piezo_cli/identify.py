@@ -47,6 +47,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=FEATURES,
         help="memory features of the neural nonlinearity (auto: chosen on a selection record)",
     )
+    parser.add_argument(
+        "--rate",
+        default="auto",
+        choices=("off", "on", "auto"),
+        help="with play features: plays whose radii grow with the drive's rate, the rate "
+        "constant learned with the radii in step e' (auto: kept only if the held-out selection "
+        "record's error falls by more than its noise allows)",
+    )
     add_env_arguments(parser)
 
 
@@ -78,13 +86,16 @@ def run(args: argparse.Namespace) -> int:
 
     if args.records is not None:  # a malformed folder is refused before --out is made
         records, settings = read_records_folder(
-            args.records, IdentificationConfig(features=args.features), split=args.split
+            args.records,
+            IdentificationConfig(features=args.features, rate=args.rate),
+            split=args.split,
         )
     out = prepare_output_dir(args.out)
     if args.records is None:
         config = IdentificationConfig(
             seed=0 if args.seed is None else args.seed,
             features=args.features,
+            rate=args.rate,
             env_kwargs=env_kwargs(args),
         )
         result = identify(config=config, progress=print)

@@ -371,6 +371,11 @@ def make_hysteresis(
     )
 
 
+_JUMP_TOLERANCE = 1e-9
+"""Relative miss of the target (-) above which an inverse landed on a jump of the map, not a
+root: the Newton iteration stops at a correction of 1e-12 V, so a root misses by about
+slope x 1e-12 V (slope <= w_0 + sum w_i)."""
+
 RATE_TIME = 7.16e-4
 """Default rate constant beta (s) of :class:`RateDependentPrandtlIshlinskii`: at a full-stroke
 (+-U_r) 50 Hz sine the loop is 1.5 times as wide as the quasi-static one (closed form in the
@@ -389,13 +394,30 @@ class RateDependentPrandtlIshlinskii(Hysteresis):
     piezomicropositioning actuator"): dynamic thresholds r_i(t) = r_i + beta |u'(t)|, so that
     the loop of a periodic drive widens with its frequency, as measured on piezo actuators.
     Sampled at ``dt``, the rate is the drive's rate over the previous sample,
-    |u_{t-1} - u_{t-2}| / dt (carried in the state), so within one sample the map
-    u -> u_eff is an ordinary Prandtl-Ishlinskii map with fixed radii::
+    |u_{t-1} - u_{t-2}| / dt (carried in the state), so within one sample the radii are fixed,
+    and the play is directional: a rising input only raises its output, a falling input only
+    lowers it, and a held input leaves it::
 
         rho_t = r_i + beta |u_{t-1} - u_{t-2}| / dt
-        p_i <- max(u_t - rho_t, min(u_t + rho_t, p_i)),   u_eff = w_0 u_t + sum_i w_i p_i
+        p_i <- max(p_i, u_t - rho_t)   if u_t > u_{t-1}
+        p_i <- min(p_i, u_t + rho_t)   if u_t < u_{t-1}
+        p_i unchanged                  if u_t = u_{t-1}
+        u_eff = w_0 u_t + sum_i w_i p_i
 
     State: [previous voltage (V), previous rate |du| / dt (V/s), play outputs (V)].
+
+    Why directional. With a fixed radius the directional play equals the symmetric clip
+    max(u - r, min(u + r, p)) (the output stays within r of the input). With a radius that
+    shrinks when the drive slows down, the symmetric clip drags the output by the rate's
+    share of the lag as soon as the rate drops, also when the drive stops and is held: u_eff
+    then moves with no change of its input. The directional play keeps the lag through a hold
+    and closes it when the input next moves the way the lag points (the radius shrinks while
+    the input moves, as in the continuous model). Why the previous sample's rate and not the
+    current sample's (u_t - u_{t-1}) / dt: with the current rate the radius grows by
+    k = beta / dt per volt of the step, so a play that catches up moves with slope 1 - k in
+    u_t and u_eff falls while u_t rises once (k - 1) sum w_i > w_0 (at the default beta that is
+    dt <= 2.5e-4 s, the default sample time of the PL122, PL127 and PL112); with the previous
+    sample's rate the radii are fixed within a sample and the map is increasing at every dt.
 
     Loop width (closed form). Under u = A sin(omega t) with the rate taken continuously, a play
     of base radius r < A / 2 reaches p = -A + r at the lower reversal (rate 0 there) and on the
@@ -405,16 +427,23 @@ class RateDependentPrandtlIshlinskii(Hysteresis):
     and the crossing u + rho(t) = A cos(phi) + r + beta omega A sin(phi) has no minimum below its
     end values while beta omega < 1). The loop width of u_eff at u = 0 is therefore
     sum_i 2 w_i min(r_i + beta omega A, A - r_i): linear in the frequency until a play's
-    radius reaches A - r_i. Sampled, omega A is replaced by the previous sample's rate.
+    radius reaches A - r_i. Sampled, omega A is replaced by the previous sample's rate. The
+    drive moves one way between its reversals, so the directional play gives the same branch
+    as the symmetric clip there.
 
     Accepted parameters: those of :class:`PrandtlIshlinskii` (w_0 > 0, w_i >= 0, r_i >= 0) and
-    beta >= 0 (s), dt > 0 (s). Within a sample the radii are fixed, so u -> u_eff is strictly
-    increasing (slope >= w_0) and the inverse is unique. Observation bound: a play of radius
+    beta >= 0 (s), dt > 0 (s). Within a sample the radii are fixed, so each play output is a
+    non-decreasing function of u_t (max(p, u - rho) above u_{t-1}, min(p, u + rho) below,
+    p at u_{t-1}), u -> u_eff is strictly increasing (slope >= w_0) and the inverse is unique.
+    The map jumps at u_{t-1} when a play holds a lag larger than its radius (after a hold or a
+    slow-down); a target inside such a jump is not reachable and :meth:`inverse` says so
+    (status ``"out-of-range"``, ``u`` at the jump). Observation bound: a play of radius
     rho >= r_i keeps its output in [-(u_max - r_i)+, (u_max - r_i)+] when |u| <= u_max. Proof:
-    if |p| <= M = (u_max - r_i)+ and p < u - rho, the new output u - rho <= u_max - r_i and is
-    > p >= -M (likewise for p > u + rho); otherwise p is unchanged. From rest (p = 0) this holds
-    at every sample, so :meth:`max_effective_voltage` is the rate-independent map's bound
-    w_0 u_max + sum w_i (u_max - r_i)+ for every drive, at every rate.
+    if |p| <= M = (u_max - r_i)+ and the input rises, the new output is p or u - rho with
+    p < u - rho <= u_max - r_i <= M (likewise when it falls); a held input keeps p. From rest
+    (p = 0) this holds at every sample, so :meth:`max_effective_voltage` is the
+    rate-independent map's bound w_0 u_max + sum w_i (u_max - r_i)+ for every drive, at every
+    rate.
 
     Parameters
     ----------
@@ -496,11 +525,28 @@ class RateDependentPrandtlIshlinskii(Hysteresis):
         gap = np.minimum(rho, amplitude - self._r)
         return float(2.0 * self._w @ np.maximum(gap, 0.0))
 
+    def inverse(
+        self, u_eff_target: float, state: np.ndarray, u_range: Sequence[float]
+    ) -> InverseResult:
+        """As :meth:`Hysteresis.inverse`; a target inside the map's jump at the previous input
+        (a play catching up its lag, class docstring) gives the jump's voltage and status
+        ``"out-of-range"``: no voltage reaches it."""
+        result = super().inverse(u_eff_target, state, u_range)
+        missed = abs(result.z - float(u_eff_target)) > _JUMP_TOLERANCE * (1.0 + abs(result.z))
+        if result.status == "ok" and missed:
+            return InverseResult(result.u, result.z, "out-of-range", result.state)
+        return result
+
     def step(self, state, u):
         u_arr = np.asarray(u, dtype=float)
+        u_prev = state[..., 0]
         rho = self._r + self._beta * state[..., 1:2]
-        plays = play(state[..., 2:], u_arr[..., None], rho)
-        rate = np.abs(u_arr - state[..., 0]) / self.dt
+        # Directional play: a rising input only raises the output to u - rho, a falling one
+        # only lowers it to u + rho, a held input leaves it (class docstring).
+        lower = np.where(u_arr > u_prev, u_arr, -np.inf)[..., None] - rho
+        upper = np.where(u_arr < u_prev, u_arr, np.inf)[..., None] + rho
+        plays = np.maximum(lower, np.minimum(upper, state[..., 2:]))
+        rate = np.abs(u_arr - u_prev) / self.dt
         new = np.concatenate([u_arr[..., None], rate[..., None], plays], axis=-1)
         return new, self.linear_weight * u_arr + plays @ self._w
 
@@ -510,14 +556,16 @@ class RateDependentPrandtlIshlinskii(Hysteresis):
         Equal to :meth:`step` to rounding (the weighted sum is added in order)."""
         u_prev = state.item(0)
         extra = self._beta * state.item(1)
+        rising, falling = u > u_prev, u < u_prev
         total = 0.0
         for i, (r, w) in enumerate(self._pairs, start=2):
             rho = r + extra
             p = state.item(i)
-            low = u - rho
-            if p < low:
-                p = low
-            else:
+            if rising:
+                low = u - rho
+                if p < low:
+                    p = low
+            elif falling:
                 high = u + rho
                 if p > high:
                     p = high
@@ -530,13 +578,16 @@ class RateDependentPrandtlIshlinskii(Hysteresis):
     def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
         import casadi
 
+        rho = [r + self._beta * state[1] for r in self.radii]
+        rising, falling = u > state[0], u < state[0]
         plays = casadi.vertcat(
             *[
-                casadi.fmax(
-                    u - (r + self._beta * state[1]),
-                    casadi.fmin(u + (r + self._beta * state[1]), state[2 + i]),
+                casadi.if_else(
+                    rising,
+                    casadi.fmax(u - rho[i], state[2 + i]),
+                    casadi.if_else(falling, casadi.fmin(u + rho[i], state[2 + i]), state[2 + i]),
                 )
-                for i, r in enumerate(self.radii)
+                for i in range(len(self.radii))
             ]
         )
         u_eff = self.linear_weight * u + casadi.dot(casadi.DM(self._w), plays)

@@ -52,6 +52,7 @@ __all__ = [
     "play_casadi",
     "play_sequence",
     "play_slope",
+    "rate_play_sequence",
 ]
 
 _LINEAR_LAMBDA = 1e-12
@@ -89,6 +90,42 @@ def play_sequence(u: np.ndarray, r: np.ndarray, p: np.ndarray) -> tuple[np.ndarr
         np.maximum(lower[t], p, out=p)
         out[t] = p
     return out, p
+
+
+def rate_play_sequence(
+    u: np.ndarray, r: np.ndarray, rate_time: float, dt: float, state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rate-dependent directional plays over an input sequence ``u`` (T,), V.
+
+    The plays of :class:`piezo_env.hysteresis.RateDependentPrandtlIshlinskii` with weights
+    left out: radii ``r + rate_time |u_t-1 - u_t-2| / dt`` (V; ``rate_time`` in s, ``dt`` in
+    s), a rising input raises an output only to ``u_t - rho``, a falling one lowers it only to
+    ``u_t + rho``, a held one leaves it. ``state`` is ``[u_t-1 (V), previous rate (V/s),
+    play outputs (V)...]`` as in that class.
+
+    Returns
+    -------
+    plays : numpy.ndarray, shape (T, n)
+        Play outputs, V.
+    final : numpy.ndarray
+        The state after the last sample (a new array; ``state`` is not written).
+    """
+    p = np.array(state[2:], dtype=np.float64)
+    previous = np.concatenate(([state[0]], u[:-1]))
+    rates = np.abs(u - previous) / dt
+    lag = rate_time * np.concatenate(([state[1]], rates[:-1]))
+    out = np.empty((u.size, r.size))
+    for t in range(u.size):
+        if u[t] > previous[t]:
+            np.maximum(u[t] - (r + lag[t]), p, out=p)
+        elif u[t] < previous[t]:
+            np.minimum(u[t] + (r + lag[t]), p, out=p)
+        out[t] = p
+    final = np.empty(state.size)
+    final[0] = u[-1] if u.size else state[0]
+    final[1] = rates[-1] if u.size else state[1]
+    final[2:] = p
+    return out, final
 
 
 def play_casadi(p: Any, u: Any, radii: Any) -> Any:

@@ -183,6 +183,61 @@ def test_rate_dependent_map_is_increasing_and_inverts():
         assert h.inverse(target, state, (-30, 30)).u == pytest.approx(7.0, abs=1e-9)
 
 
+def test_rate_dependent_output_holds_when_the_input_is_held():
+    """A ramp that stops: while the input is held u_eff keeps its last value (the plays keep
+    their rate-dependent lag), and the lag closes when the input next rises, not before."""
+    h = RateDependentPrandtlIshlinskii.for_voltage(30.0)
+    state = h.initial_state(0.0)
+    for u in np.linspace(0.0, 15.0, 16):
+        state, last = h.step(state, u)
+    held = []
+    for _ in range(5):
+        state, u_eff = h.step(state, 15.0)
+        held.append(float(u_eff))
+    assert held == [float(last)] * 5
+    # The lag left by the ramp: each play trails by its radius plus beta times the ramp rate.
+    lag = 15.0 - state[2:]
+    np.testing.assert_allclose(lag[:2], np.array(h.radii[:2]) + h.rate_time * 1.0 / h.dt)
+    # Rising again closes it (rate 0 over the held sample): the plays sit at u - r_i.
+    state, _ = h.step(state, 15.5)
+    np.testing.assert_allclose(state[2:4], 15.5 - np.array(h.radii[:2]))
+
+
+def test_rate_dependent_fast_paths_agree():
+    """step (batch), step_inplace and casadi_step give the same outputs on a drive with ramps,
+    holds and reversals."""
+    import casadi
+
+    h = RateDependentPrandtlIshlinskii.for_voltage(30.0)
+    rng = np.random.default_rng(5)
+    drive = np.repeat(rng.uniform(-30, 30, 60), rng.integers(1, 4, 60))
+    u_sym, s_sym = casadi.MX.sym("u"), casadi.MX.sym("s", h.state_size)
+    fun = casadi.Function("f", [u_sym, s_sym], list(h.casadi_step(u_sym, s_sym)))
+    state, fast, sym = h.initial_state(0.0), h.initial_state(0.0), h.initial_state(0.0)
+    for u in drive:
+        state, u_eff = h.step(state, u)
+        assert h.step_inplace(fast, float(u)) == pytest.approx(float(u_eff), abs=1e-12)
+        z, sym = fun(u, sym)
+        sym = np.asarray(sym).ravel()
+        assert float(z) == pytest.approx(float(u_eff), abs=1e-12)
+        np.testing.assert_allclose(fast, state, atol=1e-12)
+        np.testing.assert_allclose(sym, state, atol=1e-12)
+
+
+def test_rate_dependent_inverse_reports_a_target_inside_a_catch_up_jump():
+    h = RateDependentPrandtlIshlinskii.for_voltage(30.0)
+    state = h.initial_state(0.0)
+    for u in [*np.linspace(0.0, 15.0, 16), 15.0, 15.0]:
+        state, _ = h.step(state, u)
+    rows = np.broadcast_to(state, (2, state.size))
+    below, above = h.step(rows, np.array([15.0, np.nextafter(15.0, 16.0)]))[1]
+    assert above - below > 0.1  # the plays' lag closes at once
+    result = h.inverse(0.5 * (below + above), state, (-30.0, 30.0))
+    assert result.status == "out-of-range" and result.u == pytest.approx(15.0, abs=1e-9)
+    reachable = h.inverse(above + 0.2, state, (-30.0, 30.0))
+    assert reachable.status == "ok" and reachable.z == pytest.approx(above + 0.2, abs=1e-9)
+
+
 def test_rate_dependent_bound_holds_at_any_rate():
     h = RateDependentPrandtlIshlinskii.for_voltage(30.0, rate_time=5e-3)
     bound = h.max_effective_voltage(30.0)

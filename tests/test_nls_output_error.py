@@ -200,3 +200,247 @@ def test_bad_input_is_refused_with_the_reason():
         IdentificationConfig(nls_refinement="joint")
     with pytest.raises(ValueError, match="nls_refinement_iterations"):
         IdentificationConfig(nls_refinement_iterations=0)
+
+
+# -- learned play radii -----------------------------------------------------------------------
+
+
+def test_play_radius_derivatives_match_finite_differences():
+    from identification.nls.play_radii import play_radius_derivatives
+    from piezo_env.operators import play_sequence
+
+    rng = np.random.default_rng(1)
+    u = np.repeat(rng.uniform(-30, 30, 200), 3)
+    radii = np.array([2.5, 7.3, 13.1])
+    plays, _ = play_sequence(u, radii, np.zeros(3))
+    derivative = play_radius_derivatives(u, radii, plays)
+    step = 1e-6
+    for i in range(radii.size):
+        shift = np.zeros(3)
+        shift[i] = step
+        up = play_sequence(u, radii + shift, np.zeros(3))[0][:, i]
+        down = play_sequence(u, radii - shift, np.zeros(3))[0][:, i]
+        np.testing.assert_allclose(derivative[:, i], (up - down) / (2 * step), atol=1e-6)
+    assert set(np.unique(derivative)) <= {-1.0, 0.0, 1.0}
+
+
+def _play_plant(true_radii: tuple[float, float], seed: int = 0):
+    """RAND input, z = 0.7 u + 0.15 (P_r1 + P_r2), y = first-order lag of z plus uniform noise
+    of half-width 0.05 (standard deviation 0.0289); a network started on the grid radii
+    (10, 20) V of two plays over +-30 V."""
+    from identification.nls import fit_nls
+    from piezo_env.operators import play_sequence
+
+    rng = np.random.default_rng(seed)
+    u = np.repeat(rng.uniform(-30, 30, 400), 10)
+    plays, _ = play_sequence(u, np.asarray(true_radii), np.zeros(2))
+    z = 0.7 * u + plays @ np.array([0.15, 0.15])
+    arx = ARXModel([0.6], [0.4], dt=1e-3)
+    y = arx.simulate(z) + rng.uniform(-0.05, 0.05, u.size)
+    start = fit_nls(
+        u, z, features="play", n_play=2, u_range=(-30, 30), hidden=(2,), max_epochs=30, seed=0
+    )
+    assert start.feature_map.radii == (10.0, 20.0)
+    return start, arx, [(u, y)]
+
+
+def test_learned_radii_find_plays_between_the_grid_radii(tmp_path):
+    """Plays of 7 and 16 V (between the grid's 10 and 20): the radius stage lands within
+    0.1 V of them (measured 0.017 V) and the fit reaches the noise floor, as good as with
+    plays on the grid and the grid radii kept."""
+    from identification.hammerstein import HammersteinModel
+
+    start, arx, records = _play_plant((7.0, 16.0))
+    fixed = refine_nls_output_error(start, arx, records, max_iterations=100, refine_linear=False)
+    learned = refine_nls_output_error(
+        start, arx, records, max_iterations=100, refine_linear=False, radius_iterations=150
+    )
+    np.testing.assert_allclose(learned.nls.feature_map.radii, (7.0, 16.0), atol=0.1)
+    on_grid = refine_nls_output_error(
+        *_play_plant((10.0, 20.0)), max_iterations=100, refine_linear=False
+    )
+    floor = 0.05 / np.sqrt(3.0)
+    assert on_grid.rms_after < 1.1 * floor
+    assert learned.rms_after < 1.1 * on_grid.rms_after
+    assert fixed.rms_after > 3.0 * on_grid.rms_after  # the grid alone misses them (6x)
+    assert learned.stages[0]["radii_after"] == list(learned.nls.feature_map.radii)
+    # The model files carry the learned radii, and the inverse runs on them.
+    model = HammersteinModel(learned.nls, learned.arx)
+    loaded = HammersteinModel.load(model.save(tmp_path / "model"))
+    assert loaded.nls.feature_map.radii == learned.nls.feature_map.radii
+    state = loaded.nls.initial_state()
+    for u in (12.0, -3.0, 5.0):
+        z, state_next = loaded.nls.step(u, state)
+        solved = loaded.nls.solve_inverse(z, state, xtol=1e-12)
+        assert solved.u == pytest.approx(u, abs=1e-8)
+        state = state_next
+
+
+def test_radius_stage_is_refused_bad_counts_and_skipped_without_plays():
+    start, arx, records = _play_plant((7.0, 16.0))
+    with pytest.raises(ValueError, match="radius_iterations"):
+        refine_nls_output_error(start, arx, records, radius_iterations=-1)
+    past = _nls(_true_params())
+    fit = refine_nls_output_error(
+        past, arx, records, max_iterations=2, refine_linear=False, radius_iterations=5
+    )
+    assert len(fit.stages) == 1 and fit.nls.feature_map == past.feature_map
+
+
+def test_play_radii_setting_is_validated():
+    assert IdentificationConfig().play_radii == "learned"
+    with pytest.raises(ValueError, match="play_radii"):
+        IdentificationConfig(play_radii="fixed")
+
+
+# -- rate-dependent plays ---------------------------------------------------------------------
+
+
+def test_rate_play_features_follow_the_plant_plays_step_by_step():
+    """The features' plays are the rate-dependent plant's (weights aside), bitwise, over a
+    drive with ramps, holds and reversals; the batch, one-step, candidate and casadi paths
+    agree and the map survives a dict round trip."""
+    import casadi
+
+    from identification.features import RatePlayFeatures, feature_map_from_dict
+    from piezo_env.hysteresis import RateDependentPrandtlIshlinskii
+
+    plant = RateDependentPrandtlIshlinskii.for_voltage(30.0)
+    features = RatePlayFeatures(radii=plant.radii, rate_time=plant.rate_time, dt=plant.dt)
+    rng = np.random.default_rng(2)
+    u = np.repeat(rng.uniform(-30, 30, 120), rng.integers(1, 4, 120))
+    batch, final = features.features(u, features.initial_state())
+    state, one = features.initial_state(), features.initial_state()
+    u_sym, s_sym = casadi.MX.sym("u"), casadi.MX.sym("s", features.n_state)
+    step = casadi.Function("f", [u_sym, s_sym], list(features.casadi_step(u_sym, s_sym)))
+    symbolic = features.initial_state()
+    for t, v in enumerate(u):
+        row = features.candidates(np.array([v, v + 1.0]), one)[0]
+        f, one = features.step(float(v), one)
+        state, _ = plant.step(state, v)
+        np.testing.assert_array_equal(batch[t, 1:], state[2:])
+        np.testing.assert_array_equal(f, batch[t])
+        np.testing.assert_array_equal(row, batch[t])
+        f_sym, symbolic = step(v, symbolic)
+        np.testing.assert_allclose(np.asarray(f_sym).ravel(), batch[t], atol=1e-12)
+        symbolic = np.asarray(symbolic).ravel()
+    np.testing.assert_array_equal(final, state)
+    assert feature_map_from_dict(features.to_dict()) == features
+
+
+def _rate_plant(rate_time: float, seed: int = 0):
+    """A multisine (1-30 Hz, +-28 V, no holds: every sample moves at its own rate) through
+    rate-dependent plays of radii 7 and 16 V, z = 0.7 u + 0.15 (p_1 + p_2), a first-order
+    lag and uniform noise of half-width 0.05; a network started on the grid radii (10, 20)."""
+    from identification.nls import fit_nls
+    from piezo_env.operators import rate_play_sequence
+
+    rng = np.random.default_rng(seed)
+    dt = 1e-3
+    t = np.arange(6000) * dt
+    frequencies, phases = rng.uniform(1, 30, 6), rng.uniform(0, 2 * np.pi, 6)
+    u = np.sin(2 * np.pi * frequencies * t[:, None] + phases).sum(axis=1)
+    u *= 28.0 / np.abs(u).max()
+    plays, _ = rate_play_sequence(u, np.array([7.0, 16.0]), rate_time, dt, np.zeros(4))
+    z = 0.7 * u + plays @ np.array([0.15, 0.15])
+    arx = ARXModel([0.6], [0.4], dt=dt)
+    y = arx.simulate(z) + rng.uniform(-0.05, 0.05, u.size)
+    start = fit_nls(
+        u, z, features="play", n_play=2, u_range=(-30, 30), hidden=(2,), max_epochs=30, seed=0
+    )
+    return start, arx, [(u, y)]
+
+
+@pytest.mark.parametrize(
+    ("rate_time", "tolerance"),
+    [(7e-4, 5e-5), (0.0, 2e-5)],  # measured errors 2e-7 s and 2.3e-6 s
+)
+def test_rate_constant_is_learned(rate_time, tolerance):
+    """A rate constant of 0.7 dt is learned within 0.05 dt, a rate-independent map gives
+    c ~ 0 (within 0.02 dt); the radii land within 0.1 V of 7 and 16 V and the fit reaches the
+    noise floor (0.0289)."""
+    start, arx, records = _rate_plant(rate_time)
+    fit = refine_nls_output_error(
+        start,
+        arx,
+        records,
+        max_iterations=100,
+        refine_linear=False,
+        radius_iterations=150,
+        learn_rate=True,
+    )
+    features = fit.nls.feature_map
+    assert features.name == "rate-play" and features.dt == 1e-3
+    assert features.rate_time == pytest.approx(rate_time, abs=tolerance)
+    assert fit.stages[0]["rate_time_s"] == features.rate_time
+    np.testing.assert_allclose(features.radii, (7.0, 16.0), atol=0.1)
+    assert fit.rms_after < 1.1 * 0.05 / np.sqrt(3.0)
+
+
+def test_rate_aware_inverse_at_a_given_rate(tmp_path):
+    """From a state holding the previous input and the previous rate (the plan's), the
+    network's inverse gives back the voltage to 1e-9 V, also after a save and load."""
+    from identification.hammerstein import HammersteinModel
+
+    start, arx, records = _rate_plant(7e-4)
+    fit = refine_nls_output_error(
+        start,
+        arx,
+        records,
+        max_iterations=20,
+        refine_linear=False,
+        radius_iterations=40,
+        learn_rate=True,
+    )
+    loaded = HammersteinModel.load(HammersteinModel(fit.nls, fit.arx).save(tmp_path / "m"))
+    assert loaded.nls.feature_map == fit.nls.feature_map
+    for rate in (0.0, 2000.0, 8000.0):  # V/s
+        _, state = loaded.nls.features(np.array([0.0, 12.0, 20.0, 25.0]))
+        state[1] = rate
+        for u in (24.0, 26.5, 10.0):
+            z, _ = loaded.nls.step(u, state)
+            solved = loaded.nls.solve_inverse(z, state, xtol=1e-13)
+            assert solved.status == "ok"
+            assert solved.u == pytest.approx(u, abs=1e-9)
+
+
+def test_rate_threshold_and_settings():
+    from identification.steps import rate_threshold
+
+    # 12 sigma rms / sqrt(N) with sigma = bound / sqrt(3).
+    assert rate_threshold(np.sqrt(3.0), 2.0, 3600) == pytest.approx(12.0 * 2.0 / 60.0)
+    assert IdentificationConfig().rate == "auto"
+    assert IdentificationConfig(rate="auto", play_radii="grid").rate == "auto"
+    with pytest.raises(ValueError, match="rate must be"):
+        IdentificationConfig(rate="yes")
+    with pytest.raises(ValueError, match="play_radii='learned'"):
+        IdentificationConfig(rate="on", play_radii="grid")
+    start, arx, records = _rate_plant(0.0)
+    with pytest.raises(ValueError, match="learn_rate needs"):
+        refine_nls_output_error(start, arx, records, learn_rate=True)
+
+
+def test_records_determine_a_rate_only_when_a_play_moves_right_after_a_move():
+    from identification.nls.output_error import rate_is_determined
+
+    _, _, held = _play_plant((7.0, 16.0))  # RAND held for 10 samples
+    _, _, smooth = _rate_plant(7e-4)  # a multisine: every sample moves
+    assert not rate_is_determined((10.0, 20.0), held, 1e-3)
+    assert rate_is_determined((10.0, 20.0), smooth, 1e-3)
+
+
+def test_rate_constant_is_zero_when_the_records_cannot_tell():
+    """Held RAND records: every move follows a held sample, so no play meets a rate-grown
+    edge; the rate constant is set to 0 and the stage says why."""
+    start, arx, records = _play_plant((7.0, 16.0))
+    fit = refine_nls_output_error(
+        start,
+        arx,
+        records,
+        max_iterations=5,
+        refine_linear=False,
+        radius_iterations=10,
+        learn_rate=True,
+    )
+    assert fit.nls.feature_map.rate_time == 0.0
+    assert "do not determine the rate constant" in fit.stages[0]["rate_note"]

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from identification.arguments import as_range, as_scalar, as_signal
-from identification.features import BoucWenFeatures, PastInputFeatures
+from identification.features import BoucWenFeatures, PastInputFeatures, RatePlayFeatures
 from piezo_env.checks import require_int
 from piezo_env.inverse import InverseResult, solve_increasing
 
@@ -181,8 +181,9 @@ class InverseMixin:
         return u, s
 
     def _default_u_ref(self, state: np.ndarray, low: float, high: float) -> float:
-        """The previous input where the state holds it (past inputs, Bouc-Wen), else mid-range."""
-        if isinstance(self.feature_map, PastInputFeatures | BoucWenFeatures):
+        """The previous input where the state holds it (past inputs, Bouc-Wen, rate-dependent
+        plays), else mid-range."""
+        if isinstance(self.feature_map, PastInputFeatures | BoucWenFeatures | RatePlayFeatures):
             return float(state[0])
         return 0.5 * (low + high)
 

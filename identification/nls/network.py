@@ -40,6 +40,7 @@ from identification.features import (
     FeatureMap,
     PastInputFeatures,
     PlayFeatures,
+    RatePlayFeatures,
 )
 from identification.nls.export import ExportMixin
 from identification.nls.files import ARRAY_NAMES, FilesMixin
@@ -121,7 +122,7 @@ class NLS(InverseMixin, ExportMixin, FilesMixin):
 
     Parameters
     ----------
-    feature_map : PlayFeatures, PastInputFeatures or BoucWenFeatures
+    feature_map : PlayFeatures, RatePlayFeatures, PastInputFeatures or BoucWenFeatures
         Memory features of the input.
     params : dict of numpy.ndarray
         Network parameters in normalized coordinates: ``feature_mean``, ``feature_scale``
@@ -142,9 +143,12 @@ class NLS(InverseMixin, ExportMixin, FilesMixin):
         u_range: Sequence[float],
         training: dict[str, Any] | None = None,
     ) -> None:
-        if not isinstance(feature_map, PlayFeatures | PastInputFeatures | BoucWenFeatures):
+        if not isinstance(
+            feature_map, PlayFeatures | RatePlayFeatures | PastInputFeatures | BoucWenFeatures
+        ):
             raise ValueError(
-                "feature_map must be PlayFeatures, PastInputFeatures or BoucWenFeatures; "
+                "feature_map must be PlayFeatures, RatePlayFeatures, PastInputFeatures or "
+                "BoucWenFeatures; "
                 f"got {type(feature_map)}"
             )
         self.feature_map = feature_map

@@ -25,7 +25,9 @@ The split of the gain between the two blocks is not identifiable from input-outp
 times the network and ``1/k`` times ``B`` give the same output); :func:`move_gain` restores the
 scale convention afterwards (unit small-signal gain of the network on the PRBS record).
 Full-batch L-BFGS in float64 with one torch thread, from the step e and b' estimates:
-deterministic.
+deterministic. With play features and ``radius_iterations``, a first stage learns the play
+radii with the network (:mod:`identification.nls.play_radii`), and the network and joint
+stages run at the learned radii.
 
 Every sample of every record weighs the same, as the likelihood under one sensor noise asks.
 Weighting the records differently was measured and left (with the earlier 3 x 32 network, the
@@ -47,15 +49,32 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
+from typing import Any
 
 import numpy as np
 
 from identification.arx import ARXModel
+from identification.features import FeatureMap, PlayFeatures, RatePlayFeatures
 from identification.nls.network import NLS
 from identification.nls.optimisation import torch_threads
+from identification.nls.play_radii import (
+    PlayRadiusFunction,
+    RatePlayFunction,
+    radii_from_coordinates,
+    radius_coordinates,
+    rate_play_outputs,
+    rate_play_runs,
+)
 from identification.nls.torch_module import TorchNLS, load_torch
 
-__all__ = ["NlsOutputErrorFit", "free_run_rms", "move_gain", "refine_nls_output_error"]
+__all__ = [
+    "NlsOutputErrorFit",
+    "free_run_rms",
+    "move_gain",
+    "rate_is_determined",
+    "refine_nls_output_error",
+]
 
 
 @dataclass(frozen=True)
@@ -146,6 +165,8 @@ def refine_nls_output_error(
     *,
     max_iterations: int = 100,
     refine_linear: bool = True,
+    radius_iterations: int = 0,
+    learn_rate: bool = False,
     num_threads: int = 1,
 ) -> NlsOutputErrorFit:
     """Refine ``NLS -> arx`` by minimising its free-run output error on ``records``.
@@ -164,6 +185,14 @@ def refine_nls_output_error(
         ``refine_linear``) the network and the ARX coefficients together.
     refine_linear : bool
         Refine the ARX coefficients too (default); False holds the linear part fixed.
+    radius_iterations : int
+        With play features: L-BFGS iterations at most of a first stage that learns the play
+        radii and the network together, the linear part held (:mod:`identification.nls.
+        play_radii`); the later stages run at the learned radii. 0 (default) keeps the radii.
+    learn_rate : bool
+        With ``radius_iterations``: the radius stage also learns a rate constant c >= 0 (s) and
+        the network then runs on rate-dependent plays of radii ``r_i + c |u_t-1 - u_t-2| / dt``
+        (:class:`identification.features.RatePlayFeatures`, ``dt`` the linear part's).
     num_threads : int
         Torch threads during the refinement (the previous setting is restored).
 
@@ -186,17 +215,33 @@ def refine_nls_output_error(
             "the linear part is unstable: its free run diverges, so there is no output error "
             "to minimise; identify a stable ARX model first"
         )
+    if int(radius_iterations) != radius_iterations or radius_iterations < 0:
+        raise ValueError(f"radius_iterations must be an integer >= 0, got {radius_iterations!r}")
+    if learn_rate and not radius_iterations:
+        raise ValueError("learn_rate needs radius_iterations > 0: the rate is learned there")
     data = _check_records(records)
     torch = load_torch()
     start = time.perf_counter()
+    feature_map = nls.feature_map
     with torch_threads(num_threads):
-        features = [torch.from_numpy(nls.features(u)[0]) for u, _ in data]
         outputs = [torch.from_numpy(y) for _, y in data]
         grids = [_FreeRunGrid(y.size, arx.na, arx.nb, torch) for _, y in data]
         count = sum(y.size for _, y in data)
         module = TorchNLS.from_params(nls.arrays())
         a = torch.tensor(arx.a, dtype=torch.float64)
         b = torch.tensor(arx.b, dtype=torch.float64)
+        stages = []
+        if radius_iterations and isinstance(feature_map, PlayFeatures):
+            targets = (outputs, grids, count)
+            learn = partial(_learn_rate_radii, dt=arx.dt) if learn_rate else _learn_radii
+            feature_map, stage = learn(
+                feature_map, module, data, targets, (a, b), radius_iterations
+            )
+            stages.append(stage)
+        features = [
+            torch.from_numpy(feature_map.features(u, feature_map.initial_state())[0])
+            for u, _ in data
+        ]
 
         def objective() -> object:
             total = 0
@@ -208,7 +253,7 @@ def refine_nls_output_error(
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
         # L-BFGS meets the network's and the poles' very different curvatures and stalls.
-        stages = [_lbfgs(list(module.parameters()), objective, int(max_iterations), torch)]
+        stages.append(_lbfgs(list(module.parameters()), objective, int(max_iterations), torch))
         network_only = TorchNLS.to_params(module)
         if refine_linear:
             a.requires_grad_(True)
@@ -223,10 +268,10 @@ def refine_nls_output_error(
         )
         linear_note = _linear_refusal(arx, candidate)
         if linear_note is None:
-            linear = _with_equation_error_bound(candidate, params, nls, data)
+            linear = _with_equation_error_bound(candidate, params, feature_map, nls, data)
         else:  # the free-run objective has no stability barrier: keep the first stage
             params = network_only
-    refined = NLS(nls.feature_map, params, u_range=nls.u_range, training=nls.training)
+    refined = NLS(feature_map, params, u_range=nls.u_range, training=nls.training)
     return NlsOutputErrorFit(
         nls=refined,
         arx=linear,
@@ -251,17 +296,165 @@ def _linear_refusal(start: ARXModel, candidate: ARXModel) -> str | None:
 
 
 def _with_equation_error_bound(
-    arx: ARXModel, params: dict, nls: NLS, data: list[tuple[np.ndarray, np.ndarray]]
+    arx: ARXModel,
+    params: dict,
+    feature_map: FeatureMap,
+    nls: NLS,
+    data: list[tuple[np.ndarray, np.ndarray]],
 ) -> ARXModel:
     """``arx`` with its ``noise_bound`` re-estimated as the largest equation error over the
     records (the step b and b' meaning of r_hat), with the refined network's z."""
-    network = NLS(nls.feature_map, params, u_range=nls.u_range)
+    network = NLS(feature_map, params, u_range=nls.u_range)
     skip = max(arx.na, arx.nb)
     bound = 0.0
     for u, y in data:
         error = y - arx.predict(network.evaluate(u), y)
         bound = max(bound, float(np.max(np.abs(error[skip:]))))
     return ARXModel(arx.a, arx.b, noise_bound=bound, dt=arx.dt, method=arx.method)
+
+
+def _learn_radii(
+    feature_map: PlayFeatures,
+    module: Any,
+    data: list[tuple[np.ndarray, np.ndarray]],
+    targets: tuple[list, list, int],
+    linear: tuple[Any, Any],
+    max_iterations: int,
+) -> tuple[PlayFeatures, dict[str, int | bool]]:
+    """The radius stage: L-BFGS on the play radii and the network (``module``, updated in
+    place), the linear part ``linear = (a, b)`` held; returns the feature map at the learned
+    radii and the stage's record (with ``radii_before`` and ``radii_after``, V)."""
+    torch = load_torch()
+    outputs, grids, count = targets
+    a, b = linear
+    plays = PlayRadiusFunction()
+    # A held input leaves every play where it is, so the features (and the network's output)
+    # are computed once per run of equal inputs and spread over the run.
+    runs = [_runs(u) for u, _ in data]
+    inputs = [torch.from_numpy(u[starts]) for (u, _), (starts, _) in zip(data, runs, strict=True)]
+    spread = [torch.from_numpy(index) for _, index in runs]
+    start = np.asarray(feature_map.radii)
+    coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
+    rest = feature_map.initial_input
+
+    def objective() -> object:
+        radii = radii_from_coordinates(coordinates)
+        total = 0
+        for u, index, y, grid in zip(inputs, spread, outputs, grids, strict=True):
+            f = torch.cat([u[:, None], plays(radii, u, rest)], dim=1)
+            error = grid.free_run(module(f)[index], a, b) - y
+            total = total + (error * error).sum()
+        return total / count
+
+    stage = _lbfgs([coordinates, *module.parameters()], objective, max_iterations, torch)
+    with torch.no_grad():
+        learned = radii_from_coordinates(coordinates).numpy().copy()
+    stage = {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
+    return PlayFeatures(radii=tuple(learned), initial_input=rest), stage
+
+
+RATE_START = 0.1
+"""Rate constant (in sample times dt) the rate stage starts from: small against the plant's
+(0.716 dt at its default, :data:`piezo_env.hysteresis.RATE_TIME` at 1 ms), and away from 0,
+where the softplus that keeps it positive has no slope."""
+
+
+def _learn_rate_radii(
+    feature_map: PlayFeatures,
+    module: Any,
+    data: list[tuple[np.ndarray, np.ndarray]],
+    targets: tuple[list, list, int],
+    linear: tuple[Any, Any],
+    max_iterations: int,
+    dt: float,
+) -> tuple[RatePlayFeatures, dict[str, Any]]:
+    """The radius stage with a rate constant: L-BFGS on the base radii, the rate constant
+    ``c = dt softplus(s)`` (s) and the network (updated in place), the linear part held;
+    returns the rate-dependent feature map learned (rates over ``dt``, s) and the stage's
+    record."""
+    torch = load_torch()
+    outputs, grids, count = targets
+    a, b = linear
+    dt = float(dt)
+    plays = RatePlayFunction()
+    rest = feature_map.initial_input
+    # Plays move only when the input does: the features at each move, spread to the samples
+    # up to the next (a leading row for the samples before the first move, at rest).
+    moves, spread = [], []
+    for u, _ in data:
+        u_moves, direction, rate, last = rate_play_runs(u, dt, rest)
+        moves.append((u_moves, direction, rate))
+        spread.append(torch.from_numpy(last + 1))
+    start = np.asarray(feature_map.radii)
+    coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
+    rate_coordinate = torch.tensor(float(np.log(np.expm1(RATE_START))), requires_grad=True)
+    rest_row = torch.full((1, 1 + start.size), float(rest), dtype=torch.float64)
+
+    def rate_time() -> Any:
+        return dt * torch.nn.functional.softplus(rate_coordinate)
+
+    def objective() -> object:
+        radii = radii_from_coordinates(coordinates)
+        c = rate_time()
+        total = 0
+        for move, index, y, grid in zip(moves, spread, outputs, grids, strict=True):
+            u = torch.from_numpy(move[0])
+            f = torch.cat([rest_row, torch.cat([u[:, None], plays(radii, c, move, rest)], 1)])
+            error = grid.free_run(module(f)[index], a, b) - y
+            total = total + (error * error).sum()
+        return total / count
+
+    parameters = [coordinates, rate_coordinate, *module.parameters()]
+    stage = _lbfgs(parameters, objective, max_iterations, torch)
+    with torch.no_grad():
+        learned = radii_from_coordinates(coordinates).numpy().copy()
+        c = float(rate_time())
+    stage = {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
+    if not any(_rate_moves_a_play(move, learned, c, rest) for move in moves):
+        # No play edge was met right after a move: the objective does not depend on c, which
+        # would keep its start. A rate-independent map is what the records support.
+        c = 0.0
+        stage["rate_note"] = (
+            "no play met its edge at a sample following a move: the records do not determine "
+            "the rate constant; set to 0"
+        )
+    stage["rate_time_s"] = c
+    learned_map = RatePlayFeatures(radii=tuple(learned), rate_time=c, dt=dt, initial_input=rest)
+    return learned_map, stage
+
+
+def rate_is_determined(
+    radii: Sequence[float], records: Sequence[tuple[np.ndarray, np.ndarray]], dt: float
+) -> bool:
+    """Whether ``records`` (u V, y um) can determine a rate constant of plays of ``radii`` (V)
+    at sample time ``dt`` (s): some play is set by its edge at a move whose previous sample
+    moved too. Checked at c = 0; a positive c moves every such edge away from the play, so
+    records that fail here fail at every c."""
+    r = np.asarray(radii, dtype=np.float64)
+    for u, _ in _check_records(records):
+        moves = rate_play_runs(u, dt, 0.0)[:3]
+        if _rate_moves_a_play(moves, r, 0.0, 0.0):
+            return True
+    return False
+
+
+def _rate_moves_a_play(
+    move: tuple[np.ndarray, np.ndarray, np.ndarray], radii: np.ndarray, c: float, rest: float
+) -> bool:
+    """Whether some play output of a record (its moves, :func:`rate_play_runs`) was set by its
+    edge at a move whose previous sample moved too: where the output depends on c."""
+    u, direction, rate = move
+    _, _, touch = rate_play_outputs(u, direction, c * rate, radii, rest)
+    at_edge = touch == np.arange(u.size)[:, None]
+    return bool(np.any(at_edge & (rate[:, None] > 0.0)))
+
+
+def _runs(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starts of the runs of equal consecutive samples of ``u``, and each sample's run."""
+    new_run = np.empty(u.size, dtype=bool)
+    new_run[0] = True
+    np.not_equal(u[1:], u[:-1], out=new_run[1:])
+    return np.flatnonzero(new_run), np.cumsum(new_run) - 1
 
 
 def _lbfgs(
