@@ -16,7 +16,8 @@ from benchmarks.report import deterministic_json
 from benchmarks.runner import BenchmarkConfig, run_benchmark
 
 ROOT = Path(__file__).resolve().parents[1]
-MODELS = (str(ROOT / "docs" / "identify" / "model"), str(ROOT / "docs" / "benchmark" / "model"))
+MODELS = (str(ROOT / "docs" / "benchmark" / "model"), str(ROOT / "docs" / "benchmark" / "model-1"))
+"""The committed run's models of identification seeds 0 and 1."""
 
 # Student's t quantiles t_0.975 with 1, 2 and 5 degrees of freedom, from printed tables.
 T_975 = {1: 12.706, 2: 4.303, 5: 2.571}
