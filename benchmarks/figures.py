@@ -9,7 +9,8 @@ have distinct colours (:func:`benchmarks.rows.row_colors`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +27,13 @@ _WINDOWS = {"sine-50Hz": (0.90, 0.96), "multisine": (0.60, 0.75), "steps": (0.38
 """Time windows (s) shown per reference: a few periods, a readable stretch, one step."""
 
 
-def draw_figures(result: BenchmarkResult, out: Path) -> dict[str, Path | str]:
+def draw_figures(
+    result: BenchmarkResult, out: Path, *, identify_on: Sequence[str] = ()
+) -> dict[str, Path | str]:
     """Write the figures that have something to show into ``out``.
+
+    ``identify_on`` is the run's ``--identify-on``: the plants after its first ran on a model
+    identified on themselves, and the robustness figure labels them so.
 
     Returns
     -------
@@ -40,7 +46,7 @@ def draw_figures(result: BenchmarkResult, out: Path) -> dict[str, Path | str]:
     figures: dict[str, Callable[[BenchmarkResult, Path], str | None]] = {
         "tracking.png": _tracking,
         "summary.png": _summary,
-        "robustness.png": _robustness,
+        "robustness.png": partial(_robustness, own_model=tuple(identify_on)[1:]),
         "pid_loops.png": _pid_loops,
         "adaptation.png": _adaptation,
     }
@@ -220,7 +226,11 @@ def _robustness_grid(result: BenchmarkResult) -> tuple[np.ndarray, list[str], li
     return grid, controllers, plants, refs
 
 
-def _robustness(result: BenchmarkResult, path: Path) -> str | None:
+def _robustness(
+    result: BenchmarkResult, path: Path, own_model: Sequence[str] = ()
+) -> str | None:
+    """Mean RMSE per controller and plant; a plant in ``own_model`` ran on a model identified
+    on itself, and its label says so (every other plant ran on the first plant's model)."""
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
@@ -244,7 +254,8 @@ def _robustness(result: BenchmarkResult, path: Path) -> str | None:
                 fontsize=8,
                 color="white" if dark else "black",
             )
-    ax.set_xticks(range(len(plants)), plants, rotation=25, ha="right")
+    labels = [f"{p}\n(model identified on it)" if p in own_model else p for p in plants]
+    ax.set_xticks(range(len(plants)), labels, rotation=25, ha="right")
     ax.set_yticks(range(len(controllers)), controllers)
     fig.colorbar(image, ax=ax, label="mean RMSE (% of full stroke)")
     ax.set_title(

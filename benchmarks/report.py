@@ -718,7 +718,7 @@ def write_benchmark(
     out.mkdir(parents=True, exist_ok=True)
     meta = {**meta, "timing": {**meta.get("timing", {}), **result.timing}}
     checks = check_targets(result)
-    drawn = draw_figures(result, out) if figures else {}
+    drawn = draw_figures(result, out, identify_on=meta.get("identify_on") or ()) if figures else {}
     md = out / "benchmark.md"
     write_text_atomic(md, _markdown(result, meta, checks, drawn))
     data = {

@@ -19,13 +19,16 @@ d) :func:`estimate_hidden_signal`: estimate the hidden signal z_t by inverting t
    not minimum-phase (:mod:`identification.inversion`);
 e) :func:`fit_nonlinearity`: fit the neural NLS to (u_t, z_hat_t), choosing its memory features
    on a separate selection record;
-e') :func:`refine_nonlinearity`: refine the selected network and the linear part together on
-   the free-run output error of the PRBS and rich records (``config.nls_refinement``, default
-   ``"output-error"``; ``"none"`` skips it), kept if the held-out selection record agrees. Step
-   e's loss weighs an error of z the same at every frequency, while the deflection sees it
-   through the linear part, amplified near the first bending mode; z_hat carries the equation
-   error filtered by 1/B; and the linear part saw only the small PRBS
-   (:mod:`identification.nls.output_error`);
+e') :func:`identification.steps.refine_nonlinearity`: refine the selected network and the
+   linear part together on the free-run output error of the PRBS and rich records
+   (``config.nls_refinement``, default ``"output-error"``; ``"none"`` skips it), kept if the
+   held-out selection record agrees. Step e's loss weighs an error of z the same at every
+   frequency, while the deflection sees it through the linear part, amplified near the first
+   bending mode; z_hat carries the equation error filtered by 1/B; and the linear part saw
+   only the small PRBS
+   (:mod:`identification.nls.output_error`). With learned play radii, step e's play network is
+   refined too when step e chose another feature set, and the feature set is chosen after this
+   step (:func:`identification.steps.refine_and_choose`): step e scores plays on grid radii;
 f) :func:`validate`: validate the Hammerstein model by free-run simulation on fresh RAND data.
 
 The steps and their results live in :mod:`identification.steps`, the experiments on the
@@ -97,8 +100,8 @@ from identification.steps import (
     estimate_arx,
     estimate_hidden_signal,
     fit_nonlinearity,
+    refine_and_choose,
     refine_linear_part,
-    refine_nonlinearity,
     validate,
 )
 
@@ -324,7 +327,9 @@ def _identify(
     log("e_nls_training", _gain_line(nls))
     nls_refinement = None
     if config.nls_refinement == "output-error":
-        nls_refinement = refine_nonlinearity(nls, training, config)
+        nls, nls_refinement = refine_and_choose(
+            nls, training, config, sensor_noise_bound=records.noise_bound_um
+        )
         log("e2_nls_output_error", _nls_refinement_line(nls_refinement))
     model = nls.model if nls_refinement is None else nls_refinement.model
     model.metadata.update(
@@ -420,6 +425,12 @@ def _nls_refinement_line(refinement: NlsRefinement) -> str:
     verdict = "kept" if refinement.accepted else f"not kept: {refinement.refusal}"
     if refinement.note:
         verdict += f"; {refinement.note}"
+    choice = refinement.feature_choice
+    if choice and "play" in choice["held_out_rms_um"]:
+        verdict += (
+            f"; play refined beside {choice['step_e']} "
+            f"({choice['held_out_rms_um']['play']:.3f} um held out): {choice['kept']} kept"
+        )
     return (
         f"e') output-error refinement of the network, then of network and linear part "
         f"({' + '.join(str(stage['iterations']) for stage in refinement.stages)} L-BFGS "

@@ -390,7 +390,7 @@ def _nls_refinement_section(
         else "The sensor's noise bound was not given."
     )
     note = f" {refinement['note'].capitalize()}." if refinement.get("note") else ""
-    note += _radii_note(refinement)
+    note += _radii_note(refinement) + _feature_choice_note(refinement.get("feature_choice"))
     return [
         "### Output-error refinement of the whole model (step e')",
         "",
@@ -409,6 +409,17 @@ def _nls_refinement_section(
         f"deflection's error itself, over both blocks. {floor}",
         "",
     ]
+
+
+def _feature_choice_note(choice: dict[str, Any] | None) -> str:
+    """Whether step e' also refined play beside step e's choice, and which set it kept."""
+    if not choice:
+        return ""
+    rms = ", ".join(f"{name} {value:.3f} um" for name, value in choice["held_out_rms_um"].items())
+    return (
+        f" Step e chose {choice['step_e']} features; held-out RMS after step e': {rms}; "
+        f"kept {choice['kept']} ({choice['why']})."
+    )
 
 
 def _radii_note(refinement: dict[str, Any]) -> str:

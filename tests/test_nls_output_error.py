@@ -444,3 +444,80 @@ def test_rate_constant_is_zero_when_the_records_cannot_tell():
     )
     assert fit.nls.feature_map.rate_time == 0.0
     assert "do not determine the rate constant" in fit.stages[0]["rate_note"]
+
+
+# -- the feature set chosen after step e' -----------------------------------------------------
+
+
+def _step_e(chosen: str, play_radii: tuple[float, float], seed: int):
+    """Step e on the play plant of :func:`_play_plant`: a play network on the grid radii and a
+    past-inputs network, both fitted to (u, z); ``chosen`` is the set step e is made to have
+    chosen, as on a plant where it scored a few tenths above play. The selection record is
+    a second RAND record of the same plant."""
+    from identification.hammerstein import HammersteinModel
+    from identification.nls import fit_nls
+    from identification.steps import NlsFit
+    from piezo_env.operators import play_sequence
+
+    play, arx, records = _play_plant(play_radii, seed=seed)
+    u = records[0][0]
+    rng = np.random.default_rng(seed + 100)
+    u_sel = np.repeat(rng.uniform(-30, 30, 200), 10)
+    plays, _ = play_sequence(u_sel, np.asarray(play_radii), np.zeros(2))
+    y_sel = arx.simulate(0.7 * u_sel + plays @ np.array([0.15, 0.15]))
+    y_sel = y_sel + rng.uniform(-0.05, 0.05, u_sel.size)
+    plays_u, _ = play_sequence(u, np.asarray(play_radii), np.zeros(2))
+    past = fit_nls(
+        u,
+        0.7 * u + plays_u @ np.array([0.15, 0.15]),
+        features="past-inputs",
+        u_range=(-30, 30),
+        hidden=(2,),
+        max_epochs=30,
+        seed=0,
+    )
+    candidates = {"play": play, "past-inputs": past}
+    fit = NlsFit(
+        HammersteinModel(candidates[chosen], arx), chosen, {}, 1.0, (u_sel, y_sel), 0, candidates
+    )
+    return fit, records
+
+
+def test_play_is_refined_beside_step_e_choice_and_wins_after_step_e():
+    """Step e chose past-inputs on a plant of plays at 7 and 16 V (off the grid radii 10 and
+    20 that step e scores play on): step e' refines play too, learns its radii, and keeps it,
+    with the lower held-out error; the choice is recorded with both errors."""
+    from identification.steps import refine_and_choose
+
+    fit, records = _step_e("past-inputs", (7.0, 16.0), seed=0)
+    config = IdentificationConfig(nls_refinement_iterations=60, rate="off")
+    kept, refinement = refine_and_choose(fit, records, config, sensor_noise_bound=0.05)
+    choice = refinement.feature_choice
+    assert choice["step_e"] == "past-inputs" and set(choice["held_out_rms_um"]) == {
+        "past-inputs",
+        "play",
+    }
+    assert choice["held_out_rms_um"]["play"] < choice["held_out_rms_um"]["past-inputs"]
+    assert kept.features == "play" == choice["kept"]
+    assert refinement.model.nls.feature_map.name == "play"
+    np.testing.assert_allclose(refinement.model.nls.feature_map.radii, (7.0, 16.0), atol=0.2)
+    assert refinement.record()["feature_choice"] == choice
+
+
+def test_no_rival_when_step_e_chose_play_or_sits_at_the_noise_floor():
+    """Step e chose play: step e' refines it alone and records no choice. Step e chose
+    past-inputs, but the sensor's bound (100 um) puts its refined error below the noise
+    floor: no rival could do measurably better, so play is not refined, and the record says
+    why."""
+    from identification.steps import refine_and_choose
+
+    config = IdentificationConfig(nls_refinement_iterations=20, rate="off")
+    fit, records = _step_e("play", (7.0, 16.0), seed=1)
+    kept, refinement = refine_and_choose(fit, records, config, sensor_noise_bound=0.05)
+    assert kept is fit and refinement.feature_choice is None
+    fit, records = _step_e("past-inputs", (7.0, 16.0), seed=1)
+    kept, refinement = refine_and_choose(fit, records, config, sensor_noise_bound=100.0)
+    choice = refinement.feature_choice
+    assert kept is fit and set(choice["held_out_rms_um"]) == {"past-inputs"}
+    assert choice["excess_over_noise_um2"] <= choice["threshold_um2"]
+    assert "noise floor" in choice["why"]
