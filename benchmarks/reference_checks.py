@@ -1,7 +1,9 @@
 """The project's reference checks: its own expectations of the default PL140 run.
 
-Each check is a limit set from earlier measurements of the default run on a 2-core machine,
-kept to notice regressions of the controllers. They are the project's, not the user's: a
+Each check is either a limit set from earlier measurements of the default run on a 2-core
+machine, kept to notice regressions of the controllers, or a ranking the project claims (the
+MPC ahead of the feedforward PID, on the nominal plant and on the plant whose hysteresis the
+model does not match). They are the project's, not the user's: a
 miss says that a controller did worse on this run than the project expects, never that the
 installation is broken. The report frames them so (:func:`reference_checks_section`), the
 terminal gives one line, and ``piezo benchmark --strict`` exits non-zero when
@@ -19,6 +21,7 @@ from benchmarks.verdict import cell_index
 
 __all__ = [
     "CHECKED_BENDER",
+    "MISMATCHED_HYSTERESIS",
     "check_targets",
     "checks_apply",
     "condition_line",
@@ -31,14 +34,18 @@ __all__ = [
 _PLANT_LIMITS = {
     "damping-0.01": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
     "damping-0.04": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
-    "prandtl-ishlinskii": {
-        "sine-10Hz": 0.15,
-        "sine-50Hz": 0.5,
-        "sine-100Hz": 0.9,
-        "multisine": 0.3,
-    },
 }
-"""Plant -> reference -> the largest ``mpc`` RMSE (% of the full stroke) expected there."""
+"""Plant -> reference -> the largest ``mpc`` RMSE (% of the full stroke) expected there: plants
+whose hysteresis the model matches, off only in the first mode's damping."""
+
+MISMATCHED_HYSTERESIS = "prandtl-ishlinskii"
+"""The plant whose hysteresis the nominal model does not match (play operators with sharp
+corners, against the model's Bouc-Wen features). There the MPC's error is set by the model's
+hysteresis error, which no absolute figure of the project's bounds (identified on that plant,
+the MPC is about 1x its oracle: ``benchmarks/results/rate_aware_identification.md``). What the
+project claims there is the ranking: the MPC beats the feedforward PID built from the same
+model, because its observer and integrating disturbance model take up the model's error at
+every step of the preview, where the PID's feedforward passes it on."""
 
 
 def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
@@ -65,8 +72,8 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
         if value is not None:
             checks.append({"target": text, "value": value, "limit": limit, "holds": value <= limit})
 
-    def ratio(a: str, b: str, r: str) -> float | None:
-        x, y = get("nominal", a, r), get("nominal", b, r)
+    def ratio(a: str, b: str, r: str, plant: str = "nominal") -> float | None:
+        x, y = get(plant, a, r), get(plant, b, r)
         return None if x is None or y is None else x / y
 
     for r in result.config.references:
@@ -79,8 +86,10 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
             add(f"mpc max error on {r} (um)", episode["max_error_um"], 4.0)
     for r in ("sine-10Hz", "sine-50Hz", "sine-100Hz"):
         add(f"mpc / pid-notch on {r}", ratio("mpc", "pid-notch", r), 0.1)
+    # The claim is the ranking, not a factor: pid-ff at its best setting of the tuning
+    # procedure comes within about 12 % of mpc (benchmarks/results/tuning.md).
     for r in ("sine-50Hz", "steps"):
-        add(f"mpc / pid-ff on {r} (>= 3x better)", ratio("mpc", "pid-ff", r), 1 / 3)
+        add(f"mpc / pid-ff on {r} (mpc better)", ratio("mpc", "pid-ff", r), 1.0)
     for r in result.config.references:
         if REFERENCES[r].smooth:
             add(f"mpc / mpc-oracle on {r}", ratio("mpc", "mpc-oracle", r), 2.0)
@@ -88,6 +97,13 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
     for plant, refs in _PLANT_LIMITS.items():
         for r, limit in refs.items():
             add(f"mpc RMSE on {r}, plant {plant} (%)", get(plant, "mpc", r), limit)
+    for r in result.config.references:
+        if REFERENCES[r].smooth:
+            add(
+                f"mpc / pid-ff on {r}, plant {MISMATCHED_HYSTERESIS} (mpc better)",
+                ratio("mpc", "pid-ff", r, MISMATCHED_HYSTERESIS),
+                1.0,
+            )
     return checks
 
 
@@ -159,7 +175,8 @@ def reference_checks_section(
         "",
         *condition,
         "The project's own expectations of this run: limits set from earlier measurements of "
-        "the default run on a 2-core machine, kept to notice regressions. A miss is news about "
+        "the default run on a 2-core machine, kept to notice regressions, and the rankings the "
+        "project claims (a ratio with limit 1: the first row ahead). A miss is news about "
         "the controllers on this run, not an installation error; `piezo benchmark --strict` "
         f"turns misses into a failing exit code. {len(checks) - len(missed)} of {len(checks)} "
         "met.",
