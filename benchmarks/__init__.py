@@ -14,7 +14,8 @@ optional ``stats`` and ``describe``):
 - :mod:`benchmarks.descriptions`: the controllers' settings and tuned loops as tables.
 - :mod:`benchmarks.report`: tables, JSON and the Markdown report.
 - :mod:`benchmarks.compare`: what changed between two runs (``piezo compare``).
-- :mod:`benchmarks.readme`: the README's numbers, generated from the committed results.
+- :mod:`benchmarks.readme`: the numbers of README.md and docs/*.md, generated from the committed
+  results.
 - :mod:`benchmarks.figures`: the figures of a run.
 
 The studies and speed scripts sit apart from the harness, each a module run from the project

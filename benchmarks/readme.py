@@ -1,26 +1,35 @@
-"""The README's numbers, generated from the committed results, never typed by hand.
+"""The numbers of README.md and docs/*.md, generated from the committed results, never typed
+by hand.
 
-``python -m benchmarks.readme`` rewrites the parts of README.md between marker comments
-(``<!-- NAME:begin -->`` .. ``<!-- NAME:end -->``):
+``python -m benchmarks.readme`` rewrites the parts of each page between marker comments
+(``<!-- NAME:begin -->`` .. ``<!-- NAME:end -->``); :data:`BLOCKS` says which page holds which
+block:
 
-- ``headline`` from ``docs/benchmark/benchmark.json`` (``python -m benchmarks.tracking``): the
-  nominal RMSE table (winners bold, near ties not), each controller's median step time, and the
-  bad news of the same run (worst cases on random plants and on the robustness plants, what
-  identification costs, the reference checks that were missed);
-- ``adaptation`` from the same file: ``mpc`` against ``mpc-adaptive`` on the robustness
-  plants, whole episode and second half, and the Monte Carlo worst cases;
-- ``identification`` from ``docs/identify/report.json`` (``piezo identify --out docs/identify``);
-- ``latency`` from ``benchmarks/results/controller_latency.json``
+- ``headline`` (README.md) from ``docs/benchmark/benchmark.json`` (``python -m
+  benchmarks.tracking``): the nominal RMSE table (winners bold, near ties not, divergences
+  marked), each controller's median step time, and the bad news of the same run (worst cases on
+  random plants and on the robustness plants, divergences, what identification costs, the
+  reference checks that were missed);
+- ``headline-PL127`` (README.md) from ``docs/benchmark-PL127/benchmark.json``: the same for the
+  PL127;
+- ``adaptation`` (docs/controllers.md) from ``docs/benchmark/benchmark.json``: ``mpc`` against
+  ``mpc-adaptive`` on the robustness plants, whole episode and second half, and the Monte Carlo
+  worst cases;
+- ``identification`` (docs/identification.md) from ``docs/identify/report.json`` (``piezo
+  identify --out docs/identify``);
+- ``latency`` (docs/controllers.md) from ``benchmarks/results/controller_latency.json``
   (``python -m benchmarks.speed.controller_latency``): step times as ratios to a CartPole-v1 step of
   the same run, deadline misses, the MPC at 10 kHz, and the speed targets they miss.
 
-``--check`` only compares (a test runs it).
+Links in the blocks are written from the repository's root and made relative to the page that
+holds them. ``--check`` only compares (a test runs it).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 from pathlib import Path
@@ -33,16 +42,38 @@ from benchmarks.verdict import winners
 
 __all__ = [
     "BLOCKS",
+    "DIVERGED_MAX_ERROR_PERCENT",
+    "PAGES",
     "bad_news",
+    "diverged",
     "headline",
     "headline_table",
     "identification",
     "latency",
     "render",
-    "update_readme",
+    "update_pages",
 ]
 
 ROOT = Path(__file__).resolve().parents[1]
+
+DIVERGED_MAX_ERROR_PERCENT = 100.0
+"""An episode whose largest error exceeds this (% of the full stroke) has diverged. Every
+benchmark reference stays within +-600 um of the PL140's +-1000 um (the same fractions on
+another bender, :mod:`benchmarks.references`), so an error beyond the full stroke puts the
+deflection at least 1.4 times beyond the rated stroke: a loop that has lost the reference and
+swings against the drive limits. In the committed runs every episode that is not such a loop
+stays below 75 %, and every one that is exceeds 140 %."""
+
+
+def diverged(episodes: list[dict[str, Any]]) -> set[tuple[str, str, str, Any]]:
+    """(plant, controller, reference, draw) of every cell with a diverged episode
+    (:data:`DIVERGED_MAX_ERROR_PERCENT`)."""
+    return {
+        (e["plant"], e["controller"], e["reference"], e.get("draw"))
+        for e in episodes
+        if not np.isfinite(e["max_error_percent"])
+        or e["max_error_percent"] > DIVERGED_MAX_ERROR_PERCENT
+    }
 
 
 def _label(row: str, data: dict[str, Any], members: dict[str, list[str]]) -> str:
@@ -83,7 +114,9 @@ def headline_table(data: dict[str, Any], plant: str = "nominal") -> str:
 
     The winner of a column is bolded as in the report's verdict (:func:`benchmarks.verdict.
     winners`): oracles aside, and not when it ties; a trained recipe's seeds share one row,
-    their mean +- the half-width of its 95 % interval.
+    their mean +- the half-width of its 95 % interval. A cell with a diverged episode
+    (:data:`DIVERGED_MAX_ERROR_PERCENT`) reads "diverged", with how many of a recipe's seeds
+    did, instead of an RMSE that would only measure the swing.
     """
     index = {
         (plant, c["controller"], c["reference"]): c
@@ -94,14 +127,18 @@ def headline_table(data: dict[str, Any], plant: str = "nominal") -> str:
     rows, members = _rows(data)
     rows = [r for r in rows if any(k[1] in members.get(r, [r]) for k in index)]
     best = {ref: winners(index, plant, rows, ref) for ref in refs}
+    lost = diverged(data["results"]["episodes"])
     steps: dict[str, list[float]] = {}
     for t in data["timing"]:
         if t["plant"] == plant:
             steps.setdefault(t["controller"], []).append(t["compute_median_us"])
 
     def cell(row: str, ref: str) -> str:
-        values = [index[k]["rmse_percent"] for n in members.get(row, [row])
-                  if (k := (plant, n, ref)) in index]
+        names = [n for n in members.get(row, [row]) if (plant, n, ref) in index]
+        values = [index[(plant, n, ref)]["rmse_percent"] for n in names]
+        gone = sum((plant, n, ref, None) in lost for n in names)
+        if gone:
+            return "diverged" if len(names) == 1 else f"diverged ({gone} of {len(names)} seeds)"
         if len(values) > 1:
             ci = ci95_half_width(values)
             return f"{np.mean(values):.2f} +- {ci:.2f}"
@@ -153,6 +190,7 @@ def bad_news(data: dict[str, Any]) -> list[str]:
             for c, e in sorted(worst.items(), key=lambda item: -item[1]["rmse_percent"])
         )
         news.append(f"Worst case of each controller on the robustness plants: {listed}.")
+    news += _divergences(data)
     rmse = _nominal(data)
     ratios = [rmse[("mpc", r)] / rmse[("mpc-oracle", r)] for (c, r) in rmse
               if c == "mpc" and ("mpc-oracle", r) in rmse and "step" not in r]
@@ -173,6 +211,31 @@ def bad_news(data: dict[str, Any]) -> list[str]:
     return news
 
 
+def _divergences(data: dict[str, Any]) -> list[str]:
+    """One line per row with diverged cells: on which plants, how many of their cells."""
+    lost = diverged(data["results"]["episodes"])
+    if not lost:
+        return []
+    rows, members = _rows(data)
+    cells: dict[tuple[str, str], set[tuple]] = {}
+    for e in data["results"]["episodes"]:
+        cells.setdefault((e["controller"], e["plant"]), set()).add((e["reference"],
+                                                                    e.get("draw")))
+    news = []
+    for row in rows:
+        names = members.get(row, [row])
+        parts = []
+        for plant in data["results"]["config"]["plants"]:
+            total = sum(len(cells.get((n, plant), ())) for n in names)
+            gone = sum(1 for (p, c, _, _) in lost if p == plant and c in names)
+            if gone:
+                parts.append(f"{gone} of {total} cells on {plant}")
+        if parts:
+            news.append(f"{_label(row, data, members)}: diverged (an episode's largest error "
+                        f"beyond the full stroke) in {', '.join(parts)}.")
+    return news
+
+
 def headline(data: dict[str, Any]) -> str:
     """The whole generated block: date and machine, table, bad news."""
     machine, timing = data["meta"]["machine"], data["meta"]["timing"]
@@ -187,11 +250,25 @@ def headline(data: dict[str, Any]) -> str:
         headline_table(data),
         "",
         *_own_model_tables(data),
+        *_diverged_note(data),
         "The bad news of the same run:",
         "",
         *[f"- {line}" for line in bad_news(data)],
     ]
     return "\n".join(lines)
+
+
+def _diverged_note(data: dict[str, Any]) -> list[str]:
+    """What "diverged" means, when a headline table has such a cell."""
+    plants = ["nominal", *(data["meta"].get("identify_on") or [])[1:]]
+    if not any(p in plants for (p, *_) in diverged(data["results"]["episodes"])):
+        return []
+    return [
+        f"*diverged*: an episode's largest error exceeded the full stroke "
+        f"({DIVERGED_MAX_ERROR_PERCENT:g} %); the references stay within 60 % of the one-sided "
+        "stroke, so the loop had lost the reference and swung beyond the rated stroke.",
+        "",
+    ]
 
 
 def _own_model_tables(data: dict[str, Any]) -> list[str]:
@@ -328,6 +405,7 @@ def other_bender(data: dict[str, Any]) -> str:
         "",
         headline_table(data),
         "",
+        *_diverged_note(data),
         *[f"- {line}" for line in bad_news(data)],
     ])
 
@@ -396,48 +474,71 @@ def latency(data: dict[str, Any]) -> str:
 
 
 BLOCKS = {
-    "headline": ("docs/benchmark/benchmark.json", headline),
-    "headline-PL127": ("docs/benchmark-PL127/benchmark.json", other_bender),
-    "adaptation": ("docs/benchmark/benchmark.json", adaptation),
-    "identification": ("docs/identify/report.json", identification),
-    "latency": ("benchmarks/results/controller_latency.json", latency),
+    "headline": ("README.md", "docs/benchmark/benchmark.json", headline),
+    "headline-PL127": ("README.md", "docs/benchmark-PL127/benchmark.json", other_bender),
+    "identification": ("docs/identification.md", "docs/identify/report.json", identification),
+    "adaptation": ("docs/controllers.md", "docs/benchmark/benchmark.json", adaptation),
+    "latency": ("docs/controllers.md", "benchmarks/results/controller_latency.json", latency),
 }
-"""Marker name -> (the committed file it is generated from, the function that renders it)."""
+"""Marker name -> (the page that holds it, the committed file it is generated from, the function
+that renders it). Paths are from the repository's root."""
+
+PAGES = tuple(dict.fromkeys(page for page, _, _ in BLOCKS.values()))
+"""Every page with generated blocks."""
+
+_LINK = re.compile(r"\]\(([^)\s:#]+)\)")
 
 
-def render(readme: str, root: Path = ROOT) -> str:
-    """``readme`` with every generated block replaced (ValueError for missing markers)."""
-    for name, (source, make) in BLOCKS.items():
+def _relink(text: str, page: str) -> str:
+    """``text``'s links, written from the repository's root, made relative to ``page``."""
+    folder = os.path.dirname(page) or "."
+    return _LINK.sub(lambda m: f"]({Path(os.path.relpath(m.group(1), folder)).as_posix()})",
+                     text)
+
+
+def render(text: str, root: Path = ROOT, page: str = "README.md") -> str:
+    """``text`` (the page ``page``, from the root) with each of its generated blocks replaced
+    (ValueError for missing markers)."""
+    for name, (where, source, make) in BLOCKS.items():
+        if where != page:
+            continue
         begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
-        start, stop = readme.find(begin), readme.find(end)
+        start, stop = text.find(begin), text.find(end)
         if start < 0 or stop < start:
-            raise ValueError(f"README.md needs the markers {begin} and {end}")
+            raise ValueError(f"{page} needs the markers {begin} and {end}")
         data = json.loads((root / source).read_text(encoding="utf-8"))
-        readme = readme[: start + len(begin)] + "\n" + make(data) + "\n" + readme[stop:]
-    return readme
+        block = _relink(make(data), page)
+        text = text[: start + len(begin)] + "\n" + block + "\n" + text[stop:]
+    return text
 
 
-def update_readme(readme: Path, root: Path = ROOT, *, check: bool = False) -> bool:
-    """Rewrite (or with ``check`` only compare) the README's blocks; True when up to date."""
-    text = readme.read_text(encoding="utf-8")
-    fresh = render(text, root)
-    if fresh == text:
-        return True
-    if not check:
-        readme.write_text(fresh, encoding="utf-8")
-    return False
+def update_pages(root: Path = ROOT, *, check: bool = False) -> list[str]:
+    """Rewrite (or with ``check`` only compare) every page's blocks; the pages that were stale."""
+    stale = []
+    for page in PAGES:
+        path = root / page
+        text = path.read_text(encoding="utf-8")
+        fresh = render(text, root, page)
+        if fresh != text:
+            stale.append(page)
+            if not check:
+                path.write_text(fresh, encoding="utf-8")
+    return stale
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.readme", description=__doc__)
     parser.add_argument("--check", action="store_true", help="only compare; exit 1 if stale")
     args = parser.parse_args(argv)
-    current = update_readme(ROOT / "README.md", check=args.check)
-    if args.check and not current:
-        print("README.md's generated blocks differ from the committed results; run "
+    stale = update_pages(ROOT, check=args.check)
+    if args.check and stale:
+        print(f"{', '.join(stale)}: generated blocks differ from the committed results; run "
               "python -m benchmarks.readme", file=sys.stderr)
         return 1
-    print("README.md is up to date" if current else "README.md: generated blocks rewritten")
+    if not stale:
+        print(f"{', '.join(PAGES)}: up to date")
+    else:
+        print(f"{', '.join(stale)}: generated blocks rewritten")
     return 0
 
 

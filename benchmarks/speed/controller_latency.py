@@ -15,7 +15,7 @@ up, its resonance 20 % low, damping 0.04), and the MPCs run on the PL127 at its 
 a CartPole-v1 step through ``gymnasium.make``, the reference the ratios are taken against
 (absolute times on shared machines drift; ratios travel). IPOPT (``nmpc-ipopt``) runs a
 shorter episode. Writes ``benchmarks/results/controller_latency.md`` and the same numbers as
-``controller_latency.json`` (the README's block is generated from it).
+``controller_latency.json`` (the latency block of docs/controllers.md is generated from it).
 
 Run: ``python -m benchmarks.speed.controller_latency`` (a few minutes).
 """
