@@ -195,8 +195,10 @@ def bad_news(data: dict[str, Any]) -> list[str]:
     ratios = [rmse[("mpc", r)] / rmse[("mpc-oracle", r)] for (c, r) in rmse
               if c == "mpc" and ("mpc-oracle", r) in rmse and "step" not in r]
     if ratios:
+        low, high = f"{min(ratios):.1f}", f"{max(ratios):.1f}"
+        span = low if low == high else f"{low}-{high}"
         news.append(
-            f"Identification costs {min(ratios):.1f}-{max(ratios):.1f}x the oracle's RMSE on "
+            f"Identification costs {span}x the oracle's RMSE on "
             "smooth references (`mpc` against `mpc-oracle`)."
         )
     missed = [c for c in data.get("targets", []) if not c["holds"]]
