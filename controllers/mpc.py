@@ -84,8 +84,8 @@ class MPCSettings:
         catalogue bender at its default sample time). The targets beyond the preview are held,
         so a prediction longer than the benchmark's 20-sample preview tracks held targets and
         costs the nominal references accuracy; with a preview as long as the prediction, the
-        blocked prediction gains on the box's corners but still costs the
-        nominal 100 Hz sine (PL140 at 0.1 ms: ``benchmarks/results/design_measurements.md``).
+        blocked prediction gains on the box's corners but still costs the nominal 100 Hz sine
+        (PL140 at 0.1 ms: ``benchmarks/results/design_measurements.md``).
         So the default predicts as far as the benchmark's preview reaches.
     rate_weight : float
         lambda, penalty of (z_t+k - z_t+k-1)^2 relative to 1 um^2 of tracking error
