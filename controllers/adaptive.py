@@ -4,7 +4,8 @@ A bender bought to a datasheet differs from the nominal one in its static gain (
 +-20 %), its first resonance (+-20 %) and that mode's damping (0.01-0.04). The fixed
 :class:`controllers.mpc.LinearMPC` learns the gain (:mod:`controllers.gain`); a resonance error
 it leaves to its observer, and near the resonance (a 50 Hz reference on a bender whose first
-mode lies 20 % low) that costs about 1 % of the stroke. :class:`AdaptiveMPC` learns the
+mode lies 20 % low) that is its largest error on the box's corners
+(``benchmarks/results/corners.md``, sine-50Hz). :class:`AdaptiveMPC` learns the
 resonance and the damping too, with bounded work per sample.
 
 The set. The identified model's first bending mode is moved over a grid that covers the

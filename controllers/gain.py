@@ -26,9 +26,9 @@ Each sample costs a few multiply-adds (three running sums): the work per step is
 The credible set is ``g_hat +- z_975 / sqrt(precision)`` (95 %) intersected with the datasheet
 interval. The controller predicts with the point of that set nearest to the nominal gain 1:
 while the data do not contradict the nominal model (1 lies in the set) nothing changes, so a
-nominal bender is controlled exactly as before; when they do, the model moves by no more than
-the data demand, and as the set shrinks it converges to ``g_hat``. That is what a credible set
-is for: acting on what the data establish, not on the noise of an estimate.
+nominal bender is controlled exactly as with the nominal gain; when they do, the model moves
+by no more than the data demand, and as the set shrinks it converges to ``g_hat``. That is
+what a credible set is for: acting on what the data establish, not on the noise of an estimate.
 
 How it acts on the controller (:class:`controllers.mpc.LinearMPC`): the model predicts with
 ``g`` times the nominal linear part. Because the linear part is linear, this is the nominal

@@ -21,59 +21,24 @@ Ms). :meth:`controllers.adaptive.AdaptiveMPC.stabilises` closes this loop around
 model (:func:`loop_is_stable`), and the MPCs report the margin of their loop around their
 own model (``describe()["observer"]``).
 
-What the margin does not decide: which filter of the observer bank may run. A screen that kept
-only the bank's filters with a margin of at least 0.5 (Ms <= 2, the textbook bound) was
-measured on the robustness plants (1 noise seed, ``mpc``): it holds the PL127 with a damping
-ratio of 0.04 on the steps reference, where the fastest filters put the loop's pole at Nyquist
-outside the unit circle (41.6 % of the stroke without it, 0.85 % with it; 0.95 % at a bound
-of 0.4), but every bender 20 % softer then diverges (PL140: 0.32 -> 937 % on the 10 Hz sine,
-PL127: 0.87 -> 1003 %), and the Prandtl-Ishlinskii plant's 50 Hz sine loses 0.39 -> 1.08 %.
-The softer bender's resonance moves by 10 %, a relative model error far above 1 near a
-lightly damped mode, which no margin on the model covers; there the fast filters, which
-re-estimate the modal state from the data, are what keeps the loop. The plants need opposite
-filters, so the choice stays the data's (the likelihood), watched by an online guard
-(:class:`controllers.observer.ObserverBank`). What the guard tests, and where it falls back to,
-was measured too (1 noise seed; the PL127 with damping 0.04 on the steps, 41.6 % of the stroke
-for ``mpc`` without a guard). A gate on the size of the selected filter's innovations alone
-(normalised innovation squared over the memory above G) that returned to the prior filter gave
-4.5 % at G = 25, because the prior filter's loop is itself unstable on that plant; falling back
-to the filter of the largest margin instead gave 2.4 %, but the gate also fired where the loop
-is stable and the model error large, and cost the PL140 20 % softer 7.2 -> 17.3 % on the
-100 Hz sine. A guard on the drive sitting at its limits fired only on runaways, but late
-(9.4 %; 20-30 % on the PL127's random plants, against 3-6 % for an early guard). Adding to the
-size test that the innovations alternate in sign (lag-one correlation below -0.3) fired early
-and, for ``mpc``, only on runaways (1.5 %), but also on ``nmpc``'s ringing after the jumps of
-the steps on the PL140 20 % stiffer, which settles (2.8 -> 5.0 %). Its correlation stays at
--0.3, the runaways' at -0.8 to -0.98 (near-Nyquist oscillations), so the guard asks for -0.5:
-the runaways are caught as early (1.5 %) and no stable row of ``mpc``, ``nmpc`` or
-``mpc-adaptive`` changes. Asking also that the oscillation grow before falling back was
-measured and left: over a 10- or 50-sample window it lets the fast runaways of the PL127 (loop
-poles at 1.3-1.4) swing the drive into saturation first (20 % stiffer: 22 -> 100-210 %; random
-plants 3-4 -> 10-15 %), and over a few samples any abrupt onset looks like growth.
-How fast the guard reads was measured last (1 noise seed, both benders' robustness plants,
-``mpc``, ``nmpc``, ``mpc-adaptive``). Averaged over the bank's 200-sample memory, it fell back at
-the damped PL127's step 299, tens of samples into the runaway (1.51 %). Over 50 samples: 0.94 %,
-the 20 % stiffer PL127 19-35 -> 9-28 %, no stable row changed; over 35 it also fired on the
-softer PL140's first jump (3.3 -> 12.5 %), and over 25 with a size threshold of 4 on seven stable
-cells. A correlation threshold of -0.7 over 50 samples cost one or two samples on the fastest
-runaways (stiffer PL127, 50 Hz: 9.3 -> 13.1 %). The false trips and a synthetic ringing (250-330
-Hz, 200 times the noise, appearing within a sample: 25 of 60 onsets and seeds tripped the
-200-sample guard) share a cause: over the first samples of an abrupt oscillation the lag-one
-correlation is whatever their phases make it. Asking for both tests on three samples in a row
-removes them (no trip in the 60, none on a stable row, over 25, 35 or 50 samples except one
-random PL140 over 25), for two samples of delay on a runaway; over 35 samples it gives the damped
-PL127's steps 0.88 % (the single filter's 0.98 %), the stiffer plant 13-29 %.
-
-What changed that verdict: the box. The margin screen above judged each filter on the model
-alone, and a margin on one model cannot cover a lightly damped mode that moves by 10-20 %. A
-screen on every vertex of the datasheet's tolerance box does: the filters kept are those whose
-loop is stable on every vertex's linear part (:func:`radii_matrix`, with the box's models moving
-every mode, aliases included, :mod:`controllers.tolerance_box`) and within the Ms bound on the
-model (:func:`controllers.predictive.screen_bank`). The MPCs learn the gain
-(:mod:`controllers.gain`), so the softer bender whose resonance the fast filters had to chase is
-a vertex the kept filters are stable on; :mod:`benchmarks.studies.corners` measures the result
-(``benchmarks/results/corners*.md``). The guard stays as the last line for what the box does not
-hold.
+What the margin on the model does not decide: which filter of the observer bank may run. On a
+bender whose first resonance sits near the Nyquist frequency (the PL127 at 1 kHz with a damping
+ratio of 0.04), the bank's fastest filters put the loop's pole at Nyquist outside the unit
+circle, and a screen keeping only the filters with a margin of at least 0.5 on the model
+(Ms <= 2, the textbook bound) holds that loop. On a bender 20 % softer, though, the resonance
+moves by 10 % (sqrt(0.8)), a relative model error far above 1 near a lightly damped mode,
+which no margin on one model covers; there the fast filters, which re-estimate the modal state
+from the data, are what keeps the loop. The plants need opposite filters, and a screen on every
+vertex of the datasheet's tolerance box covers both: the filters kept are those whose loop is
+stable on every vertex's linear part (:func:`radii_matrix`, with the box's models moving every
+mode, aliases included, :mod:`controllers.tolerance_box`) and within the Ms bound on the model
+(:func:`controllers.predictive.screen_bank`). The MPCs learn the gain (:mod:`controllers.gain`),
+so the softer bender whose resonance the fast filters have to chase is a vertex the kept
+filters are stable on; :mod:`benchmarks.studies.corners` measures the result
+(``benchmarks/results/corners*.md``). Among the kept filters the data choose (the likelihood),
+and the runaway guard of :class:`controllers.observer.ObserverBank` is the last line for what
+the box does not hold. What the screen on the model alone and the guard's alternatives cost on
+the robustness plants is recorded in ``benchmarks/results/design_measurements.md``.
 
 The frequency responses of all filters of a bank are computed together: they share A, B, c
 and the feedback law, and differ only by L, so with ``R(q) = (qI - A)^-1`` (one inverse per

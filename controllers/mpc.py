@@ -81,13 +81,12 @@ class MPCSettings:
         (:func:`controllers.condensed.move_blocks`). None (the default): Np = M, no blocking.
         ``"resonance"``: :func:`covering_samples`, one period of the slowest first resonance
         the datasheet allows (at least M: 79 samples on the PL140 at 0.1 ms, M on every
-        catalogue bender at its default sample time). Measured on the PL140 at 0.1 ms (model
-        identified there, 20 moves): with the benchmark's 20-sample preview the targets beyond
-        it are held, and predicting 79 samples costs the nominal 10 and 100 Hz sines 0.0051 ->
-        0.048 % and 0.0054 -> 0.53 %; with a 79-sample preview the blocked prediction halves
-        the error on box corners (resonance and gain +20 %, damping 0.01, 10 Hz: 0.050 ->
-        0.024 %) but costs the nominal 100 Hz sine 0.0054 -> 0.064 %. So the default predicts
-        as far as the benchmark's preview reaches.
+        catalogue bender at its default sample time). The targets beyond the preview are held,
+        so a prediction longer than the benchmark's 20-sample preview tracks held targets and
+        costs the nominal references accuracy; with a preview as long as the prediction, the
+        blocked prediction gains on the box's corners but still costs the nominal 100 Hz sine
+        (PL140 at 0.1 ms: ``benchmarks/results/design_measurements.md``).
+        So the default predicts as far as the benchmark's preview reaches.
     rate_weight : float
         lambda, penalty of (z_t+k - z_t+k-1)^2 relative to 1 um^2 of tracking error
         ((um / equivalent V)^2). Smooths the input against noise; larger is gentler.
@@ -111,19 +110,19 @@ class MPCSettings:
         loop's rate), and model error near the resonance (the 3rd harmonic of a 50 Hz
         reference) goes uncorrected.
 
-    The fixed observer's defaults are one tuning for every plant: on the nominal PL140 every
-    smooth reference stays at or below 0.05 % of the stroke, while a faster observer
-    (disturbance_std 1-3) would gain on plants whose hysteresis differs from the model
-    (Prandtl-Ishlinskii: 0.12 against 0.14 % at 10 Hz) at the cost of the nominal 50 Hz sine
-    (0.054-0.083 %), and a slower one (0.3) the reverse (0.20 % at 10 Hz on the
-    Prandtl-Ishlinskii plant). The bank takes each point where the data say it pays.
+    The fixed observer's defaults are one tuning for every plant: a faster observer (a larger
+    disturbance_std) gains on plants whose hysteresis differs from the model at the cost of
+    the nominal plant's 50 Hz sine, and a slower one the reverse
+    (``benchmarks/results/design_measurements.md``). The bank takes each point where the data
+    say it pays.
     slope_std : float
         0: the output disturbance is held constant over the horizon. > 0: it is modelled as
         drifting with an estimated slope (random walk of this step, um per sample^2) and
         extrapolated; see :class:`controllers.observer.DisturbanceObserver`.
     qp_solver : str
-        ``"daqp"`` (default: dense dual active set, exact active set, a few microseconds on
-        this QP) or ``"osqp"`` (:mod:`controllers.box_qp`).
+        ``"daqp"`` (default: dense dual active set, exact active set) or ``"osqp"``
+        (:mod:`controllers.box_qp`); their solve times on this QP are in
+        ``benchmarks/results/controller_latency.md``.
     eps_abs, eps_rel : float
         OSQP tolerances (DAQP ends on an exact active set and takes none).
     max_iter : int

@@ -28,9 +28,9 @@ Solvers
     ``step_tolerance``). Two iterations are the default because one loses accuracy at input
     reversals, where the hysteresis features kink. The Jacobian comes from
     :class:`controllers.native.nmpc_horizon.StructuredHorizon` for the identified NLS (feature
-    recursion in generated C called through ctypes, network batched in numpy: ~40 us at
-    N = 20, against 1.8-3.6 ms for casadi's Jacobian of the unrolled horizon; the module
-    :mod:`controllers.native.nmpc_horizon` lists every path measured) and from casadi's generic
+    recursion in generated C called through ctypes, network batched in numpy, far cheaper than
+    casadi's Jacobian of the unrolled horizon; :mod:`controllers.native.nmpc_horizon` says
+    why) and from casadi's generic
     Jacobian for any other nonlinearity (the plant's hysteresis in the oracle). The QP is
     dense and small (N variables, the box as bounds): its solver's workspace
     (:func:`controllers.box_qp.box_qp`, DAQP by default, OSQP with ``qp_solver="osqp"``) is set
@@ -107,7 +107,8 @@ class NMPCSettings:
     process_std : float
         Input-referred process noise of the fixed observer (equivalent V); with none the filter
         trusts the model near the resonance too much and a 150 Hz error builds up on a 50 Hz
-        sine (0.17 % against 0.05 %). The observer defaults are the linear MPC's.
+        sine (``benchmarks/results/design_measurements.md``). The observer defaults are the
+        linear MPC's.
     jacobian : str
         ``"auto"`` (structured for the identified NLS, else generic; generated C where a
         compiler works), ``"structured"``, ``"structured-vm"`` (casadi's virtual machine, no
@@ -119,9 +120,10 @@ class NMPCSettings:
         OSQP tolerances (DAQP ends on an exact active set and takes none).
     max_qp_iterations : int
         The QP solver's iteration cap per QP; reaching it is a fallback. 1000, as the linear
-        MPC's: chosen for OSQP (at 200, one OSQP solve of a step beyond the drive range needed
-        290 iterations); DAQP, one active-set change per iteration, has needed at most a few
-        tens on the benchmark's references (``solver_iterations_max`` in each episode).
+        MPC's: chosen with a margin for OSQP on a step beyond the drive range
+        (``benchmarks/results/design_measurements.md``); DAQP, one active-set change per
+        iteration, needs far fewer (``solver_iterations_max`` in each episode,
+        ``benchmarks/results/controller_latency.md``).
     shortcut : bool
         Try the unconstrained optimum of each QP first and skip the QP solver when it meets
         every bound (exact: see :mod:`controllers.box_qp`).

@@ -19,19 +19,19 @@ longer. ``process_std`` (equivalent V) is input-referred model noise on x.
 The gain is the steady-state one (``scipy.linalg.solve_discrete_are``), so a step is two small
 matrix-vector products.
 
-What sets the noise an MPC passes (measured on the PL140, 2 s episodes, noise on): the
-input-referred process noise ``process_std``, not the model's noise structure. A small term
-keeps the Riccati equation well posed for delay states; it is scaled to each state's own
-variance under unit input (the diagonal of the controllability Gramian), so it means the same
-for a model whose states are in um (identified) and one whose states are in m (the plant's
-modal realization, the oracle). An identity in the states' units, as used before, was a large
-process noise on every mode of the oracle: it read 0.018 % whatever its settings, and
-identified models "beat" it. With the scaled term the oracle reads 0.005 % with the bank
-below and 0.038 % with the single filter (``process_std`` 0.04 V).
+What sets the noise an MPC passes is the input-referred process noise ``process_std``, not
+the model's noise structure. A small term keeps the Riccati equation well posed for delay
+states; it is scaled to each state's own variance under unit input (the diagonal of the
+controllability Gramian), so it means the same for a model whose states are in um
+(identified) and one whose states are in m (the plant's modal realization, the oracle). An
+identity in the states' units would be a large process noise on every mode of the oracle, whose
+error it would then set whatever its settings (``benchmarks/results/design_measurements.md``;
+the oracle's error with the scaled term: ``benchmarks/results/identification_precision.md``).
 
 No single pair of noise levels is right: what the model gets wrong differs by reference and
-plant, and the best trade-off with it (lowering ``process_std`` to 0.01 costs the
-Prandtl-Ishlinskii plant's 50 Hz sine 0.45 -> 0.75 %). The default observer of both MPCs is
+plant, and so does the best trade-off with it (a smaller ``process_std``, which passes less
+noise, leaves more of the Prandtl-Ishlinskii plant's error uncorrected:
+``benchmarks/results/design_measurements.md``). The default observer of both MPCs is
 therefore a bank (:class:`ObserverBank`): the same filter under a grid of noise levels scaled
 by the sensor noise, the data choosing among them by the likelihood of their innovations. With
 a good model the data choose a slow filter that passes little noise, on a plant the model
@@ -220,27 +220,26 @@ three times the one the filter expects)."""
 RUNAWAY_CORRELATION = -0.5
 """Lag-one correlation of those innovations (over their mean square) below which, with
 :data:`RUNAWAY_NIS`, the bank suspects a runaway: they alternate in sign, an oscillation above a
-third of the sampling rate (a sinusoid at f has the correlation cos(2 pi f dt))."""
+third of the sampling rate (a sinusoid at f has the correlation cos(2 pi f dt)). It lies between
+the correlation of a stable loop's ringing after a jump and that of the runaways
+(``benchmarks/results/design_measurements.md``)."""
 
 RUNAWAY_MEMORY = 35
 """Samples over which the guard averages its two statistics (exponential forgetting 1 - 1/35).
 A runaway grows within tens of samples: over the bank's 200-sample memory of likelihoods the
-average crossed :data:`RUNAWAY_NIS` when the drive had swung between its limits for tens of
-samples already. Measured on the benchmark's robustness plants (1 noise seed, with
-:data:`RUNAWAY_PERSISTENCE`): the damped PL127's steps 1.51 -> 0.88 % of the stroke (the single
-filter of the earlier default: 0.98 %), its 20 % stiffer plant 19-35 -> 13-29 %, its random
-plants' second worst 4.4 -> 3.0 %, and no stable row changed. Over 25 samples the guard also
-fired on a stable loop (a random PL140 at 50 Hz, 0.68 -> 0.72 %)."""
+average crosses :data:`RUNAWAY_NIS` when the drive has swung between its limits for tens of
+samples already. Chosen on the benchmark's robustness plants, with
+:data:`RUNAWAY_PERSISTENCE`, among 25, 35 and 50 samples: the shortest on which the guard fires
+on no stable loop (``benchmarks/results/design_measurements.md`` has the figures)."""
 
 RUNAWAY_PERSISTENCE = 3
 """Consecutive samples over which both tests must hold before the guard falls back. Over the
 first samples of an abrupt oscillation the lag-one correlation is whatever their phases make
-it: a 250-330 Hz ringing appearing at 200 times the noise, lag-one correlation -0.5 or above
-in the steady state, read below -0.5 for one or two samples and tripped a single-sample test
-in 25 of 60 trials (5 noise seeds, 4 onsets, 3 frequencies) with the bank's 200-sample memory,
-35 of 60 with 50 samples, and none with three samples. A runaway costs those two samples: the
-PL127's fastest (loop poles at 1.3-1.4 per sample) end at 13-15 % of the stroke instead of
-8.7-10 % when the guard falls back two samples sooner."""
+it: a ringing whose steady-state correlation is above :data:`RUNAWAY_CORRELATION` can read
+below it for one or two samples, and then trips a single-sample test; three samples in a row
+do not trip on it, and cost a runaway those two samples of delay. Measured on a synthetic
+ringing (250-330 Hz, 200 times the noise, appearing within a sample) and on the robustness
+plants' runaways: ``benchmarks/results/design_measurements.md``."""
 
 
 def augmented(
@@ -311,33 +310,39 @@ class ObserverBank:
     Why: the noise passed into the loop and the model error corrected are one trade-off, and
     its best point depends on what the model gets wrong, which differs by reference and plant
     (see the module docstring). With the identified PL140 model, sensor noise only, the
-    likelihood picks almost no process noise and a slow disturbance (1 Hz sine: 0.008 %
-    against 0.036 % with the single default filter); at 50 Hz, where the nonlinearity's error
-    passes the first resonance as the third harmonic, more process noise; on a plant whose
-    hysteresis or stiffness differs from the model's, the fast filters (Prandtl-Ishlinskii
-    plant, 50 Hz: 0.39 % against 0.45 %). Each filter is a fixed, stable observer of the same
-    model; only which estimate the controller reads changes.
+    likelihood picks almost no process noise and a slow disturbance; at 50 Hz, where the
+    nonlinearity's error passes the first resonance as the third harmonic, more process noise;
+    on a plant whose hysteresis or stiffness differs from the model's, the fast filters. Against
+    the single default filter: ``benchmarks/results/identification_precision.md`` (identified
+    models) and ``benchmarks/results/design_measurements.md`` (Prandtl-Ishlinskii plant). Each
+    filter is a fixed, stable observer of the same model; only which estimate the controller
+    reads changes.
 
     A runaway guard. The likelihood judges each filter by how well it predicts the data, not by
     whether the loop it closes is stable on the plant at hand, and the two can feed each other: on a
     bender within the datasheet tolerances whose first resonance sits near the Nyquist frequency
     (the PL127's 420 Hz at 1 kHz, moved by +-20 % or damped twice as much), the fast filters' loops
     are unstable, their growing innovations make them still more likely, and the loop runs into the
-    drive limits (the damped PL127's steps reached 41.6 % of the stroke, half of its random plants
-    55-2600 %). The bank therefore watches the most likely filter: when its normalised innovation
+    drive limits. The bank therefore watches the most likely filter: when its normalised innovation
     squared, averaged over :data:`RUNAWAY_MEMORY` samples, exceeds :data:`RUNAWAY_NIS` while its
     innovations alternate in sign (lag-one correlation below :data:`RUNAWAY_CORRELATION` of their
     mean square: an oscillation above a third of the sampling rate, which the model error at the
-    benchmark's references was not), for :data:`RUNAWAY_PERSISTENCE` samples in a row, it falls
+    benchmark's references is not), for :data:`RUNAWAY_PERSISTENCE` samples in a row, it falls
     back, for the rest of the episode, to its :attr:`fallback` filter: the least process noise (none
     on the default grid) and the slowest disturbance, the filter that trusts the model's dynamics
     most and corrects only a slow output offset, whose loop has the largest modulus margin of the
     bank on every catalogue bender (tested on all five). The step is kept in :attr:`runaway_at`, and
-    the benchmark reports it. The thresholds were chosen on the benchmark's robustness plants of the
-    PL127 and the PL140 (``benchmarks/results``) so that no stable row changes; the measured
-    alternatives are in :mod:`controllers.loop`. In the runaways measured there the correlation was
-    -0.8 to -0.98; the nonlinear MPC's loop on the PL140 20 % stiffer rings after a jump at the
-    drive limit with a correlation of -0.3 and settles.
+    the benchmark reports it (``benchmarks/results/tracking*.md``). Both tests are needed: the size
+    of the innovations alone also fires where the loop is stable and the model error large; the
+    sign alternation separates the
+    runaways (near-Nyquist oscillations, correlation close to -1) from the ringing of a stable
+    loop after a jump at the drive limit, which settles. A guard on the drive sitting at its
+    limits fires only on runaways but late; asking also that the oscillation grow lets the
+    fastest runaways swing the drive into saturation first, and over a few samples any abrupt
+    onset looks like growth. The thresholds are chosen on the benchmark's robustness plants of
+    the PL127 and the PL140 so that no stable row changes; the alternatives measured there, and
+    the correlations of the runaways and of that ringing, are in
+    ``benchmarks/results/design_measurements.md``.
 
     Parameters
     ----------

@@ -21,13 +21,14 @@ damping (``gain_tolerance``, ``resonance_tolerance``, ``damping_range``: +-20 %,
 0.01 .. 0.04 for the PI PICMA benders), each vertex built from the model itself by the modal
 correction of its first bending mode (:mod:`controllers.tolerance_box`). A fixed loop cannot know
 where in a +-20 % band a resonance with 0.01 damping sits, so it must keep its gain below
-``1 - 1/Ms`` across the whole band whatever the phase: the price is bandwidth. On the PL140
-the nominal-tuned notched loop crosses over at about 105 Hz and diverges on the benders with
-a resonance 20 % low; the box-tuned one crosses over at about 25 Hz and holds every vertex.
-``gain_tolerance=0, resonance_tolerance=0, damping_range=None`` tunes on the nominal model
-alone, as before. A resonance above the Nyquist frequency (PL112, PL122 at 1 kHz) is seen as
-its alias, and the box moves the alias, not the mode: a +-20 % band of such a mode aliases to
-a far wider one (the sample rate must follow the bender).
+``1 - 1/Ms`` across the whole band whatever the phase: the price is bandwidth. Tuned on the
+nominal model alone, the notched loop crosses over far higher and diverges on the benders with
+a resonance 20 % low; tuned over the box it holds every vertex (its crossover: the Controllers
+table of ``benchmarks/results/tracking.md``; the nominal tuning's on the PL140:
+``benchmarks/results/design_measurements.md``). ``gain_tolerance=0, resonance_tolerance=0,
+damping_range=None`` tunes on the nominal model alone. A resonance above the Nyquist frequency
+(PL112, PL122 at 1 kHz) is seen as its alias, and the box moves the alias, not the mode: a
++-20 % band of such a mode aliases to a far wider one (the sample rate must follow the bender).
 
 **Notch**: the model's lightly damped resonance is the complex pole pair of ``model.a`` with the
 smallest damping ratio. On a bender whose first resonance lies above the Nyquist frequency (the
@@ -37,8 +38,9 @@ notch puts its zeros on those poles and its poles at the same natural frequency 
 ``notch_damping`` (pole-zero placement, unit DC gain), so the loop sees a well damped mode
 instead of a 26 dB peak, and the PID is re-tuned on ``N P``. Over the box the notch must
 reach the whole band: its pole damping is the one that lets the largest integral gain meet
-the bound on every vertex (:func:`controllers.pid_tuning.robust_notch_damping`; about 2.55 on
-the PL140, i.e. two real poles, a notch and a low-pass near 30 Hz). ``pid-ff``'s feedback is
+the bound on every vertex (:func:`controllers.pid_tuning.robust_notch_damping`; on the PL140
+above 1, i.e. two real poles, a notch and a low-pass near ``wn / (2 zeta)``: ``notch_damping``
+in the ``pid-notch`` table of ``benchmarks/results/tracking.md``). ``pid-ff``'s feedback is
 then the same loop as ``pid-notch``'s; its feedforward stays the nominal model's inverse (open
 loop, it cannot destabilise; on the vertices it leaves an error at the reference's frequency,
 not at the resonance).
@@ -64,10 +66,10 @@ does not wind up against that limit: the part the limit takes off goes back into
 same back-calculation as the drive-range saturation, ``I += g (u_limited - u)`` in volts without
 feedforward, and with feedforward in z, ``I += g (z_applied - z_cmd)`` with z_applied the
 nonlinearity's output at the limited voltage (as for a z the memory state cannot reach). The
-feedforward model itself is not moved: letting it follow the limited z instead halved the
-overshoot of a 600 um step at a 20 mA limit (84 against 180 um) but made the loop unstable on
-a reference the amplifier cannot follow (a 100 Hz, 500 um sine at 50 mA: 64 % of the stroke
-against 2.9 %). Without a slew limit nothing changes (bitwise).
+feedforward model itself is not moved: letting it follow the limited z instead reduces the
+overshoot of a step the amplifier slows, but makes the loop unstable on a reference the
+amplifier cannot follow (``benchmarks/results/design_measurements.md``). Without a slew limit
+nothing changes (bitwise).
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ ki = 0+ without crossing an excluded interval is therefore closed-form: the smal
 the intervals that reach positive ki (none of them may contain 0). This ``ki*(kp, kd)`` is a
 continuous function of the model's coefficients, so the tuning is too: the gains move smoothly
 under a 1e-12 perturbation and do not depend on the BLAS or its thread count. (A gradient
-search on the non-smooth ``min_w |1 + L|`` constraint, as before, followed different paths under
-different rounding and could end at a dead controller.) ``ki*`` is maximised over a grid of
+search on the non-smooth ``min_w |1 + L|`` constraint follows different paths under different
+rounding and can end at a dead controller.) ``ki*`` is maximised over a grid of
 (kp, kd), then refined by bounded Nelder-Mead from the best grid points; on the path from
 ki = 0+ the Nyquist curve never crosses the Ms circle, so the loop keeps the stability it has
 at ki = 0+; the result is checked by the closed-loop poles all the same.

@@ -88,8 +88,9 @@ class IdentifiedNLS:
     def inverse(self, z_target: float, state: np.ndarray) -> InverseResult:
         """Voltage reaching ``z_target`` (equivalent V) from ``state``, clipped to the range.
 
-        Generated C (:mod:`controllers.native.compiled_inverse`, ~14 us, to 1e-9 V); the numpy
-        ``self.nls.solve_inverse`` when no compiler works or the map is found non-monotone.
+        Generated C (:mod:`controllers.native.compiled_inverse`; its speed and accuracy:
+        ``benchmarks/results/inverse_speed.md``); the numpy ``self.nls.solve_inverse`` when no
+        compiler works or the map is found non-monotone.
         """
         return self._inverse.solve(z_target, state)
 

@@ -182,8 +182,8 @@ class PredictiveController(Controller):
         start = self.model.steady_start(y0, self.task.noise_bound_um)
         # d starts at 0 even when y0 lies beyond the model's reach (the voltage holding it
         # clipped): the part left unexplained is then mostly that one sample's noise, and
-        # starting d there made the first 50 steps worse, not better (measured on the plant
-        # at 30 V: 0.66-1.19 um against 0.52-0.90 um).
+        # starting d there makes the first 50 steps worse, not better (the plant starting at
+        # 30 V: benchmarks/results/design_measurements.md).
         self.observer.reset(np.r_[start.x, np.zeros(self.observer.n_disturbance)])
         self._memory = start.memory
         self._start(start)

@@ -5,10 +5,10 @@ The observer bank (:class:`controllers.observer.ObserverBank`) needs, for one li
 steady-state filter under every pair of its noise levels, and the adaptive MPC needs a bank for
 each model of its set: hundreds of discrete algebraic Riccati equations that share ``A`` and
 ``C`` and differ in ``Q`` and ``R``. ``scipy.linalg.solve_discrete_are`` solves one at a time
-through a generalised Schur decomposition (about 2 ms each here, most of it per-call
-overhead); the doubling algorithm below runs all of them as one stack of small dense matrix
-products and solves, and converges quadratically, so that 30 iterations cover a closed loop
-whose slowest pole is within 1e-9 of the unit circle.
+through a generalised Schur decomposition, at a cost that is mostly per-call overhead
+(``benchmarks/results/design_measurements.md``); the doubling algorithm below runs all of them
+as one stack of small dense matrix products and solves, and converges quadratically, so that 30
+iterations cover a closed loop whose slowest pole is within 1e-9 of the unit circle.
 
 The filter equation ``P = A P A' - A P C' (C P C' + R)^-1 C P A' + Q`` is the control
 equation of ``(A', C')``; the doubling algorithm for it (Chu, Fan, Lin and Wang, "Structure-

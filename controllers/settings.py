@@ -23,13 +23,19 @@ __all__ = [
 
 QP_SOLVERS = ("daqp", "osqp")
 """The MPCs' QP solvers (:mod:`controllers.box_qp`): DAQP, the default (dense dual active set,
-exact active set, a few microseconds on these QPs), or OSQP (operator splitting)."""
+exact active set), or OSQP (operator splitting); their solve times on these QPs are in
+``benchmarks/results/controller_latency.md``."""
 
 USABLE_OSQP_STATUS = ("solved", "solved inaccurate")
 """OSQP statuses whose solution is applied; any other falls back to the shifted plan."""
 
 DISTURBANCE_STD = 0.8
-"""The observer's default output-disturbance random-walk step (um per sample), both MPCs'."""
+"""The observer's default output-disturbance random-walk step (um per sample), both MPCs'.
+
+Chosen between a faster and a slower fixed observer on the nominal PL140 and the
+Prandtl-Ishlinskii plant (``benchmarks/results/design_measurements.md``);
+:class:`controllers.mpc.MPCSettings` says what it trades.
+"""
 
 OBSERVERS = ("bank", "fixed")
 """Observer choices of the model-based controllers: ``"bank"``
@@ -50,7 +56,10 @@ error). The PIDs are tuned to it; the MPCs' observer banks keep only filters wit
 PROCESS_STD = 0.04
 """The observer's default input-referred process noise (equivalent V), both MPCs'.
 
-One tuning for every plant; :class:`controllers.mpc.MPCSettings` says what it trades.
+One tuning for every plant, measured on the PL140: without process noise the filter leaves an
+error at the first resonance uncorrected, and a smaller one leaves more of the
+Prandtl-Ishlinskii plant's (``benchmarks/results/design_measurements.md``);
+:class:`controllers.mpc.MPCSettings` says what it trades.
 """
 
 

@@ -4,7 +4,7 @@ verify, call through ctypes.
 :func:`compile_function` writes a casadi Function as C (``casadi.CodeGenerator``), compiles it
 with the machine's compiler (``$CC`` or ``cc``) into a shared library cached on disk, and loads
 it as a :class:`CompiledFunction`: preallocated float64 buffers and one ctypes call per
-evaluation. Compilation takes a few seconds and happens once per function and machine.
+evaluation. Compilation happens once per function and machine (the cache below).
 
 **Nothing falls back silently.** Every build returns a :class:`NativeBuild` record: what was
 built, which path evaluates it (``compiled``, or the caller's fallback, ``numpy`` or
@@ -24,13 +24,12 @@ which the benchmark report shows. The environment variable ``PIEZO_NATIVE`` sets
 backend, when every process takes the same native path (all ``compiled`` or all fallen back)
 with the same compiler, flags and architecture; the benchmark report says which path each
 function took. The paths differ: the compiled NLS inverse is a Newton iteration that agrees
-with the numpy inverse to about 1e-7 V, not to the bit, and the closed loop carries that on.
-Measured on ``docs/identify/model`` with the PL140 (preview 20, seed 0, the first 500 steps of
-a 500 um 10 Hz sine, one BLAS thread, x86-64, gcc 12), compiled against ``PIEZO_NATIVE=off``:
-MPC 469 of 500 voltages differ, by up to 1.9e-5 V (median step 44 against 126 us); ``pid-ff``
-91, by up to 9.5e-7 V; NMPC none (its horizon's feature recursion in C and in casadi's virtual
-machine round alike without fused multiply-adds, see :data:`DEFAULT_FLAGS`; 220 against 740
-us). An unusable cache (``PIEZO_CACHE=/dev/null/x``) gives exactly the ``off`` results. The
+with the numpy inverse to about 1e-7 V, not to the bit, and the closed loop carries that on:
+the MPC's and ``pid-ff``'s voltages differ from those with ``PIEZO_NATIVE=off`` by small
+amounts, the NMPC's not at all (its horizon's feature recursion in C and in casadi's virtual
+machine round alike without fused multiply-adds, see :data:`DEFAULT_FLAGS`). One such
+comparison on the shipped model is recorded in ``benchmarks/results/design_measurements.md``.
+An unusable cache (``PIEZO_CACHE=/dev/null/x``) gives exactly the ``off`` results. The
 cache key (:func:`cache_key`) holds the generated source, the flags, the compiler's resolved
 path and ``--version``, the architecture and OS, the casadi version and the Python ABI, so a
 library is never reused across any of them.

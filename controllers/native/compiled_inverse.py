@@ -20,10 +20,10 @@ From the memory state ``s`` the NLS is a scalar map ``u -> z(u; s)`` on the driv
    ``xtol`` (then ``u + step`` is returned with ``z`` extrapolated along the slope), or when
    the bracket has shrunk to rounding (a root at a kink). ``max_iter`` iterations are
    unrolled; each is a casadi ``Function.conditional`` whose generated C skips the network
-   once the iteration has stopped, so a call costs the passes it uses (three end/start values
-   and two or three Newton passes on the benchmark), not ``max_iter`` of them. (Unrolling
-   with ``if_else`` in SX evaluates every iteration: ten unrolled passes already took 35 us
-   and a minute to compile.)
+   once the iteration has stopped, so a call costs the passes it uses (the three end and start
+   values and the Newton passes it takes), not ``max_iter`` of them. (Unrolling with
+   ``if_else`` in SX evaluates every iteration, and is slow to compile:
+   ``benchmarks/results/design_measurements.md``.)
 
 What is detected as non-monotone (status ``FALLBACK``; the caller then runs the numpy
 :meth:`identification.nls.NLS.solve_inverse`, which looks at a 17-node grid and picks among
@@ -38,10 +38,10 @@ The function is generated as C, compiled once (cached on disk, see
 :mod:`controllers.native.codegen`) and called through ctypes on preallocated buffers by
 :class:`CompiledInverse`; without a working compiler :class:`CompiledInverse` runs the numpy
 inverse instead, and says so in its ``native`` records
-(:class:`controllers.native.codegen.NativeBuild`). Measured on the shipped model
-(``benchmarks/speed/inverse_speed.py``, one thread): 14.8 us median, 18.8 us p99 per call including
-the Python wrapper, against 65 us for the numpy inverse; passes cost about 1.5 us (z) and 2.9
-us (z and dz/du) each, most of it the 96 tanh and the scalar products.
+(:class:`controllers.native.codegen.NativeBuild`). Its speed and accuracy against the numpy
+inverse, per call including the Python wrapper, are in ``benchmarks/results/inverse_speed.md``
+(``python -m benchmarks.speed.inverse_speed``); most of a pass's cost is the network's tanh
+and scalar products (``benchmarks/results/design_measurements.md``).
 """
 
 from __future__ import annotations
@@ -256,7 +256,7 @@ class CompiledInverse:
     when the compiled path reports ``FALLBACK`` (non-monotone map, see the module docstring),
     for a non-finite target, or when no compiler works, it runs that numpy inverse instead.
     :meth:`reachable` gives the reachable range from the generated :func:`reachable_function`
-    (~4 us against ~20 us for the numpy network).
+    (cheaper than the numpy network: ``benchmarks/results/design_measurements.md``).
 
     Parameters
     ----------
@@ -360,7 +360,7 @@ class CompiledInverse:
     def reachable(self, state: np.ndarray) -> tuple[float, float]:
         """Range of z (equivalent V) reachable in one sample from ``state`` over the drive range.
 
-        Generated C (two passes, ~4 us), else the numpy network; sorted like
+        Generated C (two passes), else the numpy network; sorted like
         :meth:`controllers.prediction.IdentifiedNLS.reachable`.
         """
         if self._reachable is None:

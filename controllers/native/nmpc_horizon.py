@@ -13,35 +13,23 @@ triangular Jacobian ``J[k, j] = dz_t+k / du_t+j``. Three ways to get them:
     generated as C, compiled with the machine's compiler and called through ctypes; without a
     working compiler the same casadi Function runs in casadi's virtual machine.
 ``GenericHorizon`` (any nonlinearity with ``casadi_step``)
-    casadi's Jacobian of the unrolled horizon ``(u, s_t) -> z``: simple and general, but for
-    a 3 x 32 network it differentiates the network N times over (about 1.1 M instructions
-    at N = 20).
+    casadi's Jacobian of the unrolled horizon ``(u, s_t) -> z``: simple and general, but it
+    differentiates the network N times over.
 
-Measured in one process on a model with a 3 x 32 network (the default until the network's
-size was measured in closed loop, see :class:`identification.config.IdentificationConfig`;
-the 3 x 2 default costs less; N = 20, one BLAS thread, median per call):
-
-==============================================================  ===============
-casadi Jacobian of the unrolled horizon (SX virtual machine)      1 800-3 600 us
-structured, all in casadi SX (virtual machine)                           520 us
-structured, all in generated C, called through casadi.external           270 us
-feature recursion in casadi's VM + numpy network                        240 us
-feature recursion in generated C through casadi.external                 33 us
-  + converting its DM outputs to numpy                                   +120 us
-feature recursion in generated C through ctypes                           7 us
-  + numpy network and the product: the whole linearization               38 us
-==============================================================  ===============
-
-Generated C of the whole structured step is slower than numpy here because casadi expands the
-network's dense matrix products into scalar code (15 k instructions per horizon step), while
-numpy runs them as a few batched BLAS calls (all below OpenBLAS's threading threshold, so
-they stay single-threaded without a thread limit). So the fast path is: feature recursion in
-generated C called through ctypes (about 7 us), network in numpy.
+Why the fast path is the feature recursion in generated C called through ctypes, with the
+network in numpy: generated C of the whole structured step is slower than numpy, because
+casadi expands the network's dense matrix products into scalar code, while numpy runs them as
+a few batched BLAS calls (all below OpenBLAS's threading threshold, so they stay
+single-threaded without a thread limit); and calling the generated recursion through
+``casadi.external`` costs more in converting its DM outputs to numpy than the recursion
+itself. Every path's cost, measured once on a 3 x 32 network, is in
+``benchmarks/results/design_measurements.md``; the NMPC step's is regenerated in
+``benchmarks/results/controller_latency.md``.
 
 The compiled library is cached on disk (``$PIEZO_CACHE`` or ``~/.cache/piezo-testbed``), keyed
-by the hash of the generated source, compiler and platform, so compilation (a few seconds)
-happens once per model and horizon (:mod:`controllers.native.codegen`, shared with the compiled
-NLS inverse). Each horizon object keeps the record of its build in ``native``
+by the hash of the generated source, compiler and platform, so compilation happens once per
+model and horizon (:mod:`controllers.native.codegen`, shared with the compiled NLS inverse).
+Each horizon object keeps the record of its build in ``native``
 (:class:`controllers.native.codegen.NativeBuild`): compiled, or casadi's virtual machine and
 why.
 """

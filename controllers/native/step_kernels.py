@@ -3,7 +3,7 @@
 An MPC step runs the gain estimate's update and time update (:mod:`controllers.gain`) and the
 observer bank's measurement and time updates (:class:`controllers.observer.ObserverBank`). Each
 is a handful of operations on arrays of 1 to 50 entries, where numpy's cost is its call overhead
-(about half a microsecond per operation, some 70 per step), not the arithmetic. The kernels here
+per operation, not the arithmetic (``benchmarks/results/design_measurements.md``). The kernels here
 do the same operations, in the same order, in one C call each, on the estimators' own arrays
 (updated in place, so that the Python objects read the same memory).
 
