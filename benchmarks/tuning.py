@@ -107,6 +107,12 @@ tones (faded in over 50 ms as the test multisine, :func:`benchmarks.references.f
 Hz multisine of 8 tones, a chirp, +-600 um steps at 2.5 Hz and random steps)."""
 
 
+def _reference_rng(name: str, seed: int) -> np.random.Generator:
+    """The generator of the tuning reference ``name`` for ``seed``: seeded by the seed and the
+    name, so a name and a seed always give the same array."""
+    return np.random.default_rng([seed, len(name), sum(map(ord, name))])
+
+
 def tuning_reference(
     name: str, n: int, *, dt: float, seed: int, stroke_um: float = 1000.0
 ) -> np.ndarray:
@@ -116,8 +122,8 @@ def tuning_reference(
         raise ValueError(
             f"unknown tuning reference {name!r}{extra}; valid: {', '.join(TUNING_REFERENCES)}"
         )
-    rng = np.random.default_rng([seed, len(name), sum(map(ord, name))])
-    return np.asarray(TUNING_REFERENCES[name](n, dt, rng), dtype=float) * (stroke_um / 1000.0)
+    build = TUNING_REFERENCES[name]
+    return np.asarray(build(n, dt, _reference_rng(name, seed)), dtype=float) * (stroke_um / 1000.0)
 
 
 class ModelPlantEnv(gym.Env):
@@ -272,10 +278,11 @@ def choose(
     stroke = stroke_um(bender)
     nominal = gym.make("piezo_env:PiezoBender-v0", bender=bender, dt=dt, preview=preview)
     model = ctl.PredictionModel.from_hammerstein(model_dir, float(nominal.action_space.high[0]))
-    arrays = {}
-    for name, build in references.items():
-        rng = np.random.default_rng([seed, len(name), sum(map(ord, name))])
-        arrays[name] = np.asarray(build(steps + preview + 1, dt, rng), float) * (stroke / 1000.0)
+    n = steps + preview + 1
+    arrays = {
+        name: np.asarray(build(n, dt, _reference_rng(name, seed)), float) * (stroke / 1000.0)
+        for name, build in references.items()
+    }
     plants = [ModelPlantEnv(model, nominal, gain=g, steps=steps) for g in GAINS]
     scores = {}
     for value in knob.grid:
