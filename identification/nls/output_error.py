@@ -30,17 +30,10 @@ radii with the network (:mod:`identification.nls.play_radii`), and the network a
 stages run at the learned radii.
 
 Every sample of every record weighs the same, as the likelihood under one sensor noise asks.
-Weighting the records differently was measured and left (with the earlier 3 x 32 network, the
-decaying-multisine rich record and 100 iterations per stage; PL140, identification seeds 0-4,
-worst ratio of the precision benchmark's ``mpc`` to the oracle at 10 / 50 / 100 Hz, triangle,
-multisine; equal weights 1.87 / 2.77 / 1.95 / 2.19 / 1.95): a per-record error variance
-concentrated out (``sum_r N_r log SSE_r``, which weighs the small PRBS up) 2.14 / 4.04 / 3.13 /
-1.96 / 2.46; the PRBS at 0.3 of the rich record 1.80 / 2.83 / 2.07 / 2.03 / 2.24, at 3 times
-1.87 / 2.89 / 1.83 / 2.28 / 2.01. The single seeds moved by up to 0.5 either way: what limits
-those ratios is the estimate's spread from seed to seed, not the weighting. That spread came
-from the wide network and from stopping the search at its cap; with the defaults of
-:class:`identification.config.IdentificationConfig` (3 x 2 network, RAND rich record, 300
-iterations) the same ratios are 1.06 / 1.21 / 1.02 / 1.08 / 1.06.
+Another weighting of the records (a per-record error variance concentrated out,
+``sum_r N_r log SSE_r``, which weighs the small PRBS up, or a fixed factor on one record) is the
+likelihood of a noise that differs from record to record, which records of one sensor do not
+have.
 """
 
 from __future__ import annotations
