@@ -212,7 +212,8 @@ def _robustness_grid(result: BenchmarkResult) -> tuple[np.ndarray, list[str], li
     }
     plants = [p for p in cfg.plants if p not in DRAWN_PLANTS]
     controllers = [c for c in cfg.rows if any(k[1] == c and k[0] != "nominal" for k in index)]
-    # Smooth references only: a step's ~0.9 % (the drive limit) would swamp them in the mean.
+    # Smooth references only: a step's RMSE, set by the drive limit, would swamp them in the
+    # mean.
     refs = sorted(
         {k[2] for k in index if k[0] != "nominal" and REFERENCES[k[2]].smooth},
         key=list(cfg.references).index,

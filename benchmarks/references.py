@@ -2,11 +2,11 @@
 
 Every reference is a deflection trajectory in micrometres, one sample per step, built from the
 signal shapes of :mod:`piezo_env.signals`. Sample k is the reference at time k dt; the env
-scores the action a_t against sample t + 1. Random-phase signals fade in over 50 ms so that
-every smooth reference starts at rest. Random references draw from a generator seeded by
-the benchmark seed and the reference's name, so a name and a seed always give the same array.
-Add your own with :func:`register_reference` (a function of n, dt and a generator) or pass an
-array straight to :func:`controllers.run_episode`.
+scores the action a_t against sample t + 1. Random-phase signals fade in over 50 ms
+(:func:`fade_in`) so that every smooth reference starts at rest. Random references draw from a
+generator seeded by the benchmark seed and the reference's name, so a name and a seed always
+give the same array. Add your own with :func:`register_reference` (a function of n, dt and a
+generator) or pass an array straight to :func:`controllers.run_episode`.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 
 from piezo_env import signals
 
-__all__ = ["REFERENCES", "Reference", "make_reference", "register_reference"]
+__all__ = ["REFERENCES", "Reference", "fade_in", "make_reference", "register_reference"]
 
 
 @dataclass(frozen=True)
@@ -52,8 +52,13 @@ def _sine(frequency: float) -> Reference:
     )
 
 
-def _fade_in(x: np.ndarray, dt: float, duration: float = 0.05) -> np.ndarray:
-    """Raised-cosine fade-in over ``duration`` (s), so a random-phase signal starts at 0."""
+def fade_in(x: np.ndarray, dt: float, duration: float = 0.05) -> np.ndarray:
+    """A copy of ``x`` with a raised-cosine fade-in over its first ``duration`` (s).
+
+    Sample k < K = round(duration / dt) is scaled by (1 - cos(pi k / K)) / 2, so a
+    random-phase signal starts at 0 and reaches its own amplitude after ``duration``; ``dt``
+    is the sample time (s).
+    """
     k = min(len(x), round(duration / dt))
     x = x.copy()
     x[:k] *= 0.5 * (1.0 - np.cos(np.pi * np.arange(k) / k))
@@ -81,7 +86,7 @@ REFERENCES: dict[str, Reference] = {
         Reference(
             "multisine",
             "multisine, 8 tones 1-40 Hz, 500 um peak",
-            lambda n, dt, rng: _fade_in(
+            lambda n, dt, rng: fade_in(
                 signals.multisine(
                     n, dt=dt, amplitude=500.0, f_min=1.0, f_max=40.0, n_tones=8, rng=rng
                 ),

@@ -222,33 +222,52 @@ def tracking_tables(
     names in each title the plant its model was identified on.
     """
     index = cell_index(result)
-    cfg = result.config
+    chosen = result.config.plants if plants is None else plants
     parts = []
-    chosen = cfg.plants if plants is None else plants
     for plant in (p for p in chosen if p not in DRAWN_PLANTS):
-        controllers = [c for c in cfg.rows if any(k[:2] == (plant, c) for k in index)]
-        refs = [r for r in cfg.references if any(k[0] == plant and k[2] == r for k in index)]
-        if not controllers:
-            continue
-        groups = seed_groups(controllers)
-        controllers += [f"{name} (seeds)" for name in groups]
-        rmse = _cell(index, plant, "rmse_percent", 3, groups)
-        max_error = _cell(index, plant, "max_error_um", 1, groups)
+        parts += _plant_tables(
+            result, index, plant, rmse=True, max_errors=max_errors, identify_on=identify_on
+        )
+    return "\n".join(parts)
 
-        title = f"Nominal {_bender(result)}" if plant == "nominal" else f"Plant: {plant}"
+
+def _plant_tables(
+    result: BenchmarkResult,
+    index: dict,
+    plant: str,
+    *,
+    rmse: bool,
+    max_errors: bool,
+    identify_on: list[str] | tuple[str, ...] = (),
+) -> list[str]:
+    """The tables of one plant as headings and tables: its RMSE table (and, with an adaptive
+    row, the RMSE over the episodes' second halves) when ``rmse``, then, for the nominal plant
+    and when ``max_errors``, its max-error table; none for a plant without episodes."""
+    cfg = result.config
+    controllers = [c for c in cfg.rows if any(k[:2] == (plant, c) for k in index)]
+    refs = [r for r in cfg.references if any(k[0] == plant and k[2] == r for k in index)]
+    if not controllers:
+        return []
+    groups = seed_groups(controllers)
+    controllers += [f"{name} (seeds)" for name in groups]
+    title = f"Nominal {_bender(result)}" if plant == "nominal" else f"Plant: {plant}"
+    parts = []
+    if rmse:
         source = _identified_on(plant, identify_on)
         parts.append(f"### {title}{source}: RMSE (% of the full stroke)\n")
-        parts.append(_table(controllers, refs, rmse, "controller") + "\n")
+        rmse_cell = _cell(index, plant, "rmse_percent", 3, groups)
+        parts.append(_table(controllers, refs, rmse_cell, "controller") + "\n")
         if any("adaptive" in c for c in controllers):
             second = _cell(index, plant, "rmse_second_half_percent", 3, groups)
             parts.append(
                 f"{title}, RMSE over the second half of each episode (after adaptation):\n"
             )
             parts.append(_table(controllers, refs, second, "controller") + "\n")
-        if plant == "nominal" and max_errors:
-            parts.append(f"### {title}: max |error| (um)\n")
-            parts.append(_table(controllers, refs, max_error, "controller") + "\n")
-    return "\n".join(parts)
+    if plant == "nominal" and max_errors:
+        max_error = _cell(index, plant, "max_error_um", 1, groups)
+        parts.append(f"### {title}: max |error| (um)\n")
+        parts.append(_table(controllers, refs, max_error, "controller") + "\n")
+    return parts
 
 
 def _headline_sentence(headline: list[str]) -> str:
@@ -265,12 +284,10 @@ def _headline_sentence(headline: list[str]) -> str:
 
 
 def max_error_table(result: BenchmarkResult, plant: str) -> str:
-    """The max |error| table (um) of one plant."""
-    text = tracking_tables(result, plants=(plant,), max_errors=True)
-    head = text.find("max |error|")
-    if head < 0:
-        return ""
-    return text[text.rfind("### ", 0, head):]
+    """The max |error| table (um) of one plant with its heading: the nominal plant's, as in
+    :func:`tracking_tables`; empty for any other plant."""
+    parts = _plant_tables(result, cell_index(result), plant, rmse=False, max_errors=True)
+    return "\n".join(parts)
 
 
 def oracle_ratio_table(result: BenchmarkResult, row: str = "mpc") -> str:

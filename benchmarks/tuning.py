@@ -44,7 +44,7 @@ import gymnasium as gym
 import numpy as np
 
 from benchmarks.cells import TIE
-from benchmarks.references import REFERENCES
+from benchmarks.references import REFERENCES, fade_in
 from piezo_env import signals
 
 __all__ = [
@@ -93,16 +93,24 @@ TUNING_REFERENCES: dict[str, Callable[[int, float, np.random.Generator], np.ndar
     "triangle-25Hz": lambda n, dt, rng: signals.triangle(
         n, dt=dt, amplitude=400.0, frequency=25.0
     ),
-    "multisine-2-60Hz": lambda n, dt, rng: signals.multisine(
-        n, dt=dt, amplitude=400.0, f_min=2.0, f_max=60.0, n_tones=6, rng=rng
-    ) * 0.5 * (1.0 - np.cos(np.pi * np.minimum(np.arange(n) * dt / 0.05, 1.0))),
+    "multisine-2-60Hz": lambda n, dt, rng: fade_in(
+        signals.multisine(n, dt=dt, amplitude=400.0, f_min=2.0, f_max=60.0, n_tones=6, rng=rng),
+        dt,
+    ),
     "steps-400um": lambda n, dt, rng: signals.square(n, dt=dt, amplitude=400.0, frequency=3.5),
 }
 """The references the procedure tunes on (um at the PL140's 1000 um one-sided stroke; scaled
 to another bender's): frequencies 4, 30, 70 Hz, a 25 Hz triangle, a 2-60 Hz multisine of 6
-tones and +-400 um steps at 3.5 Hz, none of them a test reference's
+tones (faded in over 50 ms as the test multisine, :func:`benchmarks.references.fade_in`) and
++-400 um steps at 3.5 Hz, none of them a test reference's
 (:data:`benchmarks.references.REFERENCES`: 1, 10, 50, 100 Hz sines, a 10 Hz triangle, a 1-40
 Hz multisine of 8 tones, a chirp, +-600 um steps at 2.5 Hz and random steps)."""
+
+
+def _reference_rng(name: str, seed: int) -> np.random.Generator:
+    """The generator of the tuning reference ``name`` for ``seed``: seeded by the seed and the
+    name, so a name and a seed always give the same array."""
+    return np.random.default_rng([seed, len(name), sum(map(ord, name))])
 
 
 def tuning_reference(
@@ -114,8 +122,8 @@ def tuning_reference(
         raise ValueError(
             f"unknown tuning reference {name!r}{extra}; valid: {', '.join(TUNING_REFERENCES)}"
         )
-    rng = np.random.default_rng([seed, len(name), sum(map(ord, name))])
-    return np.asarray(TUNING_REFERENCES[name](n, dt, rng), dtype=float) * (stroke_um / 1000.0)
+    build = TUNING_REFERENCES[name]
+    return np.asarray(build(n, dt, _reference_rng(name, seed)), dtype=float) * (stroke_um / 1000.0)
 
 
 class ModelPlantEnv(gym.Env):
@@ -270,10 +278,11 @@ def choose(
     stroke = stroke_um(bender)
     nominal = gym.make("piezo_env:PiezoBender-v0", bender=bender, dt=dt, preview=preview)
     model = ctl.PredictionModel.from_hammerstein(model_dir, float(nominal.action_space.high[0]))
-    arrays = {}
-    for name, build in references.items():
-        rng = np.random.default_rng([seed, len(name), sum(map(ord, name))])
-        arrays[name] = np.asarray(build(steps + preview + 1, dt, rng), float) * (stroke / 1000.0)
+    n = steps + preview + 1
+    arrays = {
+        name: np.asarray(build(n, dt, _reference_rng(name, seed)), float) * (stroke / 1000.0)
+        for name, build in references.items()
+    }
     plants = [ModelPlantEnv(model, nominal, gain=g, steps=steps) for g in GAINS]
     scores = {}
     for value in knob.grid:

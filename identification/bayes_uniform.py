@@ -56,19 +56,14 @@ moves eq. 23's ``theta`` by several percent.
 
 What it costs
 -------------
-Measured with ``benchmarks/studies/arx_estimation.py`` (PRBS input, lightly damped poles 0.99 at
-50 Hz, 1 kHz sampling; results in ``benchmarks/results/arx_estimation.md``) on ARX(2,2),
-ARX(3,2) and ARX(4,4) with ``r`` = 1 % and 5 % of the peak output and 2,000 or 20,000 samples:
-
-* ``r_hat`` is within 1 % of the exact MAP (Chebyshev) bound in every case (-0.9 % ... -0.02 %
-  from the true ``r``, where Chebyshev gives -0.6 % ... -0.02 %); least squares' largest residual
-  overestimates ``r`` by 1-15 %.
-* ``theta`` at the vertex: 0.006-1.0 % relative error (Chebyshev: 0.005-0.6 %, least squares:
-  0.1-7 %). Eq. 23's midpoint: 1-14 %.
-* Speed: about 3e4 samples/s for ARX(2,2) through :meth:`update_many` on a shared 2-core machine,
-  3e3 samples/s one sample at a time through :meth:`update` (Python-bound; a small LP each time
-  the top vertex is violated). Most of the batch time is the per-block NumPy work of the box
-  update and the reorientation, not the LPs (about 50 per 20,000 samples).
+``benchmarks/studies/arx_estimation.py`` measures it against the exact MAP (Chebyshev) and least
+squares (PRBS input, lightly damped poles 0.99 at 50 Hz, 1 kHz sampling; ARX(2,2), ARX(3,2) and
+ARX(4,4) with ``r`` = 1 % and 5 % of the peak output and 2,000 or 20,000 samples):
+``benchmarks/results/arx_estimation.md`` gives, per case, the errors of ``r_hat`` and of
+``theta`` (at the vertex and at eq. 23's midpoint) and the time, and the samples per second of
+:meth:`update_many` and of :meth:`update`. One sample at a time, :meth:`update` is Python-bound
+(a small LP each time the top vertex is violated); :meth:`update_many` works per block, where
+most of the time is the NumPy work of the box update and the reorientation, not the LPs.
 
 Data are normalized internally (inputs and outputs divided by their largest magnitude in the
 initialization data), so ``V``, ``l`` and ``u`` are in normalized units; :meth:`contains`

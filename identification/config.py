@@ -75,15 +75,13 @@ class IdentificationConfig:
         PRBS level C_P (V). 2 V, twice the paper's 1 V. Under a two-level input a
         rate-independent nonlinearity is affine at any level (Bai 2004), so the level is bounded
         only by the stroke: the white PRBS rings the first bending mode (a +-30 V PRBS would
-        drive a PL140 to ~11x its rated deflection), and at 2 V its peak stays within 0.19-0.83
-        of the rated deflection on every catalogue bender (PL112 0.19, PL140 0.68, PL127 0.83;
-        seeds 0-4), against 0.10-0.42 at 1 V. It sets the signal-to-noise ratio of steps b and
-        b' (the linear part alone), and above the rich record's band (about 100 Hz) of step
-        e'. Measured with the earlier defaults (3 x 32 network, decaying-multisine rich
-        record; ``benchmarks/studies/identification_precision.py``, worst closed-loop ratio of
-        ``mpc`` to the oracle over identification seeds 0-4, 1 V -> 2 V): 100 Hz sine PL140 2.96 ->
-        1.95, PL122 1.69 -> 1.42, but PL127 1.31 -> 1.37; 50 Hz sine PL140 2.93 -> 2.77, PL122
-        1.33 -> 1.18, PL127 1.30 -> 1.22.
+        drive a PL140 to ~11x its rated deflection), and at 2 V its peak stays below the rated
+        deflection on every catalogue bender (``tests/test_pipeline.py`` holds it below 0.9 of
+        it). The level sets the signal-to-noise ratio of steps b and b' (the linear part
+        alone), and above the rich record's band (about 100 Hz) of step e', so it is about as
+        large as the stroke allows on every catalogue bender; its effect in closed loop is
+        measured by the ratio of ``mpc`` to the oracle of
+        ``benchmarks/studies/identification_precision.py``.
     prbs_clock : int
         PRBS clock period (samples). One sample: the PRBS is white up to the Nyquist frequency
         at any dt, the band the ARX model at that dt is fitted over.
@@ -108,15 +106,10 @@ class IdentificationConfig:
         paper's, one major
         loop: an NLS trained on it errs most on loops of half the stroke, where tracking
         references live), ``"multisine"``, ... Step e' estimates the linear part from the PRBS
-        and this record together, and the +-2 V PRBS alone leaves it uncertain by a few 1e-4
-        between 50 and 100 Hz, which the MPC pays at those frequencies. Measured (3 x 4
-        network, 100 iterations of step e') on identification seeds 0-4 (worst ratio of the
-        precision benchmark's ``mpc`` to the oracle at 10 / 50 / 100 Hz, triangle, multisine),
-        decaying multisine -> RAND: PL140
-        1.20 / 1.77 / 1.66 / 1.35 / 1.12 -> 1.16 / 1.43 / 1.30 / 1.37 / 1.16, PL127 1.04 /
-        1.08 / 1.05 / 1.03 / 1.05 -> 1.02 / 1.03 / 1.08 / 1.02 / 1.05, PL122 1.04 / 1.08 / 1.14
-        / 1.04 / 1.04 -> 1.03 / 1.03 / 1.13 / 1.03 / 1.05; identification 8-11 s against 6-8 s.
-        (A 16000-sample PRBS instead: PL140 1.16 / 1.64 / 1.45 / 1.34 / 1.11.)
+        and this record together: the small +-2 V PRBS alone leaves it uncertain between 50 and
+        100 Hz, which the MPC pays at those frequencies, and RAND's large-signal power up to
+        about 100 Hz pins it there (the closed-loop ratios of
+        ``benchmarks/results/identification_precision.md`` run on it).
     rich_amplitude : float
         Its amplitude (V).
     rich_params : dict or None
@@ -133,26 +126,17 @@ class IdentificationConfig:
     hidden : tuple of int
         Hidden layer widths of the NLS network (three tanh layers in the paper). Default
         ``(2, 2, 2)``: the network's MLP learns only the residual of an affine map of the memory
-        features (:mod:`identification.nls.network`), and a wider one fits the sensor noise. Its
-        free-run fits stay at the noise floor (PL140 validation 99.94-99.95 % at 3 x 2 and at
-        3 x 32), but its errors of 1e-4 of the stroke differ from seed to seed and the MPC pays
-        for them. On the PL140, identification seeds 0-4, the worst ratio of the precision
-        benchmark's ``mpc`` to the oracle at 10 / 50 / 100 Hz, triangle, multisine, with the
-        decaying-multisine rich record and 100 iterations of step e': 3 x 32 with 8 Bouc-Wen
-        operators 1.87 / 2.77 / 1.95 / 2.19 / 1.95; 3 x 8 with 8, 1.87 / 1.79 / 1.58 / 2.12 /
-        1.63; 3 x 4 with 8, 1.25 / 2.23 / 2.10 / 1.55 / 1.22; 3 x 4 with 16, 1.03 / 1.80 / 1.68
-        / 1.17 / 1.11, in half the time (7 s against 14 s). With the other defaults (RAND rich
-        record, 300 iterations), seeds 0-9: 3 x 4, PL140 1.07 / 1.24 / 1.24 / 1.09 / 1.23 and
-        PL127 seeds 5-9 1.30 / 1.52 / 1.90 / 1.15 / 1.26 (one seed's network errs by 1e-4 of the
-        stroke, invisible in the fit); 3 x 2, PL140 1.10 / 1.23 / 1.21 / 1.08 / 1.12, PL127
-        1.13 / 1.21 / 1.06 / 1.09 / 1.18, PL122 1.09 / 1.14 / 1.11 / 1.10 / 1.09.
-        ``benchmarks.studies.identification_precision`` keeps the comparison with 3 x 32.
+        features (:mod:`identification.nls.network`), and a wider one fits the sensor noise:
+        its free-run fit stays at the noise floor as the narrow one's does, but its errors of
+        about 1e-4 of the stroke, invisible in the fit, differ from seed to seed, and the MPC,
+        which trusts its model, pays for them. ``benchmarks/results/identification_precision.md``
+        compares it in closed loop with a 3 x 32 network and 8 Bouc-Wen operators.
     n_bouc_wen : int
         Number of Bouc-Wen operator features (``features="bouc-wen"``), their saturation levels
         spaced geometrically (:func:`identification.features.default_bouc_wen_levels`).
-        16 rather than 8: a piezo loop's saturation level falls between two of 8 operators (a
-        ratio of 1.55 apart) and the affine map misses it; with 16 (1.22 apart) the worst
-        triangle ratio above goes 1.55 -> 1.17 and 10 Hz 1.25 -> 1.03 (3 x 4 network).
+        16 rather than 8: the levels span a factor of 20, so 8 operators are 20^(1/7) = 1.53
+        apart and a piezo loop's saturation level falls between two of them, where the affine
+        map misses it; 16 are 20^(1/15) = 1.22 apart.
     max_epochs : int
         Training epochs at most (early stopping on a validation split).
     nls_refinement : str
@@ -162,17 +146,12 @@ class IdentificationConfig:
         agrees (:func:`identification.steps.refine_nonlinearity`); ``"none"`` keeps step e's
         model (the paper's procedure).
     nls_refinement_iterations : int
-        L-BFGS iterations at most of each of step e''s two stages. 300: the stages then end
-        converged or nearly (260-300 iterations on the PL140), and the estimate is the
-        optimum of the output-error cost rather than wherever the cap stopped the search, which
-        moved with the tiniest change of the start. On the PL140, identification seeds 0-9, the
-        worst ratio of the precision benchmark's ``mpc`` to the oracle at 1 / 10 / 50 / 100 Hz,
-        triangle, multisine went 1.07 / 2.07 / 1.65 / 1.53 / 1.79 / 1.48 at 100 iterations
-        (both stages capped on every seed) -> 1.02 / 1.07 / 1.24 / 1.24 / 1.09 / 1.23 at 300;
-        step e' takes 7-8 s of the 13-16 s an identification takes (one thread each, two at a
-        time on a 2-core AMD EPYC). With the earlier 3 x 32 network more iterations did not
-        pay (150 -> 100 moved the worst errors less than the seeds' spread): its own variance
-        dominated.
+        L-BFGS iterations at most of each of step e''s two stages. 300: enough for the stages
+        to end converged or nearly on the PL140, so that the estimate is the optimum of the
+        output-error cost rather than wherever the cap stopped the search, which moves with the
+        tiniest change of the start. The identification report says of each stage whether it
+        converged or stopped at the cap; ``benchmarks/results/identification_accuracy.md``
+        gives step e''s share of the identification's time.
     play_radii : str
         With play features selected: ``"learned"`` (default) starts step e' with a stage that
         learns the play radii together with the network on the free-run output error (at most

@@ -140,8 +140,8 @@ def refine_output_error(
         f, b = split(theta)
         return _jacobian(f, b, z, _simulate(f, b, z)) / scale
 
-    # One BLAS thread: the solver's SVDs are of tall, thin (T, 2n) matrices, where threads
-    # only cost (10x slower with two threads on a busy two-core machine, measured).
+    # One BLAS thread: the solver's SVDs are of tall, thin (T, 2n) matrices, too small to
+    # share among threads, which then only wait for each other (and for a busy core).
     with threadpoolctl.threadpool_limits(1):
         solution = scipy.optimize.least_squares(
             residual,

@@ -110,8 +110,8 @@ class LinearRefinement:
         smallest wins).
     unrefined_output_error_rms : float or None
         Free-run RMS error (um) of the step b estimate on the whole PRBS record, for comparison
-        with ``fit.output_error_rms``; None when that estimate is unstable (it has no free run:
-        seen on the PL140 with identification seed 9, where step b' then gives a stable model).
+        with ``fit.output_error_rms``; None when that estimate is unstable (it has no free run;
+        step b' refines every candidate order, and reaches a stable model from the others).
     """
 
     model: ARXModel
@@ -473,12 +473,12 @@ def refine_and_choose(
 
     Step e scores every feature set with its play radii still on the grid, and step e' learns
     them (and a rate constant): a play model can lose step e and win after step e', as on the
-    bench plant, whose rate-dependent plays step e scored a few tenths of a point below
-    Bouc-Wen before step e' took them from 92 to 99.9 % fit. So, with learned radii, step e'
-    also refines step e's play network when step e chose another set, and keeps whichever
-    reaches the lower free-run RMS error on the selection record (held out from the training
-    of both). Only play gains parameters in step e' that step e does not fit; every other set
-    is judged fairly by step e.
+    bench plant, whose rate-dependent plays the grid's radii without a rate draw badly
+    (``benchmarks/results/rate_aware_identification.md`` gives the features chosen and the
+    validation fit per seed). So, with learned radii, step e' also refines step e's play
+    network when step e chose another set, and keeps whichever reaches the lower free-run RMS
+    error on the selection record (held out from the training of both). Only play gains
+    parameters in step e' that step e does not fit; every other set is judged fairly by step e.
 
     The rival is not refined when step e's choice, refined, already sits at the sensor's noise
     floor: its held-out mean squared error exceeds the noise's, sigma^2 = (bound^2)/3 for

@@ -19,7 +19,7 @@ import pytest
 
 import benchmarks.figures as figures
 from benchmarks.figures import draw_figures
-from benchmarks.report import TIE, verdict, write_benchmark
+from benchmarks.report import TIE, max_error_table, tracking_tables, verdict, write_benchmark
 from benchmarks.rows import row_color, row_colors
 from benchmarks.runner import BenchmarkConfig, BenchmarkResult
 
@@ -361,6 +361,18 @@ def test_a_saturated_winner_is_drive_limited():
     result = _result(("mpc",), ("sine-100Hz",), ("nominal",))
     result.episodes[0]["saturated_fraction"] = 0.3
     assert "drive-limited: 30 % of the steps saturated" in verdict(result, META)[0]
+
+
+def test_the_max_error_table_is_the_nominal_plants_of_the_tracking_tables():
+    result = _result(("pid", "mpc"), ("sine-10Hz", "steps"), ("nominal", "stiffness+20%"))
+    table = max_error_table(result, "nominal")
+    assert table.startswith("### Nominal PL140: max |error| (um)\n")
+    assert table in tracking_tables(result)
+    assert "RMSE" not in table
+    cell = next(e for e in result.episodes if e["plant"] == "nominal" and e["controller"] == "pid"
+                and e["reference"] == "steps")
+    assert f" {cell['max_error_um']:.1f} " in table.splitlines()[4]
+    assert max_error_table(result, "stiffness+20%") == ""
 
 
 def test_the_report_opens_with_the_headline_then_the_verdict_from_the_task(tmp_path):

@@ -10,7 +10,9 @@ import pytest
 
 import benchmarks.references as test_references
 import controllers as ctl
+from benchmarks.references import fade_in
 from benchmarks.tuning import KNOBS, TUNING_REFERENCES, ModelPlantEnv, choose, tuning_reference
+from piezo_env import signals
 
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "benchmark" / "model")
 
@@ -19,6 +21,20 @@ def test_tuning_references_are_not_test_references():
     assert not set(TUNING_REFERENCES) & set(test_references.REFERENCES)
     with pytest.raises(ValueError, match="a test reference: never tuned on"):
         tuning_reference("sine-10Hz", 10, dt=1e-3, seed=0)
+
+
+def test_the_tuning_multisine_fades_in_as_the_test_multisine():
+    """The random-phase tuning reference starts at rest through the same raised-cosine fade
+    (50 ms) as the test multisine, and is the bare multisine after it."""
+    name, dt, n, fade = "multisine-2-60Hz", 1e-3, 200, 50
+    rng = np.random.default_rng([3, len(name), sum(map(ord, name))])
+    raw = signals.multisine(n, dt=dt, amplitude=400.0, f_min=2.0, f_max=60.0, n_tones=6, rng=rng)
+    got = tuning_reference(name, n, dt=dt, seed=3)
+    np.testing.assert_array_equal(got, fade_in(raw, dt))
+    k = np.arange(fade)
+    np.testing.assert_allclose(got[:fade], raw[:fade] * (1 - np.cos(np.pi * k / fade)) / 2)
+    assert got[0] == 0.0
+    np.testing.assert_array_equal(got[fade:], raw[fade:])
 
 
 def test_the_model_plant_follows_the_model_open_loop_and_scales_its_gain():

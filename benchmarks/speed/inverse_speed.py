@@ -2,8 +2,8 @@
 
 A closed-loop-like sequence: hidden-signal targets z_t from sines of 10, 20 and 50 Hz (24 V
 amplitude, 1 kHz sampling) through the shipped model's NLS (``docs/identify/model``), inverted
-sample by sample with the memory state carried, as a controller does. Old: the grid (65 points)
-plus Brent's method that ``NLS.solve_inverse`` used before; numpy: ``NLS.solve_inverse`` (one
+sample by sample with the memory state carried, as a controller does. Old: a grid (65 points)
+plus Brent's method, the derivative-free baseline; numpy: ``NLS.solve_inverse`` (one
 batched grid pass, then safeguarded Newton); compiled: the generated-C inverse the controllers
 use (:class:`controllers.native.compiled_inverse.CompiledInverse`: range ends, warm start, then
 Newton with the exact derivative, in one ctypes call). Each call is timed with
@@ -44,7 +44,7 @@ def _network_size(hidden: tuple[int, ...]) -> str:
 
 
 def old_solve_inverse(nls, target: float, state: np.ndarray, n_grid: int = 65):
-    """The previous method: grid over the range, Brent's method in each sign change.
+    """The baseline: a grid over the range, Brent's method in each sign change.
 
     Returns (u, state after u).
     """

@@ -9,7 +9,7 @@ Each controller is built for the nominal bender, from the identified model of th
 benchmark run (``docs/benchmark/model``), and runs unchanged on each vertex, as in
 ``piezo benchmark``; ``mpc-oracle`` is the same MPC on the vertex's own model (the achievable
 floor) and ``mpc, model's gain`` the MPC that predicts with the identified gain
-(``gain_tolerance=0``), the design before the gain was learned. Whole 2 s episodes, seed 0,
+(``gain_tolerance=0``), without learning the plant's gain. Whole 2 s episodes, seed 0,
 noise on, preview 20; RMSE in % of the full stroke, and for ``mpc-adaptive`` the RMSE over the
 second half and its settling time in parentheses (when the RMS error over 50 ms windows last
 came within twice the second half's: :func:`settling_ms`).

@@ -41,10 +41,11 @@ from piezo_parallel import run_tasks
 BENDERS = ("PL140", "PL127", "PL122")
 SEEDS = (0, 1, 2, 3, 4)
 WIDE_SETTINGS: dict[str, Any] = {"hidden": (32, 32, 32), "n_bouc_wen": 8}
-"""The NLS network of the earlier default: 3 x 32 tanh, 8 Bouc-Wen operators."""
+"""A wide NLS network: 3 x 32 tanh (the width of
+:class:`identification.nls.TrainingSettings`), 8 Bouc-Wen operators."""
 WIDE = "after, 3 x 32 network"
-"""The defaults with the earlier, wider network (:data:`WIDE_SETTINGS`): run on the
-PL140 only, to show what the network's size costs in closed loop."""
+"""The defaults with the wide network (:data:`WIDE_SETTINGS`): run on the PL140 only, to
+show what the network's size costs in closed loop."""
 VARIANTS: dict[str, dict[str, Any]] = {
     "before": {
         "refinement": "none",
@@ -58,7 +59,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     WIDE: WIDE_SETTINGS,
 }
 """Identification settings compared: the paper's steps a-f with its +-1 V PRBS and SINE
-excitation (and the earlier network, :data:`WIDE_SETTINGS`); the defaults without step e' (the
+excitation (and the wide network, :data:`WIDE_SETTINGS`); the defaults without step e' (the
 default PRBS level, the rich excitation, RAND, and step b', the output-error refinement of the
 linear part); the defaults (that, and step e': the output-error refinement of the whole
 model)."""
@@ -76,8 +77,8 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("after", "after", "mpc"),
 )
 """Column groups of the tables: (label, identification variant, mpc row). ``mpc-fixed`` is
-``mpc`` with the single-filter observer of the earlier default (``observer="fixed"``), the
-others the default observer bank; each is compared with the oracle of the same observer."""
+``mpc`` with a single steady-state Kalman filter as its observer (``observer="fixed"``),
+the others the default observer bank; each is compared with the oracle of the same observer."""
 CONTROLLER_OPTIONS = {"mpc-fixed": ("mpc", {"observer": "fixed"})}
 """Rows that are a registered controller with options: name -> (controller, options)."""
 REFERENCES = ("sine-1Hz", "sine-10Hz", "sine-50Hz", "sine-100Hz", "triangle-10Hz", "multisine")

@@ -30,24 +30,17 @@ radii with the network (:mod:`identification.nls.play_radii`), and the network a
 stages run at the learned radii.
 
 Every sample of every record weighs the same, as the likelihood under one sensor noise asks.
-Weighting the records differently was measured and left (with the earlier 3 x 32 network, the
-decaying-multisine rich record and 100 iterations per stage; PL140, identification seeds 0-4,
-worst ratio of the precision benchmark's ``mpc`` to the oracle at 10 / 50 / 100 Hz, triangle,
-multisine; equal weights 1.87 / 2.77 / 1.95 / 2.19 / 1.95): a per-record error variance
-concentrated out (``sum_r N_r log SSE_r``, which weighs the small PRBS up) 2.14 / 4.04 / 3.13 /
-1.96 / 2.46; the PRBS at 0.3 of the rich record 1.80 / 2.83 / 2.07 / 2.03 / 2.24, at 3 times
-1.87 / 2.89 / 1.83 / 2.28 / 2.01. The single seeds moved by up to 0.5 either way: what limits
-those ratios is the estimate's spread from seed to seed, not the weighting. That spread came
-from the wide network and from stopping the search at its cap; with the defaults of
-:class:`identification.config.IdentificationConfig` (3 x 2 network, RAND rich record, 300
-iterations) the same ratios are 1.06 / 1.21 / 1.02 / 1.08 / 1.06.
+Another weighting of the records (a per-record error variance concentrated out,
+``sum_r N_r log SSE_r``, which weighs the small PRBS up, or a fixed factor on one record) is the
+likelihood of a noise that differs from record to record, which records of one sensor do not
+have.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -313,6 +306,47 @@ def _with_equation_error_bound(
     return ARXModel(arx.a, arx.b, noise_bound=bound, dt=arx.dt, method=arx.method)
 
 
+def _radius_stage(
+    feature_map: PlayFeatures,
+    module: Any,
+    network_inputs: Callable[[Any], Iterable[Any]],
+    spread: list[Any],
+    targets: tuple[list, list, int],
+    linear: tuple[Any, Any],
+    max_iterations: int,
+    extra: Sequence[Any] = (),
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """L-BFGS on the play radii (from ``feature_map``'s), the parameters ``extra`` and the
+    network (``module``, updated in place), the linear part ``linear = (a, b)`` held, on the
+    mean squared free-run error over the records ``targets = (outputs, grids, count)``.
+
+    ``network_inputs(radii)`` yields each record's network input (one row per distinct
+    feature vector) at the radii (a torch tensor, V), and ``spread`` indexes each record's
+    samples into its rows. Returns the learned radii (V) and the stage's record (with
+    ``radii_before`` and ``radii_after``, V).
+    """
+    torch = load_torch()
+    outputs, grids, count = targets
+    a, b = linear
+    start = np.asarray(feature_map.radii)
+    coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
+
+    def objective() -> object:
+        radii = radii_from_coordinates(coordinates)
+        total = 0
+        records = zip(network_inputs(radii), spread, outputs, grids, strict=True)
+        for f, index, y, grid in records:
+            error = grid.free_run(module(f)[index], a, b) - y
+            total = total + (error * error).sum()
+        return total / count
+
+    parameters = [coordinates, *extra, *module.parameters()]
+    stage = _lbfgs(parameters, objective, max_iterations, torch)
+    with torch.no_grad():
+        learned = radii_from_coordinates(coordinates).numpy().copy()
+    return learned, {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
+
+
 def _learn_radii(
     feature_map: PlayFeatures,
     module: Any,
@@ -325,31 +359,21 @@ def _learn_radii(
     place), the linear part ``linear = (a, b)`` held; returns the feature map at the learned
     radii and the stage's record (with ``radii_before`` and ``radii_after``, V)."""
     torch = load_torch()
-    outputs, grids, count = targets
-    a, b = linear
     plays = PlayRadiusFunction()
+    rest = feature_map.initial_input
     # A held input leaves every play where it is, so the features (and the network's output)
     # are computed once per run of equal inputs and spread over the run.
     runs = [_runs(u) for u, _ in data]
     inputs = [torch.from_numpy(u[starts]) for (u, _), (starts, _) in zip(data, runs, strict=True)]
     spread = [torch.from_numpy(index) for _, index in runs]
-    start = np.asarray(feature_map.radii)
-    coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
-    rest = feature_map.initial_input
 
-    def objective() -> object:
-        radii = radii_from_coordinates(coordinates)
-        total = 0
-        for u, index, y, grid in zip(inputs, spread, outputs, grids, strict=True):
-            f = torch.cat([u[:, None], plays(radii, u, rest)], dim=1)
-            error = grid.free_run(module(f)[index], a, b) - y
-            total = total + (error * error).sum()
-        return total / count
+    def network_inputs(radii: Any) -> Iterator[Any]:
+        for u in inputs:
+            yield torch.cat([u[:, None], plays(radii, u, rest)], dim=1)
 
-    stage = _lbfgs([coordinates, *module.parameters()], objective, max_iterations, torch)
-    with torch.no_grad():
-        learned = radii_from_coordinates(coordinates).numpy().copy()
-    stage = {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
+    learned, stage = _radius_stage(
+        feature_map, module, network_inputs, spread, targets, linear, max_iterations
+    )
     return PlayFeatures(radii=tuple(learned), initial_input=rest), stage
 
 
@@ -373,8 +397,6 @@ def _learn_rate_radii(
     returns the rate-dependent feature map learned (rates over ``dt``, s) and the stage's
     record."""
     torch = load_torch()
-    outputs, grids, count = targets
-    a, b = linear
     dt = float(dt)
     plays = RatePlayFunction()
     rest = feature_map.initial_input
@@ -385,31 +407,30 @@ def _learn_rate_radii(
         u_moves, direction, rate, last = rate_play_runs(u, dt, rest)
         moves.append((u_moves, direction, rate))
         spread.append(torch.from_numpy(last + 1))
-    start = np.asarray(feature_map.radii)
-    coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
     rate_coordinate = torch.tensor(float(np.log(np.expm1(RATE_START))), requires_grad=True)
-    rest_row = torch.full((1, 1 + start.size), float(rest), dtype=torch.float64)
+    rest_row = torch.full((1, 1 + len(feature_map.radii)), float(rest), dtype=torch.float64)
 
     def rate_time() -> Any:
         return dt * torch.nn.functional.softplus(rate_coordinate)
 
-    def objective() -> object:
-        radii = radii_from_coordinates(coordinates)
+    def network_inputs(radii: Any) -> Iterator[Any]:
         c = rate_time()
-        total = 0
-        for move, index, y, grid in zip(moves, spread, outputs, grids, strict=True):
+        for move in moves:
             u = torch.from_numpy(move[0])
-            f = torch.cat([rest_row, torch.cat([u[:, None], plays(radii, c, move, rest)], 1)])
-            error = grid.free_run(module(f)[index], a, b) - y
-            total = total + (error * error).sum()
-        return total / count
+            yield torch.cat([rest_row, torch.cat([u[:, None], plays(radii, c, move, rest)], 1)])
 
-    parameters = [coordinates, rate_coordinate, *module.parameters()]
-    stage = _lbfgs(parameters, objective, max_iterations, torch)
+    learned, stage = _radius_stage(
+        feature_map,
+        module,
+        network_inputs,
+        spread,
+        targets,
+        linear,
+        max_iterations,
+        extra=(rate_coordinate,),
+    )
     with torch.no_grad():
-        learned = radii_from_coordinates(coordinates).numpy().copy()
         c = float(rate_time())
-    stage = {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
     if not any(_rate_moves_a_play(move, learned, c, rest) for move in moves):
         # No play edge was met right after a move: the objective does not depend on c, which
         # would keep its start. A rate-independent map is what the records support.

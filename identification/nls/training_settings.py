@@ -45,9 +45,10 @@ class TrainingSettings:
     hidden : tuple of int
         Hidden-layer widths, at least one (three tanh layers in the paper). The default 3 x 32
         learns a hysteresis that the features do not represent exactly (a Prandtl-Ishlinskii
-        loop with a cubic term, to 99.25 % fit); :func:`identification.identify` trains a 3 x 2
-        network instead, whose residual errors cost the MPC less
-        (:class:`~identification.config.IdentificationConfig` gives the measurements).
+        loop with a cubic term); :func:`identification.identify` trains a 3 x 2 network
+        instead, whose residual errors cost the MPC less (why:
+        :class:`~identification.config.IdentificationConfig`; the closed-loop comparison:
+        ``benchmarks/results/identification_precision.md``).
     u_range : (float, float), optional
         Input range, V, for the play radii and as the inverse's default search range.
         Default: ``(min(u), max(u))`` of the training record.
