@@ -65,6 +65,10 @@ ORDER_TIE_PERCENT = 0.25
 class IdentificationConfig:
     """Settings of :func:`identify` (validated at construction).
 
+    The comparisons that chose the defaults below are recorded in
+    ``benchmarks/results/design_measurements.md``; the defaults' own figures are regenerated in
+    ``benchmarks/results/identification_precision.md``.
+
     Attributes
     ----------
     seed : int

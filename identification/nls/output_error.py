@@ -33,7 +33,7 @@ Every sample of every record weighs the same, as the likelihood under one sensor
 Another weighting of the records (a per-record error variance concentrated out,
 ``sum_r N_r log SSE_r``, which weighs the small PRBS up, or a fixed factor on one record) is the
 likelihood of a noise that differs from record to record, which records of one sensor do not
-have.
+have; the weightings compared in closed loop are in ``benchmarks/results/design_measurements.md``.
 """
 
 from __future__ import annotations
