@@ -84,3 +84,50 @@ def test_a_default_moves_only_for_a_clear_gain(clean):
         assert tuning.scores[default] > 1.02 * best
     else:
         assert tuning.scores[default] <= 1.02 * best
+
+
+def test_the_lead_over_pid_ff_is_a_paired_interval_with_a_tie_rule(monkeypatch):
+    """mpc's lead over pid-ff at its best setting: the geometric mean of the per-seed ratios
+    with Student's 95 % interval on their logs (checked against scipy's t quantile), each
+    reference run with the pid-ff setting the sweep found best there, and 'tie' exactly when
+    the interval holds 1."""
+    import math
+
+    import scipy.stats
+
+    import benchmarks.runner as runner
+    from benchmarks.tuning import SWEEP_REFERENCES, lead
+
+    # pid-ff / mpc per seed: clearly above 1 on sine-10Hz, straddling 1 elsewhere.
+    ratios = {r: [1.02, 0.97, 1.05, 0.99, 1.01] for r in SWEEP_REFERENCES}
+    ratios["sine-10Hz"] = [1.2, 1.3, 1.25, 1.22, 1.28]
+    calls = []
+
+    def fake_run(config, model_dir):
+        (controller,), (reference,) = config.controllers, config.references
+        calls.append((controller, reference, dict(config.controller_options.get(controller, {}))))
+        base = 0.01
+        episodes = [
+            {
+                "seed_index": k,
+                "rmse_percent": base * (ratios[reference][k] if controller == "pid-ff" else 1.0),
+            }
+            for k in range(config.seeds)
+        ]
+        return runner.BenchmarkResult(config, episodes, {}, {}, {})
+
+    monkeypatch.setattr(runner, "run_benchmark", fake_run)
+    best = dict(zip(SWEEP_REFERENCES, (1.2, 1.4, 1.6, 2.0), strict=True))
+    out = lead("unused", best)
+    assert {(c, r): o for c, r, o in calls if c == "pid-ff"} == {
+        ("pid-ff", r): {"ms_max": best[r]} for r in SWEEP_REFERENCES
+    }
+    for reference, values in ratios.items():
+        d = np.log(values)
+        half = scipy.stats.t.ppf(0.975, 4) * d.std(ddof=1) / math.sqrt(5)
+        got = out[reference]
+        assert got["ratio"] == pytest.approx(math.exp(d.mean()), rel=1e-12)
+        assert got["low"] == pytest.approx(math.exp(d.mean() - half), rel=1e-12)
+        assert got["high"] == pytest.approx(math.exp(d.mean() + half), rel=1e-12)
+    assert out["sine-10Hz"]["verdict"] == "mpc leads"
+    assert {out[r]["verdict"] for r in SWEEP_REFERENCES if r != "sine-10Hz"} == {"tie"}
