@@ -81,6 +81,7 @@ from controllers.loop import (
     radii_matrix,
 )
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
+from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX, check_settings, measurement_std
@@ -449,7 +450,19 @@ class AdaptiveMPC(LinearMPC):
         everyone = np.arange(len(self._members))
         self._plausible_key = everyone.tobytes()
         self._allowed = self._allow(everyone)
+        self._selected()
         self._trace()
+
+    def _selected(self) -> None:
+        fused = self._fused
+        if fused is None:
+            return
+        fused.plausible[:] = 0.0
+        fused.plausible[np.frombuffer(self._plausible_key, dtype=np.intp)] = 1.0
+        fused.allowed[:] = self._allowed.any(axis=1)
+        scalars = fused.scalars
+        scalars[fused_step.S_NOISE_VARIANCE] = self._noise_variance
+        scalars[fused_step.S_SWITCH_CHI2], scalars[fused_step.S_NORMAL_95] = SWITCH_CHI2, NORMAL_95
 
     def _act(self, observation: np.ndarray) -> float:
         u = super()._act(observation)

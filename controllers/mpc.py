@@ -252,6 +252,8 @@ class LinearMPC(PredictiveController):
             "columns": self._vector.size,
             "memory": self.model.nonlinearity.initial_state().size,
             "shortcut": int(self.settings.shortcut),
+            "selects": int(self._selects),
+            "members": 0 if gain is None else gain.size,
         }
         if sizes["columns"] != m + sizes["samples"] + 1 or sizes["moves"] != self._lower.size:
             raise RuntimeError(f"{self.name}: the QP's sizes do not match the fused step's")
@@ -340,6 +342,9 @@ class LinearMPC(PredictiveController):
     def _select(self) -> None:
         """Choose the linear part to predict with (one here: see the adaptive MPC)."""
 
+    def _selected(self) -> None:
+        """Tell the compiled step what :meth:`_select` decided (the adaptive MPC)."""
+
     def _set_gain(self, g: float) -> None:
         """Predict with gain g from now on: carry the plan, the last input and the observer's
         state to the new input scale g z."""
@@ -387,14 +392,12 @@ class LinearMPC(PredictiveController):
         fused = self._fused
         scalars = fused.scalars
         self._fused_in()
-        if self._selects:
-            code = fused.begin()
-            if code == fused_step.DONE:
-                self._select()
-                self._fused_in()
-                code = fused.solve()
-        else:
-            code = fused.step()
+        code = fused.step()
+        if code == fused_step.NEED_SELECT:
+            self._select()
+            self._selected()
+            self._fused_in()
+            code = fused.solve()
         if code == fused_step.NON_FINITE:
             self.task.check_observation(observation)  # raises, naming the entry
             raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")

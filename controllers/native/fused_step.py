@@ -55,6 +55,7 @@ __all__ = [
     "ERROR",
     "NEED_INVERSE",
     "NEED_QP",
+    "NEED_SELECT",
     "NON_FINITE",
     "FusedStep",
     "compile_step",
@@ -62,7 +63,7 @@ __all__ = [
     "unavailable",
 ]
 
-DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR = range(5)
+DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT = range(6)
 """Return codes of the compiled step (module docstring)."""
 
 # Pointer table (one int64 array of addresses), integer dimensions and scalars: their indices.
@@ -71,28 +72,28 @@ DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR = range(5)
     P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
     P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
     P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
-    P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_COUNT,
-) = range(36)  # fmt: skip
+    P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_COUNT,
+) = range(38)  # fmt: skip
 (
     D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN, D_MEMBER,
-    D_SHORTCUT, D_COUNT,
-) = range(11)  # fmt: skip
+    D_SHORTCUT, D_SELECTS, D_COUNT,
+) = range(12)  # fmt: skip
 (
     S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS, S_RUNAWAY,
-    S_COUNT,
-) = range(10)  # fmt: skip
+    S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_COUNT,
+) = range(13)  # fmt: skip
 
 STEP = r"""
 enum { P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, P_GAIN_B,
        P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
        P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
        P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
-       P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS };
+       P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED };
 enum { D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN,
-       D_MEMBER, D_SHORTCUT };
+       D_MEMBER, D_SHORTCUT, D_SELECTS };
 enum { S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS,
-       S_RUNAWAY };
-enum { DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR };
+       S_RUNAWAY, S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95 };
+enum { DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT };
 
 #define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
 #define S(p) ((double *)(p)[P_SCALARS])
@@ -213,11 +214,66 @@ int fused_solve(void **p)
     return fused_finish(p);
 }
 
-/* The whole step of the fixed MPC: fused_begin, then fused_solve. */
+/* Python's max(a, b) and min(a, b): the first argument unless the second compares beyond it
+   (NaN stays where Python keeps it). */
+static double py_max(double a, double b) { return b > a ? b : a; }
+static double py_min(double a, double b) { return b < a ? b : a; }
+
+/* controllers.gain.GainEstimate.independent_fraction_of */
+static double independent_fraction(const double *st, int64_t k, int64_t index)
+{
+    double rho = st[3 * k + index] / py_max(st[2 * k + index], 1e-300);
+    rho = py_min(py_max(rho, 0.0), 1.0 - 1e-12);
+    return (1.0 - rho) / (1.0 + rho);
+}
+
+/* Whether controllers.adaptive.AdaptiveMPC._select does nothing this sample: the set the
+   likelihood-ratio test keeps is the last one (P_PLAUSIBLE, one flag per member), and the
+   member in use explains the data to within the sensor noise or no allowed member
+   (P_ALLOWED) beats it by the test. DONE then; else NEED_SELECT (Python selects). */
+static int select_unchanged(void **p)
+{
+    const double *sc = S(p), *st = F(p, P_GAIN_ST);
+    const int64_t k = ((const int64_t *)p[P_GAIN_DIMS])[0], member = D(p, D_MEMBER);
+    const double *misfit = st + 10 * k, count = st[11 * k + 1];
+    const double *plausible = F(p, P_PLAUSIBLE), *allowed = F(p, P_ALLOWED);
+    const double noise = sc[S_NOISE_VARIANCE], chi2 = sc[S_SWITCH_CHI2];
+    int64_t index = 0;  /* numpy's argmin: the first minimum, or the first NaN */
+    double best = misfit[0];
+    for (int64_t i = 1; i < k && best == best; ++i)
+        if (misfit[i] < best || misfit[i] != misfit[i]) { best = misfit[i]; index = i; }
+    double variance = py_max(best, noise);
+    double samples = count * independent_fraction(st, k, index);
+    for (int64_t i = 0; i < k; ++i) {
+        double kept = (misfit[i] - best) * samples / variance <= chi2;
+        if (kept != plausible[i]) return NEED_SELECT;
+    }
+    double in_use = count * independent_fraction(st, k, member);
+    double dof = py_max(in_use, 1.0), spread = 2.0 / (9.0 * dof);
+    double upper = dof * pow(1.0 - spread + sc[S_NORMAL_95] * sqrt(spread), 3.0);
+    if (misfit[member] * in_use / noise <= upper) return DONE;
+    int64_t choice = -1;
+    double lowest = 0.0;
+    for (int64_t i = 0; i < k; ++i) {  /* argmin over the allowed members, numpy's way */
+        if (allowed[i] == 0.0) continue;
+        if (choice < 0 || (lowest == lowest && (misfit[i] < lowest || misfit[i] != misfit[i]))) {
+            choice = i;
+            lowest = misfit[i];
+        }
+    }
+    if (choice < 0 || choice == member) return DONE;
+    variance = py_max(misfit[choice], noise);
+    samples = count * independent_fraction(st, k, choice);
+    return (misfit[member] - misfit[choice]) * samples / variance > chi2 ? NEED_SELECT : DONE;
+}
+
+/* The whole step: fused_begin, the adaptive MPC's selection test, then fused_solve. */
 int fused_step(void **p)
 {
     int code = fused_begin(p);
-    return code == DONE ? fused_solve(p) : code;
+    if (code != DONE) return code;
+    if (D(p, D_SELECTS) && select_unchanged(p) != DONE) return NEED_SELECT;
+    return fused_solve(p);
 }
 """
 
@@ -277,7 +333,8 @@ class FusedStep:
         Drive range (V) the inverse searches.
     sizes : dict
         ``observation``, ``states`` (n), ``estimate`` (n + disturbance states), ``moves``,
-        ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1).
+        ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1), ``selects`` (1 for the
+        adaptive MPC's selection test), ``members`` (its gain estimate's parts).
 
     Attributes
     ----------
@@ -285,7 +342,11 @@ class FusedStep:
         The buffer the caller writes each observation into (float64).
     scalars : array.array
         g, z_t-1, z applied, u (V), the first move g z, z_min, z_max, the inverse's status,
-        the bank's runaway sample (-1: none).
+        the bank's runaway sample (-1: none), and for the selection test the sensor noise's
+        variance (um^2), the chi2 threshold and the one-sided normal quantile.
+    plausible, allowed : numpy.ndarray
+        Per member, 1.0 where the adaptive MPC's last selection kept it plausible, and where
+        it has a filter stable on every plausible member.
     """
 
     def __init__(
@@ -311,6 +372,7 @@ class FusedStep:
             (D_COLUMNS, "columns"),
             (D_MEMORY, "memory"),
             (D_SHORTCUT, "shortcut"),
+            (D_SELECTS, "selects"),
         ):
             self.dims[index] = sizes[key]
         self.table = np.zeros(P_COUNT, dtype=np.uint64)
@@ -319,6 +381,11 @@ class FusedStep:
         self._point(P_PLAN, self.plan)
         self._point(P_MEMORY, self.memory)
         self._point(P_DIMS, self.dims)
+        # The adaptive MPC's member flags (one per member of its gain estimate; 0 or 1).
+        self.plausible = np.zeros(max(sizes["members"], 1))
+        self.allowed = np.zeros(max(sizes["members"], 1))
+        self._point(P_PLAUSIBLE, self.plausible)
+        self._point(P_ALLOWED, self.allowed)
         self.table[P_SCALARS] = self.scalars.buffer_info()[0]
         self.inverse_inputs = self._casadi(inverse, (P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W))
         self.inverse_inputs[2][0], self.inverse_inputs[3][0] = u_range
