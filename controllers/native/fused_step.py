@@ -20,14 +20,17 @@ products that the unfused path leaves to numpy's matrix products (BLAS): the pla
 ``-P^-1 q`` (a row of the plan per dot product) and the output ``C x`` by which a change of the
 learned gain rescales each filter's state (:func:`controllers.observer.rescale_states`). Here
 they are summed left to right, so a plan may differ from the unfused one in its last bits
-(about 1e-16 relative), and the voltages of a closed-loop episode by far less than 1e-12 V (the
-tests hold the two paths to that).
+(about 1e-16 relative), which a closed loop carries on at the level of 1e-12 equivalent V in z;
+the float32 volts the plant receives then round alike but where such a difference straddles a
+float32 rounding boundary (the tests hold the two paths to one float32 ulp and z to 1e-11).
 
 What leaves the compiled call for Python (the return codes): a plan outside the box (the QP
 solver runs, then ``fused_finish`` converts its first move), an inverse the compiled Newton
 iteration hands back (a non-monotone map, a non-finite target: the numpy inverse runs), a
-non-finite observation (the base class's check raises). The adaptive MPC calls ``fused_begin``
-(the gain estimate), selects its member in Python, then ``fused_solve``.
+non-finite observation (the base class's check raises, before any state changes), and for the
+adaptive MPC a sample on which its selection may change something (the set of plausible models
+or the model in use: Python then runs :meth:`controllers.adaptive.AdaptiveMPC._select` and
+calls ``fused_solve``); on the other samples the step tests that in C.
 
 The library is built once per machine and nonlinearity through
 :func:`controllers.native.codegen.compile_source` (cached, digest-verified, the
