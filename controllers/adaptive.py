@@ -80,7 +80,8 @@ from controllers.loop import (
     modulus_margins,
     radii_matrix,
 )
-from controllers.mpc import LinearMPC, MPCSettings
+from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
+from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX, check_settings, measurement_std
@@ -264,6 +265,7 @@ class AdaptiveMPC(LinearMPC):
     Settings = AdaptiveMPCSettings
     name = "mpc-adaptive"
     stats_type = AdaptiveStats
+    _selects = True
 
     def __init__(
         self,
@@ -372,7 +374,7 @@ class AdaptiveMPC(LinearMPC):
         phi, gamma = prediction_matrices(model.a, model.b, model.c, samples)
         check_well_posed(self._blocked(gamma), self.settings.rate_weight, 1.0, name=self.name)
         hessian, q_matrix = self._qp_matrices(phi, gamma)
-        unconstrained = -np.linalg.solve(hessian, q_matrix)
+        unconstrained = unconstrained_law(hessian, q_matrix)
         observer = make_observer(model, self.task, self.settings)
         return _Member(arx, model, phi, gamma, hessian, q_matrix, unconstrained, observer)
 
@@ -395,6 +397,8 @@ class AdaptiveMPC(LinearMPC):
         self._unconstrained, self.observer = member.unconstrained, member.observer
         if member.qp is not None:
             self._qp = member.qp
+        if getattr(self, "_fused", None) is not None:
+            self._bind_fused()
 
     @property
     def arx(self) -> ARXModel:
@@ -446,16 +450,37 @@ class AdaptiveMPC(LinearMPC):
         everyone = np.arange(len(self._members))
         self._plausible_key = everyone.tobytes()
         self._allowed = self._allow(everyone)
+        self._selected()
         self._trace()
+
+    def _selected(self) -> None:
+        fused = self._fused
+        if fused is None:
+            return
+        fused.plausible[:] = 0.0
+        fused.plausible[np.frombuffer(self._plausible_key, dtype=np.intp)] = 1.0
+        fused.allowed[:] = self._allowed.any(axis=1)
+        scalars = fused.scalars
+        scalars[fused_step.S_NOISE_VARIANCE] = self._noise_variance
+        scalars[fused_step.S_SWITCH_CHI2], scalars[fused_step.S_NORMAL_95] = SWITCH_CHI2, NORMAL_95
 
     def _act(self, observation: np.ndarray) -> float:
         u = super()._act(observation)
+        self._record(float(observation[0]))
+        return u
+
+    def _act_fused(self, observation: np.ndarray) -> float:
+        u = super()._act_fused(observation)
+        self._record(float(observation[0]))
+        return u
+
+    def _record(self, y: float) -> None:
+        """Keep the sample's applied z and measured y (um) for a swap, and trace."""
         slot = self._step % self.history
-        self._z[slot], self._y[slot] = self._z_applied, float(observation[0])
+        self._z[slot], self._y[slot] = self._z_applied, y
         self._step += 1
         if self._step % TRACE_EVERY == 0:
             self._trace()
-        return u
 
     def _select(self) -> None:
         """Narrow the banks to what the data allow, and swap to the best member when the tests

@@ -44,6 +44,7 @@ holding the first measurement) are the nonlinear MPC's too: :mod:`controllers.pr
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -51,6 +52,10 @@ import numpy as np
 
 from controllers.box_qp import BoxQP, box_qp, solver_version, within
 from controllers.gain import GainEstimate
+from controllers.native import fused_step
+from controllers.native.codegen import NativeBuild
+from controllers.native.compiled_inverse import STATUS_NAMES
+from controllers.observer import ObserverBank
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
 from controllers.settings import (
@@ -192,6 +197,7 @@ class LinearMPC(PredictiveController):
 
     Settings = MPCSettings
     name = "mpc"
+    _selects = False  # whether _select runs between the gain's update and its use
 
     def _prediction_samples(self, model: Any, settings: MPCSettings) -> int:
         if settings.prediction_horizon is None:
@@ -203,7 +209,7 @@ class LinearMPC(PredictiveController):
     def _set_up(self) -> None:
         settings = self.settings
         self._hessian, self._q_matrix = self._qp_matrices(self._phi, self._gamma)
-        self._unconstrained = -np.linalg.solve(self._hessian, self._q_matrix)
+        self._unconstrained = unconstrained_law(self._hessian, self._q_matrix)
         self._vector = np.zeros(self._q_matrix.shape[1])
         z_min, z_max = self.model.z_bounds
         self._lower = np.full(settings.horizon, z_min)
@@ -214,6 +220,58 @@ class LinearMPC(PredictiveController):
         if self._slew_step is not None:
             self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
             self._n_rows = 2 * settings.horizon - 1
+        self._fused, self._fused_build = self._fused_step()
+
+    def _fused_step(self) -> tuple[fused_step.FusedStep | None, NativeBuild]:
+        """The compiled step (:mod:`controllers.native.fused_step`) where this MPC's step fits
+        it, else None and the record of why the step runs in numpy and Python. Checked once
+        here, so that the step itself validates nothing but the observation."""
+        why = None
+        observer, gain = self.observer, self._gain
+        if self._slew_step is not None:
+            why = "a slew limit (its window is kept in Python)"
+        elif not isinstance(observer, ObserverBank) or observer._correct_native is None:
+            why = "the observer is not a bank run by the compiled kernels"
+        elif gain is not None and gain._update_native is None:
+            why = "the gain estimate is not run by the compiled kernels"
+        elif not hasattr(self.model.nonlinearity, "_inverse"):
+            why = f"the nonlinearity ({self.model.source}) has no compiled inverse"
+        if why is not None:
+            return None, fused_step.unavailable(why)
+        library, build = fused_step.compile_step(self.model.nonlinearity._inverse)
+        if library is None:
+            return None, build
+        inverse, reachable = self.model.nonlinearity._inverse.functions
+        m = observer.n + observer.n_disturbance
+        sizes = {
+            "observation": self.task.observation_size,
+            "states": observer.n,
+            "estimate": m,
+            "moves": self._unconstrained.shape[0],
+            "samples": self.prediction_samples,
+            "columns": self._vector.size,
+            "memory": self.model.nonlinearity.initial_state().size,
+            "shortcut": int(self.settings.shortcut),
+            "selects": int(self._selects),
+            "members": 0 if gain is None else gain.size,
+        }
+        if sizes["columns"] != m + sizes["samples"] + 1 or sizes["moves"] != self._lower.size:
+            raise RuntimeError(f"{self.name}: the QP's sizes do not match the fused step's")
+        fused = fused_step.FusedStep(
+            library, inverse, reachable, self.model.nonlinearity.u_range, sizes
+        )
+        return fused, build
+
+    def _bind_fused(self) -> None:
+        """Point the compiled step at the arrays of the model in use (observer bank, plan
+        matrix, gain estimate's member)."""
+        fused = self._fused
+        if fused is None:
+            return
+        fused.bind_gain(self._gain, self._member)
+        fused.bind_bank(self.observer, self._unconstrained, self._vector, self._lower, self._upper)
+        scalars = fused.scalars
+        scalars[fused_step.S_Z_MIN], scalars[fused_step.S_Z_MAX] = self.model.z_bounds
 
     def _setup_solver(self, hessian: np.ndarray | None = None) -> BoxQP:
         """The QP solver's workspace set up (and P factorised) afresh for ``hessian`` (default:
@@ -239,6 +297,7 @@ class LinearMPC(PredictiveController):
         self._z_applied = start.z  # the nonlinearity's output (equivalent V)
         self._u_prev = float(np.float32(start.u))
         self._restart_gain(start.x)
+        self._bind_fused()
 
     def _gain_estimate(self) -> GainEstimate | None:
         """The gain estimate of the model (None with ``gain_tolerance`` 0)."""
@@ -283,6 +342,9 @@ class LinearMPC(PredictiveController):
     def _select(self) -> None:
         """Choose the linear part to predict with (one here: see the adaptive MPC)."""
 
+    def _selected(self) -> None:
+        """Tell the compiled step what :meth:`_select` decided (the adaptive MPC)."""
+
     def _set_gain(self, g: float) -> None:
         """Predict with gain g from now on: carry the plan, the last input and the observer's
         state to the new input scale g z."""
@@ -296,11 +358,92 @@ class LinearMPC(PredictiveController):
         if self._slew_step is not None:
             self._qp.set_rate(g * self.z_rate)
 
+    def act(self, observation: Any) -> np.ndarray:
+        """The base class's step (:meth:`controllers.base.Controller.act`): one compiled call
+        where the step fits it (:mod:`controllers.native.fused_step`, ``describe()["native"]
+        ["mpc_step"]`` says whether), else numpy and Python."""
+        fused = self._fused
+        if fused is None:
+            return super().act(observation)
+        start = time.perf_counter()
+        if (
+            type(observation) is not np.ndarray
+            or observation.shape != fused.observation.shape
+            or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
+        ):
+            observation = self.task.check_observation(observation)  # raises, or converts
+        fused.observation[:] = observation  # the kernel checks that every entry is finite
+        u = self._act_fused(observation)
+        stats = self.stats
+        if not -self._u_max <= u <= self._u_max:  # as the base class
+            if u != u:
+                raise RuntimeError(f"{self.name} computed a NaN voltage")
+            u = self._u_max if u > 0 else -self._u_max
+            stats.saturated += 1
+        if stats.observer_fallback_step is None and fused.scalars[fused_step.S_RUNAWAY] >= 0:
+            stats.observer_fallback_step = len(stats.compute_s)
+        action = np.array([u], dtype=np.float32)
+        stats.compute_s.append(time.perf_counter() - start)
+        return action
+
+    def _act_fused(self, observation: np.ndarray) -> float:
+        """:meth:`_act` by the compiled step; Python runs what leaves it (the QP, the numpy
+        inverse)."""
+        fused = self._fused
+        scalars = fused.scalars
+        self._fused_in()
+        code = fused.step()
+        if code == fused_step.NEED_SELECT:
+            self._select()
+            self._selected()
+            self._fused_in()
+            code = fused.solve()
+        if code == fused_step.NON_FINITE:
+            self.task.check_observation(observation)  # raises, naming the entry
+            raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")
+        self._g, self._z_prev = scalars[fused_step.S_G], scalars[fused_step.S_Z_PREV]
+        stats = self.stats
+        if code == fused_step.NEED_QP:
+            scalars[fused_step.S_Z_MODEL] = self._solve_constrained(self._vector)
+            self._fused_in()
+            code = fused.finish()
+        elif code != fused_step.ERROR:
+            stats.status["unconstrained"] += 1
+            stats.iterations.append(0)
+            self._duals = None  # no bound is active: the optimal multipliers are zero
+        if code == fused_step.DONE:
+            stats.inverse[STATUS_NAMES[int(scalars[fused_step.S_INVERSE_STATUS])]] += 1
+            self._z_applied = scalars[fused_step.S_Z_APPLIED]
+            self._z_prev = scalars[fused_step.S_Z_PREV]
+            return scalars[fused_step.S_U]
+        if code == fused_step.NEED_INVERSE:
+            return self._convert(scalars[fused_step.S_Z_MODEL])
+        raise RuntimeError(f"{self.name}: the compiled step's generated inverse returned an error")
+
+    def _fused_in(self) -> None:
+        """The plan, the memory and the scalars Python may have replaced, into the compiled
+        step's buffers (the attributes then are those buffers)."""
+        fused = self._fused
+        if self._plan is not fused.plan:
+            fused.plan[:] = self._plan
+            self._plan = fused.plan
+        if self._memory is not fused.memory:
+            fused.memory[:] = self._memory
+            self._memory = fused.memory
+        scalars = fused.scalars
+        scalars[fused_step.S_G], scalars[fused_step.S_Z_PREV] = self._g, self._z_prev
+
     def _act(self, observation: np.ndarray) -> float:
         y = float(observation[0])
         self._update_gain(y)
         estimate = self.observer.correct(y)
-        z_model = self._solve(estimate, self.task.targets(observation, self.prediction_samples))
+        return self._convert(
+            self._solve(estimate, self.task.targets(observation, self.prediction_samples))
+        )
+
+    def _convert(self, z_model: float) -> float:
+        """The first move of the model's input g z (equivalent V) to volts, and the time
+        updates with the z the nonlinearity produced."""
         z_target = z_model / self._g
         if self._slew_step is not None:
             return self._act_slewing(z_target)
@@ -365,6 +508,11 @@ class LinearMPC(PredictiveController):
                 self._plan = plan
                 self._duals = None  # no bound is active: the optimal multipliers are zero
                 return float(plan[0])
+        return self._solve_constrained(stacked)
+
+    def _solve_constrained(self, stacked: np.ndarray) -> float:
+        """The QP's first move g z_t (equivalent V) for the vector ``stacked`` and the bounds
+        set by :meth:`_solve`, warm-started from the shifted plan."""
         shifted = np.clip(np.r_[self._plan[1:], self._plan[-1]], self._lower, self._upper)
         duals = np.zeros(self._n_rows) if self._duals is None else self._duals
         solution = self._qp.solve(
@@ -393,6 +541,11 @@ class LinearMPC(PredictiveController):
             return True
         return bool(np.all(np.abs(np.diff(plan)) <= self._g * self.z_rate))
 
+    def native_code(self) -> dict[str, dict[str, Any]]:
+        """The base class's records and ``mpc_step``: whether the compiled step runs
+        (:mod:`controllers.native.fused_step`), and why not."""
+        return {**super().native_code(), "mpc_step": self._fused_build.to_dict()}
+
     def describe(self) -> dict:
         """Settings, model source and observer speed (JSON-safe)."""
         slew = {}
@@ -411,6 +564,15 @@ class LinearMPC(PredictiveController):
             "qp_solver": solver_version(self.settings.qp_solver),
             "native": self.native_code(),
         }
+
+
+_FLOAT32, _FLOAT64 = np.dtype(np.float32), np.dtype(np.float64)
+
+
+def unconstrained_law(hessian: np.ndarray, q_matrix: np.ndarray) -> np.ndarray:
+    """``-P^-1 G`` (C-contiguous: the compiled step reads it row by row): the unconstrained
+    plan is this times the QP's stacked vector."""
+    return np.ascontiguousarray(-np.linalg.solve(hessian, q_matrix))
 
 
 LONGEST_PERIOD_S = 0.1

@@ -278,6 +278,7 @@ def test_constrained_steps_on_the_bender_equal_bounded_least_squares(env, solver
     binds): every step the QP solver solves against scipy's active-set solver, on its own
     QP."""
     mpc = controllers.make("mpc", MODEL_DIR, env, qp_solver=solver)
+    mpc._fused = None  # the step in Python, whose _solve this test records
     reference = np.r_[np.full(60, -1300.0), np.full(100, 1300.0)]  # about 1030 um at 30 V
     obs, _ = env.reset(seed=0, options={"reference": reference})
     mpc.reset(obs)

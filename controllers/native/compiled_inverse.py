@@ -289,6 +289,10 @@ class CompiledInverse:
         self.backend = "numpy (compilation not requested)"
         self.native: list[NativeBuild] = []
         """What each native build did (:class:`controllers.native.codegen.NativeBuild`)."""
+        self.functions: tuple[Any, Any] | None = None
+        """The casadi Functions ``(nls_inverse, nls_reachable)`` when both are compiled (the
+        MPC's fused step, :mod:`controllers.native.fused_step`, compiles them again with its
+        own code); None otherwise."""
         if compiled:
             function = inverse_function(nls, max_iter=max_iter, xtol=xtol)
             self._function, build = compile_function(
@@ -310,6 +314,7 @@ class CompiledInverse:
                 o.reshape(-1) for o in outputs
             )
         if self._reachable is not None:
+            self.functions = (function, ends)
             self._reachable.inputs[1][0], self._reachable.inputs[2][0] = self.u_range
             self._ends = [o.reshape(-1) for o in self._reachable.outputs]
 

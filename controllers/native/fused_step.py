@@ -1,0 +1,482 @@
+"""The linear MPC's step in one compiled call: estimators, unconstrained plan, inverse.
+
+A step of :class:`controllers.mpc.LinearMPC` without an active constraint (the unconstrained
+optimum lies inside the box, :func:`controllers.box_qp.within`) is a fixed sequence of small
+operations: the gain estimate's update, the observer bank's measurement update, the stacked
+vector ``[x; d; r; z_t-1]``, the reachable range from the nonlinearity's memory, the plan
+``-P^-1 q``, the box test, the nonlinearity's inverse, and the estimators' time updates. Each
+is cheap; called one by one from Python, the calls' overhead is most of the step. Here they
+run in one C function, :func:`library`'s ``fused_step``, on the controller's own arrays (the
+estimators', the plan's, the bounds' and the memory's, updated in place).
+
+The translation unit is the generated C of the NLS inverse and its reachable range
+(:func:`controllers.native.compiled_inverse.inverse_function` and
+:func:`~controllers.native.compiled_inverse.reachable_function`, the same casadi Functions
+:class:`~controllers.native.compiled_inverse.CompiledInverse` compiles), the estimator kernels
+(:data:`controllers.native.step_kernels.SOURCE`) and the step below, compiled with the same
+flags (:data:`controllers.native.step_kernels.FLAGS`: no fused multiply-adds). Every operation
+is therefore the IEEE operation of the unfused native path on the same operands, except two dot
+products that the unfused path leaves to numpy's matrix products (BLAS): the plan
+``-P^-1 q`` (a row of the plan per dot product) and the output ``C x`` by which a change of the
+learned gain rescales each filter's state (:func:`controllers.observer.rescale_states`). Here
+they are summed left to right, so a plan may differ from the unfused one in its last bits
+(about 1e-16 relative), which a closed loop carries on at the level of 1e-12 equivalent V in z;
+the float32 volts the plant receives then round alike but where such a difference straddles a
+float32 rounding boundary (the tests hold the two paths to one float32 ulp and z to 1e-11).
+
+What leaves the compiled call for Python (the return codes): a plan outside the box (the QP
+solver runs, then ``fused_finish`` converts its first move), an inverse the compiled Newton
+iteration hands back (a non-monotone map, a non-finite target: the numpy inverse runs), a
+non-finite observation (the base class's check raises, before any state changes), and for the
+adaptive MPC a sample on which its selection may change something (the set of plausible models
+or the model in use: Python then runs :meth:`controllers.adaptive.AdaptiveMPC._select` and
+calls ``fused_solve``); on the other samples the step tests that in C.
+
+The library is built once per machine and nonlinearity through
+:func:`controllers.native.codegen.compile_source` (cached, digest-verified, the
+``PIEZO_NATIVE`` policy applies); without it the MPC runs its step in numpy and Python, and its
+``describe()["native"]["mpc_step"]`` record says why.
+"""
+
+from __future__ import annotations
+
+import array
+import ctypes
+import tempfile
+import weakref
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controllers.native.codegen import NUMPY, NativeBuild, compile_source
+from controllers.native.step_kernels import FLAGS
+from controllers.native.step_kernels import SOURCE as KERNELS
+
+__all__ = [
+    "DONE",
+    "ERROR",
+    "NEED_INVERSE",
+    "NEED_QP",
+    "NEED_SELECT",
+    "NON_FINITE",
+    "FusedStep",
+    "compile_step",
+    "fused_source",
+    "unavailable",
+]
+
+DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT = range(6)
+"""Return codes of the compiled step (module docstring)."""
+
+# Pointer table (one int64 array of addresses), integer dimensions and scalars: their indices.
+(
+    P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, P_GAIN_B,
+    P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
+    P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
+    P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
+    P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_COUNT,
+) = range(38)  # fmt: skip
+(
+    D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN, D_MEMBER,
+    D_SHORTCUT, D_SELECTS, D_COUNT,
+) = range(12)  # fmt: skip
+(
+    S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS, S_RUNAWAY,
+    S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_COUNT,
+) = range(13)  # fmt: skip
+
+STEP = r"""
+enum { P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, P_GAIN_B,
+       P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
+       P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
+       P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
+       P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED };
+enum { D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN,
+       D_MEMBER, D_SHORTCUT, D_SELECTS };
+enum { S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS,
+       S_RUNAWAY, S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95 };
+enum { DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT };
+
+#define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
+#define S(p) ((double *)(p)[P_SCALARS])
+#define F(p, i) ((double *)(p)[i])
+
+/* The observation's check (non-finite entries) and the gain estimate's update. */
+int fused_begin(void **p)
+{
+    const double *obs = F(p, P_OBS);
+    for (int64_t i = 0; i < D(p, D_OBS); ++i)
+        if (!isfinite(obs[i])) return NON_FINITE;
+    if (D(p, D_HAS_GAIN))
+        gain_update(p[P_GAIN_DIMS], p[P_GAIN_PAR], p[P_GAIN_C], p[P_GAIN_X], p[P_GAIN_ST], obs[0]);
+    return DONE;
+}
+
+/* controllers.mpc.LinearMPC._applied: time updates with the z the nonlinearity produced. */
+static void applied(void **p, double z)
+{
+    double *sc = S(p);
+    if (D(p, D_HAS_GAIN)) gain_advance(p[P_GAIN_DIMS], p[P_GAIN_A], p[P_GAIN_B], p[P_GAIN_X], z);
+    sc[S_Z_APPLIED] = z;
+    sc[S_Z_PREV] = sc[S_G] * z;
+    bank_predict(p[P_BANK_DIMS], p[P_BANK_A], p[P_BANK_B], p[P_BANK_ST], sc[S_Z_PREV]);
+}
+
+/* The first move z_model (g z, in S_Z_MODEL) to volts: the compiled inverse from the memory,
+   then the time updates (LinearMPC._act after _solve). */
+int fused_finish(void **p)
+{
+    double *sc = S(p), *memory = F(p, P_MEMORY);
+    const int64_t n_memory = D(p, D_MEMORY);
+    double z_target = sc[S_Z_MODEL] / sc[S_G];
+    if (!isfinite(z_target)) return NEED_INVERSE;
+    double **arg = (double **)p[P_INV_ARG], **res = (double **)p[P_INV_RES];
+    arg[0][0] = z_target;
+    for (int64_t i = 0; i < n_memory; ++i) arg[1][i] = memory[i];
+    arg[4][0] = memory[0];
+    if (nls_inverse((const casadi_real **)arg, res, p[P_INV_IW], p[P_INV_W], 0)) return ERROR;
+    double status = res[2][0];
+    if (status == 2.0) return NEED_INVERSE;
+    sc[S_INVERSE_STATUS] = status;
+    sc[S_U] = (double)(float)res[0][0];  /* the float32 volts the plant receives */
+    for (int64_t i = 0; i < n_memory; ++i) memory[i] = res[3][i];
+    applied(p, res[1][0]);
+    return DONE;
+}
+
+/* controllers.mpc.LinearMPC._set_gain (without a slew limit) with g = the gain estimate's
+   value of the member in use, the bank's measurement update, the QP's vector and bounds, the
+   unconstrained plan and its box test; inside the box, fused_finish. */
+int fused_solve(void **p)
+{
+    double *sc = S(p);
+    const int64_t n = D(p, D_STATES), m = D(p, D_ESTIMATE), moves = D(p, D_MOVES);
+    const int64_t *bank_dims = (const int64_t *)p[P_BANK_DIMS];
+    const int64_t filters = bank_dims[0];
+    double *est = F(p, P_BANK_ST), *plan = F(p, P_PLAN);
+    const double *obs = F(p, P_OBS), *c = F(p, P_BANK_C);
+    if (D(p, D_HAS_GAIN)) {
+        const int64_t k = ((const int64_t *)p[P_GAIN_DIMS])[0];
+        double g = F(p, P_GAIN_ST)[9 * k + D(p, D_MEMBER)];
+        if (g != sc[S_G]) {
+            double ratio = g / sc[S_G];
+            for (int64_t f = 0; f < filters; ++f) {  /* rescale_states */
+                double *e = est + f * m, output = 0.0;
+                for (int64_t j = 0; j < n; ++j) output += e[j] * c[j];
+                for (int64_t j = 0; j < n; ++j) e[j] *= ratio;
+                e[n] -= (ratio - 1.0) * output;
+            }
+            for (int64_t i = 0; i < moves; ++i) plan[i] = plan[i] * ratio;
+            sc[S_Z_PREV] *= ratio;
+            sc[S_G] = g;
+        }
+    }
+    const double y = obs[0];
+    bank_correct(p[P_BANK_DIMS], p[P_BANK_PAR], p[P_BANK_C], p[P_BANK_GAINS], p[P_BANK_HLV],
+                 p[P_BANK_HIV], p[P_BANK_ST], p[P_BANK_COUNTERS], p[P_BANK_COUNTS], y);
+    const int64_t *counters = (const int64_t *)p[P_BANK_COUNTERS];
+    sc[S_RUNAWAY] = (double)counters[3];
+    /* stacked = [x; d; r_t+1 .. r_t+Np; z_t-1] (ControlTask.targets: the last preview holds) */
+    double *stacked = F(p, P_STACKED);
+    const double *e = est + counters[0] * m;
+    for (int64_t j = 0; j < m; ++j) stacked[j] = e[j];
+    const int64_t samples = D(p, D_SAMPLES), seen_max = D(p, D_OBS) - 2;
+    const int64_t seen = samples < seen_max ? samples : seen_max;
+    for (int64_t j = 0; j < seen; ++j) stacked[m + j] = obs[2 + j];
+    for (int64_t j = seen; j < samples; ++j) stacked[m + j] = obs[D(p, D_OBS) - 1];
+    stacked[m + samples] = sc[S_Z_PREV];
+    /* the first move's bounds: the reachable range from the memory, sorted; the later moves'
+       the range over the drive range; all times g */
+    double **arg = (double **)p[P_REACH_ARG], **res = (double **)p[P_REACH_RES];
+    const double *memory = F(p, P_MEMORY);
+    for (int64_t i = 0; i < D(p, D_MEMORY); ++i) arg[0][i] = memory[i];
+    if (nls_reachable((const casadi_real **)arg, res, p[P_REACH_IW], p[P_REACH_W], 0))
+        return ERROR;
+    double low = res[0][0], high = res[1][0];
+    if (!(low <= high)) { double t = low; low = high; high = t; }
+    double *lower = F(p, P_LOWER), *upper = F(p, P_UPPER);
+    const double g = sc[S_G];
+    for (int64_t i = 1; i < moves; ++i) { lower[i] = g * sc[S_Z_MIN]; upper[i] = g * sc[S_Z_MAX]; }
+    lower[0] = g * low;
+    upper[0] = g * high;
+    if (!D(p, D_SHORTCUT)) return NEED_QP;
+    /* the unconstrained optimum -P^-1 q, summed left to right, tested against the box */
+    const double *u = F(p, P_UNCONSTRAINED);
+    const int64_t columns = D(p, D_COLUMNS);
+    int inside = 1;
+    for (int64_t i = 0; i < moves; ++i) {
+        const double *row = u + i * columns;
+        double sum = 0.0;
+        for (int64_t j = 0; j < columns; ++j) sum += row[j] * stacked[j];
+        plan[i] = sum;
+        if (!(sum >= lower[i] && sum <= upper[i])) inside = 0;
+    }
+    if (!inside) return NEED_QP;
+    sc[S_Z_MODEL] = plan[0];
+    return fused_finish(p);
+}
+
+/* Python's max(a, b) and min(a, b): the first argument unless the second compares beyond it
+   (NaN stays where Python keeps it). */
+static double py_max(double a, double b) { return b > a ? b : a; }
+static double py_min(double a, double b) { return b < a ? b : a; }
+
+/* controllers.gain.GainEstimate.independent_fraction_of */
+static double independent_fraction(const double *st, int64_t k, int64_t index)
+{
+    double rho = st[3 * k + index] / py_max(st[2 * k + index], 1e-300);
+    rho = py_min(py_max(rho, 0.0), 1.0 - 1e-12);
+    return (1.0 - rho) / (1.0 + rho);
+}
+
+/* Whether controllers.adaptive.AdaptiveMPC._select does nothing this sample: the set the
+   likelihood-ratio test keeps is the last one (P_PLAUSIBLE, one flag per member), and the
+   member in use explains the data to within the sensor noise or no allowed member
+   (P_ALLOWED) beats it by the test. DONE then; else NEED_SELECT (Python selects). */
+static int select_unchanged(void **p)
+{
+    const double *sc = S(p), *st = F(p, P_GAIN_ST);
+    const int64_t k = ((const int64_t *)p[P_GAIN_DIMS])[0], member = D(p, D_MEMBER);
+    const double *misfit = st + 10 * k, count = st[11 * k + 1];
+    const double *plausible = F(p, P_PLAUSIBLE), *allowed = F(p, P_ALLOWED);
+    const double noise = sc[S_NOISE_VARIANCE], chi2 = sc[S_SWITCH_CHI2];
+    int64_t index = 0;  /* numpy's argmin: the first minimum, or the first NaN */
+    double best = misfit[0];
+    for (int64_t i = 1; i < k && best == best; ++i)
+        if (misfit[i] < best || misfit[i] != misfit[i]) { best = misfit[i]; index = i; }
+    double variance = py_max(best, noise);
+    double samples = count * independent_fraction(st, k, index);
+    for (int64_t i = 0; i < k; ++i) {
+        double kept = (misfit[i] - best) * samples / variance <= chi2;
+        if (kept != plausible[i]) return NEED_SELECT;
+    }
+    double in_use = count * independent_fraction(st, k, member);
+    double dof = py_max(in_use, 1.0), spread = 2.0 / (9.0 * dof);
+    double upper = dof * pow(1.0 - spread + sc[S_NORMAL_95] * sqrt(spread), 3.0);
+    if (misfit[member] * in_use / noise <= upper) return DONE;
+    int64_t choice = -1;
+    double lowest = 0.0;
+    for (int64_t i = 0; i < k; ++i) {  /* argmin over the allowed members, numpy's way */
+        if (allowed[i] == 0.0) continue;
+        if (choice < 0 || (lowest == lowest && (misfit[i] < lowest || misfit[i] != misfit[i]))) {
+            choice = i;
+            lowest = misfit[i];
+        }
+    }
+    if (choice < 0 || choice == member) return DONE;
+    variance = py_max(misfit[choice], noise);
+    samples = count * independent_fraction(st, k, choice);
+    return (misfit[member] - misfit[choice]) * samples / variance > chi2 ? NEED_SELECT : DONE;
+}
+
+/* The whole step: fused_begin, the adaptive MPC's selection test, then fused_solve. */
+int fused_step(void **p)
+{
+    int code = fused_begin(p);
+    if (code != DONE) return code;
+    if (D(p, D_SELECTS) && select_unchanged(p) != DONE) return NEED_SELECT;
+    return fused_solve(p);
+}
+"""
+
+
+def fused_source(inverse: Any, reachable: Any) -> str:
+    """The translation unit (module docstring): the generated C of the casadi Functions
+    ``inverse`` (``nls_inverse``) and ``reachable`` (``nls_reachable``), the estimator kernels
+    and the step."""
+    import casadi
+
+    with tempfile.TemporaryDirectory() as folder:
+        generator = casadi.CodeGenerator("mpc_step.c", {"with_header": False})
+        generator.add(inverse)
+        generator.add(reachable)
+        generator.generate(f"{folder}/")
+        generated = (Path(folder) / "mpc_step.c").read_text(encoding="utf-8")
+    return "\n".join((generated, KERNELS, STEP))
+
+
+_LIBRARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def compile_step(inverse: Any) -> tuple[ctypes.CDLL | None, NativeBuild]:
+    """The library of the step for a :class:`controllers.native.compiled_inverse.
+    CompiledInverse` (its casadi Functions), built once per inverse object: None and the
+    record of why when there is none."""
+    if inverse in _LIBRARIES:
+        return _LIBRARIES[inverse]
+    if inverse.functions is None:
+        built = None, unavailable(f"the NLS inverse is not compiled ({inverse.backend})")
+    else:
+        source = fused_source(*inverse.functions)
+        built = compile_source("mpc_step", source, flags=FLAGS, cache="kernels")
+    _LIBRARIES[inverse] = built
+    return built
+
+
+def unavailable(reason: str) -> NativeBuild:
+    """The record of an MPC whose step runs in numpy and Python, and why."""
+    return NativeBuild("mpc_step", NUMPY, reason)
+
+
+def _int_array(values: list[int]) -> np.ndarray:
+    return np.array(values, dtype=np.int64)
+
+
+class FusedStep:
+    """The compiled step bound to one controller's arrays (see the module docstring).
+
+    Parameters
+    ----------
+    library : ctypes.CDLL
+        The library of :func:`fused_source`.
+    inverse, reachable : casadi.Function
+        The Functions it was generated from (for their work sizes).
+    u_range : (float, float)
+        Drive range (V) the inverse searches.
+    sizes : dict
+        ``observation``, ``states`` (n), ``estimate`` (n + disturbance states), ``moves``,
+        ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1), ``selects`` (1 for the
+        adaptive MPC's selection test), ``members`` (its gain estimate's parts).
+
+    Attributes
+    ----------
+    observation : numpy.ndarray
+        The buffer the caller writes each observation into (float64).
+    scalars : array.array
+        g, z_t-1, z applied, u (V), the first move g z, z_min, z_max, the inverse's status,
+        the bank's runaway sample (-1: none), and for the selection test the sensor noise's
+        variance (um^2), the chi2 threshold and the one-sided normal quantile.
+    plausible, allowed : numpy.ndarray
+        Per member, 1.0 where the adaptive MPC's last selection kept it plausible, and where
+        it has a filter stable on every plausible member.
+    """
+
+    def __init__(
+        self,
+        library: ctypes.CDLL,
+        inverse: Any,
+        reachable: Any,
+        u_range: tuple[float, float],
+        sizes: dict[str, int],
+    ) -> None:
+        self._library = library
+        self.observation = np.zeros(sizes["observation"])
+        self.plan = np.zeros(sizes["moves"])
+        self.memory = np.zeros(sizes["memory"])
+        self.scalars = array.array("d", [0.0] * S_COUNT)
+        self.dims = _int_array([0] * D_COUNT)
+        for index, key in (
+            (D_OBS, "observation"),
+            (D_STATES, "states"),
+            (D_ESTIMATE, "estimate"),
+            (D_MOVES, "moves"),
+            (D_SAMPLES, "samples"),
+            (D_COLUMNS, "columns"),
+            (D_MEMORY, "memory"),
+            (D_SHORTCUT, "shortcut"),
+            (D_SELECTS, "selects"),
+        ):
+            self.dims[index] = sizes[key]
+        self.table = np.zeros(P_COUNT, dtype=np.uint64)
+        self._keep: list[Any] = []  # what the table points into, kept alive
+        self._point(P_OBS, self.observation)
+        self._point(P_PLAN, self.plan)
+        self._point(P_MEMORY, self.memory)
+        self._point(P_DIMS, self.dims)
+        # The adaptive MPC's member flags (one per member of its gain estimate; 0 or 1).
+        self.plausible = np.zeros(max(sizes["members"], 1))
+        self.allowed = np.zeros(max(sizes["members"], 1))
+        self._point(P_PLAUSIBLE, self.plausible)
+        self._point(P_ALLOWED, self.allowed)
+        self.table[P_SCALARS] = self.scalars.buffer_info()[0]
+        self.inverse_inputs = self._casadi(inverse, (P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W))
+        self.inverse_inputs[2][0], self.inverse_inputs[3][0] = u_range
+        reach_inputs = self._casadi(reachable, (P_REACH_ARG, P_REACH_RES, P_REACH_IW, P_REACH_W))
+        reach_inputs[1][0], reach_inputs[2][0] = u_range
+        pointer = self.table.ctypes.data
+        functions = {}
+        for name in ("fused_begin", "fused_solve", "fused_finish", "fused_step"):
+            function = getattr(library, name)
+            function.argtypes, function.restype = [ctypes.c_void_p], ctypes.c_int
+            functions[name] = function
+        # Bound once: each call converts one integer argument.
+        self.begin = lambda: functions["fused_begin"](pointer)
+        self.solve = lambda: functions["fused_solve"](pointer)
+        self.finish = lambda: functions["fused_finish"](pointer)
+        self.step = lambda: functions["fused_step"](pointer)
+
+    def _point(self, index: int, buffer: np.ndarray, *, keep: bool = True) -> None:
+        """Write ``buffer``'s address into the table (``keep``: hold a reference to it, for the
+        step's own buffers; the estimators' arrays are their owners')."""
+        if not (buffer.flags.c_contiguous and buffer.dtype in (np.float64, np.int64)):
+            raise ValueError(f"table entry {index}: needs a C-contiguous float64 or int64 array")
+        self.table[index] = buffer.ctypes.data
+        if keep:
+            self._keep.append(buffer)
+
+    def _casadi(self, function: Any, slots: tuple[int, int, int, int]) -> list[np.ndarray]:
+        """Input, output and work buffers of a generated Function, as CompiledFunction's;
+        returns the input buffers."""
+        inputs = [np.zeros(function.numel_in(i)) for i in range(function.n_in())]
+        outputs = [np.zeros(function.numel_out(i)) for i in range(function.n_out())]
+        pointer = ctypes.c_void_p
+        arg = (pointer * max(function.sz_arg(), 1))(*[b.ctypes.data for b in inputs])
+        res = (pointer * max(function.sz_res(), 1))(*[b.ctypes.data for b in outputs])
+        iw = np.zeros(max(function.sz_iw(), 1), dtype=np.int64)
+        w = np.zeros(max(function.sz_w(), 1))
+        for slot, address in zip(
+            slots,
+            (ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data),
+            strict=True,
+        ):
+            self.table[slot] = address
+        self._keep += [inputs, outputs, arg, res, iw, w]
+        return inputs
+
+    def bind_gain(self, gain: Any, member: int) -> None:
+        """Point at a :class:`controllers.gain.GainEstimate`'s arrays (None: no gain)."""
+        self.dims[D_HAS_GAIN] = gain is not None
+        self.dims[D_MEMBER] = member
+        if gain is None:
+            return
+        dims, par = gain._kernel_data
+        for index, buffer in (
+            (P_GAIN_DIMS, dims),
+            (P_GAIN_PAR, par),
+            (P_GAIN_C, gain._c),
+            (P_GAIN_X, gain._x),
+            (P_GAIN_ST, gain._state),
+            (P_GAIN_A, gain._a),
+            (P_GAIN_B, gain._b),
+        ):
+            self._point(index, buffer, keep=False)
+
+    def bind_bank(
+        self,
+        bank: Any,
+        unconstrained: np.ndarray,
+        stacked: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> None:
+        """Point at an :class:`controllers.observer.ObserverBank`'s arrays, the plan's matrix
+        ``-P^-1 G``, the QP's vector and its bounds."""
+        for index, buffer in (
+            (P_BANK_DIMS, bank._dims),
+            (P_BANK_PAR, bank._parameters),
+            (P_BANK_C, bank._c_aug),
+            (P_BANK_GAINS, bank._gains),
+            (P_BANK_HLV, bank._half_log_var),
+            (P_BANK_HIV, bank._half_inverse_var),
+            (P_BANK_ST, bank._state),
+            (P_BANK_COUNTERS, bank._counters),
+            (P_BANK_COUNTS, bank.selection_counts),
+            (P_BANK_A, bank._a_aug),
+            (P_BANK_B, bank._b_aug),
+            (P_UNCONSTRAINED, unconstrained),
+            (P_STACKED, stacked),
+            (P_LOWER, lower),
+            (P_UPPER, upper),
+        ):
+            self._point(index, buffer, keep=False)
