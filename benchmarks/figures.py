@@ -21,7 +21,10 @@ from benchmarks.references import REFERENCES
 from benchmarks.rows import row_colors, seed_groups
 from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
 
-__all__ = ["draw_figures"]
+__all__ = ["FIGURES", "draw_figures"]
+
+FIGURES = ("tracking.png", "summary.png", "robustness.png", "pid_loops.png", "adaptation.png")
+"""The figures a run may draw, in the report's order."""
 
 _WINDOWS = {"sine-50Hz": (0.90, 0.96), "multisine": (0.60, 0.75), "steps": (0.38, 0.46)}
 """Time windows (s) shown per reference: a few periods, a readable stretch, one step."""
@@ -43,13 +46,14 @@ def draw_figures(
     import matplotlib
 
     matplotlib.use("Agg")
-    figures: dict[str, Callable[[BenchmarkResult, Path], str | None]] = {
+    drawers: dict[str, Callable[[BenchmarkResult, Path], str | None]] = {
         "tracking.png": _tracking,
         "summary.png": _summary,
         "robustness.png": partial(_robustness, own_model=tuple(identify_on)[1:]),
         "pid_loops.png": _pid_loops,
         "adaptation.png": _adaptation,
     }
+    figures = {name: drawers[name] for name in FIGURES}
     done: dict[str, Path | str] = {}
     for name, draw in figures.items():
         path = Path(out) / name

@@ -12,7 +12,7 @@ import numpy as np
 from benchmarks.cells import TIE, aggregate, ci95_half_width
 from benchmarks.checkpoint import write_text_atomic
 from benchmarks.descriptions import controller_tables, loop_table
-from benchmarks.figures import draw_figures
+from benchmarks.figures import FIGURES, draw_figures
 from benchmarks.reference_checks import (
     check_targets,
     missed_checks,
@@ -21,7 +21,13 @@ from benchmarks.reference_checks import (
     summary_line,
 )
 from benchmarks.rows import seed_groups
-from benchmarks.runner import BOX_CORNERS, DRAWN_PLANTS, MONTE_CARLO, BenchmarkResult
+from benchmarks.runner import (
+    BOX_CORNERS,
+    DRAWN_PLANTS,
+    MONTE_CARLO,
+    BenchmarkConfig,
+    BenchmarkResult,
+)
 from benchmarks.verdict import (
     cell_index,
     headline_plants,
@@ -753,3 +759,63 @@ def write_benchmark(
     path = out / "benchmark.json"
     write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False) + "\n")
     return [md, path, *(v for v in drawn.values() if isinstance(v, Path))]
+
+
+def rewrite_report(out: str | Path) -> Path:
+    """Rewrite ``benchmark.md`` (and the checks in ``benchmark.json``) in ``out`` with this
+    version's report from the run's own ``benchmark.json``, without running an episode.
+
+    The JSON holds every episode's metrics, measured times and the controllers' descriptions,
+    so every table, the verdict and the reference checks are rebuilt from it. It does not hold
+    the traces, so the figures already in ``out`` are kept as they are and linked, not redrawn;
+    a figure the run did not draw stays absent. For a run whose report code changed after it
+    ran (a committed run, a long run on another machine).
+
+    Raises
+    ------
+    ValueError
+        When ``out`` holds no ``benchmark.json`` of this schema.
+    """
+    out = Path(out)
+    path = out / "benchmark.json"
+    if not path.is_file():
+        raise ValueError(f"{out} holds no benchmark.json: run piezo benchmark --out {out} first")
+    data = json.loads(path.read_text(encoding="utf-8"))
+    if data.get("schema") != SCHEMA or data.get("schema_version") != SCHEMA_VERSION:
+        raise ValueError(
+            f"{path} is not a {SCHEMA} report of schema version {SCHEMA_VERSION}; rerun the "
+            "benchmark with this version"
+        )
+    fields = {f.name for f in dataclasses.fields(BenchmarkConfig)}
+    stored = data["results"]["config"]
+    config = BenchmarkConfig(
+        **{
+            k: tuple(v) if isinstance(v, list) else v
+            for k, v in stored.items()
+            if k in fields and k not in ("jobs", "backend")
+        },
+        jobs=int(data["meta"].get("jobs") or 1),
+    )
+    episodes = data["results"]["episodes"]
+    timing = data["timing"]
+    if len(timing) != len(episodes):
+        raise ValueError(f"{path}: {len(timing)} timing entries for {len(episodes)} episodes")
+    merged = []
+    for episode, times in zip(episodes, timing, strict=True):
+        if any(episode[k] != times[k] for k in ("plant", "controller", "reference")):
+            raise ValueError(f"{path}: the timing entries are not in the episodes' order")
+        merged.append({**episode, **{k: times[k] for k in _TIMING_KEYS}})
+    meta = data["meta"]
+    result = BenchmarkResult(config, merged, data["controllers"], {}, {})
+    checks = check_targets(result)
+    drawn: dict[str, Any] = {
+        name: out / name if (out / name).is_file() else "not in the run's folder"
+        for name in FIGURES
+    }
+    md = out / "benchmark.md"
+    write_text_atomic(md, _markdown(result, meta, checks, drawn))
+    write_text_atomic(
+        path, json.dumps({**data, "targets": checks}, indent=1, allow_nan=False) + "\n"
+    )
+    return md
+

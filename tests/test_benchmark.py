@@ -10,7 +10,7 @@ import pytest
 
 from benchmarks.machine import machine
 from benchmarks.references import REFERENCES, make_reference
-from benchmarks.report import deterministic_json, tracking_tables, write_benchmark
+from benchmarks.report import deterministic_json, rewrite_report, tracking_tables, write_benchmark
 from benchmarks.runner import BenchmarkConfig, run_benchmark
 from controllers.metrics import tracking_metrics
 from piezo_cli.main import main
@@ -98,6 +98,17 @@ def test_small_benchmark_is_bitwise_equal_for_one_and_two_jobs(tmp_path):
     assert data["schema"] == "piezo-testbed/benchmark" and data["schema_version"] == 2
     assert {e["reference"] for e in data["results"]["episodes"]} == {"sine-10Hz", "steps"}
     assert len(paths) == 2
+    # The report rewritten from the run's own JSON is the report the run wrote, but for the
+    # figures, which the JSON cannot redraw: they are named as absent.
+    before = (tmp_path / "benchmark.md").read_text()
+    rewrite_report(tmp_path)
+    after = (tmp_path / "benchmark.md").read_text()
+    assert after.split("## Figures")[0] == before.split("## Controllers")[0]
+    assert "tracking.png: not drawn (not in the run's folder)" in after
+    assert after.split("## Controllers")[1] == before.split("## Controllers")[1]
+    assert json.loads((tmp_path / "benchmark.json").read_text()) == data
+    with pytest.raises(ValueError, match=r"holds no benchmark\.json"):
+        rewrite_report(tmp_path / "elsewhere")
 
 
 def test_config_refuses_unknown_names():
