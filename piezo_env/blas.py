@@ -1,8 +1,9 @@
 """One BLAS thread for the tiny dense work of building a plant.
 
 Building a drawn plant (eigen-decomposition, one matrix exponential per mode) is a handful of
-tiny dense calls, and multi-threaded OpenBLAS stalls on those (measured on 2 cores: median
-9.7 ms, p90 220 ms per plant, against 1.4 ms and 9.6 ms single-threaded). The limit is scoped:
+tiny dense calls, and multi-threaded OpenBLAS stalls on those: its threads wake and synchronise
+for matrices of a few dozen entries, so a plant takes several times longer and its tail far
+longer than on one thread (``benchmarks/results/design_measurements.md``). The limit is scoped:
 it holds only inside the ``with`` block.
 """
 
