@@ -61,6 +61,8 @@ import numpy as np
 
 from controllers.box_qp import box_qp, solver_version, within
 from controllers.mpc import float32_within
+from controllers.native import nmpc_step
+from controllers.native.codegen import NativeBuild
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
@@ -205,12 +207,51 @@ class NonlinearMPC(PredictiveController):
         self.horizon = make_horizon(self.model, settings.horizon, settings.jacobian)
         if settings.solver == "ipopt":
             self._nlp = self._build_nlp()
+        # The bounds live as long as the controller: the compiled iteration reads them.
+        self._lower = np.full(settings.horizon, -self._u_max)
+        self._upper = np.full(settings.horizon, self._u_max)
+        self._kernel, self._kernel_build = self._iteration_kernel()
+
+    def _iteration_kernel(self) -> tuple[nmpc_step.IterationKernel | None, NativeBuild]:
+        """The compiled iteration (:mod:`controllers.native.nmpc_step`) where this NMPC's
+        step fits it, else None and the record of why the iterations run in numpy. Checked
+        once here, so that the step validates nothing."""
+        why = None
+        if self.settings.solver != "rti":
+            why = f"solver={self.settings.solver!r} (the kernel runs the real-time iteration)"
+        elif not isinstance(self.horizon, StructuredHorizon):
+            why = f"the horizon is {type(self.horizon).__name__} (the kernel needs the NLS's)"
+        elif not self.horizon.native or not self.horizon.native[0].compiled:
+            why = f"the horizon's feature recursion is not compiled ({self.horizon.backend})"
+        if why is not None:
+            return None, nmpc_step.unavailable(why)
+        nls = self.model.nonlinearity.nls
+        memory_step = nmpc_step.memory_step_function(nls)
+        library, build = nmpc_step.compile_kernel(self.horizon.function, memory_step)
+        if library is None:
+            return None, build
+        s = self.settings
+        kernel = nmpc_step.IterationKernel(
+            library,
+            self.horizon.function,
+            memory_step,
+            nls.to_numpy(),
+            self._gamma,
+            self._rate_hessian,
+            self._lower,
+            self._upper,
+            tracking_weight=s.tracking_weight,
+            rate_weight=s.rate_weight,
+            slew_step=self.task.slew_step,
+            shortcut=s.shortcut,
+        )
+        return kernel, build
 
     def _start(self, start: SteadyStart) -> None:
         s = self.settings
         self._slew_step = self.task.slew_step
-        self._lower = np.full(s.horizon, -self._u_max)
-        self._upper = np.full(s.horizon, self._u_max)
+        self._lower[:] = -self._u_max
+        self._upper[:] = self._u_max
         if s.solver == "rti":  # afresh: no active set, step size or duals carry over episodes
             self._qp = box_qp(
                 s.qp_solver,
@@ -246,7 +287,10 @@ class NonlinearMPC(PredictiveController):
         # The plant gets float32 volts: step the memory and the observer with exactly those,
         # kept in the window (the QP meets it to rounding; float32 rounding may step out).
         u = float32_within(min(max(plan[0], low), high), low, high)
-        z, self._memory = self.model.nonlinearity.step(u, self._memory)
+        if self._kernel is None:
+            z, self._memory = self.model.nonlinearity.step(u, self._memory)
+        else:  # the memory array is the kernel's, stepped in place
+            z = self._kernel.apply(u)
         self.observer.predict(z)
         self._u_prev = u
         return u
@@ -288,6 +332,8 @@ class NonlinearMPC(PredictiveController):
         """
         s = self.settings
         bounds = (self._lower, self._upper)
+        if self._kernel is not None:
+            return self._solve_rti_compiled(offset, u_bar, bounds)
         w, total, status = s.tracking_weight, 0, "solved"
         for iteration in range(s.sqp_iterations):
             z, jac_z = self.horizon.linearize(u_bar, self._memory)
@@ -301,6 +347,37 @@ class NonlinearMPC(PredictiveController):
             if u_new is None:
                 return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
             step = float(np.max(np.abs(u_new - u_bar)))
+            u_bar = u_new
+            if step <= s.step_tolerance:
+                break
+        return u_bar, status, total
+
+    def _solve_rti_compiled(
+        self, offset: np.ndarray, u_bar: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]
+    ) -> tuple[np.ndarray | None, str, int]:
+        """:meth:`_solve_rti` with each iteration's linearization, QP and unconstrained
+        optimum in one compiled call; the QP solver runs here when that optimum leaves the
+        bounds."""
+        s, kernel = self.settings, self._kernel
+        if self._memory is not kernel.memory:
+            kernel.memory[:] = self._memory
+            self._memory = kernel.memory
+        kernel.offset[:] = offset
+        kernel.scalars[nmpc_step.S_U_PREV] = self._u_prev
+        total, status = 0, "solved"
+        for iteration in range(s.sqp_iterations):
+            kernel.u[:] = u_bar
+            if kernel.iterate() == nmpc_step.INSIDE:
+                u_new, status = kernel.u_new.copy(), "unconstrained"
+                step = kernel.scalars[nmpc_step.S_STEP]
+            else:  # copies: the next iteration overwrites the kernel's arrays
+                u_new, status, iterations = self._solve_qp(
+                    kernel.hessian.copy(), kernel.q.copy(), u_bar, bounds
+                )
+                total += iterations
+                if u_new is None:
+                    return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
+                step = float(np.max(np.abs(u_new - u_bar)))
             u_bar = u_new
             if step <= s.step_tolerance:
                 break
@@ -405,6 +482,11 @@ class NonlinearMPC(PredictiveController):
         return np.clip(plan, -self._u_max, self._u_max), status, iterations
 
     # -- reports ------------------------------------------------------------------------------
+
+    def native_code(self) -> dict[str, dict[str, Any]]:
+        """The base class's records and ``nmpc_step``: whether the compiled iteration runs
+        (:mod:`controllers.native.nmpc_step`), and why not."""
+        return {**super().native_code(), "nmpc_step": self._kernel_build.to_dict()}
 
     def describe(self) -> dict[str, Any]:
         """Settings, model source, Jacobian path and observer bandwidth (JSON-safe)."""
