@@ -162,39 +162,53 @@ int nmpc_iterate(void **p)
     const double *features = F(p, P_FEATURES), *sens = F(p, P_SENS);
     double *z = F(p, P_Z), *grad = F(p, P_GRAD), *jac = F(p, P_JAC);
     network(p, features, n, z, grad);
+    /* Each sum below runs over its index in order, as a dot product would, but the loops
+       update whole rows (j innermost, independent sums), so that the compiler may vectorise
+       them without reordering any sum. dz/du and Gamma are lower triangular (causal: z_t+k
+       and y_t+k+1 depend on no later voltage; Gamma checked at setup), and the terms with a
+       structural zero factor are left out (adding them adds zeros). */
     /* dz_k/du_j = sum_f dz_k/dF_kf dF_kf/du_j (sensitivities: row (k n_f + f), column j) */
-    for (int64_t k = 0; k < n; ++k)
-        for (int64_t j = 0; j < n; ++j) {
-            double sum = 0.0;
-            for (int64_t f = 0; f < n_f; ++f) sum += grad[k * n_f + f] * sens[(k * n_f + f) * n + j];
-            jac[k * n + j] = sum;
+    for (int64_t k = 0; k < n; ++k) {
+        double *restrict row = jac + k * n;
+        for (int64_t j = 0; j < n; ++j) row[j] = 0.0;
+        for (int64_t f = 0; f < n_f; ++f) {
+            const double g = grad[k * n_f + f], *restrict s = sens + (k * n_f + f) * n;
+            for (int64_t j = 0; j <= k; ++j) row[j] += g * s[j];
         }
+    }
     const double *gamma = F(p, P_GAMMA), *u = F(p, P_U), *offset = F(p, P_OFFSET);
     double *jac_y = F(p, P_JAC_Y), *constant = F(p, P_CONSTANT);
-    for (int64_t i = 0; i < n; ++i)
-        for (int64_t j = 0; j < n; ++j) {
-            double sum = 0.0;
-            for (int64_t k = 0; k < n; ++k) sum += gamma[i * n + k] * jac[k * n + j];
-            jac_y[i * n + j] = sum;
+    for (int64_t i = 0; i < n; ++i) {  /* J_y = Gamma dz/du */
+        double *restrict row = jac_y + i * n;
+        for (int64_t j = 0; j < n; ++j) row[j] = 0.0;
+        for (int64_t k = 0; k <= i; ++k) {
+            const double g = gamma[i * n + k], *restrict s = jac + k * n;
+            for (int64_t j = 0; j <= k; ++j) row[j] += g * s[j];
         }
+    }
     for (int64_t i = 0; i < n; ++i) {  /* offset + Gamma z - J_y u_bar */
         double gz = 0.0, ju = 0.0;
-        for (int64_t k = 0; k < n; ++k) gz += gamma[i * n + k] * z[k];
-        for (int64_t j = 0; j < n; ++j) ju += jac_y[i * n + j] * u[j];
+        for (int64_t k = 0; k <= i; ++k) gz += gamma[i * n + k] * z[k];
+        for (int64_t j = 0; j <= i; ++j) ju += jac_y[i * n + j] * u[j];
         constant[i] = offset[i] + gz - ju;
     }
     double *hessian = F(p, P_HESSIAN), *q = F(p, P_Q);
     const double *rate = F(p, P_RATE_HESSIAN), w = sc[S_W];
-    for (int64_t i = 0; i < n; ++i) {
-        for (int64_t j = 0; j < n; ++j) {
-            double sum = 0.0;
-            for (int64_t k = 0; k < n; ++k) sum += jac_y[k * n + i] * jac_y[k * n + j];
-            hessian[i * n + j] = w * sum + rate[i * n + j];
+    for (int64_t i = 0; i < n; ++i) {  /* w J_y' J_y + R, row by row */
+        double *restrict row = hessian + i * n;
+        for (int64_t j = 0; j < n; ++j) row[j] = 0.0;
+        for (int64_t k = i; k < n; ++k) {
+            const double a = jac_y[k * n + i], *restrict s = jac_y + k * n;
+            for (int64_t j = 0; j <= k; ++j) row[j] += a * s[j];
         }
-        double sum = 0.0;
-        for (int64_t k = 0; k < n; ++k) sum += jac_y[k * n + i] * constant[k];
-        q[i] = w * sum;
+        for (int64_t j = 0; j < n; ++j) row[j] = w * row[j] + rate[i * n + j];
     }
+    for (int64_t i = 0; i < n; ++i) q[i] = 0.0;  /* w J_y' constant */
+    for (int64_t k = 0; k < n; ++k) {
+        const double c = constant[k], *restrict s = jac_y + k * n;
+        for (int64_t i = 0; i <= k; ++i) q[i] += s[i] * c;
+    }
+    for (int64_t i = 0; i < n; ++i) q[i] = w * q[i];
     q[0] -= sc[S_RATE_WEIGHT] * sc[S_U_PREV];
     if (!D(p, D_SHORTCUT)) return NEED_QP;
     /* the unconstrained optimum -P^-1 q by Cholesky (P = L L'); not positive definite: the QP
@@ -351,6 +365,8 @@ class IterationKernel:
             raise ValueError(f"Gamma, R and the bounds must be ({n}, {n}) and ({n},)")
         if features.numel_in(0) != n or network.skip_weight.size != n_f:
             raise ValueError("the feature Function's sizes do not match the horizon's")
+        if np.any(np.triu(gamma, 1) != 0.0):
+            raise ValueError("Gamma must be lower triangular (a causal prediction)")
         self.table = np.zeros(P_COUNT, dtype=np.uint64)
         self._keep: list[Any] = []
         sizes = [n_f, *(b.size for b in network.biases)]
