@@ -273,7 +273,7 @@ class NonlinearMPC(PredictiveController):
         offset = self._phi @ estimate[:n] + (estimate[n] - targets)
         low, high = self._slew_window()
         self._lower[0], self._upper[0] = low, high
-        shifted = self._feasible(np.r_[self._plan[1:], self._plan[-1]])
+        shifted = self._feasible(np.concatenate((self._plan[1:], self._plan[-1:])))
         if self.settings.solver == "rti":
             plan, status, iterations = self._solve_rti(offset, shifted)
         else:
@@ -420,7 +420,8 @@ class NonlinearMPC(PredictiveController):
     def _feasible(self, plan: np.ndarray) -> np.ndarray:
         """``plan`` made feasible: clipped to the bounds and, with a slew limit, each move
         limited to S dt from the one before (first move from u_t-1)."""
-        plan = np.clip(plan, self._lower, self._upper)
+        plan = np.maximum(plan, self._lower)  # np.clip's values, without its dispatch cost
+        np.minimum(plan, self._upper, out=plan)
         if self._slew_step is None:
             return plan
         step, previous = self._slew_step, self._u_prev
