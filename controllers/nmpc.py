@@ -226,15 +226,14 @@ class NonlinearMPC(PredictiveController):
         if why is not None:
             return None, nmpc_step.unavailable(why)
         nls = self.model.nonlinearity.nls
-        memory_step = nmpc_step.memory_step_function(nls)
-        library, build = nmpc_step.compile_kernel(self.horizon.function, memory_step)
+        partials = nmpc_step.partials_function(nls)
+        library, build = nmpc_step.compile_kernel(partials)
         if library is None:
             return None, build
         s = self.settings
         kernel = nmpc_step.IterationKernel(
             library,
-            self.horizon.function,
-            memory_step,
+            partials,
             nls.to_numpy(),
             self._gamma,
             self._rate_hessian,

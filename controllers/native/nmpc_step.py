@@ -53,15 +53,17 @@ INSIDE, NEED_QP, ERROR = range(3)
 (
     P_U, P_MEMORY, P_OFFSET, P_GAMMA, P_RATE_HESSIAN, P_LOWER, P_UPPER, P_WEIGHTS, P_BIASES,
     P_OUT, P_SKIP, P_Z, P_JAC, P_HESSIAN, P_Q, P_U_NEW, P_LAYERS, P_G, P_G_NEXT, P_GRAD,
-    P_JAC_Y, P_CONSTANT, P_FACTOR, P_FEAT_ARG, P_FEAT_RES, P_FEAT_IW, P_FEAT_W, P_FEATURES,
-    P_SENS, P_STEP_ARG, P_STEP_RES, P_STEP_IW, P_STEP_W, P_STEP_F, P_STEP_STATE, P_DIMS,
-    P_SIZES, P_SCALARS, P_COUNT,
-) = range(39)  # fmt: skip
+    P_JAC_Y, P_CONSTANT, P_FACTOR, P_ARG, P_RES, P_IW, P_W, P_STEP_U, P_STATE, P_TANGENTS,
+    P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
+    P_DIMS, P_SIZES, P_SCALARS, P_COUNT,
+) = range(41)  # fmt: skip
 D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_COUNT = range(7)
 (
     S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED, S_Z_APPLIED,
     S_COUNT,
 ) = range(9)  # fmt: skip
+PARTIALS = ("F", "s_next", "dF_du", "ds_du", "dF_ds", "ds_ds")
+"""Outputs of :func:`partials_function`, in order (the last two sparse)."""
 
 STEP = r"""
 /* Vectorise the row updates below (GCC's -O2 cost model leaves loops of unknown length
@@ -74,9 +76,10 @@ STEP = r"""
 #include <stdint.h>
 enum { P_U, P_MEMORY, P_OFFSET, P_GAMMA, P_RATE_HESSIAN, P_LOWER, P_UPPER, P_WEIGHTS, P_BIASES,
        P_OUT, P_SKIP, P_Z, P_JAC, P_HESSIAN, P_Q, P_U_NEW, P_LAYERS, P_G, P_G_NEXT, P_GRAD,
-       P_JAC_Y, P_CONSTANT, P_FACTOR, P_FEAT_ARG, P_FEAT_RES, P_FEAT_IW, P_FEAT_W, P_FEATURES,
-       P_SENS, P_STEP_ARG, P_STEP_RES, P_STEP_IW, P_STEP_W, P_STEP_F, P_STEP_STATE, P_DIMS,
-       P_SIZES, P_SCALARS };
+       P_JAC_Y, P_CONSTANT, P_FACTOR, P_ARG, P_RES, P_IW, P_W, P_STEP_U, P_STATE, P_TANGENTS,
+       P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
+       P_DIMS, P_SIZES, P_SCALARS };
+enum { R_F, R_S_NEXT, R_DF_DU, R_DS_DU, R_DF_DS, R_DS_DS };
 enum { D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW };
 enum { S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED,
        S_Z_APPLIED };
@@ -86,11 +89,11 @@ enum { INSIDE, NEED_QP, ERROR };
 #define S(p) ((double *)(p)[P_SCALARS])
 #define F(p, i) ((double *)(p)[i])
 
-/* The network on `rows` feature rows (row-major, n_f each): z, and with `grad` (not NULL)
-   dz/dF (rows x n_f). StructuredHorizon._network's operations in its order: each hidden unit
+/* The network on one feature vector (n_f): z, and with `grad` (not NULL) dz/dF (n_f). StructuredHorizon._network's operations in its order: each hidden unit
    tanh(sum + bias), z = (h . out + F . skip) + bias, the gradient by back-propagation. */
-static void network(void **p, const double *features, int64_t rows, double *z, double *grad)
+static void network(void **p, const double *features, double *z, double *grad)
 {
+    const int64_t rows = 1;  /* the buffers hold one row */
     const int64_t n_f = D(p, D_FEATURES), n_layers = D(p, D_LAYERS);
     const int64_t *sizes = (const int64_t *)p[P_SIZES];
     const double *weights = F(p, P_WEIGHTS), *biases = F(p, P_BIASES);
@@ -157,31 +160,75 @@ static void network(void **p, const double *features, int64_t rows, double *z, d
     }
 }
 
+/* The feature map's step and its partial derivatives at (P_STEP_U, P_STATE) (nmpc_partials:
+   outputs in P_RES, see PARTIALS). */
+static int partials(void **p)
+{
+    return nmpc_partials((const casadi_real **)p[P_ARG], (casadi_real **)p[P_RES], p[P_IW],
+                         p[P_W], 0);
+}
+
 /* One Gauss-Newton iteration along P_U from P_MEMORY (see the module docstring). */
 int nmpc_iterate(void **p)
 {
-    const int64_t n = D(p, D_N), n_f = D(p, D_FEATURES);
+    const int64_t n = D(p, D_N), n_f = D(p, D_FEATURES), n_s = D(p, D_STATE);
     const double *sc = S(p);
-    if (nmpc_features((const casadi_real **)p[P_FEAT_ARG], (casadi_real **)p[P_FEAT_RES],
-                      p[P_FEAT_IW], p[P_FEAT_W], 0))
-        return ERROR;
-    const double *features = F(p, P_FEATURES), *sens = F(p, P_SENS);
     double *z = F(p, P_Z), *grad = F(p, P_GRAD), *jac = F(p, P_JAC);
-    network(p, features, n, z, grad);
+    double **res = (double **)p[P_RES];
+    double *step_u = F(p, P_STEP_U), *state = F(p, P_STATE), *combined = F(p, P_COMBINED);
+    double *tangents = F(p, P_TANGENTS), *next = F(p, P_TANGENTS_NEXT);
+    const int64_t *fs_columns = (const int64_t *)p[P_FS_COLUMNS];
+    const int64_t *fs_rows = (const int64_t *)p[P_FS_ROWS];
+    /* ds/ds by rows: row r's entries are ss_order[ss_starts[r] .. ss_starts[r+1]) of its
+       nonzeros (casadi's column-major order), in columns ss_columns[...] */
+    const int64_t *ss_starts = (const int64_t *)p[P_SS_STARTS];
+    const int64_t *ss_columns = (const int64_t *)p[P_SS_COLUMNS];
+    const int64_t *ss_order = (const int64_t *)p[P_SS_ORDER];
+    const double *memory = F(p, P_MEMORY), *plan = F(p, P_U);
+    for (int64_t i = 0; i < n_s; ++i) state[i] = memory[i];
+    /* Forward along the plan, with tangents[r][j] = d s_k-1,r / du_j (j < k; state-major,
+       so that the loops over j are whole rows): dF_k/du_j is dF/ds tangents[.][j] (and
+       dF/du for j = k), so that dz_k/du_j = sum_c combined[c] tangents[c][j] with combined =
+       (dz/dF)' dF/ds; then tangents <- ds/ds tangents and tangents[.][k] = ds/du. */
+    for (int64_t k = 0; k < n; ++k) {
+        step_u[0] = plan[k];
+        if (partials(p)) return ERROR;
+        double *g = grad + k * n_f;
+        network(p, res[R_F], z + k, g);
+        const double *dF_du = res[R_DF_DU], *dF_ds = res[R_DF_DS], *ds_ds = res[R_DS_DS];
+        double *restrict row = jac + k * n;
+        double diagonal = 0.0;
+        for (int64_t f = 0; f < n_f; ++f) diagonal += g[f] * dF_du[f];
+        for (int64_t c = 0; c < n_s; ++c) {
+            double sum = 0.0;
+            for (int64_t i = fs_columns[c]; i < fs_columns[c + 1]; ++i)
+                sum += g[fs_rows[i]] * dF_ds[i];
+            combined[c] = sum;
+        }
+        for (int64_t j = 0; j < n; ++j) row[j] = 0.0;
+        for (int64_t c = 0; c < n_s; ++c) {
+            const double a = combined[c], *restrict t = tangents + c * n;
+            for (int64_t j = 0; j < k; ++j) row[j] += a * t[j];
+        }
+        row[k] = diagonal;
+        const double *ds_du = res[R_DS_DU], *s_next = res[R_S_NEXT];
+        for (int64_t r = 0; r < n_s; ++r) {
+            double *restrict t_next = next + r * n;
+            for (int64_t j = 0; j < k; ++j) t_next[j] = 0.0;
+            for (int64_t i = ss_starts[r]; i < ss_starts[r + 1]; ++i) {
+                const double a = ds_ds[ss_order[i]], *restrict t = tangents + ss_columns[i] * n;
+                for (int64_t j = 0; j < k; ++j) t_next[j] += a * t[j];
+            }
+            t_next[k] = ds_du[r];
+            state[r] = s_next[r];
+        }
+        double *swap = tangents; tangents = next; next = swap;
+    }
     /* Each sum below runs over its index in order, as a dot product would, but the loops
        update whole rows (j innermost, independent sums), so that the compiler may vectorise
        them without reordering any sum. dz/du and Gamma are lower triangular (causal: z_t+k
        and y_t+k+1 depend on no later voltage; Gamma checked at setup), and the terms with a
        structural zero factor are left out (adding them adds zeros). */
-    /* dz_k/du_j = sum_f dz_k/dF_kf dF_kf/du_j (sensitivities: row (k n_f + f), column j) */
-    for (int64_t k = 0; k < n; ++k) {
-        double *restrict row = jac + k * n;
-        for (int64_t j = 0; j < n; ++j) row[j] = 0.0;
-        for (int64_t f = 0; f < n_f; ++f) {
-            const double g = grad[k * n_f + f], *restrict s = sens + (k * n_f + f) * n;
-            for (int64_t j = 0; j <= k; ++j) row[j] += g * s[j];
-        }
-    }
     const double *gamma = F(p, P_GAMMA), *u = F(p, P_U), *offset = F(p, P_OFFSET);
     double *jac_y = F(p, P_JAC_Y), *constant = F(p, P_CONSTANT);
     for (int64_t i = 0; i < n; ++i) {  /* J_y = Gamma dz/du */
@@ -260,56 +307,79 @@ int nmpc_iterate(void **p)
    z in S_Z_APPLIED. */
 int nmpc_apply(void **p)
 {
-    if (nmpc_memory_step((const casadi_real **)p[P_STEP_ARG], (casadi_real **)p[P_STEP_RES],
-                         p[P_STEP_IW], p[P_STEP_W], 0))
-        return ERROR;
+    double *memory = F(p, P_MEMORY), *state = F(p, P_STATE);
+    for (int64_t i = 0; i < D(p, D_STATE); ++i) state[i] = memory[i];
+    F(p, P_STEP_U)[0] = S(p)[S_U_APPLIED];
+    if (partials(p)) return ERROR;
+    double **res = (double **)p[P_RES];
     double z;
-    network(p, F(p, P_STEP_F), 1, &z, NULL);
-    double *memory = F(p, P_MEMORY);
-    const double *state = F(p, P_STEP_STATE);
-    for (int64_t i = 0; i < D(p, D_STATE); ++i) memory[i] = state[i];
+    network(p, res[R_F], &z, NULL);
+    for (int64_t i = 0; i < D(p, D_STATE); ++i) memory[i] = res[R_S_NEXT][i];
     S(p)[S_Z_APPLIED] = z;
     return INSIDE;
 }
 """
 
 
-def memory_step_function(nls: Any) -> Any:
-    """casadi.Function ``(u, s) -> (F, s_next)``: the one-step feature map."""
+def partials_function(nls: Any) -> Any:
+    """casadi.Function ``(u, s) -> (F, s_next, dF/du, ds/du, dF/ds, ds/ds)``: one step of the
+    NLS's feature map and its partial derivatives (the last two keep their sparsity; common
+    subexpressions merged, which changes no value)."""
     import casadi
 
     u = casadi.SX.sym("u")
     state = casadi.SX.sym("s", nls.n_state)
     features, new = nls.feature_map.casadi_step(u, state)
+    outputs = [
+        casadi.densify(features),
+        casadi.densify(new),
+        casadi.densify(casadi.jacobian(features, u)),
+        casadi.densify(casadi.jacobian(new, u)),
+        casadi.jacobian(features, state),
+        casadi.jacobian(new, state),
+    ]
     return casadi.Function(
-        "nmpc_memory_step", [u, state], [features, new], ["u", "s"], ["F", "s_next"]
+        "nmpc_partials", [u, state], outputs, ["u", "s"], list(PARTIALS), {"cse": True}
     )
 
 
-def kernel_source(features: Any, memory_step: Any) -> str:
-    """The translation unit: the generated C of the horizon's feature Function
-    (``nmpc_features``) and the one-step feature map (``nmpc_memory_step``), and the step."""
+def kernel_source(partials: Any) -> str:
+    """The translation unit: the generated C of :func:`partials_function`'s Function
+    (``nmpc_partials``) and the step."""
     import casadi
 
     with tempfile.TemporaryDirectory() as folder:
         generator = casadi.CodeGenerator("nmpc_step.c", {"with_header": False})
-        generator.add(features)
-        generator.add(memory_step)
+        generator.add(partials)
         generator.generate(f"{folder}/")
         generated = (Path(folder) / "nmpc_step.c").read_text(encoding="utf-8")
     return "\n".join((generated, STEP))
 
 
-def compile_kernel(features: Any, memory_step: Any) -> tuple[ctypes.CDLL | None, NativeBuild]:
+def compile_kernel(partials: Any) -> tuple[ctypes.CDLL | None, NativeBuild]:
     """The library of :func:`kernel_source` (None and the record of why when there is none)."""
-    return compile_source(
-        "nmpc_step", kernel_source(features, memory_step), flags=FLAGS, cache="kernels"
-    )
+    return compile_source("nmpc_step", kernel_source(partials), flags=FLAGS, cache="kernels")
 
 
 def unavailable(reason: str) -> NativeBuild:
     """The record of an NMPC whose iterations run in numpy, and why."""
     return NativeBuild("nmpc_step", NUMPY, reason)
+
+
+def _ccs(sparsity: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Column starts and row indices (int64) of a casadi Sparsity."""
+    columns, rows = sparsity.get_ccs()
+    return np.array(columns, dtype=np.int64), np.array(rows, dtype=np.int64)
+
+
+def _crs(sparsity: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row starts, column indices and the nonzeros' positions in casadi's column-major order
+    (int64) of a casadi Sparsity, row by row (columns ascending within a row)."""
+    starts, rows = _ccs(sparsity)
+    columns = np.repeat(np.arange(starts.size - 1), np.diff(starts))
+    order = np.argsort(rows, kind="stable")
+    row_starts = np.searchsorted(rows[order], np.arange(sparsity.size1() + 1))
+    return row_starts.astype(np.int64), columns[order].astype(np.int64), order.astype(np.int64)
 
 
 class IterationKernel:
@@ -319,13 +389,14 @@ class IterationKernel:
     ----------
     library : ctypes.CDLL
         The library of :func:`kernel_source`.
-    features, memory_step : casadi.Function
-        The Functions it was generated from (for their work sizes).
+    partials : casadi.Function
+        The Function it was generated from (:func:`partials_function`: sizes, sparsity).
     network : identification.nls.network.NumpyMLP-like
         ``weights``, ``biases``, ``out_weight``, ``skip_weight``, ``out_bias`` (the NLS's
         ``to_numpy()``).
     gamma, rate_hessian : numpy.ndarray
-        The prediction matrix Gamma (N, N) and the rate penalty's Hessian R (N, N).
+        The prediction matrix Gamma (N, N), lower triangular, and the rate penalty's
+        symmetric Hessian R (N, N).
     lower, upper : numpy.ndarray
         The controller's bound arrays (N,), read at each call.
     tracking_weight, rate_weight : float
@@ -339,13 +410,13 @@ class IterationKernel:
     ----------
     u, memory, offset : numpy.ndarray
         Inputs the caller writes: the plan u_bar (N,), the memory state, the offset (N,).
+        :meth:`apply` steps ``memory`` in place.
     z, jac, hessian, q, u_new : numpy.ndarray
         Outputs: z (N,), dz/du (N, N), the QP's Hessian (N, N) and vector (N,), and the
         unconstrained optimum (N,) when the call returned :data:`INSIDE`.
     scalars : numpy.ndarray
         w, lambda, u_t-1 (written by the caller), S dt, the network's output bias, the
-        largest move of the iteration (V), the applied volts (written by the caller) and
-        their z.
+        largest move of the iteration (V), the applied volts and their z.
     calls : int
         Compiled calls made (iterations and applies), for tests of the fusion.
     """
@@ -353,8 +424,7 @@ class IterationKernel:
     def __init__(
         self,
         library: ctypes.CDLL,
-        features: Any,
-        memory_step: Any,
+        partials: Any,
         network: Any,
         gamma: np.ndarray,
         rate_hessian: np.ndarray,
@@ -367,12 +437,11 @@ class IterationKernel:
         shortcut: bool,
     ) -> None:
         n = gamma.shape[0]
-        n_f = features.size1_out(0)
-        n_state = features.numel_in(1)
+        n_f, n_state = partials.numel_out(0), partials.numel_out(1)
         if gamma.shape != (n, n) or rate_hessian.shape != (n, n) or lower.shape != (n,):
             raise ValueError(f"Gamma, R and the bounds must be ({n}, {n}) and ({n},)")
-        if features.numel_in(0) != n or network.skip_weight.size != n_f:
-            raise ValueError("the feature Function's sizes do not match the horizon's")
+        if partials.numel_in(1) != n_state or network.skip_weight.size != n_f:
+            raise ValueError("the feature map's sizes do not match the network's")
         if np.any(np.triu(gamma, 1) != 0.0):
             raise ValueError("Gamma must be lower triangular (a causal prediction)")
         if np.any(rate_hessian != rate_hessian.T):
@@ -380,7 +449,6 @@ class IterationKernel:
         self.table = np.zeros(P_COUNT, dtype=np.uint64)
         self._keep: list[Any] = []
         sizes = [n_f, *(b.size for b in network.biases)]
-        widths = sum(sizes[1:])
         self.dims = np.array(
             [n, n_f, len(network.biases), n_state, int(shortcut), int(slew_step is not None)],
             dtype=np.int64,
@@ -396,6 +464,9 @@ class IterationKernel:
         self.u, self.memory, self.offset = np.zeros(n), np.zeros(n_state), np.zeros(n)
         self.z, self.jac = np.zeros(n), np.zeros((n, n))
         self.hessian, self.q, self.u_new = np.zeros((n, n)), np.zeros(n), np.zeros(n)
+        step_u, state = np.zeros(1), np.zeros(n_state)
+        fs_columns, fs_rows = _ccs(partials.sparsity_out(4))
+        ss_starts, ss_columns, ss_order = _crs(partials.sparsity_out(5))
         own = {
             P_U: self.u,
             P_MEMORY: self.memory,
@@ -413,34 +484,33 @@ class IterationKernel:
             P_HESSIAN: self.hessian,
             P_Q: self.q,
             P_U_NEW: self.u_new,
-            P_LAYERS: np.zeros(n * widths),
-            P_G: np.zeros(n * max(sizes)),
-            P_G_NEXT: np.zeros(n * max(sizes)),
+            P_LAYERS: np.zeros(sum(sizes[1:])),
+            P_G: np.zeros(max(sizes)),
+            P_G_NEXT: np.zeros(max(sizes)),
             P_GRAD: np.zeros(n * n_f),
             P_JAC_Y: np.zeros((n, n)),
             P_CONSTANT: np.zeros(n),
             P_FACTOR: np.zeros((n, n)),
+            P_STEP_U: step_u,
+            P_STATE: state,
+            P_TANGENTS: np.zeros(n * n_state),
+            P_TANGENTS_NEXT: np.zeros(n * n_state),
+            P_COMBINED: np.zeros(n_state),
+            P_FS_COLUMNS: fs_columns,
+            P_FS_ROWS: fs_rows,
+            P_SS_STARTS: ss_starts,
+            P_SS_COLUMNS: ss_columns,
+            P_SS_ORDER: ss_order,
             P_DIMS: self.dims,
             P_SIZES: self.sizes,
             P_SCALARS: self.scalars,
         }
         for index, buffer in own.items():
             self._point(index, buffer)
-        feature_out = self._casadi(
-            features, (P_FEAT_ARG, P_FEAT_RES, P_FEAT_IW, P_FEAT_W), [self.u, self.memory]
-        )
-        self._point(P_FEATURES, feature_out[0])
-        self._point(P_SENS, feature_out[1])
-        self._u_applied = self.scalars[S_U_APPLIED : S_U_APPLIED + 1]  # a view: C reads it
-        step_out = self._casadi(
-            memory_step,
-            (P_STEP_ARG, P_STEP_RES, P_STEP_IW, P_STEP_W),
-            [self._u_applied, self.memory],
-        )
-        self._point(P_STEP_F, step_out[0])
-        self._point(P_STEP_STATE, step_out[1])
-        if feature_out[1].size != n * n_f * n or step_out[1].size != n_state:
-            raise ValueError("the generated Functions' outputs do not match the horizon's sizes")
+        outputs = self._casadi(partials, [step_u, state])
+        expected = [n_f, n_state, n_f, n_state, fs_rows.size, ss_order.size]
+        if [o.size for o in outputs] != expected or fs_columns.size != n_state + 1:
+            raise ValueError("the partials Function's outputs do not match the feature map")
         pointer = self.table.ctypes.data
         functions = {}
         for name in ("nmpc_iterate", "nmpc_apply"):
@@ -458,7 +528,7 @@ class IterationKernel:
         self.calls += 1
         code = self._iterate()
         if code == ERROR:
-            raise RuntimeError("the compiled NMPC iteration's feature function failed")
+            raise RuntimeError("the compiled NMPC iteration's feature map failed")
         return code
 
     def apply(self, u: float) -> float:
@@ -466,7 +536,7 @@ class IterationKernel:
         self.calls += 1
         self.scalars[S_U_APPLIED] = u
         if self._apply() == ERROR:
-            raise RuntimeError("the compiled NMPC memory step's feature function failed")
+            raise RuntimeError("the compiled NMPC memory step's feature map failed")
         return float(self.scalars[S_Z_APPLIED])
 
     def _point(self, index: int, buffer: np.ndarray) -> None:
@@ -475,22 +545,20 @@ class IterationKernel:
         self.table[index] = buffer.ctypes.data
         self._keep.append(buffer)
 
-    def _casadi(
-        self, function: Any, slots: tuple[int, int, int, int], inputs: list[np.ndarray]
-    ) -> list[np.ndarray]:
-        """Argument, result and work arrays of a generated Function, its inputs pointing at
-        ``inputs``; returns its output buffers (dense, casadi's column-major order)."""
+    def _casadi(self, function: Any, inputs: list[np.ndarray]) -> list[np.ndarray]:
+        """Argument, result and work arrays of the generated Function, its inputs pointing at
+        ``inputs``; returns its output buffers (nonzeros, casadi's column-major order)."""
         for i, buffer in enumerate(inputs):
             if buffer.size != function.numel_in(i):
                 raise ValueError(f"{function.name()}: input {i} needs {function.numel_in(i)}")
-        outputs = [np.zeros(function.numel_out(i)) for i in range(function.n_out())]
+        outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
         pointer = ctypes.c_void_p
         arg = (pointer * max(function.sz_arg(), 1))(*[b.ctypes.data for b in inputs])
         res = (pointer * max(function.sz_res(), 1))(*[b.ctypes.data for b in outputs])
         iw = np.zeros(max(function.sz_iw(), 1), dtype=np.int64)
         w = np.zeros(max(function.sz_w(), 1))
         for slot, address in zip(
-            slots,
+            (P_ARG, P_RES, P_IW, P_W),
             (ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data),
             strict=True,
         ):
