@@ -37,7 +37,11 @@ Solvers
     up once per episode; each iteration updates P and q, after trying the unconstrained
     optimum (one N x N solve, exact when it meets every bound, which it does on smooth
     references). Two iterations are the default (one loses accuracy at input reversals);
-    ``benchmarks/results/controller_latency.md`` has the step's cost.
+    ``benchmarks/results/controller_latency.md`` has the step's cost. For the identified NLS
+    each iteration (linearization, QP matrices, unconstrained optimum) and the memory step
+    run as one compiled call each (:mod:`controllers.native.nmpc_step`; the QP solver stays
+    in Python); without a compiler the numpy path above runs, recorded in
+    ``describe()["native"]["nmpc_step"]``.
 ``"ipopt"`` (the reference)
     The full nonlinear program through ``casadi.nlpsol("ipopt")`` with exact derivatives,
     warm-started from the shifted plan, capped by ``ipopt_max_iter`` and

@@ -1,29 +1,42 @@
 """The NMPC's real-time iteration in compiled code: one C call per SQP iteration.
 
-Each Gauss-Newton iteration of :meth:`controllers.nmpc.NonlinearMPC._solve_rti` runs, along
-the plan ``u_bar`` from the memory state: the feature recursion and its sensitivities
-(:class:`controllers.native.nmpc_horizon.StructuredHorizon`'s casadi Function), the network
-over the horizon with its input gradient, the Jacobian ``dz/du``, the QP's Hessian
+Each Gauss-Newton iteration of :meth:`controllers.nmpc.NonlinearMPC._solve_rti` needs, along
+the plan ``u_bar`` from the memory state: the features and their sensitivities ``dF_k/du_j``,
+the network over the horizon with its input gradient, the Jacobian ``dz/du``, the QP's Hessian
 ``w J_y'J_y + R`` and vector ``w J_y'(offset + Gamma z - J_y u_bar)`` with ``J_y = Gamma dz/du``,
 and the unconstrained optimum with its bound and rate tests. Called one by one from numpy, the
-operations' overhead is most of the step; here :func:`library`'s ``nmpc_iterate`` runs them all
-on preallocated buffers. When the unconstrained optimum meets every bound (most steps on smooth
-references) Python takes it; otherwise Python's QP path runs on the Hessian and vector computed
-here (:meth:`~controllers.nmpc.NonlinearMPC._solve_qp`, which tries numpy's unconstrained
-solve first and then the QP solver). ``nmpc_apply`` steps the memory with the applied volts
-and gives their z (the nonlinearity's ``step``: the one-step feature map's casadi Function and
-the same network code).
+operations' overhead is most of the step; here ``nmpc_iterate`` runs them all on preallocated
+buffers. When the unconstrained optimum meets every bound (most steps on smooth references)
+Python takes it; otherwise Python's QP path runs on the Hessian and vector computed here
+(:meth:`~controllers.nmpc.NonlinearMPC._solve_qp`, which tries numpy's unconstrained solve
+first, then the QP solver). ``nmpc_apply`` steps the memory with the applied volts and gives
+their z (the nonlinearity's ``step``).
 
-The translation unit is the generated C of the two casadi Functions and the hand-written step
-below, compiled with :data:`controllers.native.step_kernels.FLAGS` (no fused multiply-adds).
-The feature recursion is the same generated code as the horizon's compiled path, so the
-features and sensitivities are bitwise those of the numpy path. What differs from numpy in
-the last bits: every dot product here is summed left to right, where numpy's matrix products
-(BLAS) may pair the terms differently and fuse multiply-adds; ``tanh`` is the C library's, not
-numpy's; and the unconstrained optimum comes from a Cholesky factorisation of the (symmetric
-positive definite) Hessian where numpy's ``solve`` takes an LU factorisation. The plan may
-therefore differ from the numpy path's by about 1e-15 relative, and the float32 volts the
-plant receives round alike except where such a difference straddles a float32 rounding
+The sensitivities come by the chain rule through one step of the feature map: a casadi
+Function (:func:`partials_function`) gives the step's features, next state and their partial
+derivatives in the input and the state (the state ones sparse: for Bouc-Wen features, 2
+nonzeros per row), generated as C; ``nmpc_iterate`` carries the state's tangents
+``ds_k/du_j`` along the plan and contracts them with the network's gradient, so that
+``dz_k/du_j = (dz/dF)' dF/ds ds_k-1/du_j`` (``dz/dF . dF/du`` on the diagonal). casadi's
+Jacobian of the unrolled horizon (the numpy path's,
+:class:`controllers.native.nmpc_horizon.StructuredHorizon`) computes the same products, but
+through every branch of the step's expressions for each of the N directions, which made it
+most of the numpy path's iteration. The Jacobian is lower triangular (causal) and the
+prediction matrix Gamma too (checked at setup): the products skip their structural zeros.
+
+The translation unit is the generated C of the step's Function and the hand-written step
+below, compiled with :data:`controllers.native.step_kernels.FLAGS` (no fused multiply-adds);
+the loops over a row are vectorised where GCC can (each element keeps its own sum in its own
+order, so vectors change no result). What differs from the numpy path in the last bits: the
+sensitivities' products are associated differently from casadi's forward sweep; every dot
+product here is summed left to right, where numpy's matrix products (BLAS) may pair the terms
+differently and fuse multiply-adds; ``tanh`` is the C library's, not numpy's; the
+unconstrained optimum comes from a Cholesky factorisation of the (symmetric positive definite)
+Hessian where numpy's ``solve`` takes an LU factorisation; and the memory step is casadi's
+expression of the feature map where the numpy path runs the feature map's numpy code (Bouc-Wen
+features: the same formula, operations grouped differently). The plan may therefore differ
+from the numpy path's by about 1e-12 V and the memory by about 1e-13 V, and the float32 volts
+the plant receives round alike except where such a difference straddles a float32 rounding
 boundary (one float32 ulp, 2e-6 V at 30 V; the tests hold the closed loops to that).
 
 The library is built once per machine and model through
@@ -89,8 +102,9 @@ enum { INSIDE, NEED_QP, ERROR };
 #define S(p) ((double *)(p)[P_SCALARS])
 #define F(p, i) ((double *)(p)[i])
 
-/* The network on one feature vector (n_f): z, and with `grad` (not NULL) dz/dF (n_f). StructuredHorizon._network's operations in its order: each hidden unit
-   tanh(sum + bias), z = (h . out + F . skip) + bias, the gradient by back-propagation. */
+/* The network on one feature vector (n_f): z, and with `grad` (not NULL) dz/dF (n_f).
+   StructuredHorizon._network's operations in its order: each hidden unit tanh(sum + bias),
+   z = (h . out + F . skip) + bias, the gradient by back-propagation. */
 static void network(void **p, const double *features, double *z, double *grad)
 {
     const int64_t rows = 1;  /* the buffers hold one row */
