@@ -37,7 +37,13 @@ expression of the feature map where the numpy path runs the feature map's numpy 
 features: the same formula, operations grouped differently). The plan may therefore differ
 from the numpy path's by about 1e-12 V and the memory by about 1e-13 V, and the float32 volts
 the plant receives round alike except where such a difference straddles a float32 rounding
-boundary (one float32 ulp, 2e-6 V at 30 V; the tests hold the closed loops to that).
+boundary (one float32 ulp, 2e-6 V at 30 V; the tests hold the closed loops to that on the
+benchmark's references). Where the plan sits on a kink of the feature map (two neighbouring
+voltages equal to the last bits: du = 0, as on plateaus of a plan held against the drive
+bound by a reference beyond reach), the Jacobian jumps between its one-sided values, and such
+a difference can pick the other side: the two paths then follow different plans, each the
+algorithm's own (on a reference 30 % beyond reach the first QP's plans came out 1.8e-13 V
+apart and the second QP's Hessians 42 % apart).
 
 The library is built once per machine and model through
 :func:`controllers.native.codegen.compile_source` (cached, digest-verified, the
