@@ -42,7 +42,7 @@ benchmark's references). Where the plan sits on a kink of the feature map (two n
 voltages equal to the last bits: du = 0, as on plateaus of a plan held against the drive
 bound by a reference beyond reach), the Jacobian jumps between its one-sided values, and such
 a difference can pick the other side: the two paths then follow different plans, each the
-algorithm's own (on a reference 30 % beyond reach the first QP's plans came out 1.8e-13 V
+algorithm's own (on a reference about 25 % beyond reach the first QP's plans came out 1.8e-13 V
 apart and the second QP's Hessians 42 % apart).
 
 The library is built once per machine and model through
