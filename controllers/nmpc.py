@@ -247,6 +247,8 @@ class NonlinearMPC(PredictiveController):
             rate_weight=s.rate_weight,
             slew_step=self.task.slew_step,
             shortcut=s.shortcut,
+            iterations=s.sqp_iterations,
+            step_tolerance=s.step_tolerance,
         )
         return kernel, build
 
@@ -367,10 +369,17 @@ class NonlinearMPC(PredictiveController):
             self._memory = kernel.memory
         kernel.offset[:] = offset
         kernel.scalars[nmpc_step.S_U_PREV] = self._u_prev
+        kernel.u[:] = u_bar
+        code, first = kernel.run()  # the iterations up to the first that needs the QP
+        if code == nmpc_step.INSIDE:
+            return kernel.u.copy(), "unconstrained", 0
+        u_bar = kernel.u.copy()
         total, status = 0, "solved"
-        for iteration in range(s.sqp_iterations):
-            kernel.u[:] = u_bar
-            if kernel.iterate() == nmpc_step.INSIDE:
+        for iteration in range(first, s.sqp_iterations):
+            if iteration > first:
+                kernel.u[:] = u_bar
+                code = kernel.iterate()
+            if code == nmpc_step.INSIDE:
                 u_new, status = kernel.u_new.copy(), "unconstrained"
                 step = kernel.scalars[nmpc_step.S_STEP]
             else:  # copies: the next iteration overwrites the kernel's arrays

@@ -99,7 +99,9 @@ def test_linearization_equals_the_structured_horizon(env):
     np.testing.assert_allclose(kernel.q, q, rtol=1e-11, atol=1e-9 * np.max(np.abs(q)))
 
 
-def test_each_step_is_one_compiled_call_per_iteration_and_one_memory_step(env):
+def test_an_unconstrained_step_is_two_compiled_calls(env):
+    """Every SQP iteration of a step in one call while the unconstrained optima meet the
+    bounds (all steps of a half-stroke sine), and one for the memory step."""
     c = build(env, compiled=True)
     reference = make_reference("sine-50Hz", 221, dt=1e-3, seed=0)
     obs, _ = env.reset(seed=0, options={"reference": reference})
@@ -109,10 +111,26 @@ def test_each_step_is_one_compiled_call_per_iteration_and_one_memory_step(env):
         before = c._kernel.calls
         obs, *_ = env.step(c.act(obs))
         calls.append(c._kernel.calls - before)
-    iterations = c.settings.sqp_iterations
-    # Early stops make fewer iterations: between 1 and sqp_iterations, plus the memory step.
-    assert all(2 <= n <= iterations + 1 for n in calls)
     assert c.stats.status["unconstrained"] == 200
+    assert calls == [2] * 200
+
+
+def test_a_step_with_a_qp_makes_one_call_per_iteration_after_it(env):
+    """Beyond reach (the drive bound binds): the iterations up to the one that needs the QP
+    are one call, each later iteration one more (no early stop here: tolerance 0)."""
+    c = build(env, compiled=True, step_tolerance=0.0)
+    reference = np.r_[np.full(30, -1300.0), np.full(30, 1300.0)]
+    obs, _ = env.reset(seed=0, options={"reference": reference})
+    c.reset(obs)
+    calls = []
+    for _ in range(40):
+        before = c._kernel.calls
+        obs, *_ = env.step(c.act(obs))
+        calls.append(c._kernel.calls - before)
+    assert c.stats.status["solved"] > 0
+    # run (up to the QP), one iterate per later iteration, the memory step
+    assert all(2 <= n <= c.settings.sqp_iterations + 1 for n in calls)
+    assert max(calls) == c.settings.sqp_iterations + 1
 
 
 def test_the_numpy_path_is_recorded_and_the_ipopt_reference_keeps_it(env):

@@ -1,4 +1,4 @@
-"""The NMPC's real-time iteration in compiled code: one C call per SQP iteration.
+"""The NMPC's real-time iteration in compiled code: one C call per step on smooth references.
 
 Each Gauss-Newton iteration of :meth:`controllers.nmpc.NonlinearMPC._solve_rti` needs, along
 the plan ``u_bar`` from the memory state: the features and their sensitivities ``dF_k/du_j``,
@@ -6,8 +6,9 @@ the network over the horizon with its input gradient, the Jacobian ``dz/du``, th
 ``w J_y'J_y + R`` and vector ``w J_y'(offset + Gamma z - J_y u_bar)`` with ``J_y = Gamma dz/du``,
 and the unconstrained optimum with its bound and rate tests. Called one by one from numpy, the
 operations' overhead is most of the step; here ``nmpc_iterate`` runs them all on preallocated
-buffers. When the unconstrained optimum meets every bound (most steps on smooth references)
-Python takes it; otherwise Python's QP path runs on the Hessian and vector computed here
+buffers, and ``nmpc_rti`` runs the iterations (the same stops) as long as each unconstrained
+optimum meets every bound (most steps on smooth references). An iteration whose optimum
+does not goes back to Python's QP path, on the Hessian and vector computed here
 (:meth:`~controllers.nmpc.NonlinearMPC._solve_qp`, which tries numpy's unconstrained solve
 first, then the QP solver). ``nmpc_apply`` steps the memory with the applied volts and gives
 their z (the nonlinearity's ``step``).
@@ -76,11 +77,11 @@ INSIDE, NEED_QP, ERROR = range(3)
     P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
     P_DIMS, P_SIZES, P_SCALARS, P_COUNT,
 ) = range(41)  # fmt: skip
-D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_COUNT = range(7)
+D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE, D_COUNT = range(9)
 (
     S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED, S_Z_APPLIED,
-    S_COUNT,
-) = range(9)  # fmt: skip
+    S_TOLERANCE, S_COUNT,
+) = range(10)  # fmt: skip
 PARTIALS = ("F", "s_next", "dF_du", "ds_du", "dF_ds", "ds_ds")
 """Outputs of :func:`partials_function`, in order (the last two sparse)."""
 
@@ -99,9 +100,9 @@ enum { P_U, P_MEMORY, P_OFFSET, P_GAMMA, P_RATE_HESSIAN, P_LOWER, P_UPPER, P_WEI
        P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
        P_DIMS, P_SIZES, P_SCALARS };
 enum { R_F, R_S_NEXT, R_DF_DU, R_DS_DU, R_DF_DS, R_DS_DS };
-enum { D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW };
+enum { D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE };
 enum { S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED,
-       S_Z_APPLIED };
+       S_Z_APPLIED, S_TOLERANCE };
 enum { INSIDE, NEED_QP, ERROR };
 
 #define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
@@ -323,6 +324,26 @@ int nmpc_iterate(void **p)
     return INSIDE;
 }
 
+/* NonlinearMPC._solve_rti while every iteration's unconstrained optimum meets the bounds:
+   iterate, move P_U to the optimum, stop after D_ITERATIONS or once no voltage moved more
+   than S_TOLERANCE. INSIDE: P_U is the plan. NEED_QP: iteration D_DONE (counted from 0)
+   needs the QP, on P_HESSIAN and P_Q along P_U (the iterate before it). */
+int nmpc_rti(void **p)
+{
+    const int64_t n = D(p, D_N), iterations = D(p, D_ITERATIONS);
+    int64_t *dims = (int64_t *)p[P_DIMS];
+    double *u = F(p, P_U);
+    const double *u_new = F(p, P_U_NEW);
+    for (int64_t i = 0; i < iterations; ++i) {
+        dims[D_DONE] = i;
+        const int code = nmpc_iterate(p);
+        if (code != INSIDE) return code;
+        for (int64_t j = 0; j < n; ++j) u[j] = u_new[j];
+        if (S(p)[S_STEP] <= S(p)[S_TOLERANCE]) break;
+    }
+    return INSIDE;
+}
+
 /* The nonlinearity's step with the applied volts S_U_APPLIED: P_MEMORY updated in place,
    z in S_Z_APPLIED. */
 int nmpc_apply(void **p)
@@ -425,6 +446,8 @@ class IterationKernel:
         S dt (V), None without a slew limit.
     shortcut : bool
         Try the unconstrained optimum.
+    iterations, step_tolerance : int, float
+        The SQP's iterations per step and its early stop (V), for :meth:`run`.
 
     Attributes
     ----------
@@ -455,6 +478,8 @@ class IterationKernel:
         rate_weight: float,
         slew_step: float | None,
         shortcut: bool,
+        iterations: int,
+        step_tolerance: float,
     ) -> None:
         n = gamma.shape[0]
         n_f, n_state = partials.numel_out(0), partials.numel_out(1)
@@ -470,16 +495,26 @@ class IterationKernel:
         self._keep: list[Any] = []
         sizes = [n_f, *(b.size for b in network.biases)]
         self.dims = np.array(
-            [n, n_f, len(network.biases), n_state, int(shortcut), int(slew_step is not None)],
+            [
+                n,
+                n_f,
+                len(network.biases),
+                n_state,
+                int(shortcut),
+                int(slew_step is not None),
+                iterations,
+                0,
+            ],
             dtype=np.int64,
         )
         self.sizes = np.array(sizes, dtype=np.int64)
         self.scalars = np.zeros(S_COUNT)
-        self.scalars[[S_W, S_RATE_WEIGHT, S_SLEW_STEP, S_OUT_BIAS]] = (
+        self.scalars[[S_W, S_RATE_WEIGHT, S_SLEW_STEP, S_OUT_BIAS, S_TOLERANCE]] = (
             tracking_weight,
             rate_weight,
             0.0 if slew_step is None else slew_step,
             float(network.out_bias),
+            step_tolerance,
         )
         self.u, self.memory, self.offset = np.zeros(n), np.zeros(n_state), np.zeros(n)
         self.z, self.jac = np.zeros(n), np.zeros((n, n))
@@ -533,14 +568,26 @@ class IterationKernel:
             raise ValueError("the partials Function's outputs do not match the feature map")
         pointer = self.table.ctypes.data
         functions = {}
-        for name in ("nmpc_iterate", "nmpc_apply"):
+        for name in ("nmpc_iterate", "nmpc_apply", "nmpc_rti"):
             function = getattr(library, name)
             function.argtypes, function.restype = [ctypes.c_void_p], ctypes.c_int
             functions[name] = function
         self._library = library
         self._iterate = lambda: functions["nmpc_iterate"](pointer)
         self._apply = lambda: functions["nmpc_apply"](pointer)
+        self._rti = lambda: functions["nmpc_rti"](pointer)
         self.calls = 0
+
+    def run(self) -> tuple[int, int]:
+        """The iterations from the plan in :attr:`u` while their unconstrained optima meet
+        the bounds: (:data:`INSIDE`, iterations) with the plan in :attr:`u`, or
+        (:data:`NEED_QP`, the iteration that needs the QP, counted from 0) with its QP in
+        :attr:`hessian` and :attr:`q` along :attr:`u`."""
+        self.calls += 1
+        code = self._rti()
+        if code == ERROR:
+            raise RuntimeError("the compiled NMPC iteration's feature map failed")
+        return code, int(self.dims[D_DONE]) + (code == INSIDE)
 
     def iterate(self) -> int:
         """One iteration along :attr:`u` from :attr:`memory` (:data:`INSIDE`,
