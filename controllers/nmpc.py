@@ -249,6 +249,8 @@ class NonlinearMPC(PredictiveController):
             shortcut=s.shortcut,
             iterations=s.sqp_iterations,
             step_tolerance=s.step_tolerance,
+            phi=self._phi,
+            observation_size=self.task.observation_size,
         )
         return kernel, build
 
@@ -272,17 +274,22 @@ class NonlinearMPC(PredictiveController):
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
-        n = self.model.n_states
-        targets = self.task.targets(observation, self.settings.horizon)
-        # Predicted error without the z contribution: y - r = offset + Gamma z.
-        offset = self._phi @ estimate[:n] + (estimate[n] - targets)
-        low, high = self._slew_window()
-        self._lower[0], self._upper[0] = low, high
-        shifted = self._feasible(np.concatenate((self._plan[1:], self._plan[-1:])))
-        if self.settings.solver == "rti":
-            plan, status, iterations = self._solve_rti(offset, shifted)
+        if self._kernel is not None:
+            low, high = self._slew_window()
+            self._lower[0], self._upper[0] = low, high
+            plan, status, iterations, shifted = self._solve_compiled(observation, estimate)
         else:
-            plan, status, iterations = self._solve_nlp(estimate, targets, shifted)
+            n = self.model.n_states
+            targets = self.task.targets(observation, self.settings.horizon)
+            # Predicted error without the z contribution: y - r = offset + Gamma z.
+            offset = self._phi @ estimate[:n] + (estimate[n] - targets)
+            low, high = self._slew_window()
+            self._lower[0], self._upper[0] = low, high
+            shifted = self._feasible(np.concatenate((self._plan[1:], self._plan[-1:])))
+            if self.settings.solver == "rti":
+                plan, status, iterations = self._solve_rti(offset, shifted)
+            else:
+                plan, status, iterations = self._solve_nlp(estimate, targets, shifted)
         self.stats.iterations.append(iterations)
         self.stats.status[status] += 1
         if plan is None:
@@ -295,6 +302,7 @@ class NonlinearMPC(PredictiveController):
         if self._kernel is None:
             z, self._memory = self.model.nonlinearity.step(u, self._memory)
         else:  # the memory array is the kernel's, stepped in place
+            self._kernel.plan[:] = plan
             z = self._kernel.apply(u)
         self.observer.predict(z)
         self._u_prev = u
@@ -337,8 +345,6 @@ class NonlinearMPC(PredictiveController):
         """
         s = self.settings
         bounds = (self._lower, self._upper)
-        if self._kernel is not None:
-            return self._solve_rti_compiled(offset, u_bar, bounds)
         w, total, status = s.tracking_weight, 0, "solved"
         for iteration in range(s.sqp_iterations):
             z, jac_z = self.horizon.linearize(u_bar, self._memory)
@@ -357,19 +363,31 @@ class NonlinearMPC(PredictiveController):
                 break
         return u_bar, status, total
 
-    def _solve_rti_compiled(
-        self, offset: np.ndarray, u_bar: np.ndarray, bounds: tuple[np.ndarray, np.ndarray]
-    ) -> tuple[np.ndarray | None, str, int]:
-        """:meth:`_solve_rti` with each iteration's linearization, QP and unconstrained
-        optimum in one compiled call; the QP solver runs here when that optimum leaves the
-        bounds."""
-        s, kernel = self.settings, self._kernel
-        if self._memory is not kernel.memory:
+    def _solve_compiled(
+        self, observation: np.ndarray, estimate: np.ndarray
+    ) -> tuple[np.ndarray | None, str, int, np.ndarray]:
+        """The targets, the offset, the shifted plan and :meth:`_solve_rti` through the
+        compiled iteration (:mod:`controllers.native.nmpc_step`): the iterations run in one
+        call while their unconstrained optima meet the bounds, and the QP solver runs here
+        from the first that needs it; (plan or None, status, QP iterations, shifted plan)."""
+        kernel = self._kernel
+        if self._memory is not kernel.memory:  # a new episode's memory, or the first step
             kernel.memory[:] = self._memory
             self._memory = kernel.memory
-        kernel.offset[:] = offset
+            kernel.plan[:] = self._plan
+        kernel.observation[:] = observation
+        kernel.estimate[:] = estimate[: kernel.estimate.size]
         kernel.scalars[nmpc_step.S_U_PREV] = self._u_prev
-        kernel.u[:] = u_bar
+        kernel.prepare()
+        shifted = kernel.u.copy()
+        plan, status, iterations = self._rti_compiled((self._lower, self._upper))
+        return plan, status, iterations, shifted
+
+    def _rti_compiled(
+        self, bounds: tuple[np.ndarray, np.ndarray]
+    ) -> tuple[np.ndarray | None, str, int]:
+        """:meth:`_solve_rti` on the kernel's offset from the plan in ``kernel.u``."""
+        s, kernel = self.settings, self._kernel
         code, first = kernel.run()  # the iterations up to the first that needs the QP
         if code == nmpc_step.INSIDE:
             return kernel.u.copy(), "unconstrained", 0

@@ -99,9 +99,10 @@ def test_linearization_equals_the_structured_horizon(env):
     np.testing.assert_allclose(kernel.q, q, rtol=1e-11, atol=1e-9 * np.max(np.abs(q)))
 
 
-def test_an_unconstrained_step_is_two_compiled_calls(env):
-    """Every SQP iteration of a step in one call while the unconstrained optima meet the
-    bounds (all steps of a half-stroke sine), and one for the memory step."""
+def test_an_unconstrained_step_is_three_compiled_calls(env):
+    """The targets, offset and shifted plan in one call, every SQP iteration of a step in one
+    while the unconstrained optima meet the bounds (all steps of a half-stroke sine), and one
+    for the memory step."""
     c = build(env, compiled=True)
     reference = make_reference("sine-50Hz", 221, dt=1e-3, seed=0)
     obs, _ = env.reset(seed=0, options={"reference": reference})
@@ -112,7 +113,7 @@ def test_an_unconstrained_step_is_two_compiled_calls(env):
         obs, *_ = env.step(c.act(obs))
         calls.append(c._kernel.calls - before)
     assert c.stats.status["unconstrained"] == 200
-    assert calls == [2] * 200
+    assert calls == [3] * 200
 
 
 def test_a_step_with_a_qp_makes_one_call_per_iteration_after_it(env):
@@ -128,9 +129,9 @@ def test_a_step_with_a_qp_makes_one_call_per_iteration_after_it(env):
         obs, *_ = env.step(c.act(obs))
         calls.append(c._kernel.calls - before)
     assert c.stats.status["solved"] > 0
-    # run (up to the QP), one iterate per later iteration, the memory step
-    assert all(2 <= n <= c.settings.sqp_iterations + 1 for n in calls)
-    assert max(calls) == c.settings.sqp_iterations + 1
+    # prepare, run (up to the QP), one iterate per later iteration, the memory step
+    assert all(3 <= n <= c.settings.sqp_iterations + 2 for n in calls)
+    assert max(calls) == c.settings.sqp_iterations + 2
 
 
 def test_the_numpy_path_is_recorded_and_the_ipopt_reference_keeps_it(env):

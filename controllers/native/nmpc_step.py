@@ -75,9 +75,12 @@ INSIDE, NEED_QP, ERROR = range(3)
     P_OUT, P_SKIP, P_Z, P_JAC, P_HESSIAN, P_Q, P_U_NEW, P_LAYERS, P_G, P_G_NEXT, P_GRAD,
     P_JAC_Y, P_CONSTANT, P_FACTOR, P_ARG, P_RES, P_IW, P_W, P_STEP_U, P_STATE, P_TANGENTS,
     P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
-    P_DIMS, P_SIZES, P_SCALARS, P_COUNT,
-) = range(41)  # fmt: skip
-D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE, D_COUNT = range(9)
+    P_DIMS, P_SIZES, P_SCALARS, P_OBSERVATION, P_ESTIMATE, P_PHI, P_PLAN, P_COUNT,
+) = range(45)  # fmt: skip
+(
+    D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE, D_OBSERVATION,
+    D_LINEAR, D_COUNT,
+) = range(11)  # fmt: skip
 (
     S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED, S_Z_APPLIED,
     S_TOLERANCE, S_COUNT,
@@ -98,9 +101,10 @@ enum { P_U, P_MEMORY, P_OFFSET, P_GAMMA, P_RATE_HESSIAN, P_LOWER, P_UPPER, P_WEI
        P_OUT, P_SKIP, P_Z, P_JAC, P_HESSIAN, P_Q, P_U_NEW, P_LAYERS, P_G, P_G_NEXT, P_GRAD,
        P_JAC_Y, P_CONSTANT, P_FACTOR, P_ARG, P_RES, P_IW, P_W, P_STEP_U, P_STATE, P_TANGENTS,
        P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
-       P_DIMS, P_SIZES, P_SCALARS };
+       P_DIMS, P_SIZES, P_SCALARS, P_OBSERVATION, P_ESTIMATE, P_PHI, P_PLAN };
 enum { R_F, R_S_NEXT, R_DF_DU, R_DS_DU, R_DF_DS, R_DS_DS };
-enum { D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE };
+enum { D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE,
+       D_OBSERVATION, D_LINEAR };
 enum { S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED,
        S_Z_APPLIED, S_TOLERANCE };
 enum { INSIDE, NEED_QP, ERROR };
@@ -324,6 +328,41 @@ int nmpc_iterate(void **p)
     return INSIDE;
 }
 
+/* Python's max(a, b) and min(a, b): the first argument unless the second compares beyond it. */
+static double py_max(double a, double b) { return b > a ? b : a; }
+static double py_min(double a, double b) { return b < a ? b : a; }
+
+/* The start of NonlinearMPC._act after the observer's update (P_ESTIMATE = [x; d], the
+   bounds' first entries set to the slew window): the targets r_t+1 .. r_t+N from
+   P_OBSERVATION (ControlTask.targets: the last preview sample holds), P_OFFSET =
+   Phi x + (d - r), and in P_U the previous plan P_PLAN shifted by one sample and made feasible
+   (NonlinearMPC._feasible). */
+void nmpc_prepare(void **p)
+{
+    const int64_t n = D(p, D_N), n_x = D(p, D_LINEAR), size = D(p, D_OBSERVATION);
+    const double *obs = F(p, P_OBSERVATION), *estimate = F(p, P_ESTIMATE), *phi = F(p, P_PHI);
+    const double *plan = F(p, P_PLAN), *lower = F(p, P_LOWER), *upper = F(p, P_UPPER);
+    double *offset = F(p, P_OFFSET), *u = F(p, P_U);
+    const int64_t seen = n < size - 2 ? n : size - 2;
+    for (int64_t i = 0; i < n; ++i) {
+        const double target = i < seen ? obs[2 + i] : obs[size - 1];
+        double sum = 0.0;
+        for (int64_t j = 0; j < n_x; ++j) sum += phi[i * n_x + j] * estimate[j];
+        offset[i] = sum + (estimate[n_x] - target);
+    }
+    for (int64_t i = 0; i < n; ++i) {
+        double v = plan[i + 1 < n ? i + 1 : n - 1];
+        if (v < lower[i]) v = lower[i];  /* np.maximum, np.minimum (NaN passes) */
+        if (v > upper[i]) v = upper[i];
+        u[i] = v;
+    }
+    if (!D(p, D_SLEW)) return;
+    const double step = S(p)[S_SLEW_STEP];
+    double previous = S(p)[S_U_PREV];
+    for (int64_t i = 0; i < n; ++i)
+        previous = u[i] = py_min(py_max(u[i], previous - step), previous + step);
+}
+
 /* NonlinearMPC._solve_rti while every iteration's unconstrained optimum meets the bounds:
    iterate, move P_U to the optimum, stop after D_ITERATIONS or once no voltage moved more
    than S_TOLERANCE. INSIDE: P_U is the plan. NEED_QP: iteration D_DONE (counted from 0)
@@ -448,12 +487,18 @@ class IterationKernel:
         Try the unconstrained optimum.
     iterations, step_tolerance : int, float
         The SQP's iterations per step and its early stop (V), for :meth:`run`.
+    phi, observation_size : numpy.ndarray, int
+        The prediction matrix Phi (N, n) of the linear state and the observation's size, for
+        :meth:`prepare`.
 
     Attributes
     ----------
     u, memory, offset : numpy.ndarray
-        Inputs the caller writes: the plan u_bar (N,), the memory state, the offset (N,).
-        :meth:`apply` steps ``memory`` in place.
+        Inputs the caller writes (or :meth:`prepare`): the plan u_bar (N,), the memory state,
+        the offset (N,). :meth:`apply` steps ``memory`` in place.
+    observation, estimate, plan : numpy.ndarray
+        Inputs of :meth:`prepare` the caller writes: the observation, the observer's
+        ``[x; d]`` and the previous plan (N,).
     z, jac, hessian, q, u_new : numpy.ndarray
         Outputs: z (N,), dz/du (N, N), the QP's Hessian (N, N) and vector (N,), and the
         unconstrained optimum (N,) when the call returned :data:`INSIDE`.
@@ -461,7 +506,7 @@ class IterationKernel:
         w, lambda, u_t-1 (written by the caller), S dt, the network's output bias, the
         largest move of the iteration (V), the applied volts and their z.
     calls : int
-        Compiled calls made (iterations and applies), for tests of the fusion.
+        Compiled calls made (prepare, run, iterate, apply), for tests of the fusion.
     """
 
     def __init__(
@@ -480,6 +525,8 @@ class IterationKernel:
         shortcut: bool,
         iterations: int,
         step_tolerance: float,
+        phi: np.ndarray,
+        observation_size: int,
     ) -> None:
         n = gamma.shape[0]
         n_f, n_state = partials.numel_out(0), partials.numel_out(1)
@@ -491,6 +538,8 @@ class IterationKernel:
             raise ValueError("Gamma must be lower triangular (a causal prediction)")
         if np.any(rate_hessian != rate_hessian.T):
             raise ValueError("the rate penalty's Hessian R must be symmetric")
+        if phi.ndim != 2 or phi.shape[0] != n or observation_size < 3:
+            raise ValueError(f"Phi must be ({n}, n) and the observation hold a preview")
         self.table = np.zeros(P_COUNT, dtype=np.uint64)
         self._keep: list[Any] = []
         sizes = [n_f, *(b.size for b in network.biases)]
@@ -504,6 +553,8 @@ class IterationKernel:
                 int(slew_step is not None),
                 iterations,
                 0,
+                observation_size,
+                phi.shape[1],
             ],
             dtype=np.int64,
         )
@@ -520,6 +571,8 @@ class IterationKernel:
         self.z, self.jac = np.zeros(n), np.zeros((n, n))
         self.hessian, self.q, self.u_new = np.zeros((n, n)), np.zeros(n), np.zeros(n)
         step_u, state = np.zeros(1), np.zeros(n_state)
+        self.observation, self.plan = np.zeros(observation_size), np.zeros(n)
+        self.estimate = np.zeros(phi.shape[1] + 1)
         fs_columns, fs_rows = _ccs(partials.sparsity_out(4))
         ss_starts, ss_columns, ss_order = _crs(partials.sparsity_out(5))
         own = {
@@ -559,6 +612,10 @@ class IterationKernel:
             P_DIMS: self.dims,
             P_SIZES: self.sizes,
             P_SCALARS: self.scalars,
+            P_OBSERVATION: self.observation,
+            P_ESTIMATE: self.estimate,
+            P_PHI: np.ascontiguousarray(phi, dtype=np.float64),
+            P_PLAN: self.plan,
         }
         for index, buffer in own.items():
             self._point(index, buffer)
@@ -576,7 +633,16 @@ class IterationKernel:
         self._iterate = lambda: functions["nmpc_iterate"](pointer)
         self._apply = lambda: functions["nmpc_apply"](pointer)
         self._rti = lambda: functions["nmpc_rti"](pointer)
+        prepare = library.nmpc_prepare
+        prepare.argtypes, prepare.restype = [ctypes.c_void_p], None
+        self._prepare = lambda: prepare(pointer)
         self.calls = 0
+
+    def prepare(self) -> None:
+        """Targets, :attr:`offset` and the shifted, feasible plan in :attr:`u` from
+        :attr:`observation`, :attr:`estimate` and :attr:`plan` (``nmpc_prepare``)."""
+        self.calls += 1
+        self._prepare()
 
     def run(self) -> tuple[int, int]:
         """The iterations from the plan in :attr:`u` while their unconstrained optima meet
