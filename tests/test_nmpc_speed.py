@@ -11,6 +11,7 @@ import pytest
 import controllers
 from benchmarks.references import make_reference
 from controllers.native import nmpc_step
+from piezo_env.amplifier import Amplifier
 
 MODEL_DIR = "docs/identify/model"
 STEPS = 1500
@@ -68,6 +69,53 @@ def test_compiled_iteration_equals_the_numpy_path_in_closed_loop(env, reference_
         assert compiled[2][key] == numpy_path[2][key], key
     if reference_name != "sine-50Hz":
         assert compiled[2]["status"].get("solved", 0) > 0  # the QP path ran
+
+
+@pytest.fixture(scope="module")
+def slewing():
+    """An amplifier whose current limit binds (77 mA): a slew limit of 9.39 V per sample."""
+    environment = gym.make("piezo_env:PiezoBender-v0", preview=20, amplifier=Amplifier(77.0))
+    yield environment
+    environment.close()
+
+
+def test_prepare_equals_the_numpy_step_start_under_a_slew_limit(slewing):
+    """Targets, offset and the shifted plan made feasible (slew window, rate limit) against
+    the numpy path's expressions: the plan exactly (min and max only), the offset to the
+    last bits (a dot product)."""
+    c = build(slewing, compiled=True)
+    kernel, n = c._kernel, c.model.n_states
+    assert c.task.slew_step is not None
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        c._u_prev = float(rng.uniform(-30.0, 30.0))
+        c._plan = rng.uniform(-40.0, 40.0, c.settings.horizon)
+        observation = rng.uniform(-900.0, 900.0, c.task.observation_size)
+        estimate = rng.normal(0.0, 10.0, kernel.estimate.size)
+        c._lower[0], c._upper[0] = c._slew_window()
+        kernel.observation[:], kernel.estimate[:], kernel.plan[:] = observation, estimate, c._plan
+        kernel.scalars[nmpc_step.S_U_PREV] = c._u_prev
+        kernel.prepare()
+        shifted = c._feasible(np.concatenate((c._plan[1:], c._plan[-1:])))
+        np.testing.assert_array_equal(kernel.u, shifted)
+        targets = c.task.targets(observation, c.settings.horizon)
+        offset = c._phi @ estimate[:n] + (estimate[n] - targets)
+        np.testing.assert_allclose(kernel.offset, offset, rtol=1e-13, atol=1e-12)
+
+
+def test_closed_loop_under_a_slew_limit_until_a_kink(slewing):
+    """With the slew limit the plans chatter at the rate bound; a plan with two neighbouring
+    voltages equal in one path and 1e-14 V apart in the other sits on the features' kink at
+    du = 0, where dz/du jumps (measured at step 183 of this episode: plans 2.5e-11 V apart,
+    their Jacobians 0.22 apart), and the paths part there. Before it: the same volts."""
+    reference = make_reference("steps", STEPS + 21, dt=1e-3, seed=0)
+    compiled = episode(build(slewing, compiled=True), slewing, reference)
+    numpy_path = episode(build(slewing, compiled=False), slewing, reference)
+    np.testing.assert_array_equal(compiled[0][:150], numpy_path[0][:150])
+    step = build(slewing, compiled=True).task.slew_step
+    for volts in (compiled[0], numpy_path[0]):
+        assert np.all(np.abs(np.diff(volts)) <= step * (1 + 1e-6))
+    assert compiled[2]["fallbacks"] == numpy_path[2]["fallbacks"] == 0
 
 
 def test_linearization_equals_the_structured_horizon(env):
