@@ -37,7 +37,11 @@ Solvers
     up once per episode; each iteration updates P and q, after trying the unconstrained
     optimum (one N x N solve, exact when it meets every bound, which it does on smooth
     references). Two iterations are the default (one loses accuracy at input reversals);
-    ``benchmarks/results/controller_latency.md`` has the step's cost.
+    ``benchmarks/results/controller_latency.md`` has the step's cost. For the identified NLS
+    each iteration (linearization, QP matrices, unconstrained optimum) and the memory step
+    run as one compiled call each (:mod:`controllers.native.nmpc_step`; the QP solver stays
+    in Python); without a compiler the numpy path above runs, recorded in
+    ``describe()["native"]["nmpc_step"]``.
 ``"ipopt"`` (the reference)
     The full nonlinear program through ``casadi.nlpsol("ipopt")`` with exact derivatives,
     warm-started from the shifted plan, capped by ``ipopt_max_iter`` and
@@ -61,6 +65,8 @@ import numpy as np
 
 from controllers.box_qp import box_qp, solver_version, within
 from controllers.mpc import float32_within
+from controllers.native import nmpc_step
+from controllers.native.codegen import NativeBuild
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
@@ -205,12 +211,54 @@ class NonlinearMPC(PredictiveController):
         self.horizon = make_horizon(self.model, settings.horizon, settings.jacobian)
         if settings.solver == "ipopt":
             self._nlp = self._build_nlp()
+        # The bounds live as long as the controller: the compiled iteration reads them.
+        self._lower = np.full(settings.horizon, -self._u_max)
+        self._upper = np.full(settings.horizon, self._u_max)
+        self._kernel, self._kernel_build = self._iteration_kernel()
+
+    def _iteration_kernel(self) -> tuple[nmpc_step.IterationKernel | None, NativeBuild]:
+        """The compiled iteration (:mod:`controllers.native.nmpc_step`) where this NMPC's
+        step fits it, else None and the record of why the iterations run in numpy. Checked
+        once here, so that the step validates nothing."""
+        why = None
+        if self.settings.solver != "rti":
+            why = f"solver={self.settings.solver!r} (the kernel runs the real-time iteration)"
+        elif not isinstance(self.horizon, StructuredHorizon):
+            why = f"the horizon is {type(self.horizon).__name__} (the kernel needs the NLS's)"
+        elif not self.horizon.native or not self.horizon.native[0].compiled:
+            why = f"the horizon's feature recursion is not compiled ({self.horizon.backend})"
+        if why is not None:
+            return None, nmpc_step.unavailable(why)
+        nls = self.model.nonlinearity.nls
+        partials = nmpc_step.partials_function(nls)
+        library, build = nmpc_step.compile_kernel(partials)
+        if library is None:
+            return None, build
+        s = self.settings
+        kernel = nmpc_step.IterationKernel(
+            library,
+            partials,
+            nls.to_numpy(),
+            self._gamma,
+            self._rate_hessian,
+            self._lower,
+            self._upper,
+            tracking_weight=s.tracking_weight,
+            rate_weight=s.rate_weight,
+            slew_step=self.task.slew_step,
+            shortcut=s.shortcut,
+            iterations=s.sqp_iterations,
+            step_tolerance=s.step_tolerance,
+            phi=self._phi,
+            observation_size=self.task.observation_size,
+        )
+        return kernel, build
 
     def _start(self, start: SteadyStart) -> None:
         s = self.settings
         self._slew_step = self.task.slew_step
-        self._lower = np.full(s.horizon, -self._u_max)
-        self._upper = np.full(s.horizon, self._u_max)
+        self._lower[:] = -self._u_max
+        self._upper[:] = self._u_max
         if s.solver == "rti":  # afresh: no active set, step size or duals carry over episodes
             self._qp = box_qp(
                 s.qp_solver,
@@ -226,17 +274,22 @@ class NonlinearMPC(PredictiveController):
 
     def _act(self, observation: np.ndarray) -> float:
         estimate = self.observer.correct(float(observation[0]))
-        n = self.model.n_states
-        targets = self.task.targets(observation, self.settings.horizon)
-        # Predicted error without the z contribution: y - r = offset + Gamma z.
-        offset = self._phi @ estimate[:n] + (estimate[n] - targets)
-        low, high = self._slew_window()
-        self._lower[0], self._upper[0] = low, high
-        shifted = self._feasible(np.r_[self._plan[1:], self._plan[-1]])
-        if self.settings.solver == "rti":
-            plan, status, iterations = self._solve_rti(offset, shifted)
+        if self._kernel is not None:
+            low, high = self._slew_window()
+            self._lower[0], self._upper[0] = low, high
+            plan, status, iterations, shifted = self._solve_compiled(observation, estimate)
         else:
-            plan, status, iterations = self._solve_nlp(estimate, targets, shifted)
+            n = self.model.n_states
+            targets = self.task.targets(observation, self.settings.horizon)
+            # Predicted error without the z contribution: y - r = offset + Gamma z.
+            offset = self._phi @ estimate[:n] + (estimate[n] - targets)
+            low, high = self._slew_window()
+            self._lower[0], self._upper[0] = low, high
+            shifted = self._feasible(np.concatenate((self._plan[1:], self._plan[-1:])))
+            if self.settings.solver == "rti":
+                plan, status, iterations = self._solve_rti(offset, shifted)
+            else:
+                plan, status, iterations = self._solve_nlp(estimate, targets, shifted)
         self.stats.iterations.append(iterations)
         self.stats.status[status] += 1
         if plan is None:
@@ -246,7 +299,11 @@ class NonlinearMPC(PredictiveController):
         # The plant gets float32 volts: step the memory and the observer with exactly those,
         # kept in the window (the QP meets it to rounding; float32 rounding may step out).
         u = float32_within(min(max(plan[0], low), high), low, high)
-        z, self._memory = self.model.nonlinearity.step(u, self._memory)
+        if self._kernel is None:
+            z, self._memory = self.model.nonlinearity.step(u, self._memory)
+        else:  # the memory array is the kernel's, stepped in place
+            self._kernel.plan[:] = plan
+            z = self._kernel.apply(u)
         self.observer.predict(z)
         self._u_prev = u
         return u
@@ -306,6 +363,56 @@ class NonlinearMPC(PredictiveController):
                 break
         return u_bar, status, total
 
+    def _solve_compiled(
+        self, observation: np.ndarray, estimate: np.ndarray
+    ) -> tuple[np.ndarray | None, str, int, np.ndarray]:
+        """The targets, the offset, the shifted plan and :meth:`_solve_rti` through the
+        compiled iteration (:mod:`controllers.native.nmpc_step`): the iterations run in one
+        call while their unconstrained optima meet the bounds, and the QP solver runs here
+        from the first that needs it; (plan or None, status, QP iterations, shifted plan)."""
+        kernel = self._kernel
+        if self._memory is not kernel.memory:  # a new episode's memory, or the first step
+            kernel.memory[:] = self._memory
+            self._memory = kernel.memory
+            kernel.plan[:] = self._plan
+        kernel.observation[:] = observation
+        kernel.estimate[:] = estimate[: kernel.estimate.size]
+        kernel.scalars[nmpc_step.S_U_PREV] = self._u_prev
+        kernel.prepare()
+        shifted = kernel.u.copy()
+        plan, status, iterations = self._rti_compiled((self._lower, self._upper))
+        return plan, status, iterations, shifted
+
+    def _rti_compiled(
+        self, bounds: tuple[np.ndarray, np.ndarray]
+    ) -> tuple[np.ndarray | None, str, int]:
+        """:meth:`_solve_rti` on the kernel's offset from the plan in ``kernel.u``."""
+        s, kernel = self.settings, self._kernel
+        code, first = kernel.run()  # the iterations up to the first that needs the QP
+        if code == nmpc_step.INSIDE:
+            return kernel.u.copy(), "unconstrained", 0
+        u_bar = kernel.u.copy()
+        total, status = 0, "solved"
+        for iteration in range(first, s.sqp_iterations):
+            if iteration > first:
+                kernel.u[:] = u_bar
+                code = kernel.iterate()
+            if code == nmpc_step.INSIDE:
+                u_new, status = kernel.u_new.copy(), "unconstrained"
+                step = kernel.scalars[nmpc_step.S_STEP]
+            else:  # copies: the next iteration overwrites the kernel's arrays
+                u_new, status, iterations = self._solve_qp(
+                    kernel.hessian.copy(), kernel.q.copy(), u_bar, bounds
+                )
+                total += iterations
+                if u_new is None:
+                    return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
+                step = float(np.max(np.abs(u_new - u_bar)))
+            u_bar = u_new
+            if step <= s.step_tolerance:
+                break
+        return u_bar, status, total
+
     def _solve_qp(
         self,
         hessian: np.ndarray,
@@ -343,7 +450,8 @@ class NonlinearMPC(PredictiveController):
     def _feasible(self, plan: np.ndarray) -> np.ndarray:
         """``plan`` made feasible: clipped to the bounds and, with a slew limit, each move
         limited to S dt from the one before (first move from u_t-1)."""
-        plan = np.clip(plan, self._lower, self._upper)
+        plan = np.maximum(plan, self._lower)  # np.clip's values, without its dispatch cost
+        np.minimum(plan, self._upper, out=plan)
         if self._slew_step is None:
             return plan
         step, previous = self._slew_step, self._u_prev
@@ -405,6 +513,11 @@ class NonlinearMPC(PredictiveController):
         return np.clip(plan, -self._u_max, self._u_max), status, iterations
 
     # -- reports ------------------------------------------------------------------------------
+
+    def native_code(self) -> dict[str, dict[str, Any]]:
+        """The base class's records and ``nmpc_step``: whether the compiled iteration runs
+        (:mod:`controllers.native.nmpc_step`), and why not."""
+        return {**super().native_code(), "nmpc_step": self._kernel_build.to_dict()}
 
     def describe(self) -> dict[str, Any]:
         """Settings, model source, Jacobian path and observer bandwidth (JSON-safe)."""

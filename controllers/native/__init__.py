@@ -6,4 +6,6 @@ through ctypes.
 - :mod:`controllers.native.compiled_inverse`: the NLS inverse (range ends, warm start,
   safeguarded Newton) in one C call.
 - :mod:`controllers.native.nmpc_horizon`: the NMPC's horizon prediction and its sensitivities.
+- :mod:`controllers.native.nmpc_step`: the NMPC's real-time iteration (linearization, QP
+  matrices, unconstrained optimum) and memory step, one C call each.
 """
