@@ -5,6 +5,10 @@ random by default, so a suite could pass on one run and fail on the next; derand
 search is a fixed function of the test, like every other random draw here (seeded generators).
 Explore more widely on purpose with ``HYPOTHESIS_PROFILE=explore``.
 
+The short identification of the PL140 (:func:`fast_pl140_identification`) is made once: the
+records tests compare the identification from files against it, the pipeline tests a second run
+of the same settings.
+
 The tests that need an open Ray connection share one (:func:`ray_connection`): a local Ray
 instance takes seconds to start and its workers seconds more to import the project, and what
 those tests check (task order, errors, a user's controller on Ray workers) does not depend on
@@ -27,6 +31,20 @@ ROOT = Path(__file__).resolve().parents[1]
 settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore", max_examples=2000, database=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
+
+
+@pytest.fixture(scope="session")
+def fast_pl140_identification():
+    """``identify`` of the PL140 with the short settings :data:`short_runs.FAST` and seed
+    :data:`short_runs.FAST_SEED`, from the environment."""
+    from short_runs import FAST, FAST_SEED
+
+    from identification.config import IdentificationConfig
+    from identification.pipeline import identify
+
+    return identify(
+        config=IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
+    )
 
 
 @pytest.fixture(scope="session")
