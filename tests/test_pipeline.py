@@ -93,10 +93,9 @@ def test_nls_refinement_lowers_the_held_out_error_and_is_reported(short_default_
 
 
 def test_without_nls_refinement_the_step_e_network_is_the_model():
-    config = IdentificationConfig(
-        seed=2, features="play", nls_refinement="none", **{**SHORT, "max_epochs": 10}
-    )
-    result = identify(config=config)
+    from short_runs import FAST
+
+    result = identify(config=IdentificationConfig(seed=2, nls_refinement="none", **FAST))
     assert result.report["nls"]["output_error"] is None
     assert "hammerstein_unrefined_nls" not in result.report["validation"]
     assert "nls_refinement" not in result.model.metadata
@@ -104,16 +103,24 @@ def test_without_nls_refinement_the_step_e_network_is_the_model():
 
 
 def test_without_hysteresis_the_nls_is_the_identity_and_the_model_is_the_arx():
+    """On a plant without hysteresis the NLS stays within 0.02 V of the identity over the drive
+    range and the model's free run fits its ARX part's above 99.95 %: about 4x the errors this
+    run makes (0.005 V, 0.012 % misfit; 0.003-0.006 V and 0.007-0.022 % over seeds 1-5) with
+    step e' held to 30 iterations."""
     result = identify(
         config=IdentificationConfig(
-            seed=1, features="play", env_kwargs={"hysteresis": None}, **SHORT
+            seed=1,
+            features="play",
+            env_kwargs={"hysteresis": None},
+            nls_refinement_iterations=30,
+            **SHORT,
         )
     )
     model = result.model
     u = np.random.default_rng(5).uniform(-30, 30, 2000)
     z = model.nls_output(u)
-    assert np.max(np.abs(z - u)) < 0.02 * 30
-    assert fit_percent(model.arx.simulate(u), model.simulate(u)) > 99.0
+    assert np.max(np.abs(z - u)) < 0.02
+    assert fit_percent(model.arx.simulate(u), model.simulate(u)) > 99.95
 
 
 def test_same_seed_same_model(fast_pl140_identification):
