@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import operator
 
+import faulty
 import pytest
 
 from benchmarks.report import deterministic_json, tracking_tables
@@ -147,19 +148,8 @@ def test_ray_backend_raises_the_task_error(ray_connection):
 
 
 
-def _fail_first(i: int, folder: str) -> int:
-    import time
-    from pathlib import Path
-
-    (Path(folder) / f"started-{i}").touch()
-    if i == 0:
-        raise ValueError("task 0 broke")
-    time.sleep(0.5)
-    return i
-
-
 def test_the_local_pool_raises_the_first_failure_without_running_the_rest(tmp_path):
     with pytest.raises(ValueError, match="task 0 broke"):
-        run_tasks(_fail_first, [(i, str(tmp_path)) for i in range(12)], jobs=2)
+        run_tasks(faulty.fail_first, [(i, str(tmp_path)) for i in range(12)], jobs=2)
     # Raised as soon as task 0 failed: the tasks not yet started are cancelled, not run.
     assert len(list(tmp_path.iterdir())) <= 4
