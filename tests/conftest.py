@@ -1,14 +1,73 @@
-"""Test-wide settings: property-based tests draw the same examples on every run and machine.
+"""Test-wide settings and shared fixtures.
 
-Hypothesis explores at random by default, so a suite could pass on one run and fail on the
-next; derandomized, its search is a fixed function of the test, like every other random draw
-here (seeded generators). Explore more widely on purpose with ``HYPOTHESIS_PROFILE=explore``.
+Property-based tests draw the same examples on every run and machine: Hypothesis explores at
+random by default, so a suite could pass on one run and fail on the next; derandomized, its
+search is a fixed function of the test, like every other random draw here (seeded generators).
+Explore more widely on purpose with ``HYPOTHESIS_PROFILE=explore``.
+
+The short identification of the PL140 (:func:`fast_pl140_identification`) is made once: the
+records tests compare the identification from files against it, the pipeline tests a second run
+of the same settings.
+
+The tests that need an open Ray connection share one (:func:`ray_connection`): a local Ray
+instance takes seconds to start and its workers seconds more to import the project, and what
+those tests check (task order, errors, a user's controller on Ray workers) does not depend on
+whose connection it is. The path that starts and stops a private instance is tested on its
+own (tests/test_backends.py).
 """
 
-import os
+from __future__ import annotations
 
+import os
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
 from hypothesis import settings
+
+ROOT = Path(__file__).resolve().parents[1]
 
 settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore", max_examples=2000, database=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
+
+
+@pytest.fixture(scope="session")
+def fast_pl140_identification():
+    """``identify`` of the PL140 with the short settings :data:`short_runs.FAST` and seed
+    :data:`short_runs.FAST_SEED`, from the environment."""
+    from short_runs import FAST, FAST_SEED
+
+    from identification.config import IdentificationConfig
+    from identification.pipeline import identify
+
+    return identify(
+        config=IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
+    )
+
+
+@pytest.fixture(scope="session")
+def _ray_closed_at_exit() -> Iterator[None]:
+    """Shut down a Ray connection the tests left open when the session ends, so that no Ray
+    process outlives the test run."""
+    yield
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        ray.shutdown()
+
+
+@pytest.fixture
+def ray_connection(_ray_closed_at_exit: None, monkeypatch: pytest.MonkeyPatch):
+    """An open local Ray connection with two CPUs, opened the way a user's script opens one
+    (:func:`piezo_parallel.backends.connect_ray`, from the project folder, so that the workers
+    import the project, its examples and the test modules) and kept open for the tests after
+    this one; returns the ``ray`` module."""
+    import ray
+
+    from piezo_parallel.backends import connect_ray
+
+    with monkeypatch.context() as patch:
+        patch.chdir(ROOT)  # the workers' import path starts at the current folder
+        connect_ray(jobs=2)
+    return ray

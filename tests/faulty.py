@@ -1,6 +1,6 @@
 """Tasks and a controller whose worker process dies, as the out-of-memory killer would end it
-(SIGKILL): the fault tests run them in spawned workers, which import this module by name, so it
-imports nothing heavy at the top."""
+(SIGKILL), and a task that fails: the backend and fault tests run them in spawned workers, which
+import this module by name, so it imports nothing heavy at the top."""
 
 from __future__ import annotations
 
@@ -20,6 +20,18 @@ def die_once(i: int, folder: str) -> int:
         marker.touch()
         os.kill(os.getpid(), signal.SIGKILL)
     return 3 * i
+
+
+def fail_first(i: int, folder: str) -> int:
+    """``i`` after half a second; task 0 raises at once (each task leaves ``started-i`` in
+    ``folder``)."""
+    import time
+
+    (Path(folder) / f"started-{i}").touch()
+    if i == 0:
+        raise ValueError("task 0 broke")
+    time.sleep(0.5)
+    return i
 
 
 def always_die(i: int) -> int:

@@ -1,16 +1,17 @@
-"""Backends of the benchmark: task order, refusals, and Ray bitwise equal to the local pool.
+"""Backends of the benchmark: task order, refusals, and Ray bitwise equal to the local runs.
 
-The Ray tests share one private local Ray instance (module fixture, about 5 s to start), shut
-down at the end so that no Ray process outlives the test run. Ray is in the ``test`` extra, so
-these tests run in CI rather than skip.
+The Ray tests that need an open connection share the session's (``ray_connection`` in
+tests/conftest.py), shut down when the session ends so that no Ray process outlives the test
+run; the default path, a private instance started and shut down by the call itself, has its own
+test. Ray is in the ``test`` extra, so these tests run in CI rather than skip.
 """
 
 from __future__ import annotations
 
 import json
 import operator
-from collections.abc import Iterator
 
+import faulty
 import pytest
 
 from benchmarks.report import deterministic_json, tracking_tables
@@ -31,22 +32,6 @@ SMALL = dict(
 
 def _refuse(*args, **kwargs):
     raise AssertionError("work started before the arguments were checked")
-
-
-@pytest.fixture(scope="module")
-def ray_instance() -> Iterator[object]:
-    """One private local Ray instance with two CPUs for the module, shut down after."""
-    import ray
-
-    ray.init(
-        address="local",
-        num_cpus=2,
-        include_dashboard=False,
-        log_to_driver=False,
-        configure_logging=False,
-    )
-    yield ray
-    ray.shutdown()
 
 
 def test_backends_list_ray_and_refuse_unknown_names():
@@ -107,21 +92,40 @@ def test_local_backend_keeps_task_order_with_a_pool():
     assert sorted(label for _, _, label in seen) == sorted(f"t{i}" for i in range(7))
 
 
-def test_small_benchmark_on_ray_is_bitwise_equal_to_local():
-    """The default path: ``run_tasks`` starts a private Ray instance and shuts it down after."""
+def test_the_default_ray_path_starts_a_private_instance_and_shuts_it_down():
+    """Without an open connection ``run_tasks`` starts a private Ray instance (the tasks see it
+    running) and shuts it down after. Builtin tasks: the benchmark's own tasks on Ray are the
+    next test's, on the shared connection, which :func:`connect_ray` opens as this path does."""
     import ray
 
-    already_open = ray.is_initialized()
-    local = run_benchmark(BenchmarkConfig(**SMALL, backend="local"), MODEL_DIR)
+    if ray.is_initialized():  # the shared connection of tests that ran earlier
+        ray.shutdown()
+    running = []
+    results = run_tasks(
+        operator.mul,
+        [(i, 3) for i in range(4)],
+        jobs=2,
+        backend="ray",
+        progress=lambda done, total, label: running.append(ray.is_initialized()),
+    )
+    assert results == [0, 3, 6, 9]
+    assert running == [True] * 4
+    assert not ray.is_initialized()
+
+
+def test_small_benchmark_on_ray_is_bitwise_equal_to_local(ray_connection):
+    """The reference runs in this process (``jobs=1``); tests/test_benchmark.py shows the local
+    pool's results equal to those bit for bit."""
+    local = run_benchmark(BenchmarkConfig(**{**SMALL, "jobs": 1}, backend="local"), MODEL_DIR)
     on_ray = run_benchmark(BenchmarkConfig(**SMALL, backend="ray"), MODEL_DIR)
     assert tracking_tables(on_ray) == tracking_tables(local)
     assert json.dumps(deterministic_json(on_ray)) == json.dumps(deterministic_json(local))
     assert json.dumps(on_ray.traces) == json.dumps(local.traces)
     assert len(on_ray.episodes) == 2 * 2
-    assert ray.is_initialized() == already_open
+    assert ray_connection.is_initialized()
 
 
-def test_ray_backend_keeps_task_order_and_reports_progress(ray_instance):
+def test_ray_backend_keeps_task_order_and_reports_progress(ray_connection):
     seen = []
     results = run_tasks(
         operator.mul,
@@ -134,29 +138,18 @@ def test_ray_backend_keeps_task_order_and_reports_progress(ray_instance):
     assert results == [3 * i for i in range(9)]
     assert [d for d, _, _ in seen] == list(range(1, 10)) and {t for _, t, _ in seen} == {9}
     assert sorted(label for _, _, label in seen) == sorted(f"t{i}" for i in range(9))
-    assert ray_instance.is_initialized()  # a connection the caller opened stays open
+    assert ray_connection.is_initialized()  # a connection the caller opened stays open
 
 
-def test_ray_backend_raises_the_task_error(ray_instance):
+def test_ray_backend_raises_the_task_error(ray_connection):
     # Workers import the function by its module, which a test file is not: use a builtin.
     with pytest.raises(ZeroDivisionError):
         run_tasks(operator.truediv, [(1, 1), (1, 0), (2, 1)], jobs=2, backend="ray")
 
 
 
-def _fail_first(i: int, folder: str) -> int:
-    import time
-    from pathlib import Path
-
-    (Path(folder) / f"started-{i}").touch()
-    if i == 0:
-        raise ValueError("task 0 broke")
-    time.sleep(0.5)
-    return i
-
-
 def test_the_local_pool_raises_the_first_failure_without_running_the_rest(tmp_path):
     with pytest.raises(ValueError, match="task 0 broke"):
-        run_tasks(_fail_first, [(i, str(tmp_path)) for i in range(12)], jobs=2)
+        run_tasks(faulty.fail_first, [(i, str(tmp_path)) for i in range(12)], jobs=2)
     # Raised as soon as task 0 failed: the tasks not yet started are cancelled, not run.
     assert len(list(tmp_path.iterdir())) <= 4

@@ -46,7 +46,7 @@ def test_a_cell_pools_identification_and_noise_seeds():
     assert cell["rmse_ci95_percent"] == pytest.approx(expected, rel=1e-3)
 
 
-def test_rows_on_the_identified_model_run_once_per_model_and_the_oracle_once():
+def test_rows_on_the_identified_model_run_once_per_model_and_the_oracle_once(one_seed):
     config = BenchmarkConfig(
         controllers=("mpc", "mpc-oracle"), references=("sine-10Hz",), plants=("nominal",),
         steps=60, identification_seeds=2,
@@ -58,17 +58,13 @@ def test_rows_on_the_identified_model_run_once_per_model_and_the_oracle_once():
     assert len(oracle) == 1 and "identification_seed" not in oracle[0]
     assert mpc[0]["rmse_percent"] != mpc[1]["rmse_percent"]  # two models, two results
     # The first model's run is the one-model run's, bit for bit.
-    single = run_benchmark(
-        BenchmarkConfig(controllers=("mpc",), references=("sine-10Hz",), plants=("nominal",),
-                        steps=60),
-        MODELS[0],
-    )
-    assert single.episodes[0]["rmse_percent"] == mpc[0]["rmse_percent"]
+    assert one_seed["results"]["episodes"][0]["rmse_percent"] == mpc[0]["rmse_percent"]
     with pytest.raises(ValueError, match="one folder per identification seed"):
         run_benchmark(config, MODELS[0])
 
 
 def _run_data(seeds: int) -> dict:
+    """``mpc`` on the first model, nominal plant, sine-10Hz, 60 steps, ``seeds`` noise seeds."""
     config = BenchmarkConfig(
         controllers=("mpc",), references=("sine-10Hz",), plants=("nominal",), steps=60,
         seeds=seeds,
@@ -76,9 +72,15 @@ def _run_data(seeds: int) -> dict:
     return {"results": deterministic_json(run_benchmark(config, MODELS[0]))}
 
 
-def test_compare_pairs_runs_on_their_shared_seeds():
+@pytest.fixture(scope="module")
+def one_seed() -> dict:
+    """:func:`_run_data` with one noise seed, run once for the module's tests."""
+    return _run_data(1)
+
+
+def test_compare_pairs_runs_on_their_shared_seeds(one_seed):
     three = _run_data(3)
-    one = _run_data(1)
+    one = copy.deepcopy(one_seed)
     table, marked = compare_runs(one, three)
     assert marked == 0, table  # seed 0 agrees; the other seeds are not a change
     assert "seeds differ" in table and "1 shared" in table

@@ -7,6 +7,7 @@ sensitivity).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import subprocess
@@ -28,10 +29,46 @@ MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "identify" / "mod
 MS_MAX = 1.8
 
 
+PRESETS = ("pid", "pid-notch", "pid-ff")
+
+
 @pytest.fixture(scope="module")
 def model():
     env = gym.make("piezo_env:PiezoBender-v0", preview=20)
     return controllers.prediction_model(MODEL_DIR, env)
+
+
+@pytest.fixture(scope="module")
+def identified_controllers(model) -> dict[str, object]:
+    """The presets tuned on the identified model for the nominal bender, built once for the
+    tests that check them."""
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    return {name: controllers.make(name, model, env) for name in PRESETS}
+
+
+@pytest.fixture(scope="module")
+def plant_controllers():
+    """``plant_controllers(bender)``: the presets tuned on the true plant of ``bender``, built
+    once per bender for the tests that check them."""
+
+    @functools.cache
+    def build(bender: str) -> dict[str, object]:
+        env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
+        return {name: controllers.make(name, "plant", env) for name in PRESETS}
+
+    return build
+
+
+@pytest.fixture(scope="module")
+def true_vertex_model():
+    """``true_vertex_model((gain, resonance, damping))``: the prediction model of the env's
+    own bender on that vertex of the datasheet box, built once per vertex."""
+
+    @functools.cache
+    def build(vertex: tuple[float, float, float]) -> PredictionModel:
+        return PredictionModel.from_plant(vertex_env(vertex).unwrapped.model)
+
+    return build
 
 
 def _tune(model: PredictionModel, notched: bool) -> PIDGains:
@@ -74,32 +111,49 @@ print(json.dumps(out))
 """
 
 
-def _gains_with_threads(threads: tuple[int, ...]) -> list[dict[str, list[float]]]:
-    """The tuned gains in fresh interpreters, one per BLAS thread count, run side by side."""
-    runs = []
-    for n in threads:
-        env = {**os.environ}
-        for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-            env[var] = str(n)
-        runs.append(
-            subprocess.Popen(
-                [sys.executable, "-c", _PRINT_GAINS.replace("MODEL", repr(MODEL_DIR))],
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
-            )
-        )
-    out = []
-    for run in runs:
-        stdout, stderr = run.communicate(timeout=120)
-        assert run.returncode == 0, stderr
-        out.append(json.loads(stdout.strip().splitlines()[-1]))
-    return out
+def _gains_with_threads(n: int) -> dict[str, list[float]]:
+    """The tuned gains (as ``_PRINT_GAINS`` prints them) in a fresh interpreter whose BLAS and
+    OpenMP run ``n`` threads."""
+    env = {**os.environ}
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        env[var] = str(n)
+    run = subprocess.run(
+        [sys.executable, "-c", _PRINT_GAINS.replace("MODEL", repr(MODEL_DIR))],
+        capture_output=True, text=True, env=env, timeout=120,
+    )
+    assert run.returncode == 0, run.stderr
+    return json.loads(run.stdout.strip().splitlines()[-1])
 
 
-def test_gains_do_not_depend_on_the_blas_thread_count():
-    one, two = _gains_with_threads((1, 2))
-    for name in one:
-        np.testing.assert_allclose(one[name], two[name], rtol=1e-9, atol=1e-15, err_msg=name)
-    assert one["pid"][1] > 0.1  # a live integrator (a dead controller once came out at 3.5e-5)
+def _blas_threads() -> int:
+    """The most threads a BLAS library of this process runs."""
+    from threadpoolctl import threadpool_info
+
+    return max(info["num_threads"] for info in threadpool_info() if info["user_api"] == "blas")
+
+
+@pytest.fixture(scope="module")
+def gains_here(identified_controllers) -> tuple[dict[str, list[float]], int]:
+    """The gains of ``pid`` and ``pid-notch`` tuned in this process, as ``_PRINT_GAINS`` prints
+    them, and the BLAS threads of this process."""
+    out = {}
+    for name in ("pid", "pid-notch"):
+        c = identified_controllers[name]
+        out[name] = [c.gains.kp, c.gains.ki, c.gains.kd]
+        if c.notch is not None:
+            out[name + " notch damping"] = [c.notch_damping]
+    return out, _blas_threads()
+
+
+def test_gains_do_not_depend_on_the_blas_thread_count(gains_here):
+    """The gains tuned in this process equal those of a fresh interpreter on another BLAS
+    thread count: one if this process runs more, else two."""
+    here, threads = gains_here
+    there = _gains_with_threads(2 if threads == 1 else 1)
+    assert here.keys() == there.keys()
+    for name in here:
+        np.testing.assert_allclose(here[name], there[name], rtol=1e-9, atol=1e-15, err_msg=name)
+    assert here["pid"][1] > 0.1  # a live integrator (a dead controller once came out at 3.5e-5)
 
 
 def _sensitivity_peak(model: PredictionModel, gains: PIDGains, notch) -> tuple[float, bool]:
@@ -143,11 +197,9 @@ def test_an_unreachable_bound_is_refused():
 
 
 @pytest.mark.parametrize("bender", ["PL112", "PL122", "PL127", "PL128", "PL140"])
-def test_every_preset_tunes_on_every_bender(bender):
+def test_every_preset_tunes_on_every_bender(bender, plant_controllers):
     """Resonances near or above Nyquist (PL112, PL122 alias at 1 kHz) included."""
-    env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender=bender)
-    for name in ("pid", "pid-notch", "pid-ff"):
-        controller = controllers.make(name, "plant", env)
+    for name, controller in plant_controllers(bender).items():
         ms, stable = _sensitivity_peak(controller.model, controller.gains, controller.notch)
         assert stable and ms <= MS_MAX * 1.01, (bender, name, ms)
 
@@ -182,7 +234,7 @@ def nominal_env():
     return gym.make("piezo_env:PiezoBender-v0", preview=20)
 
 
-def test_vertex_models_are_the_benders_of_the_box(nominal_env):
+def test_vertex_models_are_the_benders_of_the_box(nominal_env, true_vertex_model):
     """Built from the nominal plant's model alone, each vertex has the true vertex bender's
     first resonance, damping ratio and static gain (the env builds those from the datasheet;
     the vertex model moves one mode of the nominal model)."""
@@ -191,9 +243,7 @@ def test_vertex_models_are_the_benders_of_the_box(nominal_env):
     vertices = vertex_models(model, ToleranceBox())
     assert len(vertices) == len(VERTICES) == 8
     for vertex, vertex_model in vertices:
-        true = PredictionModel.from_plant(
-            vertex_env((vertex.gain, vertex.resonance, vertex.damping)).unwrapped.model
-        )
+        true = true_vertex_model((vertex.gain, vertex.resonance, vertex.damping))
         f_true, zeta_true, _ = resonance(true.a, true.dt)
         f_model, zeta_model, _ = resonance(vertex_model.a, vertex_model.dt)
         assert f_model == pytest.approx(f_true, rel=1e-6), vertex
@@ -207,13 +257,12 @@ def _dc_gain(model: PredictionModel) -> float:
     return float(model.c[0] @ per_z)
 
 
-@pytest.mark.parametrize("name", ["pid", "pid-notch", "pid-ff"])
-def test_the_tuned_loop_keeps_its_margin_on_every_vertex(model, name):
+@pytest.mark.parametrize("name", PRESETS)
+def test_the_tuned_loop_keeps_its_margin_on_every_vertex(model, identified_controllers, name):
     """Each vertex model of the identified model, closed by the controller tuned for the
     nominal one: stable (python-control's closed-loop poles) with Ms <= ms_max on
     python-control's own dense linear grid, and the nominal model too."""
-    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
-    controller = controllers.make(name, model, env)
+    controller = identified_controllers[name]
     assert len(controller.vertices) == 8
     plants = [model, *(vertex_model for _, vertex_model in controller.vertices)]
     for plant in plants:
@@ -221,14 +270,13 @@ def test_the_tuned_loop_keeps_its_margin_on_every_vertex(model, name):
         assert stable and ms <= MS_MAX * 1.002, (name, ms)
 
 
-def test_the_margin_holds_on_the_true_vertex_benders(nominal_env):
+def test_the_margin_holds_on_the_true_vertex_benders(plant_controllers, true_vertex_model):
     """Tuned on the nominal plant's model, the loops hold their margin on the benders of the
     box themselves (the env's FE models, with their aliased second modes): measured worst Ms
     1.79 against the bound 1.8."""
-    model = PredictionModel.from_plant(nominal_env.unwrapped.model)
-    built = [controllers.make(name, model, nominal_env) for name in ("pid", "pid-notch")]
+    built = [plant_controllers("PL140")[name] for name in ("pid", "pid-notch")]
     for vertex in VERTICES:
-        true = PredictionModel.from_plant(vertex_env(vertex).unwrapped.model)
+        true = true_vertex_model(vertex)
         for controller in built:
             ms, stable = _sensitivity_peak(true, controller.gains, controller.notch)
             assert stable and ms <= MS_MAX * 1.01, (controller.name, vertex, ms)

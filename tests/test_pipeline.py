@@ -93,10 +93,9 @@ def test_nls_refinement_lowers_the_held_out_error_and_is_reported(short_default_
 
 
 def test_without_nls_refinement_the_step_e_network_is_the_model():
-    config = IdentificationConfig(
-        seed=2, features="play", nls_refinement="none", **{**SHORT, "max_epochs": 10}
-    )
-    result = identify(config=config)
+    from short_runs import FAST
+
+    result = identify(config=IdentificationConfig(seed=2, nls_refinement="none", **FAST))
     assert result.report["nls"]["output_error"] is None
     assert "hammerstein_unrefined_nls" not in result.report["validation"]
     assert "nls_refinement" not in result.model.metadata
@@ -104,27 +103,46 @@ def test_without_nls_refinement_the_step_e_network_is_the_model():
 
 
 def test_without_hysteresis_the_nls_is_the_identity_and_the_model_is_the_arx():
+    """On a plant without hysteresis the NLS stays within 0.02 V of the identity over the drive
+    range and the model's free run fits its ARX part's above 99.95 %: about 4x the errors this
+    run makes (0.005 V, 0.012 % misfit; 0.003-0.006 V and 0.007-0.022 % over seeds 1-5) with
+    step e' held to 30 iterations."""
     result = identify(
         config=IdentificationConfig(
-            seed=1, features="play", env_kwargs={"hysteresis": None}, **SHORT
+            seed=1,
+            features="play",
+            env_kwargs={"hysteresis": None},
+            nls_refinement_iterations=30,
+            **SHORT,
         )
     )
     model = result.model
     u = np.random.default_rng(5).uniform(-30, 30, 2000)
     z = model.nls_output(u)
-    assert np.max(np.abs(z - u)) < 0.02 * 30
-    assert fit_percent(model.arx.simulate(u), model.simulate(u)) > 99.0
+    assert np.max(np.abs(z - u)) < 0.02
+    assert fit_percent(model.arx.simulate(u), model.simulate(u)) > 99.95
 
 
-def test_same_seed_same_model():
-    config = IdentificationConfig(
-        seed=3, features="play", nls_refinement_iterations=30, **{**SHORT, "max_epochs": 10}
-    )  # every stage runs (the learned radii's included), shortened: the same bits either way
-    a = identify(config=config).model
-    b = identify(config=config).model
+def test_same_seed_same_model(fast_pl140_identification):
+    """A second run of the session's short identification (every step runs, step e' with its
+    learned radii included) gives the same bits: the model, and step e''s outcome, which the
+    model holds only when step e' is accepted."""
+    from short_runs import FAST, FAST_SEED
+
+    first = fast_pl140_identification
+    again = identify(
+        config=IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
+    )
+    a, b = first.model, again.model
     u = np.random.default_rng(0).uniform(-30, 30, 500)
     assert np.array_equal(a.simulate(u), b.simulate(u))
     assert np.array_equal(a.arx.theta, b.arx.theta)
+    refined = [
+        {k: v for k, v in r.report["nls"]["output_error"].items() if k != "wall_time_s"}
+        for r in (first, again)
+    ]
+    assert refined[0]["stages"][0]["radii_after"]  # the learned radii's stage ran
+    assert refined[0] == refined[1]
 
 
 def test_inverse_arx_recovers_the_input_of_a_minimum_phase_model():

@@ -156,13 +156,16 @@ def _run(tmp_path, backend: str, jobs: int) -> dict:
     return json.loads((out / "benchmark.json").read_text())
 
 
-def test_the_example_runs_through_piezo_benchmark_on_both_backends(tmp_path):
-    runs = [_run(tmp_path, "local", 1), _run(tmp_path, "local", 2), _run(tmp_path, "ray", 2)]
-    rows = {e["controller"] for e in runs[0]["results"]["episodes"]}
+def test_the_example_runs_through_piezo_benchmark_on_both_backends(tmp_path, ray_connection):
+    """The user's controllers (the example, found from the project folder, and one defined in
+    this module) give the same episodes in this process and on Ray workers, which import them
+    by their entry points. (Spawned local workers import a test module's controller the same
+    way: tests/test_faults.py, with the local pool's results bitwise equal to this process's.)"""
+    local, on_ray = _run(tmp_path, "local", 1), _run(tmp_path, "ray", 2)
+    rows = {e["controller"] for e in local["results"]["episodes"]}
     assert rows == {"pid", "FeedforwardPI", "slow", "Bare"}  # Bare: defined in this module
-    assert runs[0]["controllers"]["slow"]["ki"] == 0.2
-    for other in runs[1:]:
-        assert other["results"]["episodes"] == runs[0]["results"]["episodes"]
+    assert local["controllers"]["slow"]["ki"] == 0.2
+    assert on_ray["results"]["episodes"] == local["results"]["episodes"]
 
 
 def test_a_broken_entry_point_stops_the_benchmark_before_any_work(tmp_path, monkeypatch, capsys):

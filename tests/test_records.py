@@ -11,6 +11,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+from short_runs import FAST, FAST_SEED
 
 from identification.config import IdentificationConfig
 from identification.pipeline import identify, identify_records
@@ -26,16 +27,6 @@ from identification.records import (
 from piezo_cli.main import main
 from piezo_env import default_dt
 
-# The cheapest identification the tests run: short records, one feature set, few iterations.
-FAST = {
-    "features": "play",
-    "prbs_samples": 2000,
-    "rich_samples": 2000,
-    "validation_samples": 1000,
-    "max_epochs": 10,
-    "nls_refinement_iterations": 10,
-    "orders": (2, 4),
-}
 STEPS = {k: v for k, v in FAST.items() if not k.endswith("_samples")}
 """The settings of steps b-f alone: record lengths come from the records."""
 
@@ -44,14 +35,27 @@ def _model_arrays(model) -> dict[str, np.ndarray]:
     return {"theta": model.arx.theta, **model.nls.arrays()}
 
 
+def _excite_and_measure(root: Path, config: IdentificationConfig, bender: str) -> Path:
+    """Excitation records of ``config`` written to ``root/excitation`` and measured on
+    ``bender`` by ``piezo simulate --records`` into ``root/measured``, as the CLI does."""
+    write_excitation(root / "excitation", config, bender=bender, dt=default_dt(bender))
+    argv = ["simulate", "--records", str(root / "excitation"), "--bender", bender]
+    assert main([*argv, "--out", str(root / "measured")]) == 0
+    return root / "measured"
+
+
 @pytest.fixture(scope="module")
 def measured(tmp_path_factory) -> Path:
-    """Short records of the PL140 (seed 3), excited and measured as the CLI does."""
-    root = tmp_path_factory.mktemp("records")
-    config = IdentificationConfig(seed=3, **FAST)
-    write_excitation(root / "excitation", config, bender="PL140", dt=1e-3)
-    assert main(["simulate", "--records", str(root / "excitation"), "--out", str(root / "m")]) == 0
-    return root / "m"
+    """Short records of the PL140 (the seed of the session's short run), excited and measured
+    as the CLI does."""
+    config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
+    return _excite_and_measure(tmp_path_factory.mktemp("records"), config, "PL140")
+
+
+@pytest.fixture(scope="module")
+def identified_from_measured(measured):
+    """``identify_records`` on :func:`measured`, with the short settings of steps b-f."""
+    return identify_records(measured, config=IdentificationConfig(**STEPS))
 
 
 def _copy(measured: Path, tmp_path: Path) -> Path:
@@ -71,27 +75,30 @@ def _edit_line(path: Path, line: int, column: str, value: str) -> None:
 
 
 @pytest.mark.parametrize("bender", ["PL140", "PL127"])
-def test_excite_simulate_identify_round_trip_gives_the_env_model(bender, tmp_path, capsys):
+def test_excite_simulate_identify_round_trip_gives_the_env_model(bender, tmp_path, request):
     """The CLI's excite -> simulate --records -> identify_records on the files gives bitwise
-    the model identify(env) gives with the same settings and seed."""
-    dt = default_dt(bender)
-    config = IdentificationConfig(seed=3, env_kwargs={"bender": bender}, **FAST)
-    reference = identify(config=config)
-    write_excitation(tmp_path / "excitation", config, bender=bender, dt=dt)
-    manifest, inputs = read_excitation(tmp_path / "excitation")
+    the model identify(env) gives with the same settings and seed. (The PL140's runs are
+    shared: the session's run from the env, the module's records and their identification.)"""
+    config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": bender}, **FAST)
+    if bender == "PL140":
+        reference = request.getfixturevalue("fast_pl140_identification")
+        folder = request.getfixturevalue("measured")
+        result = request.getfixturevalue("identified_from_measured")
+    else:
+        reference = identify(config=config)
+        folder = _excite_and_measure(tmp_path, config, bender)
+        result = identify_records(folder, config=IdentificationConfig(**STEPS))
+    manifest, inputs = read_excitation(folder.parent / "excitation")
     expected = {"prbs", "rich", "selection", "validation"}
     assert set(manifest["records"]) == set(manifest["purposes"]) == expected
     np.testing.assert_array_equal(inputs["prbs"], reference.data["u_prbs"])
-    argv = ["simulate", "--records", str(tmp_path / "excitation"), "--bender", bender]
-    assert main([*argv, "--out", str(tmp_path / "measured")]) == 0
-    result = identify_records(tmp_path / "measured", config=IdentificationConfig(**STEPS))
     got, want = _model_arrays(result.model), _model_arrays(reference.model)
     assert got.keys() == want.keys()
     for name in want:
         np.testing.assert_array_equal(got[name], want[name], err_msg=name)
     assert result.report["validation"] == reference.report["validation"]
     source = result.model.metadata["records"]
-    manifest_path = tmp_path / "measured" / "records.json"
+    manifest_path = folder / "records.json"
     assert source["kind"] == "records" and source["manifest"] == str(manifest_path.resolve())
     import hashlib
 
@@ -343,10 +350,10 @@ def test_split_without_records_is_refused(tmp_path, capsys):
     assert not (tmp_path / "new").exists()
 
 
-def test_arrays_identify_as_the_folder_they_were_read_from(measured):
+def test_arrays_identify_as_the_folder_they_were_read_from(measured, identified_from_measured):
     config = IdentificationConfig(**STEPS)
     records = read_records(measured, config)
-    from_folder = identify_records(measured, config=config)
+    from_folder = identified_from_measured
     from_arrays = identify_records(
         records.records,
         dt=records.dt,

@@ -36,16 +36,24 @@ def test_the_committed_runs_follow_the_schema(run):
     jsonschema.validate(json.loads((ROOT / "docs" / run / "benchmark.json").read_text()), SCHEMA)
 
 
-def test_a_fresh_run_follows_the_schema_and_a_broken_one_does_not(tmp_path):
-    data = _run(tmp_path, "a")
+@pytest.fixture(scope="module")
+def fresh(tmp_path_factory) -> Path:
+    """The folder of a fresh small run (:func:`_run`), made once for the module's tests."""
+    folder = tmp_path_factory.mktemp("runs")
+    _run(folder, "fresh")
+    return folder / "fresh"
+
+
+def test_a_fresh_run_follows_the_schema_and_a_broken_one_does_not(fresh):
+    data = json.loads((fresh / "benchmark.json").read_text())
     jsonschema.validate(data, SCHEMA)
     del data["results"]["episodes"][0]["rmse_percent"]
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(data, SCHEMA)
 
 
-def test_compare_flags_a_change_made_on_purpose_and_nothing_else(tmp_path, capsys):
-    old = _run(tmp_path, "old")
+def test_compare_flags_a_change_made_on_purpose_and_nothing_else(fresh, tmp_path, capsys):
+    old = json.loads((fresh / "benchmark.json").read_text())
     same = _run(tmp_path, "same")
     slower = _run(tmp_path, "slower", controller_options={"mpc": {"rate_weight": 30.0}})
     assert compare_runs(old, same)[1] == 0
@@ -53,6 +61,6 @@ def test_compare_flags_a_change_made_on_purpose_and_nothing_else(tmp_path, capsy
     flagged = [line for line in table.splitlines() if "**yes**" in line]
     assert marked == len(flagged) >= 1
     assert all("| mpc |" in line for line in flagged)  # only the row that was changed
-    status = main(["compare", str(tmp_path / "old" / "benchmark.json"),
+    status = main(["compare", str(fresh / "benchmark.json"),
                    str(tmp_path / "slower" / "benchmark.json"), "--strict"])
     assert status == 1 and "beyond the run-to-run noise" in capsys.readouterr().out

@@ -89,6 +89,13 @@ def _graph() -> dict[str, set[str]]:
     return {name: _imports(name, path, known) for name, path in modules.items()}
 
 
+@pytest.fixture(scope="module")
+def graph() -> dict[str, set[str]]:
+    """The import graph, read once for the module's tests (the source does not change while
+    they run)."""
+    return _graph()
+
+
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
     """One import cycle, or None (iterative depth-first search)."""
     state: dict[str, int] = {}
@@ -119,8 +126,7 @@ def _is_package_init_reexport(importer: str, imported: str) -> bool:
     return imported.startswith(importer + ".")
 
 
-def test_packages_import_only_the_layers_below():
-    graph = _graph()
+def test_packages_import_only_the_layers_below(graph):
     wrong = [
         f"{importer} -> {imported}"
         for importer, targets in graph.items()
@@ -132,8 +138,7 @@ def test_packages_import_only_the_layers_below():
 
 
 @pytest.mark.parametrize("package", sorted(LAYERS))
-def test_no_import_cycle_between_modules(package):
-    graph = _graph()
+def test_no_import_cycle_between_modules(package, graph):
     # A package's __init__ re-exports its submodules; a submodule importing the package's
     # __init__ back is the only way a circle runs through it, and that edge is kept.
     inner = {
