@@ -9,6 +9,11 @@ The short identification of the PL140 (:func:`fast_pl140_identification`) is mad
 records tests compare the identification from files against it, the pipeline tests a second run
 of the same settings.
 
+The PID presets tuned on the committed identified model (:func:`identified_pid_presets`) are
+built once: tuning over the datasheet's tolerance box takes seconds per controller, and every
+test that uses them starts an episode with ``reset``, which restarts a controller's state and
+its statistics.
+
 The tests that need an open Ray connection share one (:func:`ray_connection`): a local Ray
 instance takes seconds to start and its workers seconds more to import the project, and what
 those tests check (task order, errors, a user's controller on Ray workers) does not depend on
@@ -27,6 +32,8 @@ import pytest
 from hypothesis import settings
 
 ROOT = Path(__file__).resolve().parents[1]
+IDENTIFIED_MODEL = ROOT / "docs" / "identify" / "model"
+"""The committed model of ``piezo identify`` (PL140)."""
 
 settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore", max_examples=2000, database=None)
@@ -45,6 +52,19 @@ def fast_pl140_identification():
     return identify(
         config=IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
     )
+
+
+@pytest.fixture(scope="session")
+def identified_pid_presets() -> dict:
+    """``pid``, ``pid-notch`` and ``pid-ff`` tuned on :data:`IDENTIFIED_MODEL` for the nominal
+    PL140 with a preview of 20 samples, by name."""
+    import gymnasium as gym
+
+    import controllers
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    model = controllers.prediction_model(str(IDENTIFIED_MODEL), env)
+    return {name: controllers.make(name, model, env) for name in ("pid", "pid-notch", "pid-ff")}
 
 
 @pytest.fixture(scope="session")
