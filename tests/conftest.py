@@ -14,6 +14,10 @@ built once: tuning over the datasheet's tolerance box takes seconds per controll
 test that uses them starts an episode with ``reset``, which restarts a controller's state and
 its statistics.
 
+The adaptive MPC on the committed benchmark model (:func:`benchmark_adaptive_mpc`) is built
+once for the same reason (its set's members take seconds); ``reset`` starts it afresh from the
+identified model.
+
 The tests that need an open Ray connection share one (:func:`ray_connection`): a local Ray
 instance takes seconds to start and its workers seconds more to import the project, and what
 those tests check (task order, errors, a user's controller on Ray workers) does not depend on
@@ -34,6 +38,8 @@ from hypothesis import settings
 ROOT = Path(__file__).resolve().parents[1]
 IDENTIFIED_MODEL = ROOT / "docs" / "identify" / "model"
 """The committed model of ``piezo identify`` (PL140)."""
+BENCHMARK_MODEL = ROOT / "docs" / "benchmark" / "model"
+"""The committed benchmark run's model (PL140, identification seed 0)."""
 
 settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore", max_examples=2000, database=None)
@@ -65,6 +71,18 @@ def identified_pid_presets() -> dict:
     env = gym.make("piezo_env:PiezoBender-v0", preview=20)
     model = controllers.prediction_model(str(IDENTIFIED_MODEL), env)
     return {name: controllers.make(name, model, env) for name in ("pid", "pid-notch", "pid-ff")}
+
+
+@pytest.fixture(scope="session")
+def benchmark_adaptive_mpc():
+    """``mpc-adaptive`` on :data:`BENCHMARK_MODEL` for the nominal PL140 with a preview of 20
+    samples."""
+    import gymnasium as gym
+
+    import controllers
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender="PL140")
+    return controllers.make("mpc-adaptive", str(BENCHMARK_MODEL), env)
 
 
 @pytest.fixture(scope="session")
