@@ -39,11 +39,11 @@ def nominal():
     return env_for()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def controller(benchmark_adaptive_mpc) -> AdaptiveMPC:
     """One adaptive MPC on :data:`MODEL_DIR` for the nominal bender, the session's (building
-    the set's members takes a few seconds); every episode starts it afresh from the identified
-    model."""
+    the set's members takes a few seconds), reset before each test; every episode starts it
+    afresh from the identified model."""
     return benchmark_adaptive_mpc
 
 
