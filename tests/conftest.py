@@ -9,6 +9,15 @@ The short identification of the PL140 (:func:`fast_pl140_identification`) is mad
 records tests compare the identification from files against it, the pipeline tests a second run
 of the same settings.
 
+The PID presets tuned on the committed identified model (:func:`identified_pid_presets`) are
+built once: tuning over the datasheet's tolerance box takes seconds per controller, and every
+test that uses them starts an episode with ``reset``, which restarts a controller's state and
+its statistics.
+
+The adaptive MPC on the committed benchmark model (:func:`benchmark_adaptive_mpc`) is built
+once for the same reason (its set's members take seconds); ``reset`` starts it afresh from the
+identified model, and the fixture resets it before each test.
+
 The tests that need an open Ray connection share one (:func:`ray_connection`): a local Ray
 instance takes seconds to start and its workers seconds more to import the project, and what
 those tests check (task order, errors, a user's controller on Ray workers) does not depend on
@@ -23,10 +32,15 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import settings
 
 ROOT = Path(__file__).resolve().parents[1]
+IDENTIFIED_MODEL = ROOT / "docs" / "identify" / "model"
+"""The committed model of ``piezo identify`` (PL140)."""
+BENCHMARK_MODEL = ROOT / "docs" / "benchmark" / "model"
+"""The committed benchmark run's model (PL140, identification seed 0)."""
 
 settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore", max_examples=2000, database=None)
@@ -45,6 +59,38 @@ def fast_pl140_identification():
     return identify(
         config=IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
     )
+
+
+@pytest.fixture(scope="session")
+def identified_pid_presets() -> dict:
+    """``pid``, ``pid-notch`` and ``pid-ff`` tuned on :data:`IDENTIFIED_MODEL` for the nominal
+    PL140 with a preview of 20 samples, by name."""
+    import gymnasium as gym
+
+    import controllers
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    model = controllers.prediction_model(str(IDENTIFIED_MODEL), env)
+    return {name: controllers.make(name, model, env) for name in ("pid", "pid-notch", "pid-ff")}
+
+
+@pytest.fixture(scope="session")
+def _benchmark_adaptive_mpc_built():
+    import gymnasium as gym
+
+    import controllers
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender="PL140")
+    return controllers.make("mpc-adaptive", str(BENCHMARK_MODEL), env)
+
+
+@pytest.fixture
+def benchmark_adaptive_mpc(_benchmark_adaptive_mpc_built):
+    """``mpc-adaptive`` on :data:`BENCHMARK_MODEL` for the nominal PL140 with a preview of 20
+    samples, reset to rest (on the identified model, whatever an earlier test did with it)."""
+    controller = _benchmark_adaptive_mpc_built
+    controller.reset(np.zeros(controller.task.observation_size))
+    return controller
 
 
 @pytest.fixture(scope="session")

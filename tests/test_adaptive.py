@@ -39,11 +39,12 @@ def nominal():
     return env_for()
 
 
-@pytest.fixture(scope="module")
-def controller(nominal) -> AdaptiveMPC:
-    """One adaptive MPC for the module (building the set's members takes a few seconds);
-    every episode starts it afresh from the identified model."""
-    return controllers.make("mpc-adaptive", MODEL_DIR, nominal)
+@pytest.fixture
+def controller(benchmark_adaptive_mpc) -> AdaptiveMPC:
+    """One adaptive MPC on :data:`MODEL_DIR` for the nominal bender, the session's (building
+    the set's members takes a few seconds), reset before each test; every episode starts it
+    afresh from the identified model."""
+    return benchmark_adaptive_mpc
 
 
 def episode(env, controller, reference: str = "sine-50Hz", seed: int = 0):

@@ -34,6 +34,17 @@ def _refuse(*args, **kwargs):
     raise AssertionError("work started before the arguments were checked")
 
 
+@pytest.fixture
+def no_ray_connection() -> None:
+    """No Ray connection open in this process: the shared one of tests that ran earlier
+    (``ray_connection``) is shut down (the next test that needs it opens it again)."""
+    import sys
+
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        ray.shutdown()
+
+
 def test_backends_list_ray_and_refuse_unknown_names():
     assert BACKENDS == ("local", "ray")
     with pytest.raises(ValueError, match="unknown backend 'dask'; valid: local, ray"):
@@ -59,7 +70,7 @@ def test_missing_ray_is_one_clear_error(monkeypatch):
     ],
 )
 def test_cli_refuses_bad_backends_in_one_line_before_any_work(
-    argv, message, monkeypatch, tmp_path, capsys
+    argv, message, monkeypatch, tmp_path, capsys, no_ray_connection
 ):
     monkeypatch.setattr("benchmarks.runner.run_benchmark", _refuse)
     monkeypatch.setattr("identification.pipeline.identify", _refuse)
@@ -92,14 +103,12 @@ def test_local_backend_keeps_task_order_with_a_pool():
     assert sorted(label for _, _, label in seen) == sorted(f"t{i}" for i in range(7))
 
 
-def test_the_default_ray_path_starts_a_private_instance_and_shuts_it_down():
+def test_the_default_ray_path_starts_a_private_instance_and_shuts_it_down(no_ray_connection):
     """Without an open connection ``run_tasks`` starts a private Ray instance (the tasks see it
     running) and shuts it down after. Builtin tasks: the benchmark's own tasks on Ray are the
     next test's, on the shared connection, which :func:`connect_ray` opens as this path does."""
     import ray
 
-    if ray.is_initialized():  # the shared connection of tests that ran earlier
-        ray.shutdown()
     running = []
     results = run_tasks(
         operator.mul,

@@ -20,8 +20,12 @@ def env():
 
 
 @pytest.mark.parametrize("name", ["pid", "pid-notch", "pid-ff", "mpc", "nmpc"])
-def test_a_start_at_20_volts_holds_the_deflection(name, env):
-    controller = controllers.make(name, MODEL_DIR, env)
+def test_a_start_at_20_volts_holds_the_deflection(name, env, identified_pid_presets):
+    """The PID presets are the session's (tuned on the same model; reset restarts them)."""
+    if name in identified_pid_presets:
+        controller = identified_pid_presets[name]
+    else:
+        controller = controllers.make(name, MODEL_DIR, env)
     first, _ = env.reset(seed=0, options={"initial_voltage": 20.0, "reference": np.zeros(3)})
     ref = np.full(400, float(first[0]))  # hold the deflection the bender starts at (~660 um)
     obs, _ = env.reset(seed=1, options={"initial_voltage": 20.0, "reference": ref})

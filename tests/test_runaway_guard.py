@@ -137,12 +137,19 @@ def _episode(
     return ctl.run_episode(env, controller, seed=seed, reference=r, stroke_um=stroke), controller
 
 
-def test_the_damped_pl127_no_longer_runs_away_on_steps() -> None:
+@pytest.fixture(scope="module")
+def fixed_on_the_damped_pl127():
+    """The fixed MPC (screened bank, guard on) over 1000 samples of steps on the PL127 with
+    twice its datasheet damping: the episode and the controller."""
+    return _episode("PL127", "damping-0.04", "steps", 1000)
+
+
+def test_the_damped_pl127_no_longer_runs_away_on_steps(fixed_on_the_damped_pl127) -> None:
     """Twice the damping of the PL127's datasheet: the fast filters' loops oscillate at Nyquist
     (41.6 % of the stroke over 2 s without the guard). The box screen removes those filters
     before the first sample, so the guard is tested on the unscreened bank (what the box does
     not hold): with it the loop holds; the next episode starts afresh."""
-    screened, _ = _episode("PL127", "damping-0.04", "steps", 1000)
+    screened, _ = fixed_on_the_damped_pl127
     assert screened.metrics["observer_fallback_step"] is None
     error = screened.deflection_um[-300:] - screened.reference_um[-300:]
     assert np.sqrt(np.mean(error**2)) < 5.0  # um
@@ -157,12 +164,14 @@ def test_the_damped_pl127_no_longer_runs_away_on_steps() -> None:
     assert controller.observer.runaway_at is None
 
 
-def test_the_adaptive_mpc_holds_the_damped_pl127_without_the_guard() -> None:
+def test_the_adaptive_mpc_holds_the_damped_pl127_without_the_guard(
+    fixed_on_the_damped_pl127,
+) -> None:
     """The adaptive MPC moves to a member of its set whose loop is stable on what the data
     allow: on the same plant and steps its loop holds without the guard, and better than the
     fixed MPC's after the guard fell back."""
     adaptive, controller = _episode("PL127", "damping-0.04", "steps", 1000, name="mpc-adaptive")
-    fixed, _ = _episode("PL127", "damping-0.04", "steps", 1000)
+    fixed, _ = fixed_on_the_damped_pl127
     assert adaptive.metrics["observer_fallback_step"] is None
     assert controller.stats.adaptation["swaps"] >= 1
     assert adaptive.metrics["rmse_percent"] < fixed.metrics["rmse_percent"]
@@ -209,9 +218,10 @@ def test_the_guard_stays_quiet_on_nmpc_ringing_after_a_jump(seed) -> None:
     assert episode.metrics["observer_fallback_step"] is None
 
 
-def test_the_adaptive_mpc_keeps_the_guards_decision_across_a_swap() -> None:
+def test_the_adaptive_mpc_keeps_the_guards_decision_across_a_swap(benchmark_adaptive_mpc) -> None:
+    """On the session's adaptive MPC of docs/benchmark/model (reset starts it afresh)."""
     env = gym.make("piezo_env:PiezoBender-v0", preview=20, bender="PL140")
-    mpc = ctl.make("mpc-adaptive", "docs/benchmark/model", env)
+    mpc = benchmark_adaptive_mpc
     obs, _ = env.reset(seed=0)
     mpc.reset(obs)
     mpc.observer.fall_back(7)
