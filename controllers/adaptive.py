@@ -45,16 +45,22 @@ member's prior filter) stays for reports.
 Bounded work. Everything a member's MPC needs (condensed prediction, QP matrices, the observer
 bank's gains, a QP workspace, the loop radii) is built when the controller is, and the QP
 workspaces are set up afresh before each episode, so a swap inside :meth:`act` is a change of
-pointers plus one run of the new member over the last :attr:`AdaptiveMPC.history` samples
-(re-deriving its past outputs, as below): no Riccati equation, no factorisation, no
-optimisation in the loop. Per sample the set costs one batched state update and a few vector
-operations over its members.
+pointers: no Riccati equation, no factorisation, no simulation, no optimisation in the loop.
+Per sample the set costs one batched state update and a few vector operations over its members.
 
-The swap. The state's past outputs are the old member's; the new one would read them as far
-from its own steady state, so they are recomputed by running the new member over the recent
-inputs (from the measured outputs ``history`` samples ago, when its slowest mode has decayed to
-5 %), and the output disturbance takes the rest, so that the total output estimate is
-continuous. The gain the new member predicts with is the one it has been learning all along.
+The swap is bumpless. Every member is the same ARX structure moved to another resonance and
+damping with the identified static gain (:func:`controllers.tolerance_box.box_model` sets it
+exactly), so every member's state means the same physical thing: the tip's recent undisturbed
+deflections and the recent z in the measured-history realization. The new member's observer
+therefore starts from the old one's estimate as it stands (carried to the applied z's scale),
+output disturbance included: the total output estimate, the past outputs and the plan are
+continuous, and the first plan after the swap differs from the one before only by what the two
+models predict differently. Its filters' likelihoods start afresh, since they scored how well
+each filter explained the data under the old member. The gain the new member predicts with is
+the one it has been learning all along. (Re-deriving the past outputs by running the new member
+over the recent inputs from measured outputs, which a set whose members differ in gain would
+need, puts the sensor noise of the start and the model's hysteresis error into the state: a
+bump of several times the steady error, ``benchmarks/results/design_measurements.md``.)
 
 Each episode starts from the identified model (episodes are independent and reproducible);
 ``stats.adaptation`` counts the swaps, ``stats.trace`` records the member in use and the set
@@ -295,8 +301,6 @@ class AdaptiveMPC(LinearMPC):
         # Read once: the trace and the properties must not find poles inside the loop.
         self._member_hz = np.array([first_resonance_hz(m) for m in self._member_arx])
         self._member_gains = np.array([m.static_gain() for m in self._member_arx])
-        slowest = max(float(np.max(np.abs(m.poles()))) for m in self._member_arx)
-        self.history = max(arx.na, arx.nb) + math.ceil(3.0 / -math.log(slowest))
         self._members: list[_Member] = []
         self._plausible_key: bytes | None = None
         super().__init__(model, task, settings, name=name)
@@ -436,8 +440,6 @@ class AdaptiveMPC(LinearMPC):
     def _reset(self, observation: np.ndarray | None) -> None:
         if self._members:
             self._use(0)
-        self._z = np.zeros(self.history)
-        self._y = np.zeros(self.history)
         self._step = 0
         super()._reset(observation)
 
@@ -466,18 +468,16 @@ class AdaptiveMPC(LinearMPC):
 
     def _act(self, observation: np.ndarray) -> float:
         u = super()._act(observation)
-        self._record(float(observation[0]))
+        self._record()
         return u
 
     def _act_fused(self, observation: np.ndarray) -> float:
         u = super()._act_fused(observation)
-        self._record(float(observation[0]))
+        self._record()
         return u
 
-    def _record(self, y: float) -> None:
-        """Keep the sample's applied z and measured y (um) for a swap, and trace."""
-        slot = self._step % self.history
-        self._z[slot], self._y[slot] = self._z_applied, y
+    def _record(self) -> None:
+        """Count the sample, and trace."""
         self._step += 1
         if self._step % TRACE_EVERY == 0:
             self._trace()
@@ -512,7 +512,7 @@ class AdaptiveMPC(LinearMPC):
         """Predict with member ``index`` from now on (see the module docstring)."""
         old = self.observer
         old.rescale_input(1.0 / self._g)  # back to the applied z's scale
-        estimate = self._consistent_estimate(old.estimate.copy(), self._member_arx[index])
+        estimate = old.estimate.copy()
         self._plan = self._plan / self._g
         self._use(index)
         self._g = 1.0
@@ -531,27 +531,6 @@ class AdaptiveMPC(LinearMPC):
             observer.reset(estimate)
         self.stats.adaptation["swaps"] += 1
         self._trace()
-
-    def _consistent_estimate(self, estimate: np.ndarray, arx: ARXModel) -> np.ndarray:
-        """The observer estimate for ``arx`` at a swap: its own past outputs, same total.
-
-        The state's first ``na`` entries are the model's past outputs, the rest past inputs
-        (z, exact). The outputs are re-derived by running ``arx`` over the last
-        :attr:`history` inputs from the measured outputs before them, and the output
-        disturbance d takes what they do not explain, so that ``C x + d`` is unchanged.
-        """
-        n, na = self.observer.n, max(arx.na, 1)
-        samples = min(self._step, self.history)
-        if samples <= na:
-            return estimate
-        index = np.arange(self._step - samples, self._step) % self.history
-        z, y = self._z[index], self._y[index]
-        outputs = arx.simulate(np.r_[z, 0.0], y0=y[: arx.na])
-        total = estimate[0] + estimate[n]
-        estimate[:na] = outputs[::-1][:na]  # y_t+1, y_t, .. as the state holds them
-        estimate[n:] = 0.0
-        estimate[n] = total - estimate[0]
-        return estimate
 
     def _trace(self) -> None:
         gain = self._gain
