@@ -363,24 +363,27 @@ def lead(
     from benchmarks.cells import ci95_half_width
     from benchmarks.runner import BenchmarkConfig, run_benchmark
 
-    rmse: dict[tuple[str, str], dict[int, float]] = {}
+    def episodes(controller: str, references: tuple[str, ...], options: dict) -> list[dict]:
+        config = BenchmarkConfig(
+            controllers=(controller,),
+            references=references,
+            plants=("nominal",),
+            seeds=seeds,
+            bender=bender,
+            controller_options={controller: options} if options else {},
+        )
+        return run_benchmark(config, model_dir).episodes
+
+    # mpc at its defaults is one run over every reference (each episode resets the controller,
+    # the env from its seed and reads its reference array, seeded by the reference's name: the
+    # same numbers as one run per reference); pid-ff has a setting per reference.
+    runs = episodes("mpc", SWEEP_REFERENCES, {})
     for reference in SWEEP_REFERENCES:
-        for controller, options in (
-            ("mpc", {}),
-            ("pid-ff", {"ms_max": best[reference]}),
-        ):
-            config = BenchmarkConfig(
-                controllers=(controller,),
-                references=(reference,),
-                plants=("nominal",),
-                seeds=seeds,
-                bender=bender,
-                controller_options={controller: options} if options else {},
-            )
-            result = run_benchmark(config, model_dir)
-            rmse[(controller, reference)] = {
-                int(e.get("seed_index", 0)): e["rmse_percent"] for e in result.episodes
-            }
+        runs += episodes("pid-ff", (reference,), {"ms_max": best[reference]})
+    rmse: dict[tuple[str, str], dict[int, float]] = {}
+    for e in runs:
+        cell = rmse.setdefault((e["controller"], e["reference"]), {})
+        cell[int(e.get("seed_index", 0))] = e["rmse_percent"]
     out: dict[str, dict[str, float | str]] = {}
     for reference in SWEEP_REFERENCES:
         mpc, pid = rmse[("mpc", reference)], rmse[("pid-ff", reference)]

@@ -353,11 +353,11 @@ class NonlinearMPC(PredictiveController):
             hessian = w * (jac_y.T @ jac_y) + self._rate_hessian
             q = w * (jac_y.T @ constant)
             q[0] -= s.rate_weight * self._u_prev
-            u_new, status, iterations = self._solve_qp(hessian, q, u_bar, bounds)
-            total += iterations
-            if u_new is None:
-                return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
-            step = float(np.max(np.abs(u_new - u_bar)))
+            u_new, status, total, step = self._qp_iteration(
+                hessian, q, u_bar, bounds, iteration, total
+            )
+            if step is None:
+                return u_new, status, total
             u_bar = u_new
             if step <= s.step_tolerance:
                 break
@@ -401,17 +401,36 @@ class NonlinearMPC(PredictiveController):
                 u_new, status = kernel.u_new.copy(), "unconstrained"
                 step = kernel.scalars[nmpc_step.S_STEP]
             else:  # copies: the next iteration overwrites the kernel's arrays
-                u_new, status, iterations = self._solve_qp(
-                    kernel.hessian.copy(), kernel.q.copy(), u_bar, bounds
+                u_new, status, total, step = self._qp_iteration(
+                    kernel.hessian.copy(), kernel.q.copy(), u_bar, bounds, iteration, total
                 )
-                total += iterations
-                if u_new is None:
-                    return (None, status, total) if iteration == 0 else (u_bar, KEPT, total)
-                step = float(np.max(np.abs(u_new - u_bar)))
+                if step is None:
+                    return u_new, status, total
             u_bar = u_new
             if step <= s.step_tolerance:
                 break
         return u_bar, status, total
+
+    def _qp_iteration(
+        self,
+        hessian: np.ndarray,
+        q: np.ndarray,
+        u_bar: np.ndarray,
+        bounds: tuple[np.ndarray, np.ndarray],
+        iteration: int,
+        total: int,
+    ) -> tuple[np.ndarray | None, str, int, float | None]:
+        """SQP iteration ``iteration`` (from 0) through its QP along ``u_bar``: (new iterate,
+        status, ``total`` plus the QP solver's iterations, largest move (V)).
+
+        A failed QP ends the SQP, with the move None: the first iteration's failure is a
+        refusal (plan None), a later one keeps ``u_bar`` (status ``kept-last-iterate``).
+        """
+        u_new, status, iterations = self._solve_qp(hessian, q, u_bar, bounds)
+        total += iterations
+        if u_new is None:
+            return (None, status, total, None) if iteration == 0 else (u_bar, KEPT, total, None)
+        return u_new, status, total, float(np.max(np.abs(u_new - u_bar)))
 
     def _solve_qp(
         self,

@@ -6,6 +6,7 @@ also simulated by making the staging folder's creation fail as a read-only file 
 
 from __future__ import annotations
 
+import ctypes
 import errno
 import json
 import multiprocessing
@@ -71,6 +72,26 @@ def test_a_build_is_recorded_then_found_in_the_cache(cache):
     assert cached.reason == f"cached {library.name}, digest verified"
     assert (cached.key, cached.sha256) == (build.key, build.sha256)
     assert json.loads(json.dumps(cached.to_dict()))["compiled"] is True
+
+
+def test_call_buffers_by_nonzeros_on_given_inputs_equal_casadi(cache):
+    """A sparse output (a diagonal Jacobian) called through the pointer tables, its nonzeros
+    against casadi's virtual machine; the inputs given are the ones read."""
+    x = casadi.SX.sym("x", 3)
+    function = casadi.Function("sparse_probe", [x], [casadi.jacobian(casadi.sin(x), x)])
+    compiled, build = compile_function(function, cache="t")
+    assert build.compiled, build
+    given = [INPUT.copy()]
+    buffers = codegen.call_buffers(compiled._lib, function, given, nonzeros=True)
+    assert buffers.inputs[0] is given[0] and buffers.outputs[0].shape == (3,)
+    call = compiled._lib.sparse_probe
+    call.argtypes, call.restype = [ctypes.c_void_p] * 4 + [ctypes.c_int], ctypes.c_int
+    assert call(*buffers.addresses, 0) == 0
+    np.testing.assert_allclose(buffers.outputs[0], function(INPUT).nonzeros(), rtol=1e-15)
+    dense = codegen.call_buffers(compiled._lib, function)
+    assert dense.outputs[0].shape == (3, 3) and dense.inputs[0].shape == (3,)
+    with pytest.raises(ValueError, match="input 0 needs a C-contiguous float64 array of 3"):
+        codegen.call_buffers(compiled._lib, function, [np.zeros(4)], nonzeros=True)
 
 
 def _replace(path: Path, data: bytes) -> None:

@@ -89,8 +89,8 @@ def test_a_default_moves_only_for_a_clear_gain(clean):
 def test_the_lead_over_pid_ff_is_a_paired_interval_with_a_tie_rule(monkeypatch):
     """mpc's lead over pid-ff at its best setting: the geometric mean of the per-seed ratios
     with Student's 95 % interval on their logs (checked against scipy's t quantile), each
-    reference run with the pid-ff setting the sweep found best there, and 'tie' exactly when
-    the interval holds 1."""
+    reference run with the pid-ff setting the sweep found best there, mpc run once over all
+    of them, and 'tie' exactly when the interval holds 1."""
     import math
 
     import scipy.stats
@@ -104,14 +104,17 @@ def test_the_lead_over_pid_ff_is_a_paired_interval_with_a_tie_rule(monkeypatch):
     calls = []
 
     def fake_run(config, model_dir):
-        (controller,), (reference,) = config.controllers, config.references
-        calls.append((controller, reference, dict(config.controller_options.get(controller, {}))))
+        (controller,), references = config.controllers, config.references
+        calls.append((controller, references, dict(config.controller_options.get(controller, {}))))
         base = 0.01
         episodes = [
             {
+                "controller": controller,
+                "reference": reference,
                 "seed_index": k,
                 "rmse_percent": base * (ratios[reference][k] if controller == "pid-ff" else 1.0),
             }
+            for reference in references
             for k in range(config.seeds)
         ]
         return runner.BenchmarkResult(config, episodes, {}, {}, {})
@@ -119,8 +122,9 @@ def test_the_lead_over_pid_ff_is_a_paired_interval_with_a_tie_rule(monkeypatch):
     monkeypatch.setattr(runner, "run_benchmark", fake_run)
     best = dict(zip(SWEEP_REFERENCES, (1.2, 1.4, 1.6, 2.0), strict=True))
     out = lead("unused", best)
+    assert [(c, r, o) for c, r, o in calls if c == "mpc"] == [("mpc", SWEEP_REFERENCES, {})]
     assert {(c, r): o for c, r, o in calls if c == "pid-ff"} == {
-        ("pid-ff", r): {"ms_max": best[r]} for r in SWEEP_REFERENCES
+        ("pid-ff", (r,)): {"ms_max": best[r]} for r in SWEEP_REFERENCES
     }
     for reference, values in ratios.items():
         d = np.log(values)

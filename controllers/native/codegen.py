@@ -81,12 +81,14 @@ __all__ = [
     "CASADI_VM",
     "COMPILED",
     "NUMPY",
+    "CallBuffers",
     "CompiledFunction",
     "NativeBuild",
     "NativeCodeError",
     "as_numpy",
     "cache_dir",
     "cache_key",
+    "call_buffers",
     "compile_function",
     "compile_source",
     "native_policy",
@@ -96,6 +98,105 @@ DEFAULT_FLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off")
 """Compiler flags of :func:`compile_function` unless the caller passes others. No fused
 multiply-adds: where the compiler would fuse them by default (e.g. aarch64), the generated C
 would round differently from casadi's virtual machine."""
+
+
+@dataclass(frozen=True)
+class CallBuffers:
+    """The arrays one call of a generated casadi Function reads and writes, and the pointer
+    tables the call takes (the C code holds their addresses: keep this object alive as long
+    as it may run).
+
+    Attributes
+    ----------
+    inputs, outputs : list of numpy.ndarray
+        float64 buffers, one per input and output, in casadi's column-major order.
+    arg, res : ctypes array of c_void_p
+        Pointers to the inputs and to the outputs, as long as the generated code's
+        ``<name>_work`` asks (at least 1).
+    iw, w : numpy.ndarray
+        Integer (int64) and float64 work arrays of the lengths ``<name>_work`` asks (at
+        least 1).
+    """
+
+    inputs: list[np.ndarray]
+    outputs: list[np.ndarray]
+    arg: Any
+    res: Any
+    iw: np.ndarray
+    w: np.ndarray
+
+    @property
+    def addresses(self) -> tuple[int, int, int, int]:
+        """Addresses of ``arg``, ``res``, ``iw`` and ``w``: the generated function's first
+        four arguments."""
+        return (
+            ctypes.addressof(self.arg),
+            ctypes.addressof(self.res),
+            self.iw.ctypes.data,
+            self.w.ctypes.data,
+        )
+
+
+def call_buffers(
+    library: ctypes.CDLL,
+    function: Any,
+    inputs: Sequence[np.ndarray] | None = None,
+    *,
+    nonzeros: bool = False,
+) -> CallBuffers:
+    """Input, output, pointer and work arrays for calling a generated casadi Function through
+    ctypes.
+
+    Parameters
+    ----------
+    library : ctypes.CDLL
+        A library holding the Function's generated C (its ``<name>_work`` gives the lengths
+        of the pointer tables and work arrays the generated code uses).
+    function : casadi.Function
+        The Function it was generated from (numbers and sizes of inputs and outputs).
+    inputs : sequence of numpy.ndarray, optional
+        Buffers the inputs are read from (C-contiguous float64, one per input, each as long
+        as the input: its nonzeros with ``nonzeros``, else all its entries). Zeroed buffers
+        are allocated when None.
+    nonzeros : bool
+        Size each input and output by its nonzeros (outputs flat, shape (nnz,)) instead of
+        dense (outputs shaped (cols, rows): casadi's column-major (rows, cols) read row by
+        row).
+
+    Returns
+    -------
+    CallBuffers
+        The buffers and pointer tables; its ``inputs`` are ``inputs`` when given.
+    """
+    count = function.nnz_in if nonzeros else function.numel_in
+    if inputs is None:
+        inputs = [np.zeros(count(i)) for i in range(function.n_in())]
+    if len(inputs) != function.n_in():
+        raise ValueError(f"{function.name()}: needs {function.n_in()} inputs, got {len(inputs)}")
+    for i, buffer in enumerate(inputs):
+        if buffer.size != count(i) or buffer.dtype != np.float64 or not buffer.flags.c_contiguous:
+            raise ValueError(
+                f"{function.name()}: input {i} needs a C-contiguous float64 array of {count(i)}"
+            )
+    if nonzeros:
+        outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
+    else:
+        outputs = [
+            np.zeros((function.size2_out(i), function.size1_out(i)))
+            for i in range(function.n_out())
+        ]
+    sizes = [ctypes.c_longlong() for _ in range(4)]
+    getattr(library, f"{function.name()}_work")(*[ctypes.byref(s) for s in sizes])
+    n_arg, n_res, n_iw, n_w = (max(s.value, 1) for s in sizes)
+    pointer = ctypes.c_void_p
+    return CallBuffers(
+        inputs=list(inputs),
+        outputs=outputs,
+        arg=(pointer * n_arg)(*[b.ctypes.data for b in inputs]),
+        res=(pointer * n_res)(*[b.ctypes.data for b in outputs]),
+        iw=np.zeros(n_iw, dtype=np.int64),
+        w=np.zeros(n_w),
+    )
 
 
 class CompiledFunction:
@@ -117,32 +218,13 @@ class CompiledFunction:
     def __init__(self, library: Path, function: Any) -> None:
         self.library = library
         lib = ctypes.CDLL(str(library))
-        name = function.name()
-        sizes = [ctypes.c_longlong() for _ in range(4)]
-        getattr(lib, f"{name}_work")(*[ctypes.byref(s) for s in sizes])
-        n_arg, n_res, n_iw, n_w = (max(s.value, 1) for s in sizes)
-        self._iw = np.zeros(n_iw, dtype=np.int64)
-        self._w = np.zeros(n_w)
-        self.inputs = [np.zeros(function.numel_in(i)) for i in range(function.n_in())]
-        # Column-major (rows, cols) is row-major (cols, rows).
-        self.outputs = [
-            np.zeros((function.size2_out(i), function.size1_out(i)))
-            for i in range(function.n_out())
-        ]
-        pointer = ctypes.c_void_p
-        self._arg = (pointer * n_arg)(*[b.ctypes.data for b in self.inputs])
-        self._res = (pointer * n_res)(*[b.ctypes.data for b in self.outputs])
-        self._fn = getattr(lib, name)
+        self._buffers = call_buffers(lib, function)
+        self.inputs, self.outputs = self._buffers.inputs, self._buffers.outputs
+        self._fn = getattr(lib, function.name())
         self._fn.restype = ctypes.c_int
-        self._fn.argtypes = [pointer] * 4 + [ctypes.c_int]
+        self._fn.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int]
         self._lib = lib
-        self._call_args = (
-            ctypes.addressof(self._arg),
-            ctypes.addressof(self._res),
-            self._iw.ctypes.data,
-            self._w.ctypes.data,
-            0,
-        )
+        self._call_args = (*self._buffers.addresses, 0)
 
     def __call__(self, *args: np.ndarray) -> list[np.ndarray]:
         """Evaluate; outputs as (cols, rows) arrays (the transpose of casadi's shapes)."""

@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import NUMPY, NativeBuild, compile_source
+from controllers.native.codegen import NUMPY, NativeBuild, call_buffers, compile_source
 from controllers.native.step_kernels import FLAGS
 from controllers.native.step_kernels import SOURCE as KERNELS
 
@@ -416,23 +416,13 @@ class FusedStep:
             self._keep.append(buffer)
 
     def _casadi(self, function: Any, slots: tuple[int, int, int, int]) -> list[np.ndarray]:
-        """Input, output and work buffers of a generated Function, as CompiledFunction's;
-        returns the input buffers."""
-        inputs = [np.zeros(function.numel_in(i)) for i in range(function.n_in())]
-        outputs = [np.zeros(function.numel_out(i)) for i in range(function.n_out())]
-        pointer = ctypes.c_void_p
-        arg = (pointer * max(function.sz_arg(), 1))(*[b.ctypes.data for b in inputs])
-        res = (pointer * max(function.sz_res(), 1))(*[b.ctypes.data for b in outputs])
-        iw = np.zeros(max(function.sz_iw(), 1), dtype=np.int64)
-        w = np.zeros(max(function.sz_w(), 1))
-        for slot, address in zip(
-            slots,
-            (ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data),
-            strict=True,
-        ):
-            self.table[slot] = address
-        self._keep += [inputs, outputs, arg, res, iw, w]
-        return inputs
+        """Point the table's ``slots`` at the argument, result and work arrays of a generated
+        Function (:func:`controllers.native.codegen.call_buffers`, dense); returns its input
+        buffers."""
+        buffers = call_buffers(self._library, function)
+        self.table[list(slots)] = buffers.addresses
+        self._keep.append(buffers)
+        return buffers.inputs
 
     def bind_gain(self, gain: Any, member: int) -> None:
         """Point at a :class:`controllers.gain.GainEstimate`'s arrays (None: no gain)."""

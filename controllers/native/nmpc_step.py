@@ -61,7 +61,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import NUMPY, NativeBuild, compile_source
+from controllers.native.codegen import NUMPY, NativeBuild, call_buffers, compile_source
 from controllers.native.step_kernels import FLAGS
 
 __all__ = ["ERROR", "INSIDE", "NEED_QP", "IterationKernel", "compile_kernel", "unavailable"]
@@ -619,7 +619,7 @@ class IterationKernel:
         }
         for index, buffer in own.items():
             self._point(index, buffer)
-        outputs = self._casadi(partials, [step_u, state])
+        outputs = self._casadi(library, partials, [step_u, state])
         expected = [n_f, n_state, n_f, n_state, fs_rows.size, ss_order.size]
         if [o.size for o in outputs] != expected or fs_columns.size != n_state + 1:
             raise ValueError("the partials Function's outputs do not match the feature map")
@@ -678,23 +678,13 @@ class IterationKernel:
         self.table[index] = buffer.ctypes.data
         self._keep.append(buffer)
 
-    def _casadi(self, function: Any, inputs: list[np.ndarray]) -> list[np.ndarray]:
-        """Argument, result and work arrays of the generated Function, its inputs pointing at
+    def _casadi(
+        self, library: ctypes.CDLL, function: Any, inputs: list[np.ndarray]
+    ) -> list[np.ndarray]:
+        """Point the table at the argument, result and work arrays of the generated Function
+        (:func:`controllers.native.codegen.call_buffers`, by nonzeros), its inputs at
         ``inputs``; returns its output buffers (nonzeros, casadi's column-major order)."""
-        for i, buffer in enumerate(inputs):
-            if buffer.size != function.numel_in(i):
-                raise ValueError(f"{function.name()}: input {i} needs {function.numel_in(i)}")
-        outputs = [np.zeros(function.nnz_out(i)) for i in range(function.n_out())]
-        pointer = ctypes.c_void_p
-        arg = (pointer * max(function.sz_arg(), 1))(*[b.ctypes.data for b in inputs])
-        res = (pointer * max(function.sz_res(), 1))(*[b.ctypes.data for b in outputs])
-        iw = np.zeros(max(function.sz_iw(), 1), dtype=np.int64)
-        w = np.zeros(max(function.sz_w(), 1))
-        for slot, address in zip(
-            (P_ARG, P_RES, P_IW, P_W),
-            (ctypes.addressof(arg), ctypes.addressof(res), iw.ctypes.data, w.ctypes.data),
-            strict=True,
-        ):
-            self.table[slot] = address
-        self._keep += [inputs, outputs, arg, res, iw, w]
-        return outputs
+        buffers = call_buffers(library, function, inputs, nonzeros=True)
+        self.table[[P_ARG, P_RES, P_IW, P_W]] = buffers.addresses
+        self._keep.append(buffers)
+        return buffers.outputs
