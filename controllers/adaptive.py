@@ -86,6 +86,7 @@ from controllers.loop import (
     modulus_margins,
     radii_matrix,
 )
+from controllers.memo import ContentCache
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer
@@ -98,6 +99,7 @@ from identification.correction import first_mode_pole
 
 __all__ = [
     "NORMAL_95",
+    "SCREENS_KEPT",
     "SWITCH_CHI2",
     "TRACE_EVERY",
     "AdaptiveMPC",
@@ -119,6 +121,12 @@ NORMAL_95 = 1.6448536269514722
 
 TRACE_EVERY = 20
 """Samples between the records of :attr:`AdaptiveStats.trace` (for figures only)."""
+
+SCREENS_KEPT = 8
+"""Sets' stability screens kept by content (:meth:`AdaptiveMPC.filter_radii`): a few
+identified models, each with its settings."""
+
+_screens = ContentCache(SCREENS_KEPT)
 
 
 @dataclass(frozen=True)
@@ -340,22 +348,37 @@ class AdaptiveMPC(LinearMPC):
     def filter_radii(self) -> np.ndarray:
         """Spectral radius (-) of the unconstrained loop of each member's MPC with each filter
         of its bank around each member, gains matched: (K, F, K); infinite for a filter whose
-        loop on its own member exceeds :data:`controllers.settings.MS_MAX` (never selected)."""
+        loop on its own member exceeds :data:`controllers.settings.MS_MAX` (never selected).
+
+        Most of the controller's construction (K x F x K closed loops); kept by the content of
+        its inputs (:mod:`controllers.memo`), so the same set built again screens once."""
         plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
-        out = []
-        for member in self._members:
-            bank = member.observer
-            gains = np.atleast_2d(bank.gains if isinstance(bank, ObserverBank) else bank.gain)
-            law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-            margins = modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, gains, *law, n=bank.n)
-            radii = np.full((len(gains), len(plants)), np.inf)
-            within = margins >= 1.0 / MS_MAX
-            if within.any():
-                radii[within] = radii_matrix(
-                    bank.a_aug, bank.b_aug, bank.c_aug, gains[within], *law, plants
+        banks = [(m, m.observer) for m in self._members]
+        gains = [
+            np.atleast_2d(b.gains if isinstance(b, ObserverBank) else b.gain) for _, b in banks
+        ]
+
+        def compute() -> np.ndarray:
+            out = []
+            for (member, bank), filters in zip(banks, gains, strict=True):
+                law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
+                margins = modulus_margins(
+                    bank.a_aug, bank.b_aug, bank.c_aug, filters, *law, n=bank.n
                 )
-            out.append(radii)
-        return np.array(out)
+                radii = np.full((len(filters), len(plants)), np.inf)
+                within = margins >= 1.0 / MS_MAX
+                if within.any():
+                    radii[within] = radii_matrix(
+                        bank.a_aug, bank.b_aug, bank.c_aug, filters[within], *law, plants
+                    )
+                out.append(radii)
+            return np.array(out)
+
+        parts: list[Any] = [MS_MAX]
+        for (member, bank), filters in zip(banks, gains, strict=True):
+            parts += [member.hessian, member.q_matrix, bank.a_aug, bank.b_aug, bank.c_aug]
+            parts += [filters, bank.n, member.model.a, member.model.b, member.model.c]
+        return _screens.get(parts, compute)
 
     def _allow(self, plausible: np.ndarray) -> np.ndarray:
         """Which filters each member's loop may use given the members the data still allow

@@ -70,6 +70,12 @@ feedforward model itself is not moved: letting it follow the limited z instead r
 overshoot of a step the amplifier slows, but makes the loop unstable on a reference the
 amplifier cannot follow (``benchmarks/results/design_measurements.md``). Without a slew limit
 nothing changes (bitwise).
+
+**The design is kept.** Notch, gains and loop reports are a pure function of the model's linear
+part and the settings, and the box tuning is most of a PID's construction (seconds). The last
+:data:`DESIGNS_KEPT` designs are kept by content (the linear part's bytes, its sample time and
+the settings), so a benchmark that builds the same PID for every plant, or a test suite that
+builds it in many tests, tunes it once; every controller gets its own copies.
 """
 
 from __future__ import annotations
@@ -81,6 +87,7 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller
+from controllers.memo import ContentCache
 from controllers.pid_tuning import (
     NOTCH_DAMPING_RANGE,
     PIDGains,
@@ -103,7 +110,50 @@ from controllers.tolerance_box import (
 )
 from piezo_env.checks import require_number
 
-__all__ = ["PIDController", "PIDGains", "TuningError"]
+__all__ = ["DESIGNS_KEPT", "PIDController", "PIDGains", "TuningError"]
+
+DESIGNS_KEPT = 16
+"""PID designs kept by content (:func:`_design`): the three presets on a few identified models
+and their oracles' plants."""
+
+_designs = ContentCache(DESIGNS_KEPT)
+
+
+def _design(
+    model: PredictionModel, settings: Any, vertices: list[tuple[Any, PredictionModel]]
+) -> dict[str, Any]:
+    """Notch, gains and loop reports of a PID with ``settings`` on ``model``'s linear part and
+    its box ``vertices`` (module docstring: kept by content, returned as fresh copies)."""
+
+    def compute() -> dict[str, Any]:
+        design: dict[str, Any] = {"notch": None, "resonance_hz": math.nan}
+        box = [vertex_model for _, vertex_model in vertices]
+        if settings.notch:
+            design["resonance_hz"], _, pole = resonance(model.a, model.dt)
+            damping = settings.notch_damping
+            if damping is None and box:
+                damping = robust_notch_damping(model, pole, box, ms_max=settings.ms_max)
+            elif damping is None:
+                damping = 0.1 if settings.feedforward else 0.7
+            design["notch_damping"] = damping
+            design["notch"] = notch_filter(pole, model.dt, damping)
+        design["gains"] = gains = tune_pid(
+            model,
+            notch=design["notch"],
+            ms_max=settings.ms_max,
+            derivative_filter_s=settings.derivative_filter_s,
+            use_derivative=settings.derivative,
+            box=box,
+        )
+        design["report"] = closed_loop_report(model, gains, design["notch"])
+        design["vertex_reports"] = [
+            (vertex, closed_loop_report(vertex_model, gains, design["notch"]))
+            for vertex, vertex_model in vertices
+        ]
+        return design
+
+    # The vertices are a function of the linear part and the settings' box.
+    return _designs.get((model.a, model.b, model.c, float(model.dt), settings), compute)
 
 
 class PIDController(Controller):
@@ -207,30 +257,12 @@ class PIDController(Controller):
             settings.gain_tolerance, settings.resonance_tolerance, settings.damping_range
         )
         self.vertices = vertex_models(model, self.box)
-        box = [vertex_model for _, vertex_model in self.vertices]
-        self.notch = None
-        self.resonance_hz = math.nan
+        design = _design(model, settings, self.vertices)
+        self.notch, self.resonance_hz = design["notch"], design["resonance_hz"]
+        self.gains = design["gains"]
         if settings.notch:
-            self.resonance_hz, _, pole = resonance(model.a, model.dt)
-            self.notch_damping = settings.notch_damping
-            if self.notch_damping is None and box:
-                self.notch_damping = robust_notch_damping(model, pole, box, ms_max=settings.ms_max)
-            elif self.notch_damping is None:
-                self.notch_damping = 0.1 if settings.feedforward else 0.7
-            self.notch = notch_filter(pole, model.dt, self.notch_damping)
-        self.gains = tune_pid(
-            model,
-            notch=self.notch,
-            ms_max=settings.ms_max,
-            derivative_filter_s=settings.derivative_filter_s,
-            use_derivative=settings.derivative,
-            box=box,
-        )
-        self.report = closed_loop_report(model, self.gains, self.notch)
-        self.vertex_reports = [
-            (vertex, closed_loop_report(vertex_model, self.gains, self.notch))
-            for vertex, vertex_model in self.vertices
-        ]
+            self.notch_damping = design["notch_damping"]
+        self.report, self.vertex_reports = design["report"], design["vertex_reports"]
         self._slew_step = task.slew_step
         self._setup_coefficients()
         if settings.feedforward:

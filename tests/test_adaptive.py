@@ -304,3 +304,21 @@ def test_a_swap_is_bumpless(controller):
     rms_before = np.sqrt(np.mean(errors[1100:1200] ** 2))
     rms_after = np.sqrt(np.mean(errors[1200:1300] ** 2))
     assert rms_after < 1.5 * rms_before
+
+
+def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypatch):
+    """The stability screen of every filter on every member (most of the construction) is kept
+    by content: a second controller on the same model closes no loop and gets equal radii of
+    its own."""
+    import controllers.adaptive as adaptive
+
+    calls = []
+    original = adaptive.radii_matrix
+    monkeypatch.setattr(
+        adaptive, "radii_matrix", lambda *a, **k: calls.append(1) or original(*a, **k)
+    )
+    again = controllers.make("mpc-adaptive", MODEL_DIR, nominal)
+    radii = again.filter_radii()
+    assert calls == [1] * len(again._members)  # loop_radii only: the prior filters
+    np.testing.assert_array_equal(radii, controller.filter_radii())
+    assert radii is not again._filter_radii

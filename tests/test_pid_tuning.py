@@ -297,3 +297,25 @@ def test_a_box_of_the_gain_alone_needs_no_mode():
         assert stable and ms <= MS_MAX * 1.002
     assert _sensitivity_peak(box[1], alone, None)[0] > MS_MAX  # the nominal tuning does not
     assert robust.ki < alone.ki
+
+
+def test_a_design_is_kept_by_content_and_each_pid_gets_its_own_copy(model, monkeypatch):
+    """The same linear part and settings tune once; a changed linear part tunes afresh; a
+    controller's reports are its own (changing one leaves the next build's as tuned)."""
+    import controllers.pid as pid_module
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    first = controllers.make("pid-notch", model, env)
+    calls = []
+    monkeypatch.setattr(
+        pid_module, "tune_pid", lambda *a, **k: calls.append(1) or tune_pid(*a, **k)
+    )
+    second = controllers.make("pid-notch", model, env)
+    assert calls == []
+    assert second.gains == first.gains and second.notch_damping == first.notch_damping
+    assert second.report == first.report and second.report is not first.report
+    second.report["ms"] = -1.0
+    assert controllers.make("pid-notch", model, env).report == first.report
+    moved = dataclasses.replace(model, b=model.b * 1.05)
+    third = controllers.make("pid-notch", moved, env)
+    assert calls == [1] and third.gains != first.gains
