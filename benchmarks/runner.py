@@ -499,11 +499,22 @@ def _warm_up(env: Any, controller: Any, reference: np.ndarray, seed: int, steps:
             break
 
 
+_base_frozen = False
+
+
 @contextmanager
 def no_collection() -> Iterator[None]:
-    """Collect and freeze what set-up left, and keep the collector off inside."""
+    """Collect what set-up left, and keep the collector off inside.
+
+    The first use in a process also freezes everything then alive (imported modules, torch,
+    the first group's set-up): it lives as long as the process, and a full collection walks it
+    in about a quarter of a second, which every later group would pay again. Later uses
+    collect only what was made since."""
+    global _base_frozen
     gc.collect()
-    gc.freeze()
+    if not _base_frozen:
+        gc.freeze()
+        _base_frozen = True
     enabled = gc.isenabled()
     gc.disable()
     try:
@@ -511,7 +522,6 @@ def no_collection() -> Iterator[None]:
     finally:
         if enabled:
             gc.enable()
-        gc.unfreeze()
 
 
 def model_folders(config: BenchmarkConfig, model_dir: Any) -> dict[str, tuple[str, ...]]:

@@ -334,3 +334,19 @@ def test_the_command_runs_the_policies_asked_for_and_says_so_in_one_line(
     assert "ppo" not in config.controllers and "ppo-dr" not in config.controllers
     lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("policies:")]
     assert lines == ([f"policies: running {', '.join(expected)}"] if expected else [])
+
+
+def test_no_collection_keeps_the_collector_off_inside_and_freezes_once():
+    import gc
+
+    from benchmarks.runner import no_collection
+
+    assert gc.isenabled()
+    with no_collection():
+        assert not gc.isenabled()
+        frozen = gc.get_freeze_count()
+    assert gc.isenabled() and frozen > 0
+    with no_collection():
+        assert not gc.isenabled()
+        assert gc.get_freeze_count() <= frozen  # no second freeze: only new objects collected
+    assert gc.isenabled()
