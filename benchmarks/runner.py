@@ -407,7 +407,8 @@ def _run_group(
 
     The loop does what a real-time Python loop does: one BLAS thread, a warm-up before the
     timed episodes (a first call may load generated code or fill caches), and no garbage
-    collection inside them (collected and frozen after set-up, re-enabled after the group).
+    collection inside them (:func:`no_collection`: collected after set-up, re-enabled after
+    the group).
     """
     from threadpoolctl import threadpool_limits
 
@@ -506,10 +507,12 @@ _base_frozen = False
 def no_collection() -> Iterator[None]:
     """Collect what set-up left, and keep the collector off inside.
 
-    The first use in a process also freezes everything then alive (imported modules, torch,
-    the first group's set-up): it lives as long as the process, and a full collection walks it
-    in about a quarter of a second, which every later group would pay again. Later uses
-    collect only what was made since."""
+    The first use in a process also freezes everything then alive: imported modules and torch,
+    which live as long as the process and which a full collection would otherwise walk again
+    before every group (``benchmarks/results/design_measurements.md``). Later uses collect
+    only what was made since. The first group's own objects are frozen with them: they are
+    freed by reference counting when the group ends, and any reference cycle among them
+    stays until the process ends (a bounded amount, once per process)."""
     global _base_frozen
     gc.collect()
     if not _base_frozen:

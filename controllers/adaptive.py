@@ -309,11 +309,38 @@ class AdaptiveMPC(LinearMPC):
         # Read once: the trace and the properties must not find poles inside the loop.
         self._member_hz = np.array([first_resonance_hz(m) for m in self._member_arx])
         self._member_gains = np.array([m.static_gain() for m in self._member_arx])
+        self._check_shared_state()
         self._members: list[_Member] = []
         self._plausible_key: bytes | None = None
         super().__init__(model, task, settings, name=name)
 
     # -- the set --------------------------------------------------------------------------------
+
+    def _check_shared_state(self) -> None:
+        """The swap carries the observer's state over (module docstring), which needs every
+        member's state to mean the same: one realization (the same rows of A and B below the
+        first, the same C) and the same static gain (to 1e-9 relative: the gain is set last
+        by :func:`controllers.tolerance_box.box_model`, exact to rounding)."""
+        first = self._member_models[0]
+        for grid, member in zip(self._grid[1:], self._member_models[1:], strict=True):
+            same = (
+                member.a.shape == first.a.shape
+                and np.array_equal(member.a[1:], first.a[1:])
+                and np.array_equal(member.b[1:], first.b[1:])
+                and np.array_equal(member.c, first.c)
+            )
+            if not same:
+                raise ValueError(
+                    f"the set's member {grid} (frequency factor, damping ratio) has another "
+                    "state realization than the identified model's; a swap could not carry "
+                    "the observer's state over"
+                )
+        gains = self._member_gains
+        if np.max(np.abs(gains - gains[0])) > 1e-9 * abs(gains[0]):
+            raise ValueError(
+                "the set's members differ in static gain; a swap could not carry the "
+                "observer's state over"
+            )
 
     def _set_up(self) -> None:
         super()._set_up()

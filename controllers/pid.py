@@ -72,10 +72,10 @@ amplifier cannot follow (``benchmarks/results/design_measurements.md``). Without
 nothing changes (bitwise).
 
 **The design is kept.** Notch, gains and loop reports are a pure function of the model's linear
-part and the settings, and the box tuning is most of a PID's construction (seconds). The last
-:data:`DESIGNS_KEPT` designs are kept by content (the linear part's bytes, its sample time and
-the settings), so a benchmark that builds the same PID for every plant, or a test suite that
-builds it in many tests, tunes it once; every controller gets its own copies.
+part, the tolerance box and the settings of the tuning rule, and the box tuning is most of a
+PID's construction. The last :data:`DESIGNS_KEPT` designs are kept by content
+(:mod:`controllers.memo`), so a benchmark that builds the same PID for every plant, or a test
+suite that builds it in many tests, tunes it once; every controller gets its own copies.
 """
 
 from __future__ import annotations
@@ -113,26 +113,29 @@ from piezo_env.checks import require_number
 __all__ = ["DESIGNS_KEPT", "PIDController", "PIDGains", "TuningError"]
 
 DESIGNS_KEPT = 16
-"""PID designs kept by content (:func:`_design`): the three presets on a few identified models
-and their oracles' plants."""
+"""PID designs kept by content (:func:`_design`). A benchmark worker meets two box designs per
+identified model (``pid``'s, and the notched one ``pid-notch`` and ``pid-ff`` share) on up to
+six models (three identification seeds, on the nominal bender and on the bench): 12."""
 
 _designs = ContentCache(DESIGNS_KEPT)
 
 
-def _design(
-    model: PredictionModel, settings: Any, vertices: list[tuple[Any, PredictionModel]]
-) -> dict[str, Any]:
+def _design(model: PredictionModel, settings: Any, box: ToleranceBox) -> dict[str, Any]:
     """Notch, gains and loop reports of a PID with ``settings`` on ``model``'s linear part and
-    its box ``vertices`` (module docstring: kept by content, returned as fresh copies)."""
+    the vertices of ``box`` around it (module docstring: kept by content, returned as fresh
+    copies). The key holds what the design reads: the linear part, the box, and the settings
+    of the notch and the tuning rule (``feedforward`` only where it picks the notch's default
+    damping, so ``pid-ff`` shares ``pid-notch``'s box design)."""
 
     def compute() -> dict[str, Any]:
         design: dict[str, Any] = {"notch": None, "resonance_hz": math.nan}
-        box = [vertex_model for _, vertex_model in vertices]
+        vertices = vertex_models(model, box)
+        plants = [vertex_model for _, vertex_model in vertices]
         if settings.notch:
             design["resonance_hz"], _, pole = resonance(model.a, model.dt)
             damping = settings.notch_damping
-            if damping is None and box:
-                damping = robust_notch_damping(model, pole, box, ms_max=settings.ms_max)
+            if damping is None and plants:
+                damping = robust_notch_damping(model, pole, plants, ms_max=settings.ms_max)
             elif damping is None:
                 damping = 0.1 if settings.feedforward else 0.7
             design["notch_damping"] = damping
@@ -143,7 +146,7 @@ def _design(
             ms_max=settings.ms_max,
             derivative_filter_s=settings.derivative_filter_s,
             use_derivative=settings.derivative,
-            box=box,
+            box=plants,
         )
         design["report"] = closed_loop_report(model, gains, design["notch"])
         design["vertex_reports"] = [
@@ -152,8 +155,21 @@ def _design(
         ]
         return design
 
-    # The vertices are a function of the linear part and the settings' box.
-    return _designs.get((model.a, model.b, model.c, float(model.dt), settings), compute)
+    default_damping = settings.notch and settings.notch_damping is None and box.is_nominal
+    parts = (
+        model.a,
+        model.b,
+        model.c,
+        float(model.dt),
+        box,
+        settings.notch,
+        settings.notch_damping,
+        settings.feedforward if default_damping else None,
+        settings.ms_max,
+        settings.derivative_filter_s,
+        settings.derivative,
+    )
+    return _designs.get(parts, compute)
 
 
 class PIDController(Controller):
@@ -257,7 +273,7 @@ class PIDController(Controller):
             settings.gain_tolerance, settings.resonance_tolerance, settings.damping_range
         )
         self.vertices = vertex_models(model, self.box)
-        design = _design(model, settings, self.vertices)
+        design = _design(model, settings, self.box)
         self.notch, self.resonance_hz = design["notch"], design["resonance_hz"]
         self.gains = design["gains"]
         if settings.notch:

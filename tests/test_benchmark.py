@@ -336,10 +336,15 @@ def test_the_command_runs_the_policies_asked_for_and_says_so_in_one_line(
     assert lines == ([f"policies: running {', '.join(expected)}"] if expected else [])
 
 
-def test_no_collection_keeps_the_collector_off_inside_and_freezes_once():
+def test_no_collection_keeps_the_collector_off_inside_and_freezes_once(monkeypatch):
     import gc
 
+    import benchmarks.runner as runner
     from benchmarks.runner import no_collection
+
+    calls: list[int] = []
+    monkeypatch.setattr(runner, "_base_frozen", False)
+    monkeypatch.setattr(gc, "freeze", lambda original=gc.freeze: (original(), calls.append(1)))
 
     assert gc.isenabled()
     with no_collection():
@@ -349,4 +354,5 @@ def test_no_collection_keeps_the_collector_off_inside_and_freezes_once():
     with no_collection():
         assert not gc.isenabled()
         assert gc.get_freeze_count() <= frozen  # no second freeze: only new objects collected
-    assert gc.isenabled()
+    assert gc.isenabled() and calls == [1]
+    gc.unfreeze()  # the rest of the session's heap stays collectable

@@ -23,7 +23,10 @@ def test_the_key_sees_every_bit_dtype_and_shape():
     nudged[3] = np.nextafter(nudged[3], 2.0)
     base = content_key([a, _Settings(), 3])
     assert content_key([a.copy(), _Settings(), 3]) == base
-    assert content_key([a[::-1][::-1], _Settings(), 3]) == base  # a view, same content
+    strided = np.arange(12.0)[::2]
+    assert content_key([strided]) == content_key([strided.copy()])
+    square = np.arange(6.0).reshape(2, 3)
+    assert content_key([np.asfortranarray(square)]) == content_key([square])
     for other in (
         [nudged, _Settings(), 3],
         [a.reshape(2, 3), _Settings(), 3],
@@ -31,8 +34,21 @@ def test_the_key_sees_every_bit_dtype_and_shape():
         [a, _Settings(weight=np.nextafter(1.0, 2.0)), 3],
         [a, _Settings(), 4],
         [a, 3, _Settings()],
+        [(a,), _Settings(), 3],
     ):
         assert content_key(other) != base
+
+
+def test_nested_and_large_arrays_are_keyed_by_every_bit_and_opaque_objects_refused():
+    big = np.zeros(2000)
+    other = big.copy()
+    other[1000] = 1e-300  # where a printed array would show "..."
+    assert content_key([(big,)]) != content_key([(other,)])
+    assert content_key([{"x": [big]}]) != content_key([{"x": [other]}])
+    with pytest.raises(ValueError, match="object array"):
+        content_key([np.array([1, None], dtype=object)])
+    with pytest.raises(ValueError, match="cannot key on a object"):
+        content_key([object()])
 
 
 def test_results_are_computed_once_and_every_caller_gets_a_copy():
