@@ -607,7 +607,8 @@ def _left_out_lines(meta: dict[str, Any]) -> list[str]:
 
 
 def native_code_line(result: BenchmarkResult) -> str:
-    """Which generated functions ran compiled and which fell back, and why (one paragraph)."""
+    """Which generated functions ran compiled and which ran in numpy, and why (one paragraph):
+    a failed build, or a configuration without a compiled variant."""
     builds = {
         (row, name): build
         for row, description in result.controllers.items()
@@ -624,8 +625,10 @@ def native_code_line(result: BenchmarkResult) -> str:
         )
     listed = "; ".join(f"`{row}` {name}: {b['reason']}" for (row, name), b in fell_back.items())
     return (
-        f"**Native code fell back** (the numbers differ from a compiled run by rounding, and the "
-        f"compute times are longer): {listed}. Set PIEZO_NATIVE=require to make this an error."
+        f"**Native code did not run everywhere**: {listed}. These ran in numpy (numbers that "
+        "can differ from compiled code's by rounding, and longer compute times). A build that "
+        "failed is an error under PIEZO_NATIVE=require; a configuration that has no compiled "
+        "variant (an oracle's plant model) is not."
     )
 
 

@@ -546,3 +546,27 @@ def test_the_reference_checks_state_rankings_where_the_project_claims_no_figure(
         for check in ranking.values():
             assert check["limit"] == 1.0 and check["value"] == pytest.approx(factor)
             assert check["holds"] is holds
+
+
+def test_the_native_code_line_names_what_ran_in_numpy_and_why():
+    from types import SimpleNamespace
+
+    from benchmarks.report import native_code_line
+
+    compiled = {"compiled": True, "compiler": "cc 12", "reason": "cached"}
+    numpy_step = {"compiled": False, "compiler": "", "reason": "the nonlinearity has no inverse"}
+    everywhere = SimpleNamespace(controllers={"mpc": {"native": {"mpc_step": compiled}}})
+    assert native_code_line(everywhere).startswith("Native code: every generated function ran")
+    mixed = SimpleNamespace(
+        controllers={
+            "mpc": {"native": {"mpc_step": compiled}},
+            "mpc-oracle": {"native": {"mpc_step": numpy_step}},
+        }
+    )
+    line = native_code_line(mixed)
+    assert line.startswith("**Native code did not run everywhere**")
+    assert "`mpc-oracle` mpc_step: the nonlinearity has no inverse" in line
+    assert "`mpc` mpc_step" not in line
+    assert native_code_line(SimpleNamespace(controllers={"pid": {}})).startswith(
+        "Native code: none"
+    )
