@@ -8,6 +8,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+from recorded import recorded_episode
 
 import controllers
 from benchmarks.references import make_reference
@@ -46,17 +47,9 @@ def build(name, env, *, fused, **options):
 
 def episode(controller, plant, reference):
     """Volts and, after each step, the z applied and the plan's first move (doubles)."""
-    record = []
-    act = controller.act
-
-    def recorded(observation):
-        action = act(observation)
-        record.append((controller._z_applied, float(controller._plan[0])))
-        return action
-
-    controller.act = recorded
-    run = controllers.run_episode(plant, controller, seed=0, reference=reference, max_steps=1500)
-    return run.voltage_V, np.array(record), controller.stats.summary()
+    return recorded_episode(
+        controller, plant, reference, 1500, lambda c: (c._z_applied, float(c._plan[0]))
+    )
 
 
 @pytest.mark.parametrize("name", ["mpc", "mpc-adaptive"])

@@ -7,6 +7,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+from recorded import recorded_episode
 
 import controllers
 from benchmarks.references import make_reference
@@ -40,17 +41,9 @@ def build(env, *, compiled, **options):
 
 def episode(controller, env, reference):
     """Volts, and after each step the plan's first move and the memory state (doubles)."""
-    record = []
-    act = controller.act
-
-    def recorded(observation):
-        action = act(observation)
-        record.append(np.r_[controller._plan[0], controller._memory])
-        return action
-
-    controller.act = recorded
-    run = controllers.run_episode(env, controller, seed=0, reference=reference, max_steps=STEPS)
-    return run.voltage_V, np.array(record), controller.stats.summary()
+    return recorded_episode(
+        controller, env, reference, STEPS, lambda c: np.r_[c._plan[0], c._memory]
+    )
 
 
 @pytest.mark.parametrize("reference_name", ["sine-50Hz", "steps", "random-steps"])
@@ -147,19 +140,24 @@ def test_linearization_equals_the_structured_horizon(env):
     np.testing.assert_allclose(kernel.q, q, rtol=1e-11, atol=1e-9 * np.max(np.abs(q)))
 
 
+def kernel_calls(controller, env, reference, steps):
+    """The compiled kernel's calls in each of ``steps`` closed-loop steps on ``reference``."""
+    obs, _ = env.reset(seed=0, options={"reference": reference})
+    controller.reset(obs)
+    calls = []
+    for _ in range(steps):
+        before = controller._kernel.calls
+        obs, *_ = env.step(controller.act(obs))
+        calls.append(controller._kernel.calls - before)
+    return calls
+
+
 def test_an_unconstrained_step_is_three_compiled_calls(env):
     """The targets, offset and shifted plan in one call, every SQP iteration of a step in one
     while the unconstrained optima meet the bounds (all steps of a half-stroke sine), and one
     for the memory step."""
     c = build(env, compiled=True)
-    reference = make_reference("sine-50Hz", 221, dt=1e-3, seed=0)
-    obs, _ = env.reset(seed=0, options={"reference": reference})
-    c.reset(obs)
-    calls = []
-    for _ in range(200):
-        before = c._kernel.calls
-        obs, *_ = env.step(c.act(obs))
-        calls.append(c._kernel.calls - before)
+    calls = kernel_calls(c, env, make_reference("sine-50Hz", 221, dt=1e-3, seed=0), 200)
     assert c.stats.status["unconstrained"] == 200
     assert calls == [3] * 200
 
@@ -168,14 +166,7 @@ def test_a_step_with_a_qp_makes_one_call_per_iteration_after_it(env):
     """Beyond reach (the drive bound binds): the iterations up to the one that needs the QP
     are one call, each later iteration one more (no early stop here: tolerance 0)."""
     c = build(env, compiled=True, step_tolerance=0.0)
-    reference = np.r_[np.full(30, -1300.0), np.full(30, 1300.0)]
-    obs, _ = env.reset(seed=0, options={"reference": reference})
-    c.reset(obs)
-    calls = []
-    for _ in range(40):
-        before = c._kernel.calls
-        obs, *_ = env.step(c.act(obs))
-        calls.append(c._kernel.calls - before)
+    calls = kernel_calls(c, env, np.r_[np.full(30, -1300.0), np.full(30, 1300.0)], 40)
     assert c.stats.status["solved"] > 0
     # prepare, run (up to the QP), one iterate per later iteration, the memory step
     assert all(3 <= n <= c.settings.sqp_iterations + 2 for n in calls)
