@@ -123,8 +123,9 @@ TRACE_EVERY = 20
 """Samples between the records of :attr:`AdaptiveStats.trace` (for figures only)."""
 
 SCREENS_KEPT = 8
-"""Sets' stability screens kept by content (:meth:`AdaptiveMPC.filter_radii`): a few
-identified models, each with its settings."""
+"""Sets' stability screens kept by content (:meth:`AdaptiveMPC.filter_radii`), one per
+identified model and settings. A benchmark worker meets up to six models (three
+identification seeds, on the nominal bender and on the bench): 8 keeps them all."""
 
 _screens = ContentCache(SCREENS_KEPT)
 
