@@ -89,7 +89,7 @@ from controllers.loop import (
 from controllers.memo import ContentCache
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
-from controllers.observer import ObserverBank, make_observer
+from controllers.observer import ObserverBank, make_observer, rescale_states
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX, check_settings, measurement_std
 from controllers.task import ControlTask
@@ -312,7 +312,10 @@ class AdaptiveMPC(LinearMPC):
         self._member_gains = np.array([m.static_gain() for m in self._member_arx])
         self._check_shared_state()
         self._members: list[_Member] = []
+        self._bindings: list[np.ndarray] = []
         self._plausible_key: bytes | None = None
+        self._noise_variance = measurement_std(settings.measurement_std, task) ** 2
+        """The sensor noise's variance the tests use (um^2)."""
         super().__init__(model, task, settings, name=name)
 
     # -- the set --------------------------------------------------------------------------------
@@ -361,6 +364,18 @@ class AdaptiveMPC(LinearMPC):
         self._members = [offline, *(self._member(m, a) for m, a in pairs)]
         self._radii = self.loop_radii()
         self._filter_radii = self.filter_radii()
+        # Per plant member, which (member, filter) loops are stable on it: (K plant, K, F),
+        # so that the set's test reads contiguous blocks (:meth:`_allow`).
+        self._stable_on = np.ascontiguousarray(np.moveaxis(self._filter_radii < 1.0, 2, 0))
+        fused = self._fused
+        if fused is not None:
+            # Read once, so that a swap writes the compiled step's table by one slice.
+            self._bindings = [
+                fused.bank_addresses(
+                    m.observer, m.unconstrained, self._vector, self._lower, self._upper
+                )
+                for m in self._members
+            ]
 
     def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
         """The set screens its banks itself, as the data narrow it (:meth:`_allow`)."""
@@ -413,13 +428,13 @@ class AdaptiveMPC(LinearMPC):
         (K, F): stable on every one of them; the in-use member's bank is narrowed to its row
         (or, when its row is empty, to its filter of the smallest worst radius, counted in
         ``stats.adaptation["no_stable_filter"]``)."""
-        worst = self._filter_radii[:, :, plausible].max(axis=2)
-        allowed = worst < 1.0
+        allowed = np.logical_and.reduce(self._stable_on[plausible], axis=0)
         bank = self.observer
         if isinstance(bank, ObserverBank):
             row = allowed[self._member]
             if not row.any():
-                row = worst[self._member] == worst[self._member].min()
+                worst = self._filter_radii[self._member][:, plausible].max(axis=1)
+                row = worst == worst.min()
                 self.stats.adaptation["no_stable_filter"] += 1
             bank.allow(row)
         return allowed
@@ -452,7 +467,16 @@ class AdaptiveMPC(LinearMPC):
         self._unconstrained, self.observer = member.unconstrained, member.observer
         if member.qp is not None:
             self._qp = member.qp
-        if getattr(self, "_fused", None) is not None:
+        fused = getattr(self, "_fused", None)
+        if fused is None:
+            return
+        if self._bindings:
+            # The gain estimate's arrays are every member's: only the member index changes.
+            fused.bind_addresses(self._bindings[index])
+            fused.dims[fused_step.D_MEMBER] = index
+            scalars = fused.scalars
+            scalars[fused_step.S_Z_MIN], scalars[fused_step.S_Z_MAX] = member.model.z_bounds
+        else:
             self._bind_fused()
 
     @property
@@ -481,11 +505,6 @@ class AdaptiveMPC(LinearMPC):
         samples = gain.count * gain.independent_fraction_of(index)
         return np.flatnonzero((misfit - best) * samples / variance <= SWITCH_CHI2)
 
-    @property
-    def _noise_variance(self) -> float:
-        """The sensor noise's variance the tests use (um^2)."""
-        return measurement_std(self.settings.measurement_std, self.task) ** 2
-
     # -- episode --------------------------------------------------------------------------------
 
     def _reset(self, observation: np.ndarray | None) -> None:
@@ -500,22 +519,28 @@ class AdaptiveMPC(LinearMPC):
         # over between episodes, and no set-up is left for the loop.
         for index, member in enumerate(self._members):
             member.qp = self._qp if index == self._member else self._setup_solver(member.hessian)
-        everyone = np.arange(len(self._members))
-        self._plausible_key = everyone.tobytes()
-        self._allowed = self._allow(everyone)
-        self._selected()
+        fused = self._fused
+        if fused is not None:
+            scalars = fused.scalars
+            scalars[fused_step.S_NOISE_VARIANCE] = self._noise_variance
+            scalars[fused_step.S_SWITCH_CHI2] = SWITCH_CHI2
+            scalars[fused_step.S_NORMAL_95] = NORMAL_95
+        self._narrow(np.arange(len(self._members)))
         self._trace()
 
-    def _selected(self) -> None:
+    def _narrow(self, plausible: np.ndarray) -> None:
+        """The data now allow the members ``plausible``: the filters each member's loop may
+        use (:meth:`_allow`), the members the MPC may swap to, and the compiled step's copy of
+        both (:mod:`controllers.native.fused_step` tests with them)."""
+        self._plausible_key = plausible.tobytes()
+        self._allowed = self._allow(plausible)
+        self._swappable = np.flatnonzero(self._allowed.any(axis=1))
         fused = self._fused
-        if fused is None:
-            return
-        fused.plausible[:] = 0.0
-        fused.plausible[np.frombuffer(self._plausible_key, dtype=np.intp)] = 1.0
-        fused.allowed[:] = self._allowed.any(axis=1)
-        scalars = fused.scalars
-        scalars[fused_step.S_NOISE_VARIANCE] = self._noise_variance
-        scalars[fused_step.S_SWITCH_CHI2], scalars[fused_step.S_NORMAL_95] = SWITCH_CHI2, NORMAL_95
+        if fused is not None:
+            fused.plausible[:] = 0.0
+            fused.plausible[plausible] = 1.0
+            fused.allowed[:] = 0.0
+            fused.allowed[self._swappable] = 1.0
 
     def _act(self, observation: np.ndarray) -> float:
         u = super()._act(observation)
@@ -535,35 +560,37 @@ class AdaptiveMPC(LinearMPC):
 
     def _select(self) -> None:
         """Narrow the banks to what the data allow, and swap to the best member when the tests
-        reject the one in use (module docstring)."""
+        reject the one in use (module docstring; the compiled step runs the same tests and
+        calls this only when they may change something)."""
         plausible = self.plausible()
-        key = plausible.tobytes()
-        if key != self._plausible_key:
-            self._plausible_key = key
-            self._allowed = self._allow(plausible)
+        if plausible.tobytes() != self._plausible_key:
+            self._narrow(plausible)
         gain = self._gain
         misfit = gain.misfit
         noise = self._noise_variance
-        in_use = gain.count * gain.independent_fraction_of(self._member)
-        if misfit[self._member] * in_use / noise <= chi2_upper(in_use):
+        member = self._member
+        in_use = gain.count * gain.independent_fraction_of(member)
+        if misfit[member] * in_use / noise <= chi2_upper(in_use):
             return  # the model in use explains the data to within the sensor noise
         # Only members with a filter whose loop is stable on every member still allowed.
-        allowed = np.flatnonzero(self._allowed.any(axis=1))
+        allowed = self._swappable
         if allowed.size == 0:
             return
-        best = int(allowed[np.argmin(misfit[allowed])])
-        if best == self._member:
+        best = int(allowed[misfit[allowed].argmin()])
+        if best == member:
             return
         variance = max(float(misfit[best]), noise)
         samples = gain.count * gain.independent_fraction_of(best)
-        if (misfit[self._member] - misfit[best]) * samples / variance > SWITCH_CHI2:
-            self._swap(best)
+        if (misfit[member] - misfit[best]) * samples / variance > SWITCH_CHI2:
+            self._swap(best, plausible)
 
-    def _swap(self, index: int) -> None:
-        """Predict with member ``index`` from now on (see the module docstring)."""
+    def _swap(self, index: int, plausible: np.ndarray | None = None) -> None:
+        """Predict with member ``index`` from now on (see the module docstring); ``plausible``
+        is :meth:`plausible` now where the caller has it, for the trace."""
         old = self.observer
-        old.rescale_input(1.0 / self._g)  # back to the applied z's scale
-        estimate = old.estimate.copy()
+        estimate = old.estimate[None].copy()
+        rescale_states(estimate, old.c_aug, old.n, 1.0 / self._g)  # the applied z's scale
+        estimate = estimate[0]
         self._plan = self._plan / self._g
         self._use(index)
         self._g = 1.0
@@ -581,12 +608,17 @@ class AdaptiveMPC(LinearMPC):
         else:
             observer.reset(estimate)
         self.stats.adaptation["swaps"] += 1
-        self._trace()
+        self._trace(plausible)
 
-    def _trace(self) -> None:
+    def _trace(self, plausible: np.ndarray | None = None) -> None:
+        """Record the member in use and the set (``plausible``: :meth:`plausible` when the
+        caller has it)."""
         gain = self._gain
         index, base = self._member, float(self._member_gains[self._member])
-        resonances = self._member_hz if gain.count == 0 else self._member_hz[self.plausible()]
+        if gain.count == 0:
+            resonances = self._member_hz
+        else:
+            resonances = self._member_hz[self.plausible() if plausible is None else plausible]
         self.stats.trace.append(
             (
                 self._step,

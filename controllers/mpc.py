@@ -342,9 +342,6 @@ class LinearMPC(PredictiveController):
     def _select(self) -> None:
         """Choose the linear part to predict with (one here: see the adaptive MPC)."""
 
-    def _selected(self) -> None:
-        """Tell the compiled step what :meth:`_select` decided (the adaptive MPC)."""
-
     def _set_gain(self, g: float) -> None:
         """Predict with gain g from now on: carry the plan, the last input and the observer's
         state to the new input scale g z."""
@@ -395,7 +392,6 @@ class LinearMPC(PredictiveController):
         code = fused.step()
         if code == fused_step.NEED_SELECT:
             self._select()
-            self._selected()
             self._fused_in()
             code = fused.solve()
         if code == fused_step.NON_FINITE:

@@ -54,6 +54,7 @@ from controllers.native.step_kernels import FLAGS
 from controllers.native.step_kernels import SOURCE as KERNELS
 
 __all__ = [
+    "BANK_SLOTS",
     "DONE",
     "ERROR",
     "NEED_INVERSE",
@@ -85,6 +86,14 @@ DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT = range(6)
     S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS, S_RUNAWAY,
     S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_COUNT,
 ) = range(13)  # fmt: skip
+BANK_SLOTS = np.array(
+    [
+        P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
+        P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_LOWER,
+        P_UPPER,
+    ]
+)  # fmt: skip
+"""The table's slots of the model in use (:meth:`FusedStep.bank_addresses`)."""
 
 STEP = r"""
 enum { P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, P_GAIN_B,
@@ -319,6 +328,12 @@ def unavailable(reason: str) -> NativeBuild:
     return NativeBuild("mpc_step", NUMPY, reason)
 
 
+def _check_buffer(index: int, buffer: np.ndarray) -> None:
+    """A table entry must point at a C-contiguous float64 or int64 array."""
+    if not (buffer.flags.c_contiguous and buffer.dtype in (np.float64, np.int64)):
+        raise ValueError(f"table entry {index}: needs a C-contiguous float64 or int64 array")
+
+
 def _int_array(values: list[int]) -> np.ndarray:
     return np.array(values, dtype=np.int64)
 
@@ -409,8 +424,7 @@ class FusedStep:
     def _point(self, index: int, buffer: np.ndarray, *, keep: bool = True) -> None:
         """Write ``buffer``'s address into the table (``keep``: hold a reference to it, for the
         step's own buffers; the estimators' arrays are their owners')."""
-        if not (buffer.flags.c_contiguous and buffer.dtype in (np.float64, np.int64)):
-            raise ValueError(f"table entry {index}: needs a C-contiguous float64 or int64 array")
+        _check_buffer(index, buffer)
         self.table[index] = buffer.ctypes.data
         if keep:
             self._keep.append(buffer)
@@ -451,22 +465,43 @@ class FusedStep:
         upper: np.ndarray,
     ) -> None:
         """Point at an :class:`controllers.observer.ObserverBank`'s arrays, the plan's matrix
-        ``-P^-1 G``, the QP's vector and its bounds."""
-        for index, buffer in (
-            (P_BANK_DIMS, bank._dims),
-            (P_BANK_PAR, bank._parameters),
-            (P_BANK_C, bank._c_aug),
-            (P_BANK_GAINS, bank._gains),
-            (P_BANK_HLV, bank._half_log_var),
-            (P_BANK_HIV, bank._half_inverse_var),
-            (P_BANK_ST, bank._state),
-            (P_BANK_COUNTERS, bank._counters),
-            (P_BANK_COUNTS, bank.selection_counts),
-            (P_BANK_A, bank._a_aug),
-            (P_BANK_B, bank._b_aug),
-            (P_UNCONSTRAINED, unconstrained),
-            (P_STACKED, stacked),
-            (P_LOWER, lower),
-            (P_UPPER, upper),
-        ):
-            self._point(index, buffer, keep=False)
+        ``-P^-1 G``, the QP's vector and its bounds (:meth:`bank_addresses`, then
+        :meth:`bind_addresses`)."""
+        self.bind_addresses(self.bank_addresses(bank, unconstrained, stacked, lower, upper))
+
+    def bank_addresses(
+        self,
+        bank: Any,
+        unconstrained: np.ndarray,
+        stacked: np.ndarray,
+        lower: np.ndarray,
+        upper: np.ndarray,
+    ) -> np.ndarray:
+        """The table entries :meth:`bind_bank` writes, checked and read once (uint64, one per
+        slot of :data:`BANK_SLOTS`): a controller that changes banks mid-episode reads them
+        before the episode and binds them with :meth:`bind_addresses`, a slice assignment. The
+        arrays must outlive their use: their owners (bank, controller) keep them."""
+        buffers = (
+            bank._dims,
+            bank._parameters,
+            bank._c_aug,
+            bank._gains,
+            bank._half_log_var,
+            bank._half_inverse_var,
+            bank._state,
+            bank._counters,
+            bank.selection_counts,
+            bank._a_aug,
+            bank._b_aug,
+            unconstrained,
+            stacked,
+            lower,
+            upper,
+        )
+        for index, buffer in zip(BANK_SLOTS, buffers, strict=True):
+            _check_buffer(index, buffer)
+        return np.array([buffer.ctypes.data for buffer in buffers], dtype=np.uint64)
+
+    def bind_addresses(self, addresses: np.ndarray) -> None:
+        """Write :meth:`bank_addresses`' entries into the table."""
+        self.table[BANK_SLOTS] = addresses
