@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import gymnasium as gym
@@ -85,6 +86,43 @@ def test_controller_equals_the_policy_on_the_wrapped_env(trained):
         assert volts == np.float32(action[0] * np.float32(30.0))
         obs, *_ = wrapped.step(action)
         raw, *_ = raw_env.step(volts)
+
+
+@pytest.mark.parametrize(
+    ("n_inputs", "n_errors", "n_deflections"), [(2, 2, 0), (0, 3, 4), (3, 0, 2), (5, 1, 0)]
+)
+def test_controller_keeps_the_wrappers_observation_to_the_bit(
+    tmp_path, n_inputs, n_errors, n_deflections
+):
+    """The controller shifts its normalised history in place; the wrapper recomputes it every
+    step (piezo_env.wrappers.ObservationHistory). Any layout, every step, the same bits."""
+    wrapped = TrackingObservation(
+        gym.make(ENV_ID, preview=4),
+        n_inputs=n_inputs,
+        n_errors=n_errors,
+        n_deflections=n_deflections,
+    )
+    size = wrapped.config.size
+    rng = np.random.default_rng(7)
+    sizes = [size, 16, 16, 1]
+    layers = [
+        (rng.normal(0.0, 1.5 / np.sqrt(m), (n, m)), rng.normal(0.0, 0.1, n))
+        for m, n in itertools.pairwise(sizes)
+    ]
+    save_policy(tmp_path, layers=layers, activation="tanh", observation=wrapped.config)
+    network = load_policy(tmp_path).network
+    raw_env = gym.make(ENV_ID, preview=6)
+    controller = make_policy_controller(tmp_path, raw_env)
+    obs, _ = wrapped.reset(seed=4)
+    raw, _ = raw_env.reset(seed=4)
+    controller.reset(raw)
+    for _ in range(60):
+        action = np.clip(network.mean(obs[None])[0], -1.0, 1.0).astype(np.float32)
+        volts = controller.act(raw)
+        assert volts[0] == np.float32(action[0] * 30.0)
+        obs, *_ = wrapped.step(action)
+        raw, *_ = raw_env.step(volts)
+    assert np.ptp(obs[wrapped.config.raw_size :]) > 0.0  # the history really moved
 
 
 def test_controller_through_run_episode_is_finite_in_range_and_deterministic(trained):
