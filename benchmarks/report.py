@@ -628,7 +628,7 @@ def native_code_line(result: BenchmarkResult) -> str:
         f"**Native code did not run everywhere**: {listed}. These ran in numpy (numbers that "
         "can differ from compiled code's by rounding, and longer compute times). A build that "
         "failed is an error under PIEZO_NATIVE=require; a configuration that has no compiled "
-        "variant (an oracle's plant model) is not."
+        "variant (a plant model or a horizon the kernels do not take) is not."
     )
 
 

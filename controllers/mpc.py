@@ -234,14 +234,15 @@ class LinearMPC(PredictiveController):
             why = "the observer is not a bank run by the compiled kernels"
         elif gain is not None and gain._update_native is None:
             why = "the gain estimate is not run by the compiled kernels"
-        elif not hasattr(self.model.nonlinearity, "_inverse"):
+        elif getattr(self.model.nonlinearity, "_inverse", None) is None:
             why = f"the nonlinearity ({self.model.source}) has no compiled inverse"
         if why is not None:
             return None, fused_step.unavailable(why)
-        library, build = fused_step.compile_step(self.model.nonlinearity._inverse)
+        compiled = self.model.nonlinearity._inverse
+        library, build = fused_step.compile_step(compiled)
         if library is None:
             return None, build
-        inverse, reachable = self.model.nonlinearity._inverse.functions
+        inverse, reachable = compiled.functions
         m = observer.n + observer.n_disturbance
         sizes = {
             "observation": self.task.observation_size,
@@ -258,7 +259,7 @@ class LinearMPC(PredictiveController):
         if sizes["columns"] != m + sizes["samples"] + 1 or sizes["moves"] != self._lower.size:
             raise RuntimeError(f"{self.name}: the QP's sizes do not match the fused step's")
         fused = fused_step.FusedStep(
-            library, inverse, reachable, self.model.nonlinearity.u_range, sizes
+            library, inverse, reachable, self.model.nonlinearity.u_range, compiled.parameters, sizes
         )
         return fused, build
 

@@ -93,6 +93,18 @@ class Hysteresis:
         """A proven bound on |u_eff| (V) for |u| <= u_max from any state reached from rest."""
         raise NotImplementedError
 
+    def inverse_parameters(self) -> np.ndarray | None:
+        """The numbers of this model that a generated inverse
+        (:mod:`controllers.native.compiled_inverse`) takes as an input instead of as
+        constants, so that one compiled function serves every strength of one loop shape (the
+        Monte Carlo's draws); None for a model without a generated inverse."""
+        return None
+
+    def casadi_step_with(self, u: Any, state: Any, parameters: Any) -> tuple[Any, Any]:
+        """:meth:`casadi_step` with the casadi symbols ``parameters`` standing for
+        :meth:`inverse_parameters`."""
+        raise NotImplementedError
+
     def casadi_step(self, u: Any, state: Any) -> tuple[Any, Any]:
         """casadi expressions ``(u_eff, next_state)`` of one step (u in V, state as in step)."""
         raise NotImplementedError
@@ -246,6 +258,17 @@ class BoucWen(Hysteresis):
         h = bouc_wen_casadi(state[1], u - state[0], self._ak, self.beta, self.gamma)
         return self.k * u - h, casadi.vertcat(u, h)
 
+    def inverse_parameters(self) -> np.ndarray:
+        """``[k, alpha k]``: the strength (what :func:`piezo_env.randomization.
+        scale_hysteresis` scales); beta and gamma fix the loop's shape and stay constants."""
+        return np.array([self.k, self._ak])
+
+    def casadi_step_with(self, u: Any, state: Any, parameters: Any) -> tuple[Any, Any]:
+        import casadi
+
+        h = bouc_wen_casadi(state[1], u - state[0], parameters[1], self.beta, self.gamma)
+        return parameters[0] * u - h, casadi.vertcat(u, h)
+
 
 def bouc_wen_rows(
     batch: BoucWenBatch, k: float | np.ndarray, state: np.ndarray, u: np.ndarray
@@ -341,6 +364,19 @@ class PrandtlIshlinskii(Hysteresis):
 
         plays = play_casadi(state[1:], u, self.radii)
         u_eff = self.linear_weight * u + casadi.dot(casadi.DM(self._w), plays)
+        return u_eff, casadi.vertcat(u, plays)
+
+    def inverse_parameters(self) -> np.ndarray:
+        """``[w_0, r_1 .. r_n, w_1 .. w_n]``; the number of plays is the structure."""
+        return np.concatenate([[self.linear_weight], self._r, self._w])
+
+    def casadi_step_with(self, u: Any, state: Any, parameters: Any) -> tuple[Any, Any]:
+        import casadi
+
+        n = len(self.radii)
+        radii = [parameters[1 + i] for i in range(n)]
+        plays = play_casadi(state[1:], u, radii)
+        u_eff = parameters[0] * u + casadi.dot(parameters[1 + n : 1 + 2 * n], plays)
         return u_eff, casadi.vertcat(u, plays)
 
 

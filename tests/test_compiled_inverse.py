@@ -111,7 +111,7 @@ def test_compiled_function_equals_casadi_virtual_machine(shipped):
     function = inverse_function(shipped)
     inverse = CompiledInverse(shipped, U_RANGE)
     state = reached_states(shipped, 1, seed=4)[0]
-    u, z, status, next_state, _ = function(3.0, state, *U_RANGE, state[0])
+    u, z, status, next_state, _ = function(3.0, state, *U_RANGE, state[0], np.zeros(0))
     result = inverse.solve(3.0, state)
     assert int(status) == OK
     assert (result.u, result.z) == pytest.approx((float(u), float(z)), abs=1e-12)
@@ -161,7 +161,7 @@ def test_non_monotone_map_falls_back_to_the_numpy_inverse(out_weight, target, pr
     inverse = CompiledInverse(nls, (-5.0, 5.0))
     function = inverse_function(nls)
     state = np.array([previous])
-    assert int(function(target, state, -5.0, 5.0, previous)[2]) == FALLBACK
+    assert int(function(target, state, -5.0, 5.0, previous, np.zeros(0))[2]) == FALLBACK
     result = inverse.solve(target, state)
     expected = nls.solve_inverse(target, state, u_range=(-5.0, 5.0))
     assert inverse.fallbacks == 1

@@ -152,7 +152,8 @@ def test_the_step_records_where_it_runs_numpy(env, monkeypatch):
     slewing = gym.make("piezo_env:PiezoBender-v0", preview=20, amplifier=amplifier)
     record = controllers.make("mpc", MODEL_DIR, slewing).describe()["native"]["mpc_step"]
     assert record["path"] == "numpy" and "slew limit" in record["reason"]
-    oracle = controllers.make("mpc", "plant", env).describe()["native"]["mpc_step"]
+    rate = gym.make("piezo_env:PiezoBender-v0", preview=20, hysteresis="rate-dependent")
+    oracle = controllers.make("mpc", "plant", rate).describe()["native"]["mpc_step"]
     assert oracle["path"] == "numpy" and "no compiled inverse" in oracle["reason"]
     monkeypatch.setenv("PIEZO_NATIVE", "off")
     off = controllers.make("mpc", MODEL_DIR, env)

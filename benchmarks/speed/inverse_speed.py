@@ -87,7 +87,7 @@ def compiled_solver(inverse: CompiledInverse):
 
 def compiled_passes(inverse: CompiledInverse, z: np.ndarray) -> float:
     """Mean network passes per compiled call over the sequence (ends, warm start, Newton)."""
-    state, passes = inverse.nls.initial_state(), 0
+    state, passes = inverse.map.nls.initial_state(), 0
     for target in z:
         state = inverse.solve(float(target), state).state
         passes += inverse.passes

@@ -1,8 +1,13 @@
-"""Compiled inverse of the identified NLS: the voltage giving a target z, in generated C.
+"""Compiled inverse of the identified NLS (and of the plant's own hysteresis, for the oracle):
+the voltage giving a target z, in generated C.
 
 From the memory state ``s`` the NLS is a scalar map ``u -> z(u; s)`` on the drive range
-``[u_lo, u_hi]`` (V -> equivalent V). :func:`inverse_function` builds it as one casadi Function
-``nls_inverse(z_target, state, u_lo, u_hi, u_guess) -> (u, z, status, next_state, passes)``:
+``[u_lo, u_hi]`` (V -> equivalent V); so is any :class:`InverseMap` (the identified NLS as
+:class:`NLSMap`, the oracle's Bouc-Wen or Prandtl-Ishlinskii hysteresis as
+:class:`controllers.prediction.HysteresisMap`, whose strength is the ``parameters`` input, so
+that one compiled function serves every value of it). :func:`inverse_function` builds it as
+one casadi Function ``nls_inverse(z_target, state, u_lo, u_hi, u_guess, parameters) -> (u, z,
+status, next_state, passes)``:
 
 1. ``z`` at both range ends and at the warm start ``g`` (``u_guess``, clipped to the range;
    the previous input for Bouc-Wen and past-input features, whose maps kink there):
@@ -60,6 +65,9 @@ __all__ = [
     "OK",
     "OUT_OF_RANGE",
     "CompiledInverse",
+    "InverseMap",
+    "NLSMap",
+    "as_map",
     "inverse_function",
     "reachable_function",
 ]
@@ -73,19 +81,88 @@ _A, _ZA, _B, _ZB, _U, _STEP, _U_OUT, _Z_OUT, _STATUS, _DONE, _PASSES = range(11)
 _N_X = 11
 
 
-def _evaluators(nls: Any) -> tuple[Any, Any, Any]:
-    """SX Functions ``(u, s) -> z``, ``(u, s) -> (z, dz/du)`` and ``(u, s) -> next state``."""
+class InverseMap:
+    """What the generated inverse inverts: a scalar memory map ``u -> z(u; s)`` on a drive
+    range, strictly increasing in u for every state, continuous (kinks allowed, jumps not).
+
+    Attributes
+    ----------
+    n_state : int
+        Length of the memory state s.
+    parameters : numpy.ndarray
+        Numbers the generated functions take as an input rather than as constants (float64,
+        possibly empty), so that one compiled function serves every value of them (the
+        hysteresis strength of every Monte Carlo draw, for example).
+    kinked : bool
+        Whether the map may kink anywhere in the range (play operators): then the Newton
+        iteration never stops on its curvature estimate (:func:`_newton_function`).
+    """
+
+    n_state: int
+    parameters: np.ndarray
+    kinked: bool
+
+    def casadi_z(self, u: Any, s: Any, p: Any) -> tuple[Any, Any]:
+        """casadi SX ``(z, next state)`` of the input ``u`` from the state ``s``, with the
+        symbols ``p`` standing for :attr:`parameters`."""
+        raise NotImplementedError
+
+    def solve_inverse(
+        self, z_target: float, state: np.ndarray, u_range: tuple[float, float]
+    ) -> InverseResult:
+        """The numpy inverse the generated one falls back to."""
+        raise NotImplementedError
+
+    def ends(self, state: np.ndarray, u_range: tuple[float, float]) -> tuple[float, float]:
+        """z at both ends of ``u_range`` from ``state``, in numpy (unsorted)."""
+        raise NotImplementedError
+
+
+class NLSMap(InverseMap):
+    """The identified NLS (:class:`identification.nls.NLS`: memory features, then the network)
+    as an :class:`InverseMap`; its weights are constants of the generated code."""
+
+    def __init__(self, nls: Any) -> None:
+        self.nls = nls
+        self.n_state = nls.n_state
+        self.parameters = np.zeros(0)
+        self.kinked = nls.feature_set == "play"
+
+    def casadi_z(self, u: Any, s: Any, p: Any) -> tuple[Any, Any]:
+        features, new_state = self.nls.feature_map.casadi_step(u, s)
+        return self.nls.to_casadi()(features), new_state
+
+    def solve_inverse(
+        self, z_target: float, state: np.ndarray, u_range: tuple[float, float]
+    ) -> InverseResult:
+        return self.nls.solve_inverse(z_target, state, u_range=u_range)
+
+    def ends(self, state: np.ndarray, u_range: tuple[float, float]) -> tuple[float, float]:
+        network = self.nls.to_numpy()
+        low, high = network(self.nls.feature_map.candidates(np.array(u_range), state))
+        return float(low), float(high)
+
+
+def as_map(source: Any) -> InverseMap:
+    """``source`` itself if it is an :class:`InverseMap`, else an identified NLS's
+    :class:`NLSMap`."""
+    return source if isinstance(source, InverseMap) else NLSMap(source)
+
+
+def _evaluators(source: InverseMap) -> tuple[Any, Any, Any]:
+    """SX Functions ``(u, s, p) -> z``, ``(u, s, p) -> (z, dz/du)`` and
+    ``(u, s, p) -> next state``."""
     import casadi
 
     u = casadi.SX.sym("u")
-    s = casadi.SX.sym("s", nls.n_state)
-    features, new_state = nls.feature_map.casadi_step(u, s)
-    z = nls.to_casadi()(features)
+    s = casadi.SX.sym("s", source.n_state)
+    p = casadi.SX.sym("p", source.parameters.size)
+    z, new_state = source.casadi_z(u, s, p)
     slope = casadi.jtimes(z, u, casadi.SX(1.0))
     return (
-        casadi.Function("nls_z", [u, s], [z]),
-        casadi.Function("nls_z_slope", [u, s], [z, slope]),
-        casadi.Function("nls_next_state", [u, s], [new_state]),
+        casadi.Function("nls_z", [u, s, p], [z]),
+        casadi.Function("nls_z_slope", [u, s, p], [z, slope]),
+        casadi.Function("nls_next_state", [u, s, p], [new_state]),
     )
 
 
@@ -130,8 +207,10 @@ def _end_status(t: Any, z_end: Any) -> Any:
     )
 
 
-def _newton_function(z_slope: Any, n_state: int, xtol: float, extrapolate: bool) -> Any:
-    """SX Function ``(x, t, s) -> x``: one safeguarded Newton iteration (one network pass).
+def _newton_function(
+    z_slope: Any, n_state: int, n_parameters: int, xtol: float, extrapolate: bool
+) -> Any:
+    """SX Function ``(x, t, s, p) -> x``: one safeguarded Newton iteration (one network pass).
 
     With ``extrapolate`` the iteration also stops when the error of the Newton step just
     computed, ``|z''| step**2 / (2 z')`` with ``z''/2`` from the secants to both bracket ends
@@ -143,9 +222,10 @@ def _newton_function(z_slope: Any, n_state: int, xtol: float, extrapolate: bool)
 
     x = casadi.SX.sym("x", _N_X)
     t, s = casadi.SX.sym("t"), casadi.SX.sym("s", n_state)
+    p = casadi.SX.sym("p", n_parameters)
     if_else, land, lnot, fabs = casadi.if_else, casadi.logic_and, casadi.logic_not, casadi.fabs
     u = x[_U]
-    zu, slope = z_slope(u, s)
+    zu, slope = z_slope(u, s, p)
     newton = (t - zu) / slope
     below = zu < t
     a, za = if_else(below, u, x[_A]), if_else(below, zu, x[_ZA])
@@ -179,80 +259,89 @@ def _newton_function(z_slope: Any, n_state: int, xtol: float, extrapolate: bool)
         new[_STATUS] = if_else(condition, status, new[_STATUS])
         new[_DONE] = if_else(condition, 1.0, new[_DONE])
     new.append(x[_PASSES] + 1.0)
-    return casadi.Function("nls_inverse_newton", [x, t, s], [casadi.vertcat(*new)])
+    return casadi.Function("nls_inverse_newton", [x, t, s, p], [casadi.vertcat(*new)])
 
 
 def inverse_function(
-    nls: Any, *, max_iter: int = 40, xtol: float = 1e-9, extrapolate: bool | None = None
+    source: Any, *, max_iter: int = 40, xtol: float = 1e-9, extrapolate: bool | None = None
 ) -> Any:
     """casadi Function of the whole inverse (see the module docstring).
 
     Parameters
     ----------
-    nls : identification.nls.NLS
-        Identified network with its memory features.
+    source : InverseMap or identification.nls.NLS
+        The map (an identified NLS is taken as its :class:`NLSMap`).
     max_iter : int
         Newton iterations unrolled (each skipped once the iteration has stopped).
     xtol : float
         Estimated voltage error (V) below which the iteration stops.
     extrapolate : bool, optional
         Stop on the curvature estimate (see :func:`_newton_function`); default: True unless
-        the features are play operators (kinks anywhere in the range).
+        the map is :attr:`InverseMap.kinked`.
 
     Returns
     -------
     casadi.Function
-        ``nls_inverse(z_target, state, u_lo, u_hi, u_guess) -> (u, z, status, next_state,
-        passes)``: voltage (V), z at it (equivalent V), status code (:data:`OK`,
+        ``nls_inverse(z_target, state, u_lo, u_hi, u_guess, parameters) -> (u, z, status,
+        next_state, passes)``: voltage (V), z at it (equivalent V), status code (:data:`OK`,
         :data:`OUT_OF_RANGE`, :data:`FALLBACK`), memory state after ``u``, network passes.
     """
     import casadi
 
-    z_only, z_slope, next_state = _evaluators(nls)
+    source = as_map(source)
+    z_only, z_slope, next_state = _evaluators(source)
     if extrapolate is None:
-        extrapolate = nls.feature_set != "play"
-    newton = _newton_function(z_slope, nls.n_state, xtol, extrapolate)
+        extrapolate = not source.kinked
+    n_parameters = source.parameters.size
+    newton = _newton_function(z_slope, source.n_state, n_parameters, xtol, extrapolate)
     arguments = newton.mx_in()
     skip = casadi.Function("nls_inverse_skip", arguments, [arguments[0]])
     iteration = casadi.Function.conditional("nls_inverse_iteration", [newton], skip)
     t, lo, hi, g = (casadi.MX.sym(n) for n in ("z_target", "u_lo", "u_hi", "u_guess"))
-    s = casadi.MX.sym("state", nls.n_state)
+    s = casadi.MX.sym("state", source.n_state)
+    p = casadi.MX.sym("parameters", n_parameters)
     g_in = casadi.fmin(casadi.fmax(g, lo), hi)
-    x = _start_function()(t, lo, hi, g_in, z_only(lo, s), z_only(hi, s), z_only(g_in, s))
+    x = _start_function()(
+        t, lo, hi, g_in, z_only(lo, s, p), z_only(hi, s, p), z_only(g_in, s, p)
+    )
     for _ in range(max_iter):
-        x = iteration(x[_DONE], x, t, s)  # index 0 runs Newton, 1 (done) skips it
+        x = iteration(x[_DONE], x, t, s, p)  # index 0 runs Newton, 1 (done) skips it
     status = casadi.if_else(x[_DONE] > 0.0, x[_STATUS], FALLBACK)
     return casadi.Function(
         "nls_inverse",
-        [t, s, lo, hi, g],
-        [x[_U_OUT], x[_Z_OUT], status, next_state(x[_U_OUT], s), x[_PASSES]],
-        ["z_target", "state", "u_lo", "u_hi", "u_guess"],
+        [t, s, lo, hi, g, p],
+        [x[_U_OUT], x[_Z_OUT], status, next_state(x[_U_OUT], s, p), x[_PASSES]],
+        ["z_target", "state", "u_lo", "u_hi", "u_guess", "parameters"],
         ["u", "z", "status", "next_state", "passes"],
     )
 
 
-def reachable_function(nls: Any) -> Any:
-    """casadi Function ``nls_reachable(state, u_lo, u_hi) -> (z_lo, z_hi)``: z at both range
-    ends from ``state`` (two network passes, no derivative)."""
+def reachable_function(source: Any) -> Any:
+    """casadi Function ``nls_reachable(state, u_lo, u_hi, parameters) -> (z_lo, z_hi)``: z at
+    both range ends from ``state`` (two passes, no derivative)."""
     import casadi
 
-    z_only = _evaluators(nls)[0]
-    s = casadi.MX.sym("state", nls.n_state)
+    source = as_map(source)
+    z_only = _evaluators(source)[0]
+    s = casadi.MX.sym("state", source.n_state)
+    p = casadi.MX.sym("parameters", source.parameters.size)
     lo, hi = casadi.MX.sym("u_lo"), casadi.MX.sym("u_hi")
     return casadi.Function(
         "nls_reachable",
-        [s, lo, hi],
-        [z_only(lo, s), z_only(hi, s)],
-        ["state", "u_lo", "u_hi"],
+        [s, lo, hi, p],
+        [z_only(lo, s, p), z_only(hi, s, p)],
+        ["state", "u_lo", "u_hi", "parameters"],
         ["z_lo", "z_hi"],
     )
 
 
 class CompiledInverse:
-    """The NLS inverse in generated C, with the numpy inverse as its fallback.
+    """The inverse of a map (the identified NLS, or the plant's own hysteresis for the oracle)
+    in generated C, with the map's numpy inverse as its fallback.
 
     :meth:`solve` calls the compiled :func:`inverse_function` on preallocated buffers and
-    returns what :meth:`identification.nls.NLS.solve_inverse` returns (to within ``xtol``);
+    returns what the map's numpy inverse (:meth:`InverseMap.solve_inverse`, for the NLS
+    :meth:`identification.nls.NLS.solve_inverse`) returns (to within ``xtol``);
     when the compiled path reports ``FALLBACK`` (non-monotone map, see the module docstring),
     for a non-finite target, or when no compiler works, it runs that numpy inverse instead.
     :meth:`reachable` gives the reachable range from the generated :func:`reachable_function`
@@ -260,8 +349,9 @@ class CompiledInverse:
 
     Parameters
     ----------
-    nls : identification.nls.NLS
-        Identified network with its memory features.
+    source : InverseMap or identification.nls.NLS
+        The map; an identified network with its memory features is taken as its
+        :class:`NLSMap`.
     u_range : (float, float)
         Drive range (V) searched.
     compiled : bool
@@ -274,14 +364,16 @@ class CompiledInverse:
 
     def __init__(
         self,
-        nls: Any,
+        source: Any,
         u_range: Sequence[float],
         *,
         compiled: bool = True,
         max_iter: int = 40,
         xtol: float = 1e-9,
     ) -> None:
-        self.nls = nls
+        self.map = as_map(source)
+        self.parameters = np.array(self.map.parameters, dtype=np.float64)
+        """The map's :attr:`InverseMap.parameters`, the generated functions' last input."""
         self.u_range = (float(u_range[0]), float(u_range[1]))
         self.fallbacks = 0
         self._function: CompiledFunction | None = None
@@ -294,28 +386,30 @@ class CompiledInverse:
         MPC's fused step, :mod:`controllers.native.fused_step`, compiles them again with its
         own code); None otherwise."""
         if compiled:
-            function = inverse_function(nls, max_iter=max_iter, xtol=xtol)
+            function = inverse_function(self.map, max_iter=max_iter, xtol=xtol)
             self._function, build = compile_function(
                 function, flags=_FLAGS, cache="inverse", fallback=NUMPY
             )
             self.native.append(build)
             self.backend = str(build)
         if self._function is not None:
-            ends = reachable_function(nls)
+            ends = reachable_function(self.map)
             self._reachable, build = compile_function(
                 ends, flags=_FLAGS, cache="inverse", fallback=NUMPY
             )
             self.native.append(build)
         if self._function is not None:
             inputs, outputs = self._function.inputs, self._function.outputs
-            self._target, self._state, low, high, self._guess = inputs
+            self._target, self._state, low, high, self._guess, parameters = inputs
             low[0], high[0] = self.u_range
+            parameters[:] = self.parameters
             self._u, self._z, self._status, self._next, self._passes = (
                 o.reshape(-1) for o in outputs
             )
         if self._reachable is not None:
             self.functions = (function, ends)
             self._reachable.inputs[1][0], self._reachable.inputs[2][0] = self.u_range
+            self._reachable.inputs[3][:] = self.parameters
             self._ends = [o.reshape(-1) for o in self._reachable.outputs]
 
     @property
@@ -349,7 +443,7 @@ class CompiledInverse:
             ``"non-monotone"`` from the numpy fallback) and the state after the voltage.
         """
         if self._function is None or not math.isfinite(z_target):
-            return self.nls.solve_inverse(z_target, state, u_range=self.u_range)
+            return self.map.solve_inverse(z_target, state, self.u_range)
         self._target[0] = z_target
         self._state[:] = state
         self._guess[0] = state[0] if u_guess is None else u_guess
@@ -357,7 +451,7 @@ class CompiledInverse:
         status = int(self._status[0])
         if status == FALLBACK:
             self.fallbacks += 1
-            return self.nls.solve_inverse(z_target, state, u_range=self.u_range)
+            return self.map.solve_inverse(z_target, state, self.u_range)
         return InverseResult(
             float(self._u[0]), float(self._z[0]), STATUS_NAMES[status], self._next.copy()
         )
@@ -369,8 +463,7 @@ class CompiledInverse:
         :meth:`controllers.prediction.IdentifiedNLS.reachable`.
         """
         if self._reachable is None:
-            fmap, network = self.nls.feature_map, self.nls.to_numpy()
-            low, high = network(fmap.candidates(np.array(self.u_range), state))
+            low, high = self.map.ends(state, self.u_range)
         else:
             self._reachable.inputs[0][:] = state
             self._reachable.run()

@@ -349,6 +349,9 @@ class FusedStep:
         The Functions it was generated from (for their work sizes).
     u_range : (float, float)
         Drive range (V) the inverse searches.
+    parameters : numpy.ndarray
+        The inverse's parameter input (:attr:`controllers.native.compiled_inverse.
+        CompiledInverse.parameters`), written once.
     sizes : dict
         ``observation``, ``states`` (n), ``estimate`` (n + disturbance states), ``moves``,
         ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1), ``selects`` (1 for the
@@ -373,6 +376,7 @@ class FusedStep:
         inverse: Any,
         reachable: Any,
         u_range: tuple[float, float],
+        parameters: np.ndarray,
         sizes: dict[str, int],
     ) -> None:
         self._library = library
@@ -407,8 +411,10 @@ class FusedStep:
         self.table[P_SCALARS] = self.scalars.buffer_info()[0]
         self.inverse_inputs = self._casadi(inverse, (P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W))
         self.inverse_inputs[2][0], self.inverse_inputs[3][0] = u_range
+        self.inverse_inputs[5][:] = parameters
         reach_inputs = self._casadi(reachable, (P_REACH_ARG, P_REACH_RES, P_REACH_IW, P_REACH_W))
         reach_inputs[1][0], reach_inputs[2][0] = u_range
+        reach_inputs[3][:] = parameters
         pointer = self.table.ctypes.data
         functions = {}
         for name in ("fused_begin", "fused_solve", "fused_finish", "fused_step"):
