@@ -532,6 +532,8 @@ class AdaptiveMPC(LinearMPC):
         """The data now allow the members ``plausible``: the filters each member's loop may
         use (:meth:`_allow`), the members the MPC may swap to, and the compiled step's copy of
         both (:mod:`controllers.native.fused_step` tests with them)."""
+        if plausible.size == 0:  # every misfit NaN: the gain estimate has failed
+            raise RuntimeError(f"{self.name}: no member of the set fits the data (NaN misfits)")
         self._plausible_key = plausible.tobytes()
         self._allowed = self._allow(plausible)
         self._swappable = np.flatnonzero(self._allowed.any(axis=1))
@@ -588,8 +590,11 @@ class AdaptiveMPC(LinearMPC):
         """Predict with member ``index`` from now on (see the module docstring); ``plausible``
         is :meth:`plausible` now where the caller has it, for the trace."""
         old = self.observer
+        # Only the estimate carried over is rescaled (to the applied z's scale); its C x is
+        # one exact product (the realization's output row is [1, 0, ...]), so it is the
+        # same number the whole bank's rescale gives.
         estimate = old.estimate[None].copy()
-        rescale_states(estimate, old.c_aug, old.n, 1.0 / self._g)  # the applied z's scale
+        rescale_states(estimate, old.c_aug, old.n, 1.0 / self._g)
         estimate = estimate[0]
         self._plan = self._plan / self._g
         self._use(index)

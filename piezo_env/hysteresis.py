@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -77,6 +77,9 @@ class Hysteresis:
 
     state_size: int = 1
     name: str = "none"
+    kinks_anywhere: ClassVar[bool] = True
+    """Whether u -> u_eff may kink anywhere in the range (play operators), not only at the
+    previous input; a generated inverse then never stops on its curvature estimate."""
 
     def initial_state(self, voltage: float = 0.0) -> np.ndarray:
         """State after a slow monotone approach from 0 V to ``voltage`` (V)."""
@@ -208,6 +211,7 @@ class BoucWen(Hysteresis):
     gamma: float = 0.0233
     name: str = "bouc-wen"
     state_size: int = field(default=2, init=False)
+    kinks_anywhere: ClassVar[bool] = False  # only at the previous input (the jump's start)
 
     def __post_init__(self) -> None:
         if not (self.k > 0 and self.alpha > 0):

@@ -119,6 +119,7 @@ def test_controller_keeps_the_wrappers_observation_to_the_bit(
     for _ in range(60):
         action = np.clip(network.mean(obs[None])[0], -1.0, 1.0).astype(np.float32)
         volts = controller.act(raw)
+        np.testing.assert_array_equal(controller._x[0], obs)  # the observation, to the bit
         assert volts[0] == np.float32(action[0] * 30.0)
         obs, *_ = wrapped.step(action)
         raw, *_ = raw_env.step(volts)

@@ -16,7 +16,8 @@ status, next_state, passes)``:
    the end's output, as :func:`piezo_env.inverse.solve_increasing` decides it). A target equal
    to ``z(g)`` gives ``g`` (a root at the kink).
 2. From the secant point of the bracket, safeguarded Newton steps with the exact derivative
-   ``dz/du`` (casadi forward mode through features and network), each one network pass:
+   ``dz/du`` (casadi forward mode through features and network), each one pass of the map
+   (one network pass for the NLS; one step of the closed form for a plant hysteresis):
    the bracket ``[a, b]`` shrinks to the evaluated point each iteration; a Newton step that
    leaves the bracket or does not halve the previous step becomes a bisection step (the
    ``rtsafe`` rule, so steps shrink at least geometrically and a kink inside the bracket only
@@ -30,14 +31,16 @@ status, next_state, passes)``:
    ``if_else`` in SX evaluates every iteration, and is slow to compile:
    ``benchmarks/results/design_measurements.md``.)
 
-What is detected as non-monotone (status ``FALLBACK``; the caller then runs the numpy
+What is detected as non-monotone (status ``FALLBACK``; the caller then runs the map's numpy
+inverse, :meth:`InverseMap.solve_inverse`: for the NLS
 :meth:`identification.nls.NLS.solve_inverse`, which looks at a 17-node grid and picks among
-several roots): ``z(u_lo) >= z(u_hi)``; ``z(g)`` outside ``[z(u_lo), z(u_hi)]`` for ``g``
-inside the range; an iterate whose ``z`` lies outside its bracket's values (beyond rounding,
-1e-12 relative); a derivative ``<= 0`` at an iterate. The numpy path also checks the
-interior grid nodes, so a wiggle between nodes that no iterate touches can be flagged there
-and not here; then this path returns one exact root (status ok), which is the only root
-whenever the map is monotone. Not stopping within ``max_iter`` iterations also returns ``FALLBACK``.
+several roots, for a plant hysteresis :meth:`piezo_env.hysteresis.Hysteresis.inverse`):
+``z(u_lo) >= z(u_hi)``; ``z(g)`` outside ``[z(u_lo), z(u_hi)]`` for ``g`` inside the range; an
+iterate whose ``z`` lies outside its bracket's values (beyond rounding, 1e-12 relative); a
+derivative ``<= 0`` at an iterate. The numpy path also checks the interior grid nodes, so a
+wiggle between nodes that no iterate touches can be flagged there and not here; then this path
+returns one exact root (status ok), which is the only root whenever the map is monotone. Not
+stopping within ``max_iter`` iterations also returns ``FALLBACK``.
 
 The function is generated as C, compiled once (cached on disk, see
 :mod:`controllers.native.codegen`) and called through ctypes on preallocated buffers by
@@ -459,7 +462,7 @@ class CompiledInverse:
     def reachable(self, state: np.ndarray) -> tuple[float, float]:
         """Range of z (equivalent V) reachable in one sample from ``state`` over the drive range.
 
-        Generated C (two passes), else the numpy network; sorted like
+        Generated C (two passes), else :meth:`InverseMap.ends` in numpy; sorted like
         :meth:`controllers.prediction.IdentifiedNLS.reachable`.
         """
         if self._reachable is None:

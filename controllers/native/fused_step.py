@@ -9,7 +9,9 @@ is cheap; called one by one from Python, the calls' overhead is most of the step
 run in one C function, :func:`library`'s ``fused_step``, on the controller's own arrays (the
 estimators', the plan's, the bounds' and the memory's, updated in place).
 
-The translation unit is the generated C of the NLS inverse and its reachable range
+The translation unit is the generated C of the nonlinearity's inverse and its reachable range
+(the identified NLS's, or the oracle's plant hysteresis: any
+:class:`controllers.native.compiled_inverse.InverseMap`)
 (:func:`controllers.native.compiled_inverse.inverse_function` and
 :func:`~controllers.native.compiled_inverse.reachable_function`, the same casadi Functions
 :class:`~controllers.native.compiled_inverse.CompiledInverse` compiles), the estimator kernels
@@ -315,7 +317,7 @@ def compile_step(inverse: Any) -> tuple[ctypes.CDLL | None, NativeBuild]:
     if inverse in _LIBRARIES:
         return _LIBRARIES[inverse]
     if inverse.functions is None:
-        built = None, unavailable(f"the NLS inverse is not compiled ({inverse.backend})")
+        built = None, unavailable(f"the inverse is not compiled ({inverse.backend})")
     else:
         source = fused_source(*inverse.functions)
         built = compile_source("mpc_step", source, flags=FLAGS, cache="kernels")
