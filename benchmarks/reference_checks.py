@@ -39,6 +39,11 @@ _PLANT_LIMITS = {
 """Plant -> reference -> the largest ``mpc`` RMSE (% of the full stroke) expected there: plants
 whose hysteresis the model matches, off only in the first mode's damping."""
 
+_MAX_ERROR_UM = 6.0
+"""The largest ``mpc`` max error (um) expected on a smooth nominal reference: above the 4.5 um
+the default run reaches on its sine-100Hz with the rate weight the fair-tuning procedure chose
+(0.3; it was 4 um at the rate weight 0.01, which bought less robustness on the box)."""
+
 MISMATCHED_HYSTERESIS = "prandtl-ishlinskii"
 """The plant whose hysteresis the nominal model does not match (play operators with sharp
 corners, against the model's Bouc-Wen features). There the MPC's error is set by the model's
@@ -84,7 +89,7 @@ def check_targets(result: BenchmarkResult) -> list[dict[str, Any]]:
         add(f"mpc RMSE on {r} (%)", get("nominal", "mpc", r), 0.05 if smooth else 0.9)
         episode = index.get(("nominal", "mpc", r))
         if smooth and episode is not None:
-            add(f"mpc max error on {r} (um)", episode["max_error_um"], 4.0)
+            add(f"mpc max error on {r} (um)", episode["max_error_um"], _MAX_ERROR_UM)
     for r in ("sine-10Hz", "sine-50Hz", "sine-100Hz"):
         add(f"mpc / pid-notch on {r}", ratio("mpc", "pid-notch", r), 0.1)
     # The claim is the ranking, not a factor: pid-ff at its best setting of the tuning

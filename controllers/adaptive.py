@@ -136,6 +136,10 @@ class AdaptiveMPCSettings(MPCSettings):
 
     Attributes
     ----------
+    rate_weight : float
+        As :class:`controllers.mpc.MPCSettings`'s; its own default, the tuning procedure's
+        choice for this controller (:mod:`benchmarks.tuning`): the set learns the resonance,
+        so the fixed MPC's gentler law only slows it.
     resonance_tolerance : float
         Relative half-width s of the first resonance the set covers (-), in (0, 1): the
         datasheet's +-20 %.
@@ -143,6 +147,7 @@ class AdaptiveMPCSettings(MPCSettings):
         (low, high) first-mode damping ratios the set covers (-): the datasheet box's.
     """
 
+    rate_weight: float = 1e-2
     resonance_tolerance: float = RESONANCE_TOLERANCE
     damping_range: tuple[float, float] = DAMPING_RANGE
 

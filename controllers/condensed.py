@@ -159,5 +159,5 @@ def check_well_posed(
     raise ValueError(
         f"the {name}'s QP is singular (rate_weight = {rate_weight:g}, the model's first Markov "
         f"parameter C B = {gamma[0, 0]:.3g}): some moves reach no predicted output; set "
-        "rate_weight > 0 (the default is 1e-2)"
+        "rate_weight > 0 (the defaults: 0.3 for mpc, 1e-2 for mpc-adaptive)"
     )

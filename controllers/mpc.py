@@ -94,7 +94,10 @@ class MPCSettings:
         So the default predicts as far as the benchmark's preview reaches.
     rate_weight : float
         lambda, penalty of (z_t+k - z_t+k-1)^2 relative to 1 um^2 of tracking error
-        ((um / equivalent V)^2). Smooths the input against noise; larger is gentler.
+        ((um / equivalent V)^2). Smooths the input against noise; larger is gentler, and
+        more robust to a resonance the model misplaces. The default is the choice of the
+        tuning procedure over the datasheet's tolerance box (:mod:`benchmarks.tuning`, its
+        scores and sweep in ``benchmarks/results/tuning.md``).
     measurement_std : float or None
         Sensor noise standard deviation (um) the observer assumes; None: noise bound / sqrt 3
         (uniform noise), at least 0.05 um.
@@ -151,7 +154,7 @@ class MPCSettings:
 
     horizon: int = 20
     prediction_horizon: int | str | None = None
-    rate_weight: float = 1e-2
+    rate_weight: float = 0.3
     measurement_std: float | None = None
     observer: str = "bank"
     bank_memory: int = 200

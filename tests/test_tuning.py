@@ -135,3 +135,12 @@ def test_the_lead_over_pid_ff_is_a_paired_interval_with_a_tie_rule(monkeypatch):
         assert got["high"] == pytest.approx(math.exp(d.mean() + half), rel=1e-12)
     assert out["sine-10Hz"]["verdict"] == "mpc leads"
     assert {out[r]["verdict"] for r in SWEEP_REFERENCES if r != "sine-10Hz"} == {"tie"}
+
+
+def test_every_knobs_default_is_the_controllers_shipped_default():
+    """tuning.md marks the shipped default; the knob's default must be the one the
+    controller really ships with (the procedure's choice, benchmarks/results/tuning.md)."""
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    for name, knob in KNOBS.items():
+        settings = ctl.make(name, MODEL_DIR, env).settings
+        assert getattr(settings, knob.option) == knob.default, name
