@@ -67,22 +67,32 @@ __all__ = [
 
 @dataclass(frozen=True)
 class Knob:
-    """A controller's main knob: its option name, the grid swept, and today's default."""
+    """A controller's main knob: the controller, its option name and the grid swept."""
 
+    controller: str
     option: str
     grid: tuple[float, ...]
-    default: float
+
+    @property
+    def default(self) -> float:
+        """The shipped default: the controller's settings with its preset and no option."""
+        from controllers.registry import resolve_controller
+
+        return getattr(resolve_controller(self.controller, {})[1], self.option)
 
 
 _MS_MAX_GRID = (1.2, 1.4, 1.6, 1.8, 2.0)
 _RATE_WEIGHT_GRID = (1e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0)
 
 KNOBS: dict[str, Knob] = {
-    "pid": Knob("ms_max", _MS_MAX_GRID, 1.8),
-    "pid-notch": Knob("ms_max", _MS_MAX_GRID, 1.8),
-    "pid-ff": Knob("ms_max", _MS_MAX_GRID, 1.8),
-    "mpc": Knob("rate_weight", _RATE_WEIGHT_GRID, 0.3),
-    "mpc-adaptive": Knob("rate_weight", _RATE_WEIGHT_GRID, 1e-2),
+    name: Knob(name, option, grid)
+    for name, option, grid in (
+        ("pid", "ms_max", _MS_MAX_GRID),
+        ("pid-notch", "ms_max", _MS_MAX_GRID),
+        ("pid-ff", "ms_max", _MS_MAX_GRID),
+        ("mpc", "rate_weight", _RATE_WEIGHT_GRID),
+        ("mpc-adaptive", "rate_weight", _RATE_WEIGHT_GRID),
+    )
 }
 """Controller -> its main knob. The ``ms_max`` grid spans Astrom and Murray's usual 1.2-2
 (:data:`controllers.settings.MS_MAX`): a sensitivity peak above 2 is outside the robustness

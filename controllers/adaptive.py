@@ -381,6 +381,10 @@ class AdaptiveMPC(LinearMPC):
                 )
                 for m in self._members
             ]
+            scalars = fused.scalars
+            scalars[fused_step.S_NOISE_VARIANCE] = self._noise_variance
+            scalars[fused_step.S_SWITCH_CHI2] = SWITCH_CHI2
+            scalars[fused_step.S_NORMAL_95] = NORMAL_95
 
     def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
         """The set screens its banks itself, as the data narrow it (:meth:`_allow`)."""
@@ -453,6 +457,12 @@ class AdaptiveMPC(LinearMPC):
         observer = make_observer(model, self.task, self.settings)
         return _Member(arx, model, phi, gamma, hessian, q_matrix, unconstrained, observer)
 
+    def _fused_addresses(self) -> np.ndarray:
+        """The member in use's table entries, read when the set was built."""
+        if not self._bindings:  # while the set is built (LinearMPC._set_up)
+            return super()._fused_addresses()
+        return self._bindings[self._member]
+
     def _gain_estimate(self) -> GainEstimate:
         models = self._member_models
         return GainEstimate(
@@ -472,17 +482,9 @@ class AdaptiveMPC(LinearMPC):
         self._unconstrained, self.observer = member.unconstrained, member.observer
         if member.qp is not None:
             self._qp = member.qp
-        fused = getattr(self, "_fused", None)
-        if fused is None:
-            return
-        if self._bindings:
-            # The gain estimate's arrays are every member's: only the member index changes.
-            fused.bind_addresses(self._bindings[index])
-            fused.dims[fused_step.D_MEMBER] = index
-            scalars = fused.scalars
-            scalars[fused_step.S_Z_MIN], scalars[fused_step.S_Z_MAX] = member.model.z_bounds
-        else:
-            self._bind_fused()
+        if getattr(self, "_fused", None) is not None:
+            # The gain estimate's arrays are every member's: only the model in use changes.
+            self._bind_fused_model()
 
     @property
     def arx(self) -> ARXModel:
@@ -524,12 +526,6 @@ class AdaptiveMPC(LinearMPC):
         # over between episodes, and no set-up is left for the loop.
         for index, member in enumerate(self._members):
             member.qp = self._qp if index == self._member else self._setup_solver(member.hessian)
-        fused = self._fused
-        if fused is not None:
-            scalars = fused.scalars
-            scalars[fused_step.S_NOISE_VARIANCE] = self._noise_variance
-            scalars[fused_step.S_SWITCH_CHI2] = SWITCH_CHI2
-            scalars[fused_step.S_NORMAL_95] = NORMAL_95
         self._narrow(np.arange(len(self._members)))
         self._trace()
 

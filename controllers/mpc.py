@@ -262,20 +262,39 @@ class LinearMPC(PredictiveController):
         if sizes["columns"] != m + sizes["samples"] + 1 or sizes["moves"] != self._lower.size:
             raise RuntimeError(f"{self.name}: the QP's sizes do not match the fused step's")
         fused = fused_step.FusedStep(
-            library, inverse, reachable, self.model.nonlinearity.u_range, compiled.parameters, sizes
+            library,
+            inverse,
+            reachable,
+            self.model.nonlinearity.u_range,
+            compiled.map.parameters,
+            sizes,
         )
         return fused, build
 
     def _bind_fused(self) -> None:
-        """Point the compiled step at the arrays of the model in use (observer bank, plan
-        matrix, gain estimate's member)."""
+        """Point the compiled step at the gain estimate's arrays and at the model in use
+        (:meth:`_bind_fused_model`)."""
         fused = self._fused
         if fused is None:
             return
         fused.bind_gain(self._gain, self._member)
-        fused.bind_bank(self.observer, self._unconstrained, self._vector, self._lower, self._upper)
+        self._bind_fused_model()
+
+    def _bind_fused_model(self) -> None:
+        """Point the compiled step at the model in use: its observer bank, plan matrix and z
+        bounds, and its member of the gain estimate (:meth:`_fused_addresses`)."""
+        fused = self._fused
+        fused.bind_addresses(self._fused_addresses())
+        fused.dims[fused_step.D_MEMBER] = self._member
         scalars = fused.scalars
         scalars[fused_step.S_Z_MIN], scalars[fused_step.S_Z_MAX] = self.model.z_bounds
+
+    def _fused_addresses(self) -> np.ndarray:
+        """The compiled step's table entries of the model in use
+        (:meth:`controllers.native.fused_step.FusedStep.bank_addresses`)."""
+        return self._fused.bank_addresses(
+            self.observer, self._unconstrained, self._vector, self._lower, self._upper
+        )
 
     def _setup_solver(self, hessian: np.ndarray | None = None) -> BoxQP:
         """The QP solver's workspace set up (and P factorised) afresh for ``hessian`` (default:

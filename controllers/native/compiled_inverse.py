@@ -375,8 +375,6 @@ class CompiledInverse:
         xtol: float = 1e-9,
     ) -> None:
         self.map = as_map(source)
-        self.parameters = np.array(self.map.parameters, dtype=np.float64)
-        """The map's :attr:`InverseMap.parameters`, the generated functions' last input."""
         self.u_range = (float(u_range[0]), float(u_range[1]))
         self.fallbacks = 0
         self._function: CompiledFunction | None = None
@@ -405,14 +403,14 @@ class CompiledInverse:
             inputs, outputs = self._function.inputs, self._function.outputs
             self._target, self._state, low, high, self._guess, parameters = inputs
             low[0], high[0] = self.u_range
-            parameters[:] = self.parameters
+            parameters[:] = self.map.parameters
             self._u, self._z, self._status, self._next, self._passes = (
                 o.reshape(-1) for o in outputs
             )
         if self._reachable is not None:
             self.functions = (function, ends)
             self._reachable.inputs[1][0], self._reachable.inputs[2][0] = self.u_range
-            self._reachable.inputs[3][:] = self.parameters
+            self._reachable.inputs[3][:] = self.map.parameters
             self._ends = [o.reshape(-1) for o in self._reachable.outputs]
 
     @property

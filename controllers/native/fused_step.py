@@ -353,7 +353,7 @@ class FusedStep:
         Drive range (V) the inverse searches.
     parameters : numpy.ndarray
         The inverse's parameter input (:attr:`controllers.native.compiled_inverse.
-        CompiledInverse.parameters`), written once.
+        InverseMap.parameters`), written once.
     sizes : dict
         ``observation``, ``states`` (n), ``estimate`` (n + disturbance states), ``moves``,
         ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1), ``selects`` (1 for the
@@ -464,19 +464,6 @@ class FusedStep:
         ):
             self._point(index, buffer, keep=False)
 
-    def bind_bank(
-        self,
-        bank: Any,
-        unconstrained: np.ndarray,
-        stacked: np.ndarray,
-        lower: np.ndarray,
-        upper: np.ndarray,
-    ) -> None:
-        """Point at an :class:`controllers.observer.ObserverBank`'s arrays, the plan's matrix
-        ``-P^-1 G``, the QP's vector and its bounds (:meth:`bank_addresses`, then
-        :meth:`bind_addresses`)."""
-        self.bind_addresses(self.bank_addresses(bank, unconstrained, stacked, lower, upper))
-
     def bank_addresses(
         self,
         bank: Any,
@@ -485,10 +472,12 @@ class FusedStep:
         lower: np.ndarray,
         upper: np.ndarray,
     ) -> np.ndarray:
-        """The table entries :meth:`bind_bank` writes, checked and read once (uint64, one per
-        slot of :data:`BANK_SLOTS`): a controller that changes banks mid-episode reads them
-        before the episode and binds them with :meth:`bind_addresses`, a slice assignment. The
-        arrays must outlive their use: their owners (bank, controller) keep them."""
+        """The table entries of an :class:`controllers.observer.ObserverBank`'s arrays, the
+        plan's matrix ``-P^-1 G``, the QP's vector and its bounds, checked and read once
+        (uint64, one per slot of :data:`BANK_SLOTS`), for :meth:`bind_addresses`: a controller
+        that changes banks mid-episode reads them before the episode and binds them by a slice
+        assignment. The arrays must outlive their use: their owners (bank, controller) keep
+        them."""
         buffers = (
             bank._dims,
             bank._parameters,
