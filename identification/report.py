@@ -351,6 +351,15 @@ def _refinement_section(refinement: dict[str, Any] | None) -> list[str]:
     ]
 
 
+_STOPS = {
+    "cap": "stopped at the cap",
+    "converged": "converged",
+    "tolerance": "stopped by the tolerance: a window gained less than the data resolve",
+}
+"""How an L-BFGS stage of step e' ended (:func:`identification.nls.output_error._lbfgs`);
+records written before the tolerance existed carry only ``capped``."""
+
+
 def _nls_refinement_section(
     refinement: dict[str, Any] | None, noise_bound: float | None
 ) -> list[str]:
@@ -364,7 +373,7 @@ def _nls_refinement_section(
         verdict = f"not kept ({refinement['refusal']}): step e's model stays"
     stages = " and ".join(
         f"{stage['iterations']} iterations ({stage['evaluations']} evaluations"
-        + (", stopped at the cap)" if stage["capped"] else ", converged)")
+        + f", {_STOPS[stage.get('stopped', 'cap' if stage['capped'] else 'converged')]})"
         for stage in refinement["stages"]
     )
     rows = [

@@ -208,7 +208,8 @@ class NlsRefinement:
         The same on the held-out selection record, um: the acceptance test (``after`` absent
         when there was no refined model to score).
     stages : tuple of dict
-        L-BFGS ``iterations``, ``evaluations`` and ``capped`` of each stage.
+        L-BFGS ``iterations``, ``evaluations``, ``stopped`` (``"tolerance"``, ``"converged"``
+        or ``"cap"``) and ``capped`` of each stage.
     small_signal_gain : float
         Slope of the kept model's z against u on the PRBS record (1 after :func:`move_gain`).
     wall_time_s : float

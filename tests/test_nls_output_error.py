@@ -521,3 +521,59 @@ def test_no_rival_when_step_e_chose_play_or_sits_at_the_noise_floor():
     assert kept is fit and set(choice["held_out_rms_um"]) == {"past-inputs"}
     assert choice["excess_over_noise_um2"] <= choice["threshold_um2"]
     assert "noise floor" in choice["why"]
+
+
+def _regression(n: int, p: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A linear regression y = X theta + v, v uniform within +-1, whose regressors are
+    correlated and scaled over two decades (condition number about 150), so that L-BFGS needs
+    several windows of iterations."""
+    rng = np.random.default_rng(seed)
+    mixing = np.eye(p) + 0.6 * rng.normal(size=(p, p)) / np.sqrt(p)
+    x = rng.normal(size=(n, p)) @ mixing * np.logspace(0.0, -2.0, p)
+    return x, x @ rng.normal(size=p) + rng.uniform(-1.0, 1.0, n)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_lbfgs_stops_within_its_tolerance_of_the_least_squares_optimum(seed):
+    """The windowed L-BFGS of step e' stops once a window lowers the mean squared error by less
+    than ``stop_tolerance``; on a least-squares problem its shortfall from the exact optimum
+    (numpy's lstsq, an independent method) is within that tolerance, which is a tenth of the
+    estimation's own excess error p sigma^2 / N."""
+    torch = pytest.importorskip("torch")
+    from identification.nls.output_error import _lbfgs, stop_tolerance
+
+    n, p = 4000, 30
+    x, y = _regression(n, p, seed)
+    optimum = np.linalg.lstsq(x, y, rcond=None)[0]
+    best = float(np.mean((y - x @ optimum) ** 2))
+    theta = torch.zeros(p, dtype=torch.float64, requires_grad=True)
+    xt, yt = torch.from_numpy(x), torch.from_numpy(y)
+
+    def objective():
+        error = xt @ theta - yt
+        return (error * error).mean()
+
+    stage = _lbfgs([theta], objective, 300, torch, n)
+    reached = float(objective().detach())
+    assert stage["stopped"] in ("tolerance", "converged") and not stage["capped"]
+    assert stage["iterations"] < 300
+    assert 0.0 <= reached - best <= stop_tolerance(reached, p, n)
+    assert stop_tolerance(reached, p, n) == pytest.approx(0.1 * p * reached / n)
+
+
+def test_lbfgs_reports_its_cap():
+    torch = pytest.importorskip("torch")
+    from identification.nls.output_error import _lbfgs
+
+    x, y = _regression(2000, 30, 4)
+    theta = torch.zeros(30, dtype=torch.float64, requires_grad=True)
+    xt, yt = torch.from_numpy(x), torch.from_numpy(y)
+
+    def objective():
+        error = xt @ theta - yt
+        return (error * error).mean()
+
+    stage = _lbfgs([theta], objective, 8, torch, 2000)
+    assert stage["stopped"] == "cap" and stage["capped"]
+    assert stage["iterations"] == 8 or stage["evaluations"] == 10  # 1.25 evaluations each
+    assert stage["iterations"] <= 8 and stage["evaluations"] <= 10

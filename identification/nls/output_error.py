@@ -27,7 +27,8 @@ scale convention afterwards (unit small-signal gain of the network on the PRBS r
 Full-batch L-BFGS in float64 with one torch thread, from the step e and b' estimates:
 deterministic. With play features and ``radius_iterations``, a first stage learns the play
 radii with the network (:mod:`identification.nls.play_radii`), and the network and joint
-stages run at the learned radii.
+stages run at the learned radii. Each stage stops when the data can no longer tell its
+iterations apart (:data:`STOP_FRACTION`), or at its cap.
 
 Every sample of every record weighs the same, as the likelihood under one sensor noise asks.
 Another weighting of the records (a per-record error variance concentrated out,
@@ -90,8 +91,9 @@ class NlsOutputErrorFit:
     wall_time_s : float
         Time of the refinement, s.
     stages : tuple of dict
-        Per stage (network; then network and linear part): ``iterations``, ``evaluations`` and
-        ``capped`` (stopped at ``max_iterations``, not converged).
+        Per stage (radii, when learned; network; then network and linear part):
+        ``iterations``, ``evaluations``, ``stopped`` (``"tolerance"``, ``"converged"`` or
+        ``"cap"``, see :func:`_lbfgs`) and ``capped`` (stopped at ``max_iterations``).
     linear_note : str or None
         Why the joint stage's linear part was not kept (unstable, or no longer minimum-phase
         when the start was); its network-only stage is returned then. None otherwise.
@@ -246,12 +248,16 @@ def refine_nls_output_error(
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
         # L-BFGS meets the network's and the poles' very different curvatures and stalls.
-        stages.append(_lbfgs(list(module.parameters()), objective, int(max_iterations), torch))
+        stages.append(
+            _lbfgs(list(module.parameters()), objective, int(max_iterations), torch, count)
+        )
         network_only = TorchNLS.to_params(module)
         if refine_linear:
             a.requires_grad_(True)
             b.requires_grad_(True)
-            stages.append(_lbfgs([*module.parameters(), a, b], objective, max_iterations, torch))
+            stages.append(
+                _lbfgs([*module.parameters(), a, b], objective, max_iterations, torch, count)
+            )
         params = TorchNLS.to_params(module)
         a_new, b_new = a.detach().numpy().copy(), b.detach().numpy().copy()
     linear, linear_note = arx, None
@@ -341,7 +347,7 @@ def _radius_stage(
         return total / count
 
     parameters = [coordinates, *extra, *module.parameters()]
-    stage = _lbfgs(parameters, objective, max_iterations, torch)
+    stage = _lbfgs(parameters, objective, max_iterations, torch, count)
     with torch.no_grad():
         learned = radii_from_coordinates(coordinates).numpy().copy()
     return learned, {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
@@ -478,20 +484,65 @@ def _runs(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.flatnonzero(new_run), np.cumsum(new_run) - 1
 
 
+STOP_FRACTION = 0.1
+"""Share of the estimation's own excess error below which a window of L-BFGS iterations is not
+worth another (:func:`_lbfgs`). With p parameters estimated from N samples of residual
+variance sigma^2, the expected excess mean squared error of the estimate on fresh data is
+p sigma^2 / N (Akaike's final prediction error; Ljung, *System Identification*, 2nd ed.,
+sec. 16.4): the price of estimating from finite data, which no optimiser removes. A window that
+lowers the training objective by less than a tenth of it leaves the optimiser's shortfall an
+order below that price, as long as the next windows would gain no more than the last (the
+iterations converge at least linearly, by half a window's gain per window); on a slowly
+converging, ill-conditioned problem the shortfall can exceed the tolerance by a small factor."""
+
+STOP_WINDOW = 20
+"""L-BFGS iterations over which :func:`_lbfgs` measures the objective's decrease. Long enough
+to cross a plateau of the objective before a drop: with 10, the network stage on the nominal
+PL122 and the Prandtl-Ishlinskii PL140 stopped on a plateau that further iterations left
+(``benchmarks/results/design_measurements.md``)."""
+
+
+def stop_tolerance(loss: float, n_parameters: int, n_samples: int) -> float:
+    """Decrease (um^2) of the mean squared free-run error over :data:`STOP_WINDOW` iterations
+    below which :func:`_lbfgs` stops: :data:`STOP_FRACTION` of ``n_parameters loss /
+    n_samples``, the excess error of estimating ``n_parameters`` from ``n_samples`` with the
+    current mean squared error ``loss`` (um^2) taken as the residual variance (it is, at the
+    noise floor; above it, a misfit the parameters cannot remove acts on their precision as
+    noise does)."""
+    return STOP_FRACTION * n_parameters * loss / n_samples
+
+
 def _lbfgs(
-    parameters: list, objective: Callable[[], object], max_iterations: int, torch: object
-) -> dict[str, int | bool]:
-    """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``: its iterations,
-    evaluations, and whether it stopped at the iteration cap rather than by converging."""
+    parameters: list,
+    objective: Callable[[], object],
+    max_iterations: int,
+    torch: object,
+    n_samples: int,
+) -> dict[str, int | bool | str]:
+    """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``, the mean squared error
+    ``objective`` over ``n_samples`` samples, in windows of :data:`STOP_WINDOW` iterations.
+
+    Stops when a window lowered the objective by less than :func:`stop_tolerance` (``stopped``
+    ``"tolerance"``), when L-BFGS meets its own tests (``"converged"``: zero gradient or no
+    descent direction left), or at ``max_iterations`` iterations or ``1.25 max_iterations``
+    evaluations (torch's default ratio; ``"cap"``). The windows continue one L-BFGS run: its
+    history carries over, and each window adds one evaluation at its start and one forward
+    pass at its end. Returns the stage's record: ``iterations``, ``evaluations``,
+    ``stopped`` and ``capped``.
+    """
+    window = min(STOP_WINDOW, max_iterations)
     optimiser = torch.optim.LBFGS(
         parameters,
         lr=1.0,
-        max_iter=max_iterations,
+        max_iter=window,
         history_size=50,
         tolerance_grad=1e-12,
         tolerance_change=1e-15,
         line_search_fn="strong_wolfe",
     )
+    n_parameters = sum(p.numel() for p in parameters)
+    max_evaluations = max_iterations * 5 // 4
+    group, state = optimiser.param_groups[0], optimiser.state
 
     def closure() -> object:
         optimiser.zero_grad()
@@ -499,14 +550,36 @@ def _lbfgs(
         loss.backward()
         return loss
 
-    optimiser.step(closure)
-    state = optimiser.state[parameters[0]]
-    iterations = int(state.get("n_iter", 0))
-    return {
-        "iterations": iterations,
-        "evaluations": int(state.get("func_evals", 0)),
-        "capped": iterations >= max_iterations,
-    }
+    def current() -> float:
+        with torch.no_grad():
+            return float(objective())
+
+    loss, iterations, evaluations = current(), 0, 0
+    while True:
+        steps = min(window, max_iterations - iterations)
+        group["max_iter"], group["max_eval"] = steps, min(
+            steps * 5 // 4, max_evaluations - evaluations
+        )
+        optimiser.step(closure)
+        record = state[parameters[0]]
+        done = int(record.get("n_iter", 0)) - iterations
+        spent = int(record.get("func_evals", 0)) - evaluations
+        iterations, evaluations = iterations + done, evaluations + spent
+        previous, loss = loss, current()
+        if iterations >= max_iterations or evaluations >= max_evaluations:
+            stopped = "cap"
+        elif done < steps and spent < group["max_eval"]:  # torch's own tests ended the window
+            stopped = "converged"
+        elif previous - loss < stop_tolerance(loss, n_parameters, n_samples):
+            stopped = "tolerance"
+        else:
+            continue
+        return {
+            "iterations": iterations,
+            "evaluations": evaluations,
+            "stopped": stopped,
+            "capped": stopped == "cap",
+        }
 
 
 class _FreeRunGrid:
