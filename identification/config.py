@@ -150,12 +150,14 @@ class IdentificationConfig:
         agrees (:func:`identification.steps.refine_nonlinearity`); ``"none"`` keeps step e's
         model (the paper's procedure).
     nls_refinement_iterations : int
-        L-BFGS iterations at most of each of step e''s two stages. 300: enough for the stages
-        to end converged or nearly on the PL140, so that the estimate is the optimum of the
-        output-error cost rather than wherever the cap stopped the search, which moves with the
-        tiniest change of the start. The identification report says of each stage whether it
-        converged or stopped at the cap; ``benchmarks/results/identification_accuracy.md``
-        gives step e''s share of the identification's time.
+        L-BFGS iterations at most of each of step e''s two stages. A stage normally ends
+        earlier, once a window of iterations gains less than a tenth of the estimation's own
+        excess error (:data:`identification.nls.output_error.STOP_FRACTION`); 300 is a cap
+        for a stage the data keep improving, high enough that the estimate is the optimum of
+        the output-error cost within that tolerance rather than wherever the cap stopped the
+        search. The identification report says of each stage how it ended;
+        ``benchmarks/results/identification_accuracy.md`` gives step e''s share of the
+        identification's time.
     play_radii : str
         With play features selected: ``"learned"`` (default) starts step e' with a stage that
         learns the play radii together with the network on the free-run output error (at most
