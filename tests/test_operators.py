@@ -17,6 +17,7 @@ from piezo_env.operators import (
     bouc_wen_jump,
     bouc_wen_slope,
     check_bouc_wen,
+    clamp_sequence,
     normalized_bouc_wen,
     play,
     play_casadi,
@@ -106,3 +107,32 @@ def test_play_backends_agree():
         np.testing.assert_array_equal(cas, p)
     np.testing.assert_array_equal(final, p)
     np.testing.assert_array_equal(seq[:, 0], u)  # radius 0 is the identity
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    length=st.integers(min_value=0, max_value=300),
+    width=st.integers(min_value=1, max_value=5),
+    seed=st.integers(min_value=0, max_value=2**32 - 1),
+)
+def test_clamp_sequence_is_the_recursion_to_the_bit(length, width, seed):
+    """The scan equals p_t = max(lo_t, min(hi_t, p_t-1)) run sample by sample, bit for bit,
+    over lengths across the chunk boundaries, with open sides (+-inf), held samples (both
+    infinite), equal bounds and repeated values."""
+    rng = np.random.default_rng(seed)
+    centre = np.round(rng.uniform(-5.0, 5.0, (length, width)), 1)
+    half = np.round(rng.uniform(0.0, 2.0, (length, width)), 1)
+    lower, upper = centre - half, centre + half
+    kind = rng.integers(0, 4, (length, width))
+    lower[kind == 1] = -np.inf  # a falling directional play: only the upper bound
+    upper[kind == 2] = np.inf  # a rising one
+    lower[kind == 3], upper[kind == 3] = -np.inf, np.inf  # a held input
+    start = np.round(rng.uniform(-5.0, 5.0, width), 1)
+    expected = np.empty((length, width))
+    p = start.copy()
+    for t in range(length):
+        p = np.maximum(lower[t], np.minimum(upper[t], p))
+        expected[t] = p
+    got = clamp_sequence(lower, upper, start)
+    assert got.shape == (length, width)
+    np.testing.assert_array_equal(got, expected)

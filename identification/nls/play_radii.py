@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from piezo_env.operators import play_sequence
+from piezo_env.operators import clamp_sequence, play_sequence
 
 __all__ = [
     "PlayRadiusFunction",
@@ -159,17 +159,12 @@ def rate_play_outputs(
     previous rate; the edge of a rising move is ``u - (r + lag)``, of a falling one
     ``u + (r + lag)``, as in :func:`piezo_env.operators.rate_play_sequence`.
     """
-    p = np.full(radii.size, float(rest))
-    out = np.empty((u.size, radii.size))
-    edges = np.empty((u.size, radii.size))
-    for t in range(u.size):
-        if direction[t] > 0:
-            edges[t] = u[t] - (radii + lag[t])
-            np.maximum(edges[t], p, out=p)
-        else:
-            edges[t] = u[t] + (radii + lag[t])
-            np.minimum(edges[t], p, out=p)
-        out[t] = p
+    rising = (direction > 0)[:, None]
+    radius = radii + lag[:, None]
+    edges = np.where(rising, u[:, None] - radius, u[:, None] + radius)
+    out = clamp_sequence(
+        np.where(rising, edges, -np.inf), np.where(rising, np.inf, edges), float(rest)
+    )
     sign = np.where(out == edges, -direction[:, None], 0.0)
     touched = sign != 0.0
     index = np.where(touched, np.arange(u.size)[:, None], -1)
