@@ -151,7 +151,7 @@ class IdentificationConfig:
         model (the paper's procedure).
     nls_refinement_iterations : int
         L-BFGS iterations at most of each of step e''s two stages. A stage normally ends
-        earlier, once a window of iterations gains less than a tenth of the estimation's own
+        earlier, once a window of iterations gains less than a hundredth of the estimation's own
         excess error (:data:`identification.nls.output_error.STOP_FRACTION`); 300 is a cap
         for a stage the data keep improving, high enough that the estimate is the optimum of
         the output-error cost within that tolerance rather than wherever the cap stopped the

@@ -537,10 +537,10 @@ def _regression(n: int, p: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 def test_lbfgs_stops_within_its_tolerance_of_the_least_squares_optimum(seed):
     """The windowed L-BFGS of step e' stops once a window lowers the mean squared error by less
     than ``stop_tolerance``; on a least-squares problem its shortfall from the exact optimum
-    (numpy's lstsq, an independent method) is within that tolerance, which is a tenth of the
-    estimation's own excess error p sigma^2 / N."""
+    (numpy's lstsq, an independent method) is within that tolerance, a fraction
+    (``STOP_FRACTION``) of the estimation's own excess error p sigma^2 / N."""
     torch = pytest.importorskip("torch")
-    from identification.nls.output_error import _lbfgs, stop_tolerance
+    from identification.nls.output_error import STOP_FRACTION, _lbfgs, stop_tolerance
 
     n, p = 4000, 30
     x, y = _regression(n, p, seed)
@@ -558,7 +558,7 @@ def test_lbfgs_stops_within_its_tolerance_of_the_least_squares_optimum(seed):
     assert stage["stopped"] in ("tolerance", "converged") and not stage["capped"]
     assert stage["iterations"] < 300
     assert 0.0 <= reached - best <= stop_tolerance(reached, p, n)
-    assert stop_tolerance(reached, p, n) == pytest.approx(0.1 * p * reached / n)
+    assert stop_tolerance(reached, p, n) == pytest.approx(STOP_FRACTION * p * reached / n)
 
 
 def test_lbfgs_reports_its_cap():
