@@ -80,8 +80,8 @@ def play_slope(p: Any, u: Any, r: Any) -> np.ndarray:
 CLAMP_CHUNK = 8
 """Samples per chunk of :func:`clamp_sequence`'s scan: each level of it makes log2(chunk) + 2
 passes over its data and hands a sequence one chunk-th as long to the next level; 8 was the
-fastest of 8, 16 and 32 on 8,000-48,000 samples of 16 plays (3-24 ms against 27-140 ms for the
-loop over samples it replaces)."""
+fastest of 8, 16 and 32 on records of the identification's lengths
+(``benchmarks/results/design_measurements.md``). Speed only: every chunk gives the same bits."""
 
 
 def clamp_sequence(lower: np.ndarray, upper: np.ndarray, start: Any) -> np.ndarray:

@@ -495,9 +495,9 @@ two orders below that price, as long as the next windows would gain no more than
 iterations converge at least linearly, by half a window's gain per window); on a slowly
 converging, ill-conditioned problem the shortfall can exceed the tolerance by a small factor.
 A hundredth, not a tenth: the closed loop resolves the linear part near the first resonance
-better than the mean squared error does, and at a tenth the MPCs on the nominal PL140 lost up
-to 11 % at 50-100 Hz against a refinement run to its cap, from a training error only 0.4 of its
-standard error higher; at a hundredth they are within 1 % of it
+better than the mean squared error does. At a tenth the MPCs on the nominal PL140 lost
+measurably at 50-100 Hz against a refinement run to its cap, from a training error within its
+own standard error of the cap's; at a hundredth they matched it
 (``benchmarks/results/design_measurements.md``)."""
 
 STOP_WINDOW = 20
