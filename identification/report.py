@@ -356,8 +356,8 @@ _STOPS = {
     "converged": "converged",
     "tolerance": "stopped by the tolerance: a window gained less than the data resolve",
 }
-"""How an L-BFGS stage of step e' ended (:func:`identification.nls.output_error._lbfgs`);
-records written before the tolerance existed carry only ``capped``."""
+"""How an L-BFGS stage of step e' ended (:func:`identification.nls.output_error._lbfgs`); a
+stage record without ``stopped`` is read from its ``capped``."""
 
 
 def _nls_refinement_section(

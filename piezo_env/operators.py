@@ -81,7 +81,8 @@ CLAMP_CHUNK = 8
 """Samples per chunk of :func:`clamp_sequence`'s scan: each level of it makes log2(chunk) + 2
 passes over its data and hands a sequence one chunk-th as long to the next level; 8 was the
 fastest of 8, 16 and 32 on records of the identification's lengths
-(``benchmarks/results/design_measurements.md``). Speed only: every chunk gives the same bits."""
+(``benchmarks/results/design_measurements.md``). Speed only: every chunk gives the same
+values."""
 
 
 def clamp_sequence(lower: np.ndarray, upper: np.ndarray, start: Any) -> np.ndarray:
@@ -96,11 +97,17 @@ def clamp_sequence(lower: np.ndarray, upper: np.ndarray, start: Any) -> np.ndarr
     prefix compositions come from an associative scan (within chunks of :data:`CLAMP_CHUNK`
     samples by doubling, then over the chunks' ends by the same function, recursively), and
     ``p_t`` is the composition up to t applied to ``start``. Only max and min of the given
-    numbers are taken, never a sum, so the outputs equal the sample-by-sample recursion's to
-    the bit (tested).
+    numbers are taken, never a sum, so every output is the value the sample-by-sample
+    recursion gives (tested); only where +0 and -0 tie may the sign of the zero differ, as the
+    max and min meet them in another order.
     """
     lower = np.asarray(lower, dtype=np.float64)
     upper = np.asarray(upper, dtype=np.float64)
+    if lower.ndim != 2 or upper.shape != lower.shape:
+        raise ValueError(
+            f"lower and upper must be (samples, outputs) arrays of one shape, got "
+            f"{lower.shape} and {upper.shape}"
+        )
     t, n = lower.shape
     if t <= CLAMP_CHUNK:
         lo, hi = lower.copy(), upper.copy()

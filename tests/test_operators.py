@@ -109,16 +109,9 @@ def test_play_backends_agree():
     np.testing.assert_array_equal(seq[:, 0], u)  # radius 0 is the identity
 
 
-@settings(max_examples=60, deadline=None)
-@given(
-    length=st.integers(min_value=0, max_value=300),
-    width=st.integers(min_value=1, max_value=5),
-    seed=st.integers(min_value=0, max_value=2**32 - 1),
-)
-def test_clamp_sequence_is_the_recursion_to_the_bit(length, width, seed):
-    """The scan equals p_t = max(lo_t, min(hi_t, p_t-1)) run sample by sample, bit for bit,
-    over lengths across the chunk boundaries, with open sides (+-inf), held samples (both
-    infinite), equal bounds and repeated values."""
+def _clamp_case(length: int, width: int, seed: int):
+    """Bounds with open sides (+-inf), held samples (both infinite), equal bounds and repeated
+    values (rounded to 0.1 V), a start, and the recursion run sample by sample."""
     rng = np.random.default_rng(seed)
     centre = np.round(rng.uniform(-5.0, 5.0, (length, width)), 1)
     half = np.round(rng.uniform(0.0, 2.0, (length, width)), 1)
@@ -133,6 +126,31 @@ def test_clamp_sequence_is_the_recursion_to_the_bit(length, width, seed):
     for t in range(length):
         p = np.maximum(lower[t], np.minimum(upper[t], p))
         expected[t] = p
+    return lower, upper, start, expected
+
+
+@pytest.mark.parametrize("length", [0, 1, 7, 8, 9, 16, 17, 63, 64, 65, 513])
+def test_clamp_sequence_is_the_recursion_across_chunk_boundaries(length):
+    lower, upper, start, expected = _clamp_case(length, 3, seed=length)
     got = clamp_sequence(lower, upper, start)
-    assert got.shape == (length, width)
+    assert got.shape == (length, 3)
     np.testing.assert_array_equal(got, expected)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    length=st.integers(min_value=0, max_value=300),
+    width=st.integers(min_value=1, max_value=5),
+    seed=st.integers(min_value=0, max_value=2**32 - 1),
+)
+def test_clamp_sequence_is_the_recursion(length, width, seed):
+    """The scan gives the values of p_t = max(lo_t, min(hi_t, p_t-1)) run sample by sample."""
+    lower, upper, start, expected = _clamp_case(length, width, seed)
+    np.testing.assert_array_equal(clamp_sequence(lower, upper, start), expected)
+
+
+def test_clamp_sequence_refuses_other_shapes():
+    with pytest.raises(ValueError, match="samples, outputs"):
+        clamp_sequence(np.zeros(5), np.ones(5), 0.0)
+    with pytest.raises(ValueError, match="one shape"):
+        clamp_sequence(np.zeros((5, 2)), np.ones((5, 3)), 0.0)

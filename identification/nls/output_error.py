@@ -93,7 +93,8 @@ class NlsOutputErrorFit:
     stages : tuple of dict
         Per stage (radii, when learned; network; then network and linear part):
         ``iterations``, ``evaluations``, ``stopped`` (``"tolerance"``, ``"converged"`` or
-        ``"cap"``, see :func:`_lbfgs`) and ``capped`` (stopped at ``max_iterations``).
+        ``"cap"``, see :func:`_lbfgs`) and ``capped`` (stopped at the iteration or evaluation
+        cap).
     linear_note : str or None
         Why the joint stage's linear part was not kept (unstable, or no longer minimum-phase
         when the start was); its network-only stage is returned then. None otherwise.
@@ -491,9 +492,11 @@ variance sigma^2, the expected excess mean squared error of the estimate on fres
 p sigma^2 / N (Akaike's final prediction error; Ljung, *System Identification*, 2nd ed.,
 sec. 16.4): the price of estimating from finite data, which no optimiser removes. A window that
 lowers the training objective by less than a hundredth of it leaves the optimiser's shortfall
-two orders below that price, as long as the next windows would gain no more than the last (the
-iterations converge at least linearly, by half a window's gain per window); on a slowly
-converging, ill-conditioned problem the shortfall can exceed the tolerance by a small factor.
+two orders below that price if each later window would gain at most half the one before (then
+what remains is at most the last window's gain; with a ratio rho, gain rho / (1 - rho)). The
+rule is a heuristic where that fails: a slowly converging, ill-conditioned problem can stop a
+few tolerances short, and a plateau longer than a window can hide a later drop altogether
+(:data:`STOP_WINDOW`).
 A hundredth, not a tenth: the closed loop resolves the linear part near the first resonance
 better than the mean squared error does. At a tenth the MPCs on the nominal PL140 lost
 measurably at 50-100 Hz against a refinement run to its cap, from a training error within its
@@ -527,13 +530,15 @@ def _lbfgs(
     """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``, the mean squared error
     ``objective`` over ``n_samples`` samples, in windows of :data:`STOP_WINDOW` iterations.
 
+    A window is :data:`STOP_WINDOW` iterations or 1.25 times as many evaluations (torch's
+    default ratio), whichever ends first, so that a window stands for a fixed amount of work.
     Stops when a window lowered the objective by less than :func:`stop_tolerance` (``stopped``
     ``"tolerance"``), when L-BFGS meets its own tests (``"converged"``: zero gradient or no
-    descent direction left), or at ``max_iterations`` iterations or ``1.25 max_iterations``
-    evaluations (torch's default ratio; ``"cap"``). The windows continue one L-BFGS run: its
-    history carries over, and each window adds one evaluation at its start and one forward
-    pass at its end. Returns the stage's record: ``iterations``, ``evaluations``,
-    ``stopped`` and ``capped``.
+    descent direction left), or at ``max_iterations`` iterations or about ``1.25
+    max_iterations`` evaluations (torch's line search may take one more; ``"cap"``). The
+    windows continue one L-BFGS run: its history carries over (the path is the one uncut run's),
+    and each window adds one evaluation at its start and one forward pass at its end. Returns
+    the stage's record: ``iterations``, ``evaluations``, ``stopped`` and ``capped``.
     """
     window = min(STOP_WINDOW, max_iterations)
     optimiser = torch.optim.LBFGS(
