@@ -567,9 +567,8 @@ def _lbfgs(
     loss, iterations, evaluations = current(), 0, 0
     while True:
         steps = min(window, max_iterations - iterations)
-        group["max_iter"], group["max_eval"] = steps, min(
-            steps * 5 // 4, max_evaluations - evaluations
-        )
+        group["max_iter"] = steps
+        group["max_eval"] = min(steps * 5 // 4, max_evaluations - evaluations)
         optimiser.step(closure)
         record = state[parameters[0]]
         done = int(record.get("n_iter", 0)) - iterations
