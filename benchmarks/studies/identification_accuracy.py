@@ -172,6 +172,7 @@ def _narx_baselines(records) -> dict:
 
 def _setup_lines(auto, base: IdentificationConfig, stroke: float) -> list[str]:
     environment = auto.report["environment"]
+    base = base.at_sample_time(environment["dt_s"])  # durations in samples, as identify ran
     return [
         f"Default bender: {environment['bender']}, dt = {environment['dt_s'] * 1e3:g} ms, "
         f"{environment['hysteresis']} hysteresis, +-{environment['noise_bound_um']:g} um sensor "
