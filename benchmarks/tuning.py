@@ -147,7 +147,7 @@ def tuning_reference(
 class ModelPlantEnv(gym.Env):
     """The identified model as the plant, with ``PiezoBender-v0``'s interface.
 
-    The nonlinearity's step and the linear part (``x+ = A x + B z``, ``y = gain C x``) of a
+    The nonlinearity's step and the linear part (``x+ = A x + B z``, ``y = C x``) of a
     :class:`controllers.PredictionModel` in closed loop, read through the task's sensor: uniform
     noise within the task's bound, the same observation layout (measurement, then the reference
     from r_t to r_t+preview), the same drive-range clip and the same ``info`` keys as the env
@@ -156,23 +156,18 @@ class ModelPlantEnv(gym.Env):
     Parameters
     ----------
     model : controllers.PredictionModel
-        The plant (the identified model).
+        The plant: the identified model, or one of the tolerance box's vertices of it
+        (:func:`vertex_models`).
     like : gymnasium.Env
         A ``PiezoBender-v0`` whose task (drive range, stroke, noise bound, preview, dt) this
         one copies.
-    gain : float
-        Factor on the model's static gain (-), > 0.
     steps : int
         Steps per episode (truncation).
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
-    def __init__(self, model: Any, like: gym.Env, *, gain: float = 1.0, steps: int) -> None:
-        if not (math.isfinite(gain) and gain > 0):
-            raise ValueError(
-                f"gain must be a finite number > 0 (a factor on the model's), got {gain!r}"
-            )
+    def __init__(self, model: Any, like: gym.Env, *, steps: int) -> None:
         base = like.unwrapped
         self.task = base.task
         self.model = model
@@ -181,7 +176,7 @@ class ModelPlantEnv(gym.Env):
         self.action_space = like.action_space
         self.observation_space = like.observation_space
         self._u_max = float(like.action_space.high[0])
-        self._c = gain * np.asarray(model.c[0], dtype=float)
+        self._c = np.asarray(model.c[0], dtype=float)
         self._steps = int(steps)
         self._reference = np.zeros(0)
 

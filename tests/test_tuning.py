@@ -37,18 +37,14 @@ def test_the_tuning_multisine_fades_in_as_the_test_multisine():
     np.testing.assert_array_equal(got[fade:], raw[fade:])
 
 
-def test_the_model_plant_follows_the_model_open_loop_and_scales_its_gain():
+def test_the_model_plant_follows_the_model_open_loop():
     env = gym.make("piezo_env:PiezoBender-v0", preview=3, noise_bound=0.0)
     model = ctl.PredictionModel.from_hammerstein(MODEL_DIR, float(env.action_space.high[0]))
     u = 20.0 * np.sin(2 * np.pi * 7.0 * np.arange(300) * 1e-3)
-    expected = model.simulate(u)
-    for gain in (1.0, 1.2):
-        plant = ModelPlantEnv(model, env, gain=gain, steps=300)
-        plant.reset(seed=0, options={"reference": np.zeros(304)})
-        y = [plant.step(np.array([v]))[4]["deflection_um"] for v in u]
-        np.testing.assert_allclose(y, gain * expected, rtol=1e-12, atol=1e-9)
-    with pytest.raises(ValueError, match="gain must be"):
-        ModelPlantEnv(model, env, gain=0.0, steps=10)
+    plant = ModelPlantEnv(model, env, steps=300)
+    plant.reset(seed=0, options={"reference": np.zeros(304)})
+    y = [plant.step(np.array([v]))[4]["deflection_um"] for v in u]
+    np.testing.assert_allclose(y, model.simulate(u), rtol=1e-12, atol=1e-9)
 
 
 @pytest.fixture(scope="module")
