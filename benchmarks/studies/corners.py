@@ -33,6 +33,8 @@ from benchmarks.plants import EPISODE_S, VERTICES, sample_time, stroke_um, verte
 
 MODEL_DIR = "docs/benchmark/model"
 BENDER = "PL140"
+PREVIEW = 20
+"""Reference samples each observation previews (as ``piezo benchmark``'s default)."""
 REFERENCES_RUN = ("sine-10Hz", "sine-50Hz", "multisine")
 ROWS = {
     "mpc-oracle": ("mpc", {}),
@@ -52,12 +54,24 @@ def vertex_env(vertex: tuple[float, float, float], bender: str = BENDER, **optio
     dt = sample_time(bender)
     return gym.make(
         "piezo_env:PiezoBender-v0",
-        preview=20,
+        preview=PREVIEW,
         dt=dt,
         max_episode_steps=round(EPISODE_S / dt),
         **vertex_options(bender, vertex),
         **options,
     )
+
+
+def vertex_reference(name: str, bender: str = BENDER) -> np.ndarray:
+    """The reference ``name`` (um) of one episode on ``bender``, seed 0, scaled to its stroke,
+    with the PREVIEW samples the last step's observation reads: an array that ends earlier is
+    held at its last value by the env, and the controllers would brake for an end the
+    reference does not have."""
+    from benchmarks.references import make_reference
+
+    dt = sample_time(bender)
+    steps = round(EPISODE_S / dt)
+    return make_reference(name, steps + PREVIEW + 1, dt=dt, seed=0, stroke_um=stroke_um(bender))
 
 
 def settling_ms(error: np.ndarray, dt: float = 1e-3, window_s: float = 0.05) -> float:
@@ -80,14 +94,13 @@ def run_vertex(
     from threadpoolctl import threadpool_limits
 
     import controllers as ctl
-    from benchmarks.references import make_reference
 
     dt = sample_time(bender)
     steps = round(EPISODE_S / dt)
     stroke = stroke_um(bender)
     env = vertex_env(vertex, bender)
     nominal = gym.make(
-        "piezo_env:PiezoBender-v0", bender=bender, preview=20, dt=dt, max_episode_steps=steps
+        "piezo_env:PiezoBender-v0", bender=bender, preview=PREVIEW, dt=dt, max_episode_steps=steps
     )
     out = {}
     with threadpool_limits(1):
@@ -97,7 +110,7 @@ def run_vertex(
                 model = ctl.PredictionModel.from_plant(env.unwrapped.model)
             controller = ctl.make(name, model, nominal, **options)
             for ref_name in REFERENCES_RUN:
-                reference = make_reference(ref_name, steps + 1, dt=dt, seed=0, stroke_um=stroke)
+                reference = vertex_reference(ref_name, bender)
                 episode = ctl.run_episode(
                     env, controller, seed=0, reference=reference, stroke_um=stroke
                 )
