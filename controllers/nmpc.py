@@ -179,8 +179,12 @@ class NMPCSettings:
         )
 
 
-def make_horizon(model: PredictionModel, horizon: int, jacobian: str) -> Any:
-    """The horizon linearization (z and dz/du along a plan) chosen by ``jacobian``."""
+def make_horizon(
+    model: PredictionModel, horizon: int, jacobian: str, *, defer: bool = False
+) -> Any:
+    """The horizon linearization (z and dz/du along a plan) chosen by ``jacobian``; ``defer``
+    leaves the identified NLS's feature recursion uncompiled until its ``compile()``
+    (:class:`controllers.native.nmpc_horizon.StructuredHorizon`)."""
     nonlinearity = model.nonlinearity
     structured_ok = isinstance(nonlinearity, IdentifiedNLS)
     if jacobian in ("structured", "structured-vm") and not structured_ok:
@@ -190,7 +194,7 @@ def make_horizon(model: PredictionModel, horizon: int, jacobian: str) -> Any:
         )
     compiled = not jacobian.endswith("-vm")
     if jacobian.startswith("structured") or (jacobian == "auto" and structured_ok):
-        return StructuredHorizon(nonlinearity.nls, horizon, compiled=compiled)
+        return StructuredHorizon(nonlinearity.nls, horizon, compiled=compiled, defer=defer)
     return GenericHorizon(nonlinearity, horizon, compiled=compiled)
 
 
@@ -208,13 +212,15 @@ class NonlinearMPC(PredictiveController):
 
     def _set_up(self) -> None:
         settings = self.settings
-        self.horizon = make_horizon(self.model, settings.horizon, settings.jacobian)
+        self.horizon = make_horizon(self.model, settings.horizon, settings.jacobian, defer=True)
         if settings.solver == "ipopt":
             self._nlp = self._build_nlp()
         # The bounds live as long as the controller: the compiled iteration reads them.
         self._lower = np.full(settings.horizon, -self._u_max)
         self._upper = np.full(settings.horizon, self._u_max)
         self._kernel, self._kernel_build = self._iteration_kernel()
+        if self._kernel is None and isinstance(self.horizon, StructuredHorizon):
+            self.horizon.compile()  # the numpy path's iterations run the feature recursion
 
     def _iteration_kernel(self) -> tuple[nmpc_step.IterationKernel | None, NativeBuild]:
         """The compiled iteration (:mod:`controllers.native.nmpc_step`) where this NMPC's
@@ -225,8 +231,8 @@ class NonlinearMPC(PredictiveController):
             why = f"solver={self.settings.solver!r} (the kernel runs the real-time iteration)"
         elif not isinstance(self.horizon, StructuredHorizon):
             why = f"the horizon is {type(self.horizon).__name__} (the kernel needs the NLS's)"
-        elif not self.horizon.native or not self.horizon.native[0].compiled:
-            why = f"the horizon's feature recursion is not compiled ({self.horizon.backend})"
+        elif not self.horizon.compile_requested:
+            why = f"jacobian={self.settings.jacobian!r} asks for casadi's virtual machine"
         if why is not None:
             return None, nmpc_step.unavailable(why)
         nls = self.model.nonlinearity.nls

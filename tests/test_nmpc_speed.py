@@ -12,6 +12,7 @@ from recorded import recorded_episode
 import controllers
 from benchmarks.references import make_reference
 from controllers.native import nmpc_step
+from controllers.native.nmpc_horizon import StructuredHorizon
 from piezo_env.amplifier import Amplifier
 
 MODEL_DIR = "docs/identify/model"
@@ -187,4 +188,27 @@ def test_native_off_records_the_numpy_path(env, monkeypatch):
     monkeypatch.setenv("PIEZO_NATIVE", "off")
     c = controllers.make("nmpc", MODEL_DIR, env, horizon=5)
     assert c._kernel is None
-    assert "not compiled" in c.describe()["native"]["nmpc_step"]["reason"]
+    native = c.describe()["native"]
+    assert "PIEZO_NATIVE=off" in native["nmpc_step"]["reason"]
+    # The numpy path's iterations run the horizon's feature recursion, so it was asked for.
+    assert native["nmpc_features"]["path"] == "casadi-vm"
+    assert "PIEZO_NATIVE=off" in native["nmpc_features"]["reason"]
+
+
+def test_the_compiled_iteration_leaves_the_feature_recursion_uncompiled(env):
+    """The compiled iteration computes the features itself: the unrolled horizon's generated
+    C (the largest the NMPC has) is not built, and the description says which path runs."""
+    c = controllers.make("nmpc", MODEL_DIR, env, horizon=5)
+    if c._kernel is None:
+        pytest.skip(f"no compiled iteration here: {c.describe()['native']['nmpc_step']}")
+    described = c.describe()
+    assert "nmpc_features" not in described["native"]
+    assert "not compiled: the compiled iteration computes" in described["jacobian"]
+    # predict() still runs, on casadi's virtual machine, with the same numbers.
+    u = np.linspace(-5.0, 5.0, 5)
+    state = c.model.nonlinearity.initial_state()
+    c.horizon.compile()
+    assert c.horizon.native and c.horizon.native[0].compiled
+    compiled = c.horizon.evaluate(u, state)
+    vm = StructuredHorizon(c.model.nonlinearity.nls, 5, compiled=False).evaluate(u, state)
+    np.testing.assert_allclose(compiled, vm, rtol=0, atol=1e-13)

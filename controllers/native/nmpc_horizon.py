@@ -74,9 +74,18 @@ class StructuredHorizon:
         N (samples).
     compiled : bool
         Try generated C for the feature recursion (else casadi's virtual machine).
+    defer : bool
+        With ``compiled``, leave the compilation to :meth:`compile`: the NMPC's compiled
+        iteration (:mod:`controllers.native.nmpc_step`) computes the features itself, and only
+        its numpy path needs this recursion compiled. The generated C of an unrolled horizon
+        with its Jacobian is large (about 12 s of the compiler's time for the default model,
+        ``-O1``), so it is built only where it runs; until then :meth:`linearize` runs in
+        casadi's virtual machine.
     """
 
-    def __init__(self, nls: Any, horizon: int, *, compiled: bool = True) -> None:
+    def __init__(
+        self, nls: Any, horizon: int, *, compiled: bool = True, defer: bool = False
+    ) -> None:
         import casadi
 
         fmap = nls.feature_map
@@ -92,17 +101,32 @@ class StructuredHorizon:
             "nmpc_features", [u, state0], [casadi.densify(features), sens], ["u", "s"], ["F", "dF"]
         )
         self.horizon, self.n_features = horizon, nls.n_features
-        compiled_fn, self.backend = None, "casadi virtual machine (compilation not requested)"
-        self.native: list[NativeBuild] = []
+        self.compile_requested = compiled
+        self.backend = "casadi virtual machine (compilation not requested)"
         if compiled:
-            compiled_fn, build = compile_function(self.function, fallback=CASADI_VM)
-            self.backend, self.native = str(build), [build]
-        self._features = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
+            self.backend = (
+                "casadi virtual machine (not compiled: the compiled iteration computes the "
+                "features; this path serves predict())"
+            )
+        self.native: list[NativeBuild] = []
+        self._features = lambda *a: as_numpy(self.function(*a))
+        if compiled and not defer:
+            self.compile()
         mlp = nls.to_numpy()
         self._w_t = [np.ascontiguousarray(w.T) for w in mlp.weights]
         self._w = list(mlp.weights)
         self._b = list(mlp.biases)
         self._out, self._skip, self._bias = mlp.out_weight, mlp.skip_weight, mlp.out_bias
+
+    def compile(self) -> None:
+        """Build the generated C of the feature recursion, if it was requested and is not built
+        yet (a failure is recorded in :attr:`native` and the virtual machine stays)."""
+        if not self.compile_requested or self.native:
+            return
+        compiled_fn, build = compile_function(self.function, fallback=CASADI_VM)
+        self.backend, self.native = str(build), [build]
+        if compiled_fn is not None:
+            self._features = compiled_fn
 
     def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z (N,) (equivalent V) along ``u`` (N,) (V) from ``state``, and dz/du (N, N)."""
