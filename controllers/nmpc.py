@@ -117,8 +117,9 @@ class NMPCSettings:
         linear MPC's.
     jacobian : str
         ``"auto"`` (structured for the identified NLS, else generic; generated C where a
-        compiler works), ``"structured"``, ``"structured-vm"`` (casadi's virtual machine, no
-        compiler), ``"generic"``, ``"generic-vm"``.
+        compiler works, the structured horizon's built on first use, since the compiled
+        iteration does not use it), ``"structured"``, ``"structured-vm"`` (casadi's virtual
+        machine, no compiler), ``"generic"``, ``"generic-vm"``.
     qp_solver : str
         ``"daqp"`` (default) or ``"osqp"``: the QP solver of ``"rti"``
         (:mod:`controllers.box_qp`).
@@ -219,8 +220,12 @@ class NonlinearMPC(PredictiveController):
         self._lower = np.full(settings.horizon, -self._u_max)
         self._upper = np.full(settings.horizon, self._u_max)
         self._kernel, self._kernel_build = self._iteration_kernel()
-        if self._kernel is None and isinstance(self.horizon, StructuredHorizon):
-            self.horizon.compile()  # the numpy path's iterations run the feature recursion
+        if self._kernel is None and settings.solver == "rti":
+            # The numpy path's iterations run the horizon: built here, not inside a step.
+            # (ipopt builds its own NLP; the horizon then serves only predict_deflection().)
+            compile_horizon = getattr(self.horizon, "compile", None)
+            if compile_horizon is not None:
+                compile_horizon()
 
     def _iteration_kernel(self) -> tuple[nmpc_step.IterationKernel | None, NativeBuild]:
         """The compiled iteration (:mod:`controllers.native.nmpc_step`) where this NMPC's

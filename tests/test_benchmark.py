@@ -289,6 +289,23 @@ def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_th
     assert settling_ms(late) == 200.0  # the next one (150-200 ms) and all after stay within
 
 
+def test_the_committed_policies_run_when_asked_for_from_any_folder(tmp_path, monkeypatch):
+    from piezo_cli.benchmark import _committed_policies, policies_line
+
+    monkeypatch.chdir(tmp_path)  # not the project folder: found all the same
+    assert _committed_policies(("mpc", "pid-ff"), "PL140") == ((), {})  # not asked for
+    kept, left_out = _committed_policies(("mpc", "ppo"), "PL140")
+    assert [Path(k).name for k in kept] == ["ppo-seed0", "ppo-seed1", "ppo-seed2"]
+    assert not left_out and all(Path(k).is_dir() for k in kept)
+    kept, left_out = _committed_policies(("ppo", "ppo-dr"), "PL122")
+    line = policies_line(kept, left_out)
+    assert kept == () and len(left_out) == 6 and "\n" not in line
+    assert line.startswith("policies: left out ppo-dr-seed0, ppo-dr-seed1") and "PL122" in line
+    monkeypatch.setattr("piezo_cli.benchmark.committed_policy_folder", lambda: tmp_path / "no")
+    kept, left_out = _committed_policies(("ppo",), "PL140")
+    assert kept == () and "not found in" in left_out["ppo"]
+
+
 @pytest.mark.parametrize("bender", ["PL140", "PL127"])
 def test_the_corners_study_previews_its_references_to_the_last_step(bender):
     """The last observation of an episode reads the reference's own future, not the value an

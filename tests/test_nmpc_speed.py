@@ -12,6 +12,7 @@ from recorded import recorded_episode
 import controllers
 from benchmarks.references import make_reference
 from controllers.native import nmpc_step
+from controllers.native.codegen import NativeCodeError
 from controllers.native.nmpc_horizon import StructuredHorizon
 from piezo_env.amplifier import Amplifier
 
@@ -197,18 +198,40 @@ def test_native_off_records_the_numpy_path(env, monkeypatch):
 
 def test_the_compiled_iteration_leaves_the_feature_recursion_uncompiled(env):
     """The compiled iteration computes the features itself: the unrolled horizon's generated
-    C (the largest the NMPC has) is not built, and the description says which path runs."""
+    C (the largest the NMPC has) is built at its first use, not with the controller, and the
+    description says so until then."""
     c = controllers.make("nmpc", MODEL_DIR, env, horizon=5)
     if c._kernel is None:
         pytest.skip(f"no compiled iteration here: {c.describe()['native']['nmpc_step']}")
     described = c.describe()
     assert "nmpc_features" not in described["native"]
-    assert "not compiled: the compiled iteration computes" in described["jacobian"]
-    # predict() still runs, on casadi's virtual machine, with the same numbers.
+    assert "deferred: generated C built on first use" in described["jacobian"]
     u = np.linspace(-5.0, 5.0, 5)
     state = c.model.nonlinearity.initial_state()
-    c.horizon.compile()
-    assert c.horizon.native and c.horizon.native[0].compiled
-    compiled = c.horizon.evaluate(u, state)
+    first_use = c.horizon.evaluate(u, state)  # builds, then evaluates as built
+    assert c.describe()["native"]["nmpc_features"]["path"] == "compiled"
     vm = StructuredHorizon(c.model.nonlinearity.nls, 5, compiled=False).evaluate(u, state)
-    np.testing.assert_allclose(compiled, vm, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(first_use, vm, rtol=0, atol=1e-13)
+
+
+def test_a_deferred_horizon_falls_back_visibly_or_raises_at_its_first_use(
+    env, monkeypatch, tmp_path
+):
+    fake = tmp_path / "broken-cc"
+    fake.write_text(
+        '#!/bin/sh\nif [ "$1" = --version ]; then echo broken 1.0; exit 0; fi\nexit 1\n'
+    )
+    fake.chmod(0o755)
+    monkeypatch.setenv("CC", str(fake))
+    monkeypatch.setenv("PIEZO_CACHE", str(tmp_path / "cache"))
+    nls = controllers.make("nmpc", MODEL_DIR, env, horizon=5).model.nonlinearity.nls
+    u, state = np.zeros(5), np.zeros(nls.n_state)
+    horizon = StructuredHorizon(nls, 5, defer=True)
+    horizon.evaluate(u, state)
+    assert horizon.native[0].path == "casadi-vm" and "compiler failed" in horizon.backend
+    monkeypatch.setenv("PIEZO_NATIVE", "require")
+    horizon = StructuredHorizon(nls, 5, defer=True)  # nothing is built yet: nothing to raise
+    with pytest.raises(NativeCodeError, match="nmpc_features"):
+        horizon.evaluate(u, state)
+
+

@@ -10,7 +10,8 @@ evaluation. Compilation happens once per function and machine (the cache below).
 built, which path evaluates it (``compiled``, or the caller's fallback, ``numpy`` or
 ``casadi-vm``), why, the compiler's identity and stderr, the cache key, the library loaded and
 its SHA-256. The objects that use native code keep theirs in a ``native`` list
-(:class:`controllers.native.compiled_inverse.CompiledInverse`, the NMPC horizons), and
+(:class:`controllers.native.compiled_inverse.CompiledInverse`, the NMPC horizons; a horizon
+whose build is deferred to its first use keeps none until then and says so), and
 :meth:`controllers.base.Controller.native_code` collects them into ``describe()["native"]``,
 which the benchmark report shows. The environment variable ``PIEZO_NATIVE`` sets the policy:
 

@@ -11,7 +11,9 @@ triangular Jacobian ``J[k, j] = dz_t+k / du_t+j``. Three ways to get them:
     whole horizon as a batch of matrix products with its input gradient by hand-written
     back-propagation: ``dz_k/du_j = grad_F NLS(F_k) . dF_k/du_j``. The feature part is
     generated as C, compiled with the machine's compiler and called through ctypes; without a
-    working compiler the same casadi Function runs in casadi's virtual machine.
+    working compiler the same casadi Function runs in casadi's virtual machine. The NMPC
+    defers that build to the first use (``defer``): its compiled iteration
+    (:mod:`controllers.native.nmpc_step`) computes the features without it.
 ``GenericHorizon`` (any nonlinearity with ``casadi_step``)
     casadi's Jacobian of the unrolled horizon ``(u, s_t) -> z``: simple and general, but it
     differentiates the network N times over.
@@ -103,14 +105,15 @@ class StructuredHorizon:
         self.horizon, self.n_features = horizon, nls.n_features
         self.compile_requested = compiled
         self.backend = "casadi virtual machine (compilation not requested)"
-        if compiled:
-            self.backend = (
-                "casadi virtual machine (not compiled: the compiled iteration computes the "
-                "features; this path serves predict())"
-            )
         self.native: list[NativeBuild] = []
-        self._features = lambda *a: as_numpy(self.function(*a))
-        if compiled and not defer:
+        self._features = self._virtual_machine
+        if compiled and defer:
+            self.backend = (
+                "deferred: generated C built on first use (an NMPC's compiled iteration "
+                "computes the features without it)"
+            )
+            self._features = self._first_use
+        elif compiled:
             self.compile()
         mlp = nls.to_numpy()
         self._w_t = [np.ascontiguousarray(w.T) for w in mlp.weights]
@@ -120,13 +123,21 @@ class StructuredHorizon:
 
     def compile(self) -> None:
         """Build the generated C of the feature recursion, if it was requested and is not built
-        yet (a failure is recorded in :attr:`native` and the virtual machine stays)."""
+        yet. A failure is recorded in :attr:`native` and the virtual machine runs (under
+        ``PIEZO_NATIVE=require`` it raises, :mod:`controllers.native.codegen`)."""
         if not self.compile_requested or self.native:
             return
         compiled_fn, build = compile_function(self.function, fallback=CASADI_VM)
         self.backend, self.native = str(build), [build]
-        if compiled_fn is not None:
-            self._features = compiled_fn
+        self._features = compiled_fn or self._virtual_machine
+
+    def _virtual_machine(self, u: np.ndarray, state: np.ndarray) -> list[np.ndarray]:
+        return as_numpy(self.function(u, state))
+
+    def _first_use(self, u: np.ndarray, state: np.ndarray) -> list[np.ndarray]:
+        """A deferred horizon's first evaluation: build, then evaluate as built."""
+        self.compile()
+        return self._features(u, state)
 
     def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z (N,) (equivalent V) along ``u`` (N,) (V) from ``state``, and dz/du (N, N)."""
