@@ -93,11 +93,18 @@ from controllers.observer import ObserverBank, make_observer, rescale_states
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX, check_settings, measurement_std
 from controllers.task import ControlTask
-from controllers.tolerance_box import DAMPING_RANGE, RESONANCE_TOLERANCE, Vertex, box_model
+from controllers.tolerance_box import (
+    DAMPING_RANGE,
+    RESONANCE_TOLERANCE,
+    Vertex,
+    box_model,
+    datasheet_model,
+)
 from identification.arx import ARXModel
 from identification.correction import first_mode_pole
 
 __all__ = [
+    "MEMBER_SETS",
     "NORMAL_95",
     "SCREENS_KEPT",
     "SWITCH_CHI2",
@@ -112,6 +119,9 @@ __all__ = [
     "first_resonance_hz",
     "resonance_points",
 ]
+
+MEMBER_SETS = ("modes", "datasheet")
+"""The values of :attr:`AdaptiveMPCSettings.member_set`."""
 
 SWITCH_CHI2 = 5.991464547107979
 """chi2 quantile 0.95 with 2 degrees of freedom (frequency and damping of the first mode)."""
@@ -145,11 +155,21 @@ class AdaptiveMPCSettings(MPCSettings):
         datasheet's +-20 %.
     damping_range : tuple of float
         (low, high) first-mode damping ratios the set covers (-): the datasheet box's.
+    member_set : str
+        How a member is made from the identified model: ``"modes"`` (the default) moves its
+        modes (:func:`controllers.tolerance_box.box_model`); ``"datasheet"`` applies the ratio
+        by which the datasheet's FE model moves between nominal and vertex, one order more
+        (:func:`controllers.tolerance_box.datasheet_model`; needs a task read from a
+        ``PiezoBender-v0`` env, which carries the datasheet). The second matches the box's
+        benders far better and is not yet the default: on plants whose hysteresis the
+        identification does not match it loses (``benchmarks/results/corners.md`` and
+        ``design_measurements.md``).
     """
 
     rate_weight: float = 1e-2
     resonance_tolerance: float = RESONANCE_TOLERANCE
     damping_range: tuple[float, float] = DAMPING_RANGE
+    member_set: str = "modes"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -166,6 +186,8 @@ class AdaptiveMPCSettings(MPCSettings):
                 "the adaptive MPC tells its models apart by their misfit at their learned gain: "
                 "gain_tolerance must be > 0"
             )
+        if self.member_set not in MEMBER_SETS:
+            raise ValueError(f"member_set must be one of {MEMBER_SETS}, got {self.member_set!r}")
 
 
 @dataclass
@@ -305,9 +327,16 @@ class AdaptiveMPC(LinearMPC):
             for alpha in resonance_points(settings.resonance_tolerance, settings.damping_range[0])
             for z in damping_points(*settings.damping_range)
         ]
-        self._member_arx = [arx] + [
-            box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in self._grid[1:]
-        ]
+        self.fit_error: float | None = None
+        """The datasheet set's largest relative fit error (-), None for the modes' set."""
+        if settings.member_set == "datasheet":
+            self._member_arx = self._datasheet_members(arx, task)
+            a, b, c, _ = self._member_arx[0].state_space_matrices()
+            model = dataclasses.replace(model, a=a, b=b, c=c)
+        else:
+            self._member_arx = [arx] + [
+                box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in self._grid[1:]
+            ]
         self._member_models = []
         for member in self._member_arx:
             a, b, c, _ = member.state_space_matrices()
@@ -324,6 +353,44 @@ class AdaptiveMPC(LinearMPC):
         super().__init__(model, task, settings, name=name)
 
     # -- the set --------------------------------------------------------------------------------
+
+    def _datasheet_members(self, arx: ARXModel, task: ControlTask) -> list[ARXModel]:
+        """The identified model, padded one order, and each grid point's
+        :func:`controllers.tolerance_box.datasheet_model` of the same order."""
+        if task.datasheet is None or task.damping_ratio is None:
+            raise ValueError(
+                "member_set='datasheet' needs the bender's datasheet, which a task read from a "
+                "PiezoBender-v0 env carries (ControlTask.from_env); use member_set='modes'"
+            )
+        order = max(arx.na, arx.nb) + 1
+        first = ARXModel(
+            np.pad(arx.a, (0, order - arx.na)),
+            np.pad(arx.b, (0, order - arx.nb)),
+            dt=arx.dt,
+            noise_bound=arx.noise_bound,
+            method=arx.method,
+        )
+        members, errors = [first], []
+        for alpha, z in self._grid[1:]:
+            member, error = datasheet_model(
+                arx,
+                task.datasheet,
+                Vertex(1.0, alpha, z),
+                damping_ratio=task.damping_ratio,
+                order=order,
+            )
+            # The same static gain to the last bit: a swap carries the state over.
+            member = ARXModel(
+                member.a,
+                member.b * (first.static_gain() / member.static_gain()),
+                dt=arx.dt,
+                noise_bound=arx.noise_bound,
+                method=member.method,
+            )
+            members.append(member)
+            errors.append(error)
+        self.fit_error = max(errors)
+        return members
 
     def _check_shared_state(self) -> None:
         """The swap carries the observer's state over (module docstring), which needs every
@@ -673,6 +740,8 @@ class AdaptiveMPC(LinearMPC):
             "identified_loop_radius": float(np.max(self._radii[0])),
             "worst_loop_radius": float(np.max(self._radii)),
             "unstable_pairs": int(np.sum(self._radii >= 1.0)),
+            "member_set": self.settings.member_set,
+            "datasheet_fit_error": self.fit_error,
             "members_without_a_filter_stable_on_the_set": int(
                 np.sum(~np.any(np.all(self._filter_radii < 1.0, axis=2), axis=1))
             ),

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from piezo_env.checks import require_int, require_number
+from piezo_env.datasheet import get_datasheet
 
 __all__ = ["SLEW_MARGIN_V", "ControlTask"]
 
@@ -44,6 +45,13 @@ class ControlTask:
         slew_limit`` = current limit / drive capacitance, :mod:`piezo_env.amplifier`): a
         datasheet value, not an identified one. None: an ideal amplifier. Controllers keep
         |u_t - u_t-1| <= S dt.
+    datasheet : piezo_env.BenderDatasheet or None
+        The bender's datasheet, and ``damping_ratio`` the first-mode damping ratio of the env's
+        nominal plant (the FE model of :mod:`piezo_env` built from that datasheet): what a
+        controller may know of the physics before it sees data (the adaptive MPC's
+        ``member_set="datasheet"``). None for a task made by hand.
+    damping_ratio : float or None
+        See ``datasheet``.
     """
 
     dt: float
@@ -52,6 +60,8 @@ class ControlTask:
     preview: int
     noise_bound_um: float = 1.0
     slew_limit: float | None = None
+    datasheet: Any = None
+    damping_ratio: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("dt", "u_max", "stroke_um"):
@@ -130,6 +140,8 @@ class ControlTask:
             preview=int(shape[0]) - 2,
             noise_bound_um=float(nominal.noise_bound),
             slew_limit=_slew_limit(base),
+            datasheet=get_datasheet(base.config.bender),
+            damping_ratio=float(base.config.damping_ratio),
         )
 
     @property

@@ -38,6 +38,7 @@ import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -56,6 +57,7 @@ __all__ = [
     "Vertex",
     "arx_of",
     "box_model",
+    "datasheet_model",
     "mode_correction",
     "unfolded_hz",
     "vertex_models",
@@ -240,6 +242,109 @@ def box_model(arx: ARXModel, vertex: Vertex, *, further_modes: bool = True) -> A
     return ARXModel(
         moved.a, moved.b * scale, dt=dt, noise_bound=arx.noise_bound, method=moved.method
     )
+
+
+FIT_POINTS = 400
+"""Frequencies (log-spaced, 0.1 Hz to 0.48 times the sampling rate) :func:`datasheet_model`
+fits on: more than ten per octave over the band, so no resonance falls between two."""
+
+FIT_ITERATIONS = 40
+"""Sanathanan-Koerner reweightings of :func:`datasheet_model`'s least squares; the fit stops
+changing (relative change of its response below 1e-12) within 20 on the catalogue's benders."""
+
+
+def _response(a: np.ndarray, b: np.ndarray, c: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``c (z I - a)^-1 b`` at each point of ``z`` (the first input and output)."""
+    n = a.shape[0]
+    return np.array(
+        [(c[:1] @ np.linalg.solve(zk * np.eye(n) - a, b[:, :1]))[0, 0] for zk in z]
+    )
+
+
+def _arx_response(arx: ARXModel, w: np.ndarray) -> np.ndarray:
+    """``B(w) / A(w)`` at ``w = exp(-j omega dt)``."""
+    powers = np.arange(1, max(arx.na, arx.nb) + 1)
+    wk = w[:, None] ** powers[None, :]
+    return (wk[:, : arx.nb] @ arx.b) / (1.0 - wk[:, : arx.na] @ arx.a)
+
+
+def datasheet_model(
+    arx: ARXModel,
+    datasheet: Any,
+    vertex: Vertex,
+    *,
+    damping_ratio: float,
+    order: int,
+) -> tuple[ARXModel, float]:
+    """``arx`` (the identified linear part) moved to ``vertex`` by the datasheet's physics.
+
+    The FE model of :mod:`piezo_env` built from ``datasheet`` (first-mode damping
+    ``damping_ratio``, no hysteresis) and the same model at the vertex (free deflection and
+    resonance times the vertex's factors, its damping ratio) give the ratio ``R(omega)`` by
+    which the tolerance moves the response, every mode and alias included (stiffness-
+    proportional damping moves the higher modes' damping with the first's). The member is the
+    ARX(order, order) fitted to ``G_arx(omega) R(omega)`` on :data:`FIT_POINTS` frequencies by
+    Sanathanan-Koerner iterations (linear least squares on ``A G - B``, reweighted by
+    ``1 / |G A|``: the relative error), its static gain then set to the vertex's exactly.
+    Where the identified model is right about the nominal bender, the member is right about
+    the vertex to the fit's accuracy, and a member moved mode by mode (:func:`box_model`) is
+    not: that one keeps every mode it cannot see (an alias carried as a real pole, the modes
+    lumped into its feed-through) where the nominal bender has them
+    (``benchmarks/results/design_measurements.md``).
+
+    Returns
+    -------
+    (ARXModel, float)
+        The member, and the fit's largest relative error over the band below half the sampling
+        rate (-).
+
+    Raises
+    ------
+    ValueError
+        If the fit is unstable (a pole on or outside the unit circle).
+    """
+    from piezo_env.datasheet import get_datasheet
+    from piezo_env.model import PiezoBenderModel
+
+    dt = arx.dt
+    sheet = get_datasheet(datasheet)
+    moved_sheet = dataclasses.replace(
+        sheet,
+        free_deflection=sheet.free_deflection * vertex.gain,
+        resonance=sheet.resonance * vertex.resonance,
+    )
+    freq = np.geomspace(0.1, 0.48 / dt, FIT_POINTS)
+    w = np.exp(-2j * math.pi * freq * dt)
+    responses = []
+    for bender, zeta in ((sheet, damping_ratio), (moved_sheet, vertex.damping or damping_ratio)):
+        plant = PiezoBenderModel(bender, dt=dt, hysteresis=None, damping_ratio=zeta)
+        linear = PredictionModel.from_plant(plant)
+        responses.append(_response(linear.a, linear.b, linear.c, 1.0 / w))
+    target = _arx_response(arx, w) * responses[1] / responses[0]
+    powers = w[:, None] ** np.arange(1, order + 1)[None, :]
+    weight = 1.0 / np.abs(target)
+    for _ in range(FIT_ITERATIONS):
+        # G = sum a_k w^k G + sum b_k w^k, in relative terms, real and imaginary parts stacked.
+        rows = np.concatenate([powers * target[:, None], powers], axis=1) * weight[:, None]
+        rhs = target * weight
+        theta = np.linalg.lstsq(
+            np.concatenate([rows.real, rows.imag]),
+            np.concatenate([rhs.real, rhs.imag]),
+            rcond=None,
+        )[0]
+        weight = 1.0 / np.abs(target * (1.0 - powers @ theta[:order]))
+    fitted = ARXModel(theta[:order], theta[order:], dt=dt)
+    if np.any(np.abs(fitted.poles()) >= 1.0):
+        raise ValueError(
+            f"the datasheet member at {vertex.label()} came out unstable (poles "
+            f"{np.round(fitted.poles(), 4).tolist()}); use member_set='modes'"
+        )
+    scale = vertex.gain * arx.static_gain() / fitted.static_gain()
+    member = ARXModel(
+        fitted.a, fitted.b * scale, dt=dt, noise_bound=arx.noise_bound, method="datasheet-ratio"
+    )
+    error = float(np.max(np.abs(_arx_response(member, w) / target - 1.0)))
+    return member, error
 
 
 def vertex_models(
