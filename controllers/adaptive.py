@@ -378,6 +378,7 @@ class AdaptiveMPC(LinearMPC):
                 Vertex(1.0, alpha, z),
                 damping_ratio=task.damping_ratio,
                 order=order,
+                n_elements=task.n_elements,
             )
             # The same static gain to the last bit: a swap carries the state over.
             member = ARXModel(

@@ -15,7 +15,6 @@ from typing import Any
 import numpy as np
 
 from piezo_env.checks import require_int, require_number
-from piezo_env.datasheet import get_datasheet
 
 __all__ = ["SLEW_MARGIN_V", "ControlTask"]
 
@@ -52,6 +51,8 @@ class ControlTask:
         ``member_set="datasheet"``). None for a task made by hand.
     damping_ratio : float or None
         See ``datasheet``.
+    n_elements : int or None
+        Beam elements of that FE model (None: not known).
     """
 
     dt: float
@@ -62,6 +63,7 @@ class ControlTask:
     slew_limit: float | None = None
     datasheet: Any = None
     damping_ratio: float | None = None
+    n_elements: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("dt", "u_max", "stroke_um"):
@@ -140,8 +142,9 @@ class ControlTask:
             preview=int(shape[0]) - 2,
             noise_bound_um=float(nominal.noise_bound),
             slew_limit=_slew_limit(base),
-            datasheet=get_datasheet(base.config.bender),
+            datasheet=nominal.model.params.datasheet,
             damping_ratio=float(base.config.damping_ratio),
+            n_elements=int(nominal.model.beam.n_elements),
         )
 
     @property

@@ -287,7 +287,7 @@ def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_th
     late = floor.copy()
     late[120:130] = 30.0  # the window 100-150 ms is the last one above twice the floor
     assert settling_ms(late) == 200.0  # the next one (150-200 ms) and all after stay within
-    # Against another floor: a lower one is reached later, or not within the episode.
+    # Against another floor: a higher one is reached sooner; one below every window, never.
     assert settling_ms(late, floor=10.0) == 50.0  # that window's RMS, 13.4, is within 2 x 10
     assert settling_ms(floor, floor=0.25) == 2050.0  # every window above 0.5: never
 
