@@ -144,6 +144,8 @@ class PredictiveController(Controller):
         check_well_posed(self._blocked(self._gamma), settings.rate_weight, weight, name=self.name)
         self.observer = make_observer(model, task, settings)
         self._box_plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
+        # (observer id, law) -> (observer, its filters' modulus margins): observer_description
+        self._margins_memo: dict[tuple, tuple[Any, np.ndarray]] = {}
         self._set_up()
         self.screen = self._screen(self.observer, self.feedback_law())
         self._reset(None)
@@ -251,7 +253,7 @@ class PredictiveController(Controller):
         # observer and the law (an adaptive MPC's member has its own) are the whole key; the
         # memo holds the observer, so its id is not reused while the entry lives.
         key = (id(observer), law[0].tobytes(), float(law[1]))
-        memo = self.__dict__.setdefault("_margins_memo", {})
+        memo = self._margins_memo
         if key not in memo:
             memo[key] = observer, modulus_margins(
                 observer.a_aug,

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.pid_tuning import frequency_response
 from controllers.prediction import PredictionModel
 from controllers.settings import GAIN_TOLERANCE
 from identification.arx import ARXModel
@@ -261,12 +262,9 @@ FIT_TOLERANCE = 1e-10
 :func:`datasheet_model` stops (-): far below the fit errors it reaches (1e-5 .. 1e-2)."""
 
 
-def _response(a: np.ndarray, b: np.ndarray, c: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """``c (z I - a)^-1 b`` at each point of ``z`` (the first input and output)."""
-    n = a.shape[0]
-    return np.array(
-        [(c[:1] @ np.linalg.solve(zk * np.eye(n) - a, b[:, :1]))[0, 0] for zk in z]
-    )
+def _fit_frequencies(dt: float) -> np.ndarray:
+    """The :data:`FIT_POINTS` frequencies (Hz) :func:`datasheet_model` fits on."""
+    return np.geomspace(0.1, 0.48 / dt, FIT_POINTS)
 
 
 def _arx_response(arx: ARXModel, w: np.ndarray) -> np.ndarray:
@@ -289,11 +287,7 @@ def _fe_response(
     plant = PiezoBenderModel(
         datasheet, dt=dt, hysteresis=None, damping_ratio=damping_ratio, **elements
     )
-    linear = PredictionModel.from_plant(plant)
-    w = np.exp(-2j * math.pi * np.geomspace(0.1, 0.48 / dt, FIT_POINTS) * dt)
-    response = _response(linear.a, linear.b, linear.c, 1.0 / w)
-    response.setflags(write=False)
-    return response
+    return frequency_response(PredictionModel.from_plant(plant), _fit_frequencies(dt))
 
 
 def datasheet_model(
@@ -342,8 +336,7 @@ def datasheet_model(
         free_deflection=sheet.free_deflection * vertex.gain,
         resonance=sheet.resonance * vertex.resonance,
     )
-    freq = np.geomspace(0.1, 0.48 / dt, FIT_POINTS)
-    w = np.exp(-2j * math.pi * freq * dt)
+    w = np.exp(-2j * math.pi * _fit_frequencies(dt) * dt)
     vertex_zeta = damping_ratio if vertex.damping is None else vertex.damping
     nominal = _fe_response(sheet, float(damping_ratio), float(dt), n_elements)
     moved = _fe_response(moved_sheet, float(vertex_zeta), float(dt), n_elements)
