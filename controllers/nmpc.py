@@ -223,9 +223,7 @@ class NonlinearMPC(PredictiveController):
         if self._kernel is None and settings.solver == "rti":
             # The numpy path's iterations run the horizon: built here, not inside a step.
             # (ipopt builds its own NLP; the horizon then serves only predict_deflection().)
-            compile_horizon = getattr(self.horizon, "compile", None)
-            if compile_horizon is not None:
-                compile_horizon()
+            self.horizon.compile()
 
     def _iteration_kernel(self) -> tuple[nmpc_step.IterationKernel | None, NativeBuild]:
         """The compiled iteration (:mod:`controllers.native.nmpc_step`) where this NMPC's

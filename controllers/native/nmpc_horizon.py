@@ -81,8 +81,8 @@ class StructuredHorizon:
         iteration (:mod:`controllers.native.nmpc_step`) computes the features itself, and only
         its numpy path needs this recursion compiled. The generated C of an unrolled horizon
         with its Jacobian is large (about 12 s of the compiler's time for the default model,
-        ``-O1``), so it is built only where it runs; until then :meth:`linearize` runs in
-        casadi's virtual machine.
+        ``-O1``), so it is built only where it runs: by :meth:`compile`, or by the first
+        :meth:`linearize` or :meth:`evaluate`.
     """
 
     def __init__(
@@ -197,6 +197,10 @@ class GenericHorizon:
             compiled_fn, build = compile_function(self.function, fallback=CASADI_VM)
             self.backend, self.native = str(build), [build]
         self._call = compiled_fn or (lambda *a: as_numpy(self.function(*a)))
+
+    def compile(self) -> None:
+        """Nothing to do: the generated C, where requested, is built with the horizon (the
+        interface :meth:`StructuredHorizon.compile` defers to)."""
 
     def linearize(self, u: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """z (N,) (equivalent V) along ``u`` (N,) (V) from ``state``, and dz/du (N, N)."""
