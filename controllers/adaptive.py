@@ -161,8 +161,9 @@ class AdaptiveMPCSettings(MPCSettings):
         by which the datasheet's FE model moves between nominal and vertex, one order more
         (:func:`controllers.tolerance_box.datasheet_model`; needs a task read from a
         ``PiezoBender-v0`` env, which carries the datasheet). The second matches the box's
-        benders far better and is not yet the default: on plants whose hysteresis the
-        identification does not match it loses (``benchmarks/results/corners.md`` and
+        benders far better and is not yet the default: with a model identified on another
+        hysteresis, the data can rule out the plant's true linear part, and the loop it then
+        runs is stable on that part without a margin (``benchmarks/results/corners.md`` and
         ``design_measurements.md``).
     """
 
