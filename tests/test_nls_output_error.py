@@ -90,9 +90,8 @@ def test_the_free_run_is_the_arx_recursion_from_rest():
     z = np.random.default_rng(4).normal(0.0, 10.0, 5000)
     expected = scipy.signal.lfilter(np.r_[0.0, B_TRUE], np.r_[1.0, -F_TRUE], z)
     grid = _FreeRunGrid(z.size, F_TRUE.size, B_TRUE.size, torch)
-    got = grid.free_run(
-        torch.from_numpy(z), torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE)
-    ).numpy()
+    response = grid.response(torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE))
+    got = grid.free_run(torch.from_numpy(z), response).numpy()
     np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
     np.testing.assert_allclose(ARXModel(F_TRUE, B_TRUE).simulate(z), expected, atol=1e-9)
 

@@ -234,15 +234,20 @@ def refine_nls_output_error(
                 feature_map, module, data, targets, (a, b), radius_iterations
             )
             stages.append(stage)
-        features = [
-            torch.from_numpy(feature_map.features(u, feature_map.initial_state())[0])
-            for u, _ in data
-        ]
+        with torch.no_grad():  # the features and their normalization stay fixed from here
+            inputs = [
+                module.input_of(
+                    torch.from_numpy(feature_map.features(u, feature_map.initial_state())[0])
+                )
+                for u, _ in data
+            ]
+        held = [grid.response(a, b) for grid in grids]  # the linear part of the first stage
 
-        def objective() -> object:
+        def objective(responses: Sequence[tuple[Any, Any]] | None = None) -> object:
             total = 0
-            for f, y, grid in zip(features, outputs, grids, strict=True):
-                error = grid.free_run(module(f), a, b) - y
+            for i, (x, y, grid) in enumerate(zip(inputs, outputs, grids, strict=True)):
+                response = grid.response(a, b) if responses is None else responses[i]
+                error = grid.free_run(module.output_of(x), response) - y
                 total = total + (error * error).sum()
             return total / count
 
@@ -250,7 +255,13 @@ def refine_nls_output_error(
         # optimum, the step b' linear part close to it); then both together. Started at once,
         # L-BFGS meets the network's and the poles' very different curvatures and stalls.
         stages.append(
-            _lbfgs(list(module.parameters()), objective, int(max_iterations), torch, count)
+            _lbfgs(
+                list(module.parameters()),
+                partial(objective, held),
+                int(max_iterations),
+                torch,
+                count,
+            )
         )
         network_only = TorchNLS.to_params(module)
         if refine_linear:
@@ -337,13 +348,14 @@ def _radius_stage(
     a, b = linear
     start = np.asarray(feature_map.radii)
     coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
+    held = [grid.response(a, b) for grid in grids]
 
     def objective() -> object:
         radii = radii_from_coordinates(coordinates)
         total = 0
-        records = zip(network_inputs(radii), spread, outputs, grids, strict=True)
-        for f, index, y, grid in records:
-            error = grid.free_run(module(f)[index], a, b) - y
+        records = zip(network_inputs(radii), spread, outputs, grids, held, strict=True)
+        for f, index, y, grid, response in records:
+            error = grid.free_run(module(f)[index], response) - y
             total = total + (error * error).sum()
         return total / count
 
@@ -605,13 +617,20 @@ class _FreeRunGrid:
         self.basis_a = torch.exp(-1j * torch.outer(omega, lags_a))
         self.basis_b = torch.exp(-1j * torch.outer(omega, lags_b))
 
-    def free_run(self, z: object, a: object, b: object) -> object:
-        """The free run (um) of ``z`` (equivalent V) through ``B / (1 - A)``."""
+    def response(self, a: object, b: object) -> tuple[object, object]:
+        """``B`` and ``1 - A`` on the grid, for the coefficients ``a`` and ``b``. A stage that
+        holds the linear part computes them once and passes them to every :meth:`free_run`."""
         torch = self.torch
         numerator = self.basis_b @ b.to(torch.complex128)
         denominator = 1.0 - self.basis_a @ a.to(torch.complex128)
-        spectrum = torch.fft.rfft(z, self.size) * numerator / denominator
-        return torch.fft.irfft(spectrum, self.size)[: self.n]
+        return numerator, denominator
+
+    def free_run(self, z: object, response: tuple[object, object]) -> object:
+        """The free run (um) of ``z`` (equivalent V) through ``B / (1 - A)``, given as
+        ``response = (B, 1 - A)`` on the grid (:meth:`response`)."""
+        numerator, denominator = response
+        spectrum = self.torch.fft.rfft(z, self.size) * numerator / denominator
+        return self.torch.fft.irfft(spectrum, self.size)[: self.n]
 
 
 def _check_records(

@@ -52,9 +52,17 @@ class TorchNLS:
                     h = torch.tanh(layer(h))
                 return (self.out(h) + self.skip(x)).squeeze(-1)
 
-            def forward(self, features: Any) -> Any:
-                x = (features - self.feature_mean) / self.feature_scale
+            def input_of(self, features: Any) -> Any:
+                """``x = (F - m) / s``: the normalized input for the features ``F``."""
+                return (features - self.feature_mean) / self.feature_scale
+
+            def output_of(self, x: Any) -> Any:
+                """``z`` for the normalized input ``x`` (:meth:`input_of`): features fixed over
+                many evaluations are normalized once, with the same result as ``forward``."""
                 return self.z_mean + self.z_scale * self.normalized(x)
+
+            def forward(self, features: Any) -> Any:
+                return self.output_of(self.input_of(features))
 
         return TorchNLS()
 
