@@ -29,7 +29,9 @@ it step by step, and serialises to a plain dict.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Any
 
@@ -61,6 +63,8 @@ __all__ = [
     "default_play_radii",
     "feature_map_from_dict",
     "play_operators",
+    "reused_features",
+    "sequence_features",
 ]
 
 FEATURE_SETS = ("play", "past-inputs", "bouc-wen")
@@ -562,3 +566,41 @@ def feature_map_from_dict(config: dict[str, Any]) -> FeatureMap:
             levels=tuple(config["levels"]), initial_input=config["initial_input"]
         )
     raise ValueError(f"unknown NLS feature set {name!r}; expected one of {FEATURE_SETS}")
+
+
+_REUSED: ContextVar[dict | None] = ContextVar("reused_features", default=None)
+
+
+@contextmanager
+def reused_features() -> Iterator[None]:
+    """Within the block, :func:`sequence_features` computes the features of a given feature
+    map object, input sequence and state once and returns copies after that.
+
+    An identification run evaluates models that share one feature map (step e's network, its
+    refinements and the gain moved out of them) on the same few records many times over, and
+    the Bouc-Wen features of a record cost a Python loop over its samples. The reuse is exact
+    (the features are a function of the map, the input and the state) and ends with the block,
+    so the records' features are not kept beyond it. Only the thread that entered the block
+    reuses them.
+    """
+    token = _REUSED.set({})
+    try:
+        yield
+    finally:
+        _REUSED.reset(token)
+
+
+def sequence_features(
+    feature_map: FeatureMap, u: np.ndarray, state: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``feature_map.features(u, state)`` (a validated float64 input and state), computed once
+    per feature map object, input and state inside :func:`reused_features`."""
+    reused = _REUSED.get()
+    if reused is None:
+        return feature_map.features(u, state)
+    key = (id(feature_map), u.dtype.str, u.tobytes(), state.dtype.str, state.tobytes())
+    entry = reused.get(key)
+    if entry is None:
+        # The entry holds the map, so that its id cannot be reused by another map meanwhile.
+        entry = reused[key] = (feature_map, *feature_map.features(u, state))
+    return entry[1].copy(), entry[2].copy()

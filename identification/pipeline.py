@@ -72,6 +72,7 @@ from identification.experiment import (
     sample_time,
     step_seeds,
 )
+from identification.features import reused_features
 from identification.outputs import (
     IdentificationResult,
     build_report,
@@ -292,7 +293,16 @@ def _identify(
     records: Records, config: IdentificationConfig, log: _StepLog, *, true_plant: Any
 ) -> IdentificationResult:
     """Steps b-f on measured records (``true_plant``: the simulated plant's linear part, for
-    the report's comparisons only, or None)."""
+    the report's comparisons only, or None). The models of a run share their feature maps and
+    are evaluated on the same records many times: their features are computed once each."""
+    with reused_features():
+        return _identify_steps(records, config, log, true_plant=true_plant)
+
+
+def _identify_steps(
+    records: Records, config: IdentificationConfig, log: _StepLog, *, true_plant: Any
+) -> IdentificationResult:
+    """The body of :func:`_identify`."""
     seeds, dt = step_seeds(config.seed), records.dt
     u_prbs, y_prbs = records.records["prbs"]
     log("a_prbs_experiment", _prbs_line(config, records, y_prbs))

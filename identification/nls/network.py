@@ -41,6 +41,7 @@ from identification.features import (
     PastInputFeatures,
     PlayFeatures,
     RatePlayFeatures,
+    sequence_features,
 )
 from identification.nls.export import ExportMixin
 from identification.nls.files import ARRAY_NAMES, FilesMixin
@@ -212,7 +213,7 @@ class NLS(InverseMixin, ExportMixin, FilesMixin):
             State after the last sample.
         """
         u = as_signal("u_seq", u_seq)
-        return self.feature_map.features(u, self.feature_map.check_state(state))
+        return sequence_features(self.feature_map, u, self.feature_map.check_state(state))
 
     def evaluate(self, u_seq: ArrayLike, state: ArrayLike | None = None) -> np.ndarray:
         """NLS output ``z`` (equivalent V) of an input sequence ``u_seq`` (V) from ``state``."""

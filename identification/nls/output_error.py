@@ -49,7 +49,12 @@ from typing import Any
 import numpy as np
 
 from identification.arx import ARXModel
-from identification.features import FeatureMap, PlayFeatures, RatePlayFeatures
+from identification.features import (
+    FeatureMap,
+    PlayFeatures,
+    RatePlayFeatures,
+    sequence_features,
+)
 from identification.nls.network import NLS
 from identification.nls.optimisation import torch_threads
 from identification.nls.play_radii import (
@@ -237,7 +242,9 @@ def refine_nls_output_error(
         with torch.no_grad():  # the features and their normalization stay fixed from here
             inputs = [
                 module.input_of(
-                    torch.from_numpy(feature_map.features(u, feature_map.initial_state())[0])
+                    torch.from_numpy(
+                        sequence_features(feature_map, u, feature_map.initial_state())[0]
+                    )
                 )
                 for u, _ in data
             ]
