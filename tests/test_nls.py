@@ -14,6 +14,8 @@ from identification.features import (
     bouc_wen_update,
     default_play_radii,
     play_operators,
+    reused_features,
+    sequence_features,
 )
 from identification.metrics import fit_percent
 from identification.nls import NLS, NLSInverseWarning, TrainingSettings, fit_nls
@@ -443,3 +445,32 @@ def test_from_dict_reports_problems(trained):
         NLS.from_dict(nls.to_dict(), bad)
     with pytest.raises(ValueError, match="hidden widths"):
         NLS.from_dict({**nls.to_dict(), "hidden": [8, 8, 8]}, arrays)
+
+
+def test_reused_features_are_computed_once_and_handed_out_as_copies():
+    """Inside reused_features, one map's features of one record are computed once; a caller
+    that writes into its copy does not change what the next caller gets, and outside the block
+    nothing is reused."""
+    feature_map = BoucWenFeatures(levels=(10.0, 20.0))
+    u = np.sin(np.linspace(0.0, 20.0, 500)) * 30.0
+    state = feature_map.initial_state()
+    expected, expected_final = feature_map.features(u, state)
+    calls = []
+    original = feature_map.features
+
+    def counted(u_seq, s):
+        calls.append(1)
+        return original(u_seq, s)
+
+    object.__setattr__(feature_map, "features", counted)
+    with reused_features():
+        first, final = sequence_features(feature_map, u, state)
+        first[:] = 0.0
+        final[:] = 0.0
+        second, second_final = sequence_features(feature_map, u.copy(), state.copy())
+        sequence_features(feature_map, u[:-1], state)
+    np.testing.assert_array_equal(second, expected)
+    np.testing.assert_array_equal(second_final, expected_final)
+    assert len(calls) == 2
+    sequence_features(feature_map, u, state)
+    assert len(calls) == 3
