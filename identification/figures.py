@@ -21,6 +21,20 @@ def _pyplot():
     return plt
 
 
+def _save(plt: Any, fig: Any, path: Path) -> Path:
+    """Lay ``fig`` out tightly, write it to ``path`` as PNG and close it; return ``path``.
+
+    ``tight_layout`` leaves a placeholder layout engine on the figure, and ``savefig`` first
+    draws a figure that has any layout engine once without rendering, to lay it out. The
+    layout is done by then: without the engine the figure is drawn once, to the same pixels.
+    """
+    fig.tight_layout()
+    fig.set_layout_engine(None)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
 def write_figures(result: Any, out: str | Path) -> list[Path]:
     """Write the figures of an :class:`IdentificationResult` into ``out``; return their paths.
 
@@ -101,10 +115,7 @@ def _bode(data: dict, refined: Any, path: Path) -> Path:
         ax.grid(alpha=0.3, which="both")
         ax.set_xlim(f[0], f[-1])
     fig.suptitle("Linear part before and after the output-error refinements, against the plant")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _arx_estimates(data: dict, report: dict, path: Path) -> Path:
@@ -128,10 +139,7 @@ def _arx_estimates(data: dict, report: dict, path: Path) -> Path:
     for ax in (ax_a, ax_b, ax_r):
         ax.grid(alpha=0.3)
     fig.suptitle(f"ARX({order},{order}) estimates by the uniform-noise Bayesian recursion")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 LOOP_FRACTIONS = (1 / 3, 2 / 3, 1.0)
@@ -183,10 +191,7 @@ def _hysteresis(data: dict, model: Any, path: Path) -> Path:
     ax_width.set_ylabel("z - u (equivalent V): the hysteresis")
     ax.legend(loc="upper left", markerscale=6, fontsize=8)
     fig.suptitle("Identified hysteresis: one slow triangle period per amplitude, on the rich data")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 ZOOM_S = 0.2
@@ -226,10 +231,7 @@ def _validation(data: dict, report: dict, path: Path) -> Path:
     _error_panels(axes[:2], t, models, errors, val, noise, (lo, hi), dt)
     _zoom_panels(axes[2], axes[3], t, y, models, errors, val, noise, (lo, hi, centre))
     fig.suptitle(f"Validation on fresh {val['signal']}, {val['samples']} samples, free run")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
 
 
 def _error_panels(axes, t, models, errors, val, noise, window, dt) -> None:
@@ -324,7 +326,4 @@ def _residuals(data: dict, report: dict, path: Path) -> Path:
             ax.set_title(f"{title} residuals; dashed: {label} +-{bound:.2f} um", fontsize=9)
         ax.set_xlabel("residual (um)")
     axes[0].set_ylabel("count")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, path)
