@@ -251,6 +251,8 @@ def refine_nls_output_error(
         held = [grid.response(a, b) for grid in grids]  # the linear part of the first stage
 
         def objective(responses: Sequence[tuple[Any, Any]] | None = None) -> object:
+            """Mean squared free-run error over the records; ``responses`` holds each record's
+            ``(B, 1 - A)`` when the stage holds the linear part (None: from ``a`` and ``b``)."""
             total = 0
             for i, (x, y, grid) in enumerate(zip(inputs, outputs, grids, strict=True)):
                 response = grid.response(a, b) if responses is None else responses[i]
