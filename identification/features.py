@@ -53,6 +53,7 @@ from piezo_env.operators import (
 
 __all__ = [
     "FEATURE_SETS",
+    "REUSE_BYTES",
     "BoucWenFeatures",
     "FeatureMap",
     "PastInputFeatures",
@@ -568,20 +569,28 @@ def feature_map_from_dict(config: dict[str, Any]) -> FeatureMap:
     raise ValueError(f"unknown NLS feature set {name!r}; expected one of {FEATURE_SETS}")
 
 
+REUSE_BYTES = 64 * 2**20
+"""Most bytes of features :func:`reused_features` keeps at once (64 MiB). A default run keeps
+about 5 MB, the PL127's at 0.25 ms about 15 MB; the bound leaves those whole and keeps a long
+measured record from doubling the run's memory (features beyond it are computed afresh)."""
+
 _REUSED: ContextVar[dict | None] = ContextVar("reused_features", default=None)
 
 
 @contextmanager
 def reused_features() -> Iterator[None]:
-    """Within the block, :func:`sequence_features` computes the features of a given feature
-    map object, input sequence and state once and returns copies after that.
+    """Reuse each record's features within the block (:func:`sequence_features`).
 
     An identification run evaluates models that share one feature map (step e's network, its
     refinements and the gain moved out of them) on the same few records many times over, and
-    the Bouc-Wen features of a record cost a Python loop over its samples. The reuse is exact
-    (the features are a function of the map, the input and the state) and ends with the block,
-    so the records' features are not kept beyond it. Only the thread that entered the block
-    reuses them.
+    the Bouc-Wen features of a record cost a Python loop over its samples.
+
+    Notes
+    -----
+    The reuse is exact: the features are a function of the map, the input and the state, and
+    a map is immutable (a learned radius or rate makes a new map). At most
+    :data:`REUSE_BYTES` are kept, and nothing outlives the block. Only the thread that entered
+    the block reuses them.
     """
     token = _REUSED.set({})
     try:
@@ -593,14 +602,34 @@ def reused_features() -> Iterator[None]:
 def sequence_features(
     feature_map: FeatureMap, u: np.ndarray, state: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``feature_map.features(u, state)`` (a validated float64 input and state), computed once
-    per feature map object, input and state inside :func:`reused_features`."""
+    """The features of a record, computed once per feature map, input and state inside
+    :func:`reused_features` (otherwise computed each time).
+
+    Parameters
+    ----------
+    feature_map : FeatureMap
+        The map (its object identity is part of the key; the entry holds the map, so that its
+        identity cannot pass to another map while the entry lives).
+    u : numpy.ndarray
+        Input sequence, V, validated float64 (T,).
+    state : numpy.ndarray
+        The map's state at the record's start, validated float64.
+
+    Returns
+    -------
+    (numpy.ndarray, numpy.ndarray)
+        ``feature_map.features(u, state)``: the features (T, n_features) and the final state;
+        copies, which the caller may change.
+    """
     reused = _REUSED.get()
     if reused is None:
         return feature_map.features(u, state)
     key = (id(feature_map), u.dtype.str, u.tobytes(), state.dtype.str, state.tobytes())
     entry = reused.get(key)
     if entry is None:
-        # The entry holds the map, so that its id cannot be reused by another map meanwhile.
-        entry = reused[key] = (feature_map, *feature_map.features(u, state))
+        features, final = feature_map.features(u, state)
+        kept = sum(e[1].nbytes + e[2].nbytes for e in reused.values())
+        if kept + features.nbytes + final.nbytes > REUSE_BYTES:
+            return features, final
+        entry = reused[key] = (feature_map, features, final)
     return entry[1].copy(), entry[2].copy()

@@ -27,9 +27,13 @@ def _save(plt: Any, fig: Any, path: Path) -> Path:
     ``tight_layout`` leaves a placeholder layout engine on the figure, and ``savefig`` first
     draws a figure that has any layout engine once without rendering, to lay it out. The
     layout is done by then: without the engine the figure is drawn once, to the same pixels.
+    The engine is removed with the rc settings that would otherwise install another one in
+    its place (``figure.autolayout``, ``figure.constrained_layout.use``, from a user's
+    matplotlibrc or style) turned off, so the tight layout stands whatever they say.
     """
     fig.tight_layout()
-    fig.set_layout_engine(None)
+    with plt.rc_context({"figure.autolayout": False, "figure.constrained_layout.use": False}):
+        fig.set_layout_engine(None)
     fig.savefig(path)
     plt.close(fig)
     return path

@@ -474,3 +474,30 @@ def test_reused_features_are_computed_once_and_handed_out_as_copies():
     assert len(calls) == 2
     sequence_features(feature_map, u, state)
     assert len(calls) == 3
+
+
+def test_reused_features_keep_at_most_their_byte_budget(monkeypatch):
+    """Features beyond REUSE_BYTES are computed afresh each time (and still right); those
+    within it are reused."""
+    import identification.features as features_module
+
+    feature_map = BoucWenFeatures(levels=(10.0, 20.0))
+    short = np.sin(np.linspace(0.0, 5.0, 100)) * 30.0
+    long = np.sin(np.linspace(0.0, 20.0, 1000)) * 30.0
+    state = feature_map.initial_state()
+    short_bytes = sum(a.nbytes for a in feature_map.features(short, state))
+    monkeypatch.setattr(features_module, "REUSE_BYTES", short_bytes)
+    calls = []
+    original = feature_map.features
+
+    def counted(u_seq, s):
+        calls.append(u_seq.size)
+        return original(u_seq, s)
+
+    object.__setattr__(feature_map, "features", counted)
+    with reused_features():
+        for _ in range(2):
+            got, _final = sequence_features(feature_map, long, state)
+            sequence_features(feature_map, short, state)
+    np.testing.assert_array_equal(got, original(long, state)[0])
+    assert calls == [1000, 100, 1000]  # the long record over the budget, the short one kept
