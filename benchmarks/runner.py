@@ -28,7 +28,7 @@ import gc
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -51,7 +51,7 @@ from benchmarks.plants import (
 from benchmarks.references import REFERENCES, make_reference
 from controllers.registry import CONTROLLERS
 from piezo_env.checks import require_int, require_number
-from piezo_parallel.backends import BACKENDS, DEFAULT_RETRIES, run_tasks
+from piezo_parallel.backends import BACKENDS, DEFAULT_RETRIES, Prerequisite, run_tasks
 
 __all__ = [
     "BOX_CORNERS",
@@ -565,6 +565,7 @@ def run_benchmark(
     progress: Callable[[int, int, str], None] | None = None,
     checkpoint: Checkpoint | None = None,
     retries: int = DEFAULT_RETRIES,
+    identification: Prerequisite | None = None,
 ) -> BenchmarkResult:
     """Run the benchmark on the identified model(s) saved in ``model_dir``.
 
@@ -588,6 +589,13 @@ def run_benchmark(
     retries : int
         Reruns of a group whose worker process died, each on a new worker (see
         :func:`piezo_parallel.backends.run_tasks`).
+    identification : piezo_parallel.Prerequisite, optional
+        What writes the models into ``model_dir`` (``piezo benchmark`` identifying them): the
+        runs built on the identified model wait for it, and the others (the oracles and the
+        policies) run beside it on the pool's other workers, so that the identification's
+        time overlaps theirs. Its ``then`` returns the checkpoint to keep the runs in, opened
+        once the models exist (or None); the runs finished before are appended to it then,
+        and ``progress`` starts then. Give no ``checkpoint`` with it.
 
     Returns
     -------
@@ -600,6 +608,11 @@ def run_benchmark(
     thread state), so a script calling this must do so under ``if __name__ == "__main__":``.
     See :mod:`piezo_parallel.backends`.
     """
+    if identification is not None and checkpoint is not None:
+        raise ValueError(
+            "a run that identifies its models opens its checkpoint once they exist: pass it "
+            "as the identification's then, not as checkpoint"
+        )
     models = model_folders(config, model_dir)
     default = next(iter(models.values()))
     runs = config.runs()
@@ -616,27 +629,53 @@ def run_benchmark(
         )
         for name in config.references
     }
-    for label in config.entry_points:  # built once here: a broken one stops before episodes
-        nominal = _make_env(config, "nominal")
-        _build(label, default[0], nominal, config)
-        nominal.close()
+
+    def check_entry_points() -> None:  # built once here: a broken one stops before its episodes
+        for label in config.entry_points:
+            nominal = _make_env(config, "nominal")
+            _build(label, default[0], nominal, config)
+            nominal.close()
+
     finished = checkpoint.finished if checkpoint is not None else {}
     outputs = [finished.get(key) for key in keys]
     todo = [i for i, key in enumerate(keys) if key not in finished]
+    waiting: list[tuple[int, Any]] = []  # finished before the checkpoint was opened
+    shown: list[tuple[int, int, str]] = []  # progress held while the models are identified
+    opened = identification is None
 
     def keep(j: int, output: Any) -> None:
         i = todo[j]
-        outputs[i] = output if checkpoint is None else checkpoint.append(keys[i], output)
+        if not opened:
+            outputs[i] = output
+            waiting.append((i, output))
+        else:
+            outputs[i] = output if checkpoint is None else checkpoint.append(keys[i], output)
 
     def show(done: int, total: int, label: str) -> None:
         skipped = len(runs) - len(todo)
+        if not opened:
+            shown[:] = [(done, total, label)]
+            return
         progress(skipped + done, skipped + total, label)  # type: ignore[misc]
+
+    def identified(result: Any) -> None:
+        nonlocal checkpoint, opened
+        assert identification is not None
+        checkpoint = identification.then(result)
+        check_entry_points()
+        opened = True
+        for i, output in waiting:
+            outputs[i] = output if checkpoint is None else checkpoint.append(keys[i], output)
+        if shown and progress:
+            show(*shown[-1])
 
     def label(i: int) -> str:
         plant, controller, _, k = runs[i]
         model = f" (identification seed {config.seed + k})" if len(default) > 1 else ""
         return f"{controller} on {plant}{model}"
 
+    if identification is None:
+        check_entry_points()
     run_tasks(
         _run_group,
         [
@@ -649,6 +688,10 @@ def run_benchmark(
         progress=show if progress else None,
         on_result=keep,
         retries=retries,
+        prerequisite=None
+        if identification is None
+        else replace(identification, then=identified),
+        waits=[config.identified(runs[i][1]) for i in todo],
     )
     episodes, described, traces = [], {}, {}
     for (plant, controller, _, k), (eps, description, trace) in zip(runs, outputs, strict=True):

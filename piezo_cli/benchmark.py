@@ -462,13 +462,12 @@ def _model_folder(out, plant: str, k: int, first: bool):
     return out / (name if k == 0 else f"{name}-{k}")
 
 
-def _models(
-    args: argparse.Namespace, out
-) -> tuple[dict[str, list[str]], dict[str, float]]:
-    """The model folders to benchmark, per plant identified on and one per identification seed
-    (each loaded once to check it), identifying them if needed.
+def _models(args: argparse.Namespace, out) -> tuple[dict[str, list[str]], bool]:
+    """The model folders to benchmark, per plant identified on and one per identification seed,
+    and whether they are still to be identified (:func:`identify_models`).
 
-    With ``--resume`` the models the interrupted run identified in ``OUT`` are used again.
+    With ``--model`` that model is used; with ``--resume`` the models the interrupted run
+    identified in ``OUT`` are used again (each loaded once to check it).
     """
     from identification.hammerstein import HammersteinModel
 
@@ -488,28 +487,45 @@ def _models(
                     "run without --resume to start afresh"
                 ) from None
         print(f"resuming with the model(s) identified in {', '.join(map(str, every))}")
-        return {p: [str(f) for f in fs] for p, fs in folders.items()}, {}
+        return {p: [str(f) for f in fs] for p, fs in folders.items()}, False
     if args.model is not None:  # loaded and checked before the output folder: _check_model
-        return {"nominal": [str(args.model)]}, {}
+        return {"nominal": [str(args.model)]}, False
+    return {p: [str(f) for f in fs] for p, fs in folders.items()}, True
+
+
+def identify_models(
+    bender: str, folders: dict[str, list[str]], seed: int, dt: float | None
+) -> dict[str, float]:
+    """Identify the models of ``folders`` (plant identified on -> one folder per
+    identification seed, seeds ``seed``, ``seed + 1``, ...), printing each step; a worker of
+    ``piezo benchmark`` runs it beside the rows that do not need a model.
+
+    Returns
+    -------
+    dict
+        ``{"identification_s": seconds}``, the time it took.
+    """
     from benchmarks.plants import PLANTS
     from identification.pipeline import IdentificationConfig, identify
 
+    def say(line: str) -> None:  # at once: the episodes' progress runs beside it
+        print(line, flush=True)
+
     start = time.perf_counter()
-    rate = {} if args.dt is None else {"dt": args.dt}
+    rate = {} if dt is None else {"dt": dt}
     for plant, plant_folders in folders.items():
-        env = {**PLANTS[plant](args.bender), **rate}
+        env = {**PLANTS[plant](bender), **rate}
         where = "" if plant == "nominal" else f" on the {plant} plant"
         for k, folder in enumerate(plant_folders):
-            config = IdentificationConfig(seed=args.seed + k, env_kwargs=env)
-            result = identify(config=config, progress=print)
+            config = IdentificationConfig(seed=seed + k, env_kwargs=env)
+            result = identify(config=config, progress=say)
             result.model.save(folder)
             fit = result.report["validation"]["hammerstein"]["fit_percent"]
-            print(
-                f"identified{where} with seed {args.seed + k}, saved in {folder} (validation "
+            say(
+                f"identified{where} with seed {seed + k}, saved in {folder} (validation "
                 f"fit {fit:.2f} %)"
             )
-    timing = {"identification_s": round(time.perf_counter() - start, 1)}
-    return {p: [str(f) for f in fs] for p, fs in folders.items()}, timing
+    return {"identification_s": round(time.perf_counter() - start, 1)}
 
 
 _RESULTS = ("benchmark.json", "benchmark.md")
@@ -603,9 +619,11 @@ def run(args: argparse.Namespace) -> int:
     from benchmarks.verdict import headline_plants
     from piezo_cli.output import terminal_progress
     from piezo_env import TaskConfig
+    from piezo_parallel import Prerequisite
 
-    models, timing = _models(args, out)
+    models, unidentified = _models(args, out)
     start = time.perf_counter()
+    timing: dict[str, float] = {}
     if args.backend == "ray":  # workers on other nodes do not share this working directory
         models = {p: [os.path.abspath(f) for f in fs] for p, fs in models.items()}
         config = dataclasses.replace(
@@ -616,9 +634,29 @@ def run(args: argparse.Namespace) -> int:
         model_dir = models
     else:
         model_dir = first[0] if len(first) == 1 else first
-    checkpoint = _checkpoint(args, out, config, model_dir)
-    resumed = len(checkpoint.finished)
-    timing["checkpoint_s"] = round(time.perf_counter() - start, 2)
+    checkpoint = None
+    resumed = 0
+
+    def open_checkpoint(identified: dict[str, float] | None = None):
+        nonlocal checkpoint, resumed
+        timing.update(identified or {})
+        opened = time.perf_counter()
+        checkpoint = _checkpoint(args, out, config, model_dir)
+        resumed = len(checkpoint.finished)
+        timing["checkpoint_s"] = round(time.perf_counter() - opened, 2)
+        return checkpoint
+
+    identification = None
+    if unidentified:  # beside the rows that need no model; the checkpoint (whose identity
+        # holds the models) opens once they exist
+        identification = Prerequisite(
+            identify_models,
+            (args.bender, models, args.seed, args.dt),
+            label="the identification",
+            then=open_checkpoint,
+        )
+    else:
+        open_checkpoint()
     try:
         result = run_benchmark(
             config,
@@ -626,9 +664,11 @@ def run(args: argparse.Namespace) -> int:
             progress=terminal_progress(args.quiet),
             checkpoint=checkpoint,
             retries=args.retries,
+            identification=identification,
         )
     except BaseException as error:
-        _left_behind(out, checkpoint, len(config.runs()), error)
+        if checkpoint is not None:  # else the folder stays marked: no model, no checkpoint
+            _left_behind(out, checkpoint, len(config.runs()), error)
         raise
     timing["benchmark_s"] = round(time.perf_counter() - start, 1)
     task = TaskConfig(bender=config.bender, dt=config.dt)
@@ -681,8 +721,9 @@ BENCHMARK = Subcommand(
     name="benchmark",
     help="benchmark MPC against PID (and more) in closed loop on the bender",
     description=(
-        "Identify the default PL140 model (or load one with --model), then run every "
-        "controller on the same PiezoBender-v0 environment, seeds and references, on the "
+        "Identify the default PL140 model (or load one with --model) and run every "
+        "controller on the same PiezoBender-v0 environment, seeds and references (the rows "
+        "that need no model, the oracles and the policies, run beside the identification), on the "
         "nominal bender and on plants the model was not identified on. Writes benchmark.md, "
         "benchmark.json and figures into --out."
     ),

@@ -48,12 +48,13 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from typing import Any
 
-from piezo_parallel.pool import DEFAULT_RETRIES, WorkerLost, run_pool
+from piezo_parallel.pool import DEFAULT_RETRIES, Prerequisite, WorkerLost, run_pool
 
 __all__ = [
     "BACKENDS",
     "DEFAULT_RETRIES",
     "RAY_INSTALL_HINT",
+    "Prerequisite",
     "WorkerLost",
     "check_backend",
     "connect_ray",
@@ -107,6 +108,8 @@ def run_tasks(
     address: str | None = None,
     on_result: Callable[[int, Any], None] | None = None,
     retries: int = DEFAULT_RETRIES,
+    prerequisite: Prerequisite | None = None,
+    waits: Sequence[bool] | None = None,
 ) -> list[Any]:
     """``[function(*task) for task in tasks]``, possibly in parallel, in the tasks' order.
 
@@ -141,6 +144,12 @@ def run_tasks(
         ``jobs == 1`` on the local backend runs in this process, with no worker to replace.
         Tasks must be deterministic functions of their arguments for a rerun to give the same
         result.
+    prerequisite : piezo_parallel.pool.Prerequisite, optional
+        A task the tasks flagged in ``waits`` need (the benchmark's identification). In the
+        local pool it runs on one of the ``jobs`` workers beside the tasks that do not wait;
+        in this process (``jobs == 1``) and on Ray it runs here, before every task.
+    waits : sequence of bool, optional
+        One flag per task: it starts only after ``prerequisite``'s ``then``.
 
     Raises
     ------
@@ -157,6 +166,8 @@ def run_tasks(
     if retries < 0:
         raise ValueError(f"retries must be at least 0, got {retries}")
     labels = list(labels) if labels is not None else [str(i) for i in range(len(tasks))]
+    if waits is not None and len(waits) != len(tasks):
+        raise ValueError(f"waits has {len(waits)} flags for {len(tasks)} tasks; give one per task")
     results: list[Any] = [None] * len(tasks)
     done = 0
 
@@ -169,13 +180,25 @@ def run_tasks(
         if progress:
             progress(done, len(tasks), labels[index])
 
+    pooled = backend == "local" and jobs > 1
+    if prerequisite is not None and not pooled:
+        prerequisite.then(prerequisite.function(*prerequisite.args))
     if backend == "ray":
         _run_ray(function, tasks, jobs, labels, finished, address, retries)
     elif jobs == 1:
         for i, task in enumerate(tasks):
             finished(i, function(*task))
     else:
-        run_pool(function, tasks, jobs, finished, labels=labels, retries=retries)
+        run_pool(
+            function,
+            tasks,
+            jobs,
+            finished,
+            labels=labels,
+            retries=retries,
+            prerequisite=prerequisite,
+            waits=waits,
+        )
     return results
 
 

@@ -10,6 +10,12 @@ the other workers go on undisturbed. :class:`concurrent.futures.ProcessPoolExecu
 this: one dead worker breaks the whole executor, every running task is lost with it, and which
 task the dead worker held is not reported.
 
+A run may have a *prerequisite*: one task (its own function) whose outcome some of the tasks
+need, such as the model the benchmark identifies before the rows built on it can run. It runs on
+a worker of its own from the start while the other workers take the tasks that do not need it;
+when it finishes, its ``then`` callback runs in this process and the tasks that waited join the
+queue. A worker that dies while running it is replaced as any other.
+
 Stopping is explicit. However the pool is left (results complete, a task's exception, an
 interruption such as ``KeyboardInterrupt`` raised by a signal handler), every worker still
 alive is sent SIGTERM, then SIGKILL after a grace period, and reaped; nothing is left running.
@@ -33,7 +39,7 @@ from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
 from typing import Any
 
-__all__ = ["DEFAULT_RETRIES", "RemoteTraceback", "WorkerLost", "run_pool"]
+__all__ = ["DEFAULT_RETRIES", "Prerequisite", "RemoteTraceback", "WorkerLost", "run_pool"]
 
 DEFAULT_RETRIES = 2
 """Reruns of a task whose worker died, after its first attempt."""
@@ -66,11 +72,39 @@ class RemoteTraceback(Exception):
         return "\n" + str(self.args[0])
 
 
+@dataclass(frozen=True)
+class Prerequisite:
+    """A task that others wait on (module docstring).
+
+    Attributes
+    ----------
+    function : callable
+        A module-level (picklable) function, run as ``function(*args)`` in a worker.
+    args : tuple
+        Its positional arguments.
+    label : str
+        Named when its worker is lost for good.
+    then : callable
+        ``then(result)``, called in this process when it finishes and before any task that
+        waited on it starts; an exception it raises stops the run as a task's would.
+    """
+
+    function: Callable[..., Any]
+    args: tuple
+    label: str
+    then: Callable[[Any], None]
+
+
+_FIRST = -1
+"""The task index of the prerequisite in the pool's bookkeeping."""
+
+
 @dataclass
 class _Worker:
     process: BaseProcess
     conn: Connection
     task: int | None = None
+    first: bool = False  # runs the prerequisite (its own function), then exits
 
 
 def run_pool(
@@ -81,6 +115,8 @@ def run_pool(
     *,
     labels: Sequence[str],
     retries: int = DEFAULT_RETRIES,
+    prerequisite: Prerequisite | None = None,
+    waits: Sequence[bool] | None = None,
 ) -> None:
     """Run ``function(*task)`` for every task on ``jobs`` spawned workers.
 
@@ -99,32 +135,46 @@ def run_pool(
         One label per task, named when its worker is lost for good.
     retries : int
         Reruns of a task whose worker died, each on a new worker.
+    prerequisite : Prerequisite, optional
+        Started first, on one of the ``jobs`` workers (module docstring).
+    waits : sequence of bool, optional
+        With ``prerequisite``: which tasks wait for it (default: none). The others start in
+        their order at once; the waiting ones, in their order, after its ``then``.
 
     Raises
     ------
     WorkerLost
-        A task's worker died ``retries + 1`` times; the tasks still running are stopped.
+        A task's worker (or the prerequisite's) died ``retries + 1`` times; the tasks still
+        running are stopped.
     Exception
         The first exception a task raised (its worker's traceback chained as the cause); the
         tasks still running are stopped and the rest not started.
     """
     context = get_context("spawn")
-    queue = deque(range(len(tasks)))
+    waiting = [i for i in range(len(tasks)) if prerequisite is not None and waits and waits[i]]
+    queue = deque(i for i in range(len(tasks)) if i not in set(waiting))
     attempts = [0] * len(tasks)
+    first_attempts = 0
     workers: list[_Worker] = []
+    pending_first = prerequisite is not None
     try:
-        while queue or any(w.task is not None for w in workers):
-            while queue and len(workers) < min(jobs, len(tasks)):
+        while pending_first or queue or any(w.task is not None for w in workers):
+            if pending_first:  # (re)start the prerequisite on a worker of its own
+                assert prerequisite is not None
+                first = _start(context, prerequisite.function)
+                first.first, first.task = True, _FIRST
+                first_attempts += 1
+                pending_first = False
+                workers.append(first)
+                _send(first, prerequisite.args)
+            while queue and len(workers) < min(jobs, len(tasks) + (prerequisite is not None)):
                 workers.append(_start(context, function))
             for worker in workers:
                 if worker.task is None and queue:
                     index = queue.popleft()
                     attempts[index] += 1
                     worker.task = index
-                    try:
-                        worker.conn.send(tasks[index])
-                    except (BrokenPipeError, ConnectionResetError):
-                        pass  # the worker is gone: its sentinel says so below
+                    _send(worker, tasks[index])
             busy = [w for w in workers if w.task is not None]
             ready = set(wait([x for w in busy for x in (w.conn, w.process.sentinel)]))
             for worker in busy:
@@ -135,17 +185,37 @@ def run_pool(
                 if outcome is None:  # the worker died
                     workers.remove(worker)
                     how = _ending(worker)
-                    if attempts[index] > retries:
+                    if worker.first:
+                        assert prerequisite is not None
+                        if first_attempts > retries:
+                            raise WorkerLost.of(prerequisite.label, how, retries)
+                        pending_first = True
+                    elif attempts[index] > retries:
                         raise WorkerLost.of(labels[index], how, retries)
-                    queue.appendleft(index)
+                    else:
+                        queue.appendleft(index)
                     continue
                 worker.task = None
                 kind, value, text = outcome
                 if kind == "error":
                     raise value from RemoteTraceback(text)
+                if worker.first:  # its worker's function is not the tasks': it goes
+                    assert prerequisite is not None
+                    workers.remove(worker)
+                    _stop([worker])
+                    prerequisite.then(value)
+                    queue.extend(waiting)
+                    continue
                 on_result(index, value)
     finally:
         _stop(workers)
+
+
+def _send(worker: _Worker, task: tuple) -> None:
+    try:
+        worker.conn.send(task)
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the worker is gone: its sentinel says so when the pool next waits
 
 
 def _start(context: Any, function: Callable[..., Any]) -> _Worker:

@@ -80,3 +80,64 @@ class KilledWorker:
 
     def describe(self) -> dict:
         return {"name": "KilledWorker", "inner": "mpc"}
+
+
+def after_beside(folder: str, timeout_s: float = 60.0) -> str:
+    """A prerequisite that finishes only once a task beside it has left ``beside`` in
+    ``folder`` (so it can finish only if the pool runs that task while it runs), then leaves
+    ``ready``; raises after ``timeout_s`` without it."""
+    import time
+
+    marker = Path(folder) / "beside"
+    deadline = time.monotonic() + timeout_s
+    while not marker.exists():
+        if time.monotonic() > deadline:
+            raise TimeoutError("no task ran beside the prerequisite")
+        time.sleep(0.01)
+    (Path(folder) / "ready").touch()
+    return "ready"
+
+
+def beside_or_after(i: int, folder: str, waits: bool) -> tuple[int, bool]:
+    """``(i, whether the prerequisite had finished)``; each task leaves ``started-i`` in
+    ``folder``, and one that does not wait also ``beside``."""
+    (Path(folder) / f"started-{i}").touch()
+    if not waits:
+        (Path(folder) / "beside").touch()
+    return i, (Path(folder) / "ready").exists()
+
+
+def prerequisite_dies_once(folder: str) -> str:
+    """``"ready"``; the first attempt kills its worker (leaving ``died-first`` in ``folder``)."""
+    marker = Path(folder) / "died-first"
+    if not marker.exists():
+        marker.touch()
+        os.kill(os.getpid(), signal.SIGKILL)
+    (Path(folder) / "ready").touch()
+    return "ready"
+
+
+def always_die_first(folder: str) -> str:
+    """A prerequisite that kills its worker on every attempt."""
+    os.kill(os.getpid(), signal.SIGKILL)
+    return "never"
+
+
+def mark_ready(folder: str) -> str:
+    """``"ready"``, leaving ``ready`` in ``folder``."""
+    (Path(folder) / "ready").touch()
+    return "ready"
+
+
+def prerequisite_fails(folder: str) -> str:
+    """Raises at once: an identification that breaks."""
+    raise ValueError("the prerequisite broke")
+
+
+def copy_model(source: str, target: str) -> dict[str, float]:
+    """What ``piezo benchmark``'s identification leaves: a model folder (copied from
+    ``source``) at ``target``; its timing as the identification returns it."""
+    import shutil
+
+    shutil.copytree(source, target)
+    return {"identification_s": 0.0}

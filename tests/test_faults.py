@@ -320,3 +320,120 @@ def test_an_output_folder_unwritable_mid_run_is_one_clean_error(tmp_path, capsys
     assert (out / "checkpoint.jsonl").read_text().count("\n") == 2  # the first group is kept
     assert not (out / "benchmark.json").exists()
     assert multiprocessing.active_children() == []
+
+
+# -- a prerequisite (the identification) beside the tasks that do not need it ---------------
+
+
+def _prerequisite_run(tmp_path, function, jobs, retries=2):
+    from piezo_parallel import Prerequisite
+
+    waits = [False, True, False, True, True]
+    called = []
+    prerequisite = Prerequisite(
+        function, (str(tmp_path),), label="first", then=lambda result: called.append(result)
+    )
+    results = run_tasks(
+        faulty.beside_or_after,
+        [(i, str(tmp_path), w) for i, w in enumerate(waits)],
+        jobs=jobs,
+        prerequisite=prerequisite,
+        waits=waits,
+        retries=retries,
+    )
+    return waits, called, results
+
+
+def test_tasks_that_wait_for_a_prerequisite_start_after_it_and_the_others_beside_it(tmp_path):
+    # after_beside finishes only once a task that does not wait has run: the pool ran the two
+    # at once (a pool that ran it first and alone would time out)
+    waits, called, results = _prerequisite_run(tmp_path, faulty.after_beside, jobs=2)
+    assert called == ["ready"]
+    assert [i for i, _ in results] == list(range(len(waits)))
+    assert all(after for (_, after), w in zip(results, waits, strict=True) if w)
+    assert multiprocessing.active_children() == []
+
+
+def test_a_prerequisite_whose_worker_dies_runs_again_on_a_new_one(tmp_path):
+    waits, called, results = _prerequisite_run(tmp_path, faulty.prerequisite_dies_once, jobs=2)
+    assert called == ["ready"] and (tmp_path / "died-first").exists()
+    assert all(after for (_, after), w in zip(results, waits, strict=True) if w)
+    (tmp_path / "died-first").unlink()
+    with pytest.raises(WorkerLost, match="'first' was killed by SIGKILL"):
+        _prerequisite_run(tmp_path, faulty.always_die_first, jobs=2, retries=0)
+    assert multiprocessing.active_children() == []
+
+
+def test_without_a_pool_the_prerequisite_runs_first_in_this_process(tmp_path):
+    _, called, results = _prerequisite_run(tmp_path, faulty.mark_ready, jobs=1)
+    assert called == ["ready"] and all(after for _, after in results)
+
+
+def test_a_prerequisite_that_fails_stops_the_run_before_the_tasks_that_wait(tmp_path):
+    with pytest.raises(ValueError, match="the prerequisite broke"):
+        _prerequisite_run(tmp_path, faulty.prerequisite_fails, jobs=2)
+    started = {p.name for p in tmp_path.iterdir() if p.name.startswith("started-")}
+    assert started <= {"started-0", "started-2"}  # no task that waits
+    assert multiprocessing.active_children() == []
+    with pytest.raises(ValueError, match="one per task"):
+        run_tasks(operator.neg, [(1,)], waits=[True, False])
+
+
+def test_a_benchmark_identifying_its_model_runs_the_oracles_beside_it_to_the_same_bits(tmp_path):
+    from piezo_parallel import Prerequisite
+
+    config = BenchmarkConfig(**{**SMALL, "controllers": ("mpc", "mpc-oracle")}, jobs=2)
+    model = str(tmp_path / "model")
+    opened = []
+
+    def open_checkpoint(timing):
+        opened.append(Checkpoint.start(tmp_path, run_identity(config, model)))
+        return opened[-1]
+
+    identification = Prerequisite(
+        faulty.copy_model, (str(PROJECT / MODEL_DIR), model), "copy", then=open_checkpoint
+    )
+    beside = run_benchmark(config, model, identification=identification)
+    given = run_benchmark(BenchmarkConfig(**{**SMALL, "controllers": ("mpc", "mpc-oracle")}), model)
+    assert _same(beside, given)
+    resumed = Checkpoint.resume(tmp_path, run_identity(config, model))
+    assert len(opened) == 1 and len(resumed.finished) == len(config.runs())
+    with pytest.raises(ValueError, match="identification's then"):
+        run_benchmark(config, model, identification=identification, checkpoint=opened[0])
+
+
+def test_runs_that_finish_before_the_models_exist_reach_the_checkpoint_once_it_opens(
+    tmp_path, monkeypatch
+):
+    """The pool's order made certain: every task that does not wait finishes before the
+    identification ends (on a machine where it is slow), then the rest."""
+    import benchmarks.runner as runner
+    from piezo_parallel import Prerequisite
+
+    def beside_first(function, tasks, *, prerequisite, waits, on_result, progress, **_):
+        order = [i for i, w in enumerate(waits) if not w] + [i for i, w in enumerate(waits) if w]
+        for n, i in enumerate(order):
+            if n == waits.count(False):
+                prerequisite.then(prerequisite.function(*prerequisite.args))
+            on_result(i, function(*tasks[i]))
+            progress(n + 1, len(tasks), str(i))
+
+    config = BenchmarkConfig(**{**SMALL, "controllers": ("mpc-oracle", "mpc")})
+    model = str(tmp_path / "model")
+    shown = []
+    identification = Prerequisite(
+        faulty.copy_model,
+        (str(PROJECT / MODEL_DIR), model),
+        "copy",
+        then=lambda timing: Checkpoint.start(tmp_path, run_identity(config, model)),
+    )
+    monkeypatch.setattr(runner, "run_tasks", beside_first)
+    beside = run_benchmark(
+        config, model, identification=identification, progress=lambda *a: shown.append(a[0])
+    )
+    monkeypatch.undo()
+    assert _same(beside, run_benchmark(config, model))
+    # the progress is held while the models are identified, then shown from where it is
+    assert shown == list(range(len(SMALL["plants"]), len(config.runs()) + 1))
+    kept = Checkpoint.resume(tmp_path, run_identity(config, model)).finished
+    assert len(kept) == len(config.runs())
