@@ -58,7 +58,10 @@ def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
                 continue
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
             values = [m[key] for m in members if m.get(key) is not None] if numeric else []
-            cell[key] = float(np.mean(values)) if numeric and values else value
+            if len(values) == 1:  # the mean of one number is that number, to the bit
+                cell[key] = float(values[0])
+            else:
+                cell[key] = float(np.mean(values)) if numeric and values else value
         n = len(members)
         cell["seeds"] = n
         cell["identification_seeds"] = len({m.get("identification_seed") for m in members})

@@ -46,6 +46,17 @@ def test_a_cell_pools_identification_and_noise_seeds():
     assert cell["rmse_ci95_percent"] == pytest.approx(expected, rel=1e-3)
 
 
+def test_a_cell_of_one_episode_holds_its_numbers_to_the_bit():
+    episode = {"plant": "nominal", "controller": "mpc", "reference": "steps",
+               "rmse_percent": 0.1 + 0.2, "steps": 2000, "saturated": True, "note": "x",
+               "observer_fallback_step": None, "worst": float("inf")}
+    (cell,) = aggregate([episode])
+    assert cell["rmse_percent"] == 0.1 + 0.2 and cell["steps"] == 2000.0
+    assert isinstance(cell["steps"], float) and cell["worst"] == float("inf")
+    assert cell["saturated"] is True and cell["note"] == "x" and cell["observer_fallbacks"] == 0
+    assert cell["seeds"] == 1 and cell["rmse_ci95_percent"] is None
+
+
 def test_rows_on_the_identified_model_run_once_per_model_and_the_oracle_once(one_seed):
     config = BenchmarkConfig(
         controllers=("mpc", "mpc-oracle"), references=("sine-10Hz",), plants=("nominal",),
