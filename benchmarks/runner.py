@@ -320,6 +320,15 @@ class BenchmarkConfig:
         run has several identification seeds."""
         return (plant, controller) if self.identification_seeds == 1 else (plant, controller, k)
 
+    def episodes_of(self, plant: str, references: tuple[str, ...]) -> int:
+        """Episodes of one run of a group on ``plant`` over ``references``: one per reference
+        and noise seed, or per reference and draw (vertex) on a distribution of plants."""
+        if plant == MONTE_CARLO:
+            return len(references) * self.draws
+        if plant == BOX_CORNERS:
+            return len(references) * len(VERTICES)
+        return len(references) * self.seeds
+
     def groups(self) -> list[tuple[str, str, tuple[str, ...]]]:
         """(plant, controller, references) of every group, in report order."""
         out = []
@@ -638,7 +647,13 @@ def run_benchmark(
 
     finished = checkpoint.finished if checkpoint is not None else {}
     outputs = [finished.get(key) for key in keys]
-    todo = [i for i, key in enumerate(keys) if key not in finished]
+    # Largest groups first (by episodes), so that the pool's last tasks are short and its
+    # workers end together (the longest-processing-time-first rule); the results do not
+    # depend on the order.
+    todo = sorted(
+        (i for i, key in enumerate(keys) if key not in finished),
+        key=lambda i: -config.episodes_of(runs[i][0], runs[i][2]),
+    )
     waiting: list[tuple[int, Any]] = []  # finished before the checkpoint was opened
     shown: list[tuple[int, int, str]] = []  # progress held while the models are identified
     opened = identification is None

@@ -185,6 +185,7 @@ def test_monte_carlo_plants_differ_per_draw_and_the_oracle_runs_each_draws_own_m
     )
     assert [g[1] for g in config.groups()] == ["mpc", "mpc-oracle"]
     result = run_benchmark(config, MODEL_DIR)
+    assert len(result.episodes) == sum(config.episodes_of(p, r) for p, _, r, _ in config.runs())
     oracle = [e["rmse_percent"] for e in result.episodes if e["controller"] == "mpc-oracle"]
     result.episodes = [e for e in result.episodes if e["controller"] == "mpc"]
     rmse = [e["rmse_percent"] for e in result.episodes]
@@ -216,6 +217,7 @@ def test_the_box_corners_run_each_vertex_of_the_datasheet_box():
     )
     assert [g[1] for g in config.groups()] == ["mpc", "mpc-oracle"]
     result = run_benchmark(config, MODEL_DIR)
+    assert len(result.episodes) == sum(config.episodes_of(p, r) for p, _, r, _ in config.runs())
     assert "Ratio to `mpc-oracle` on the same plant" in monte_carlo_table(result, "box-corners")
     result.episodes = [e for e in result.episodes if e["controller"] == "mpc"]
     assert [e["draw"] for e in result.episodes] == list(range(len(VERTICES)))
