@@ -151,8 +151,9 @@ def run_pool(
         tasks still running are stopped and the rest not started.
     """
     context = get_context("spawn")
-    waiting = [i for i in range(len(tasks)) if prerequisite is not None and waits and waits[i]]
-    queue = deque(i for i in range(len(tasks)) if i not in set(waiting))
+    held = prerequisite is not None and waits is not None
+    waiting = [i for i in range(len(tasks)) if held and waits[i]]  # type: ignore[index]
+    queue = deque(i for i in range(len(tasks)) if not (held and waits[i]))  # type: ignore[index]
     attempts = [0] * len(tasks)
     first_attempts = 0
     workers: list[_Worker] = []
