@@ -1,0 +1,158 @@
+"""The policy controller's fast step gives the bits of the plain code it replaces.
+
+The policy controller's step runs at every step of every benchmark episode of a policy, so it
+is written for speed: buffers made once, Python floats for scalars, fewer numpy calls. It is
+held here to the plain numpy arithmetic it replaced, on short episodes of every committed
+policy and of policies made here for the layouts and the activation those lack.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import pickle
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import piezo_env  # noqa: F401  (registers the ids)
+from benchmarks.references import make_reference
+from controllers.policy import _OneObservation, make_policy_controller, save_policy
+from piezo_env.wrappers import ObservationConfig
+
+ENV_ID = "piezo_env:PiezoBender-v0"
+POLICIES = Path(__file__).resolve().parents[1] / "docs" / "policies"
+STEPS = 200
+
+
+class PlainPolicy:
+    """The policy controller's step as first written: numpy expressions, new arrays each step,
+    and :meth:`controllers.policy.PolicyNetwork.mean` for the network."""
+
+    def __init__(self, policy) -> None:
+        config = self.config = policy.observation
+        self.network = policy.network
+        self.stroke, self.u_scale = np.float64(config.stroke_um), np.float64(config.u_max)
+        self.x = np.zeros((1, config.size), dtype=np.float32)
+        self.inputs = slice(config.raw_size, config._errors_start)
+        self.errors = slice(config._errors_start, config._deflections_start)
+        self.deflections = slice(config._deflections_start, config.size)
+        self.past = np.zeros(config.n_deflections)
+
+    def reset(self, observation: np.ndarray) -> None:
+        raw = np.asarray(observation[: self.config.raw_size], dtype=np.float64)
+        error = raw[1] - raw[0]
+        x = self.x[0]
+        x[self.inputs] = np.float64(0.0) / self.u_scale
+        x[self.errors] = error / self.stroke
+        self.past[:] = raw[0]
+        self.last_error, self.last_measured = error, raw[0]
+        self.last_voltage = None
+
+    def act(self, observation: np.ndarray) -> float:
+        raw = np.asarray(observation[: self.config.raw_size], dtype=np.float64)
+        y, s = raw[0], self.stroke
+        x = self.x[0]
+        if self.last_voltage is not None:
+            inputs, errors, past = self.inputs, self.errors, self.past
+            if inputs.start != inputs.stop:
+                x[inputs.start + 1 : inputs.stop] = x[inputs.start : inputs.stop - 1]
+                x[inputs.start] = self.last_voltage / self.u_scale
+            if errors.start != errors.stop:
+                x[errors.start + 1 : errors.stop] = x[errors.start : errors.stop - 1]
+                x[errors.start] = self.last_error / s
+            if past.size:
+                past[1:] = past[:-1]
+                past[0] = self.last_measured
+        x[0] = y / s
+        x[1 : raw.size] = (raw[1:] - y) / s
+        if self.past.size:
+            x[self.deflections] = (self.past - y) / s
+        self.last_error, self.last_measured = raw[1] - y, y
+        mean = float(np.float32(self.network.mean(self.x)[0, 0]))
+        voltage = float(np.float32(min(max(mean, -1.0), 1.0) * self.u_scale))
+        self.last_voltage = voltage
+        return voltage
+
+
+def _env(**settings) -> gym.Env:
+    return gym.make(ENV_ID, preview=20, max_episode_steps=STEPS, **settings)
+
+
+def _steps_reference(env: gym.Env) -> np.ndarray:
+    dt = float(env.unwrapped.model.dt)
+    return make_reference("steps", STEPS + 21, dt=dt, seed=0)
+
+
+def _made_policy(folder: Path, env: gym.Env, activation: str, seed: int, **layout) -> Path:
+    """A policy of random weights (large enough that the mean leaves [-1, 1] at times)."""
+    observation = ObservationConfig.from_env(env, **layout)
+    observation = ObservationConfig(**{**observation.__dict__, "preview": 3})
+    rng = np.random.default_rng(seed)
+    sizes = [observation.size, 24, 16, 1]
+    layers = [
+        (rng.normal(0, 1.5 / np.sqrt(n_in), (n_out, n_in)), rng.normal(0, 0.3, n_out))
+        for n_in, n_out in itertools.pairwise(sizes)
+    ]
+    return save_policy(folder, layers=layers, activation=activation, observation=observation)
+
+
+def _policy_folders(tmp_path: Path, env: gym.Env) -> list[Path]:
+    committed = sorted(p for p in POLICIES.iterdir() if (p / "policy.json").is_file())
+    assert len(committed) == 6
+    made = [
+        _made_policy(tmp_path / "relu", env, "relu", 0, n_inputs=3, n_errors=0, n_deflections=5),
+        _made_policy(tmp_path / "errors", env, "tanh", 1, n_inputs=0, n_errors=2),
+        _made_policy(tmp_path / "bare", env, "relu", 2, n_inputs=0, n_errors=0),
+    ]
+    return committed + made
+
+
+def test_the_policy_step_equals_the_plain_arithmetic_to_the_bit(tmp_path):
+    env = _env()
+    reference = _steps_reference(env)
+    clipped = 0
+    for folder in _policy_folders(tmp_path, env):
+        controller = make_policy_controller(folder, env)
+        plain = PlainPolicy(controller.policy)
+        obs, _ = env.reset(seed=0, options={"reference": reference})
+        controller.reset(obs)
+        plain.reset(obs)
+        for _ in range(STEPS):
+            action = controller.act(obs)
+            expected = plain.act(obs)
+            assert action.tobytes() == np.array([expected], np.float32).tobytes(), folder.name
+            assert controller._x.tobytes() == plain.x.tobytes(), folder.name
+            clipped += abs(expected) == controller.task.u_max
+            obs, *_ = env.step(action)
+    assert clipped > 0  # the clip to [-1, 1] was exercised
+
+
+@pytest.mark.parametrize("activation", ["tanh", "relu"])
+def test_one_observation_forward_pass_equals_the_network_mean(tmp_path, activation):
+    env = _env()
+    folder = _made_policy(tmp_path, env, activation, 3, n_deflections=4)
+    network = make_policy_controller(folder, env).policy.network
+    forward = _OneObservation(network)
+    rng = np.random.default_rng(0)
+    for scale in (1e-3, 1.0, 30.0):
+        for x in rng.normal(0.0, scale, (300, 1, network.layer_sizes[0])).astype(np.float32):
+            assert forward(x) == float(network.mean(x)[0, 0])
+
+
+def test_a_copied_or_pickled_policy_controller_continues_identically():
+    """The step's views into the observation buffer are made again in a copy."""
+    env = _env()
+    controller = make_policy_controller(POLICIES / "ppo-dr-seed0", env)
+    obs, _ = env.reset(seed=0, options={"reference": _steps_reference(env)})
+    controller.reset(obs)
+    for _ in range(20):
+        obs, *_ = env.step(controller.act(obs))
+    clones = [copy.deepcopy(controller), pickle.loads(pickle.dumps(controller))]
+    for _ in range(50):
+        action = controller.act(obs)
+        for clone in clones:
+            assert clone.act(obs).tobytes() == action.tobytes()
+        obs, *_ = env.step(action)
