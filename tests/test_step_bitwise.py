@@ -1,9 +1,10 @@
-"""The policy controller's fast step gives the bits of the plain code it replaces.
+"""The per-step fast paths of the closed loop give the bits of the plain code they replace.
 
-The policy controller's step runs at every step of every benchmark episode of a policy, so it
-is written for speed: buffers made once, Python floats for scalars, fewer numpy calls. It is
-held here to the plain numpy arithmetic it replaced, on short episodes of every committed
-policy and of policies made here for the layouts and the activation those lack.
+The policy controller's step, the base class's ``act`` and the observation check run at every
+step of every benchmark episode, so they are written for speed: buffers made once, Python
+floats for scalars, fewer numpy calls. Each is held here to the plain numpy arithmetic it
+replaced, on short episodes of every committed policy and of policies made here for the
+layouts and the activation those lack.
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ import pytest
 
 import piezo_env  # noqa: F401  (registers the ids)
 from benchmarks.references import make_reference
+from controllers.base import Controller
 from controllers.policy import _OneObservation, make_policy_controller, save_policy
+from controllers.task import ControlTask
 from piezo_env.wrappers import ObservationConfig
 
 ENV_ID = "piezo_env:PiezoBender-v0"
@@ -156,3 +159,59 @@ def test_a_copied_or_pickled_policy_controller_continues_identically():
         for clone in clones:
             assert clone.act(obs).tobytes() == action.tobytes()
         obs, *_ = env.step(action)
+
+
+def test_check_observation_converts_and_refuses_as_before():
+    task = ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=2)
+    as_float64 = np.array([1.0, 2.0, 3.0, 4.0])
+    assert task.check_observation(as_float64) is as_float64  # no copy
+    single = np.array([1.5, -2.25, 3.1, 4e4], dtype=np.float32)
+    checked = task.check_observation(single)
+    assert checked.dtype == np.float64 and np.array_equal(checked, single.astype(np.float64))
+    assert task.check_observation([1, 2, 3, 4]).dtype == np.float64
+    huge = np.full(4, 1e300)  # finite entries whose squares overflow: accepted
+    assert task.check_observation(huge) is huge
+    with pytest.raises(ValueError, match="must be a numeric array"):
+        task.check_observation(np.array(["a", "b", "c", "d"]))
+    with pytest.raises(ValueError, match=r"must have shape \(4,\).*got shape \(3,\)"):
+        task.check_observation(np.zeros(3))
+    with pytest.raises(ValueError, match=r"got shape \(1, 4\)"):
+        task.check_observation(np.zeros((1, 4)))
+    for index, bad in ((0, np.nan), (2, np.inf), (3, -np.inf)):
+        values = np.array([1.0, 2.0, 3.0, 4.0], dtype=np.float32)
+        values[index] = bad
+        with pytest.raises(ValueError, match=rf"observation\[{index}\] = {bad} is not finite"):
+            task.check_observation(values)
+
+
+class Scripted(Controller):
+    """A controller whose step returns the next of ``outputs``."""
+
+    def __init__(self, task: ControlTask, outputs: list) -> None:
+        super().__init__(task)
+        self.outputs = outputs
+
+    def _reset(self, observation: np.ndarray) -> None:
+        self.calls = 0
+
+    def _act(self, observation: np.ndarray) -> float:
+        self.calls += 1
+        return self.outputs[self.calls - 1]
+
+
+def test_act_returns_the_float32_volts_of_the_plain_expression():
+    task = ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=1)
+    outputs = [0.1, np.float64(-7.123456789), 12, 40.0, -1e9, 29.999999999, np.float32(0.3)]
+    controller = Scripted(task, outputs)
+    controller.reset(np.zeros(3))
+    for output in outputs:
+        action = controller.act(np.zeros(3, dtype=np.float32))
+        expected = np.array([min(max(float(output), -30.0), 30.0)], dtype=np.float32)
+        assert action.tobytes() == expected.tobytes()
+        assert action.dtype == np.float32 and action.shape == (1,)
+        assert action.flags.c_contiguous and action.flags.owndata and action.flags.writeable
+    assert controller.stats.saturated == 2 and len(controller.stats.compute_s) == len(outputs)
+    controller = Scripted(task, [float("nan")])
+    controller.reset(np.zeros(3))
+    with pytest.raises(RuntimeError, match="NaN voltage"):
+        controller.act(np.zeros(3))
