@@ -1,10 +1,10 @@
 """The per-step fast paths of the closed loop give the bits of the plain code they replace.
 
-The policy controller's step, the base class's ``act`` and the observation check run at every
-step of every benchmark episode, so they are written for speed: buffers made once, Python
-floats for scalars, fewer numpy calls. Each is held here to the plain numpy arithmetic it
-replaced, on short episodes of every committed policy and of policies made here for the
-layouts and the activation those lack.
+The policy controller's step, the base class's ``act``, the observation check and the episode
+loop run at every step of every benchmark episode, so they are written for speed: buffers made
+once, Python floats for scalars, fewer numpy calls. Each is held here to the plain numpy
+arithmetic it replaced, on short episodes of every committed policy and of policies made here
+for the layouts and the activation those lack.
 """
 
 from __future__ import annotations
@@ -12,12 +12,14 @@ from __future__ import annotations
 import copy
 import itertools
 import pickle
+import time
 from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 
+import controllers
 import piezo_env  # noqa: F401  (registers the ids)
 from benchmarks.references import make_reference
 from controllers.base import Controller
@@ -215,3 +217,85 @@ def test_act_returns_the_float32_volts_of_the_plain_expression():
     controller.reset(np.zeros(3))
     with pytest.raises(RuntimeError, match="NaN voltage"):
         controller.act(np.zeros(3))
+
+
+def _plain_loop(env, controller, obs, max_steps):
+    """The episode loop as first written."""
+    u_max = float(env.action_space.high[0])
+    columns: dict[str, list] = {k: [] for k in ("y", "m", "r", "u", "sat", "rew", "compute")}
+    clock = time.perf_counter
+    steps = 0
+    while max_steps is None or steps < max_steps:
+        start = clock()
+        action = controller.act(obs)
+        columns["compute"].append(clock() - start)
+        obs, reward, terminated, truncated, info = env.step(action)
+        columns["y"].append(info["deflection_um"])
+        columns["m"].append(float(obs[0]))
+        columns["r"].append(info["reference_um"])
+        columns["u"].append(info["voltage_V"])
+        columns["sat"].append(info["saturated"] or abs(info["voltage_V"]) >= u_max * (1 - 1e-6))
+        columns["rew"].append(reward)
+        steps += 1
+        if terminated or truncated:
+            break
+    arrays = {k: np.asarray(v, dtype=float) for k, v in columns.items()}
+    arrays["sat"] = arrays["sat"].astype(bool)
+    return arrays
+
+
+class Protocol:
+    """A bare protocol controller answering with lists, floats, tuples and arrays in turn,
+    some beyond the drive range and some just inside its saturation margin."""
+
+    def reset(self, observation) -> None:
+        self.t = 0
+
+    def act(self, observation):
+        self.t += 1
+        u = 29.99999 if self.t % 7 == 1 else 45.0 * np.sin(0.05 * self.t)
+        kind = self.t % 4
+        if kind == 0:
+            return [u]
+        if kind == 1:
+            return u
+        if kind == 2:
+            return (np.float64(u),)
+        return np.array([u], dtype=np.float32)
+
+
+@pytest.mark.parametrize(
+    ("settings", "max_steps"),
+    [({}, None), ({}, 120), ({"deflection_limit": 300.0}, None), ({"amplifier": True}, None)],
+)
+def test_the_episode_loop_records_the_plain_loops_columns(settings, max_steps):
+    from piezo_env import Amplifier
+
+    if settings.get("amplifier"):
+        settings = {"amplifier": Amplifier(current_limit_mA=20.0)}
+    env = _env(**settings)
+    reference = _steps_reference(env)
+    saturated = []
+    for controller in (Protocol(), make_policy_controller(POLICIES / "ppo-seed1", env)):
+        episode = controllers.run_episode(
+            env, controller, seed=3, reference=reference, max_steps=max_steps
+        )
+        saturated.append(episode.saturated.any())
+        obs, _ = env.reset(seed=3, options={"reference": np.asarray(reference, float)})
+        controller.reset(obs)
+        plain = _plain_loop(env, controller, obs, max_steps)
+        for name, key in (
+            ("deflection_um", "y"),
+            ("measured_um", "m"),
+            ("reference_um", "r"),
+            ("voltage_V", "u"),
+            ("saturated", "sat"),
+            ("reward", "rew"),
+        ):
+            mine = getattr(episode, name)
+            assert mine.dtype == plain[key].dtype and mine.tobytes() == plain[key].tobytes(), name
+        assert episode.compute_s.shape == plain["compute"].shape
+        assert episode.compute_s.dtype == np.float64
+        if "deflection_limit" in settings:
+            assert episode.voltage_V.size < STEPS  # terminated early
+    assert saturated[0]  # the protocol controller drives into the limits
