@@ -1,10 +1,10 @@
 """The per-step fast paths of the closed loop give the bits of the plain code they replace.
 
-The policy controller's step, the base class's ``act``, the observation check and the episode
-loop run at every step of every benchmark episode, so they are written for speed: buffers made
-once, Python floats for scalars, fewer numpy calls. Each is held here to the plain numpy
-arithmetic it replaced, on short episodes of every committed policy and of policies made here
-for the layouts and the activation those lack.
+The policy controller's step, the base class's ``act``, the observation check, the episode
+loop and the env's observation run at every step of every benchmark episode, so they are
+written for speed: buffers made once, Python floats for scalars, fewer numpy calls. Each is
+held here to the plain numpy arithmetic it replaced, on short episodes of every committed
+policy and of policies made here for the layouts and the activation those lack.
 """
 
 from __future__ import annotations
@@ -299,3 +299,21 @@ def test_the_episode_loop_records_the_plain_loops_columns(settings, max_steps):
         if "deflection_limit" in settings:
             assert episode.voltage_V.size < STEPS  # terminated early
     assert saturated[0]  # the protocol controller drives into the limits
+
+
+@pytest.mark.parametrize("settings", [{"preview": 20}, {"preview": 0}, {"reference": None}])
+def test_the_env_observation_is_the_plain_one(settings):
+    env = gym.make(ENV_ID, max_episode_steps=300, **settings)
+    base = env.unwrapped
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    for _ in range(300):
+        obs, *_ = env.step(env.action_space.sample())
+        if base._reference is None:
+            plain = np.array([obs[0]], dtype=np.float32)
+        else:
+            plain = np.empty(2 + base.preview, dtype=np.float32)
+            plain[0] = obs[0]
+            plain[1:] = base._ref_values[base._t : base._t + base.preview + 1]
+        assert obs.dtype == np.float32 and obs.tobytes() == plain.tobytes()
+        assert obs.flags.c_contiguous and obs.flags.owndata and obs.flags.writeable
