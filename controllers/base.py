@@ -26,6 +26,8 @@ from controllers.task import ControlTask
 
 __all__ = ["Controller", "ControllerStats"]
 
+_clock = time.perf_counter
+
 
 @dataclass
 class ControllerStats:
@@ -108,16 +110,17 @@ class Controller:
 
     def act(self, observation: Any) -> np.ndarray:
         """Voltage (V) for this observation: shape (1,), float32, inside the drive range."""
-        start = time.perf_counter()
-        obs = self.task.check_observation(observation)
-        u = float(self._act(obs))
-        if not -self._u_max <= u <= self._u_max:
+        start = _clock()
+        u = float(self._act(self.task.check_observation(observation)))
+        u_max = self._u_max
+        if not -u_max <= u <= u_max:
             if u != u:  # NaN: a controller bug, never a voltage
                 raise RuntimeError(f"{self.name} computed a NaN voltage")
-            u = self._u_max if u > 0 else -self._u_max
+            u = u_max if u > 0 else -u_max
             self.stats.saturated += 1
-        action = np.array([u], dtype=np.float32)
-        self.stats.compute_s.append(time.perf_counter() - start)
+        action = np.empty(1, dtype=np.float32)  # cheaper than np.array([u], ...); same bits
+        action[0] = u
+        self.stats.compute_s.append(_clock() - start)
         return action
 
     def describe(self) -> dict[str, Any]:

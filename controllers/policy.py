@@ -46,6 +46,7 @@ FORMAT_VERSION = 1
 POLICY_FILE = "policy.json"
 WEIGHTS_FILE = "weights.npz"
 _ACTIVATIONS = {"tanh": np.tanh, "relu": lambda x: np.maximum(x, 0.0)}
+_FLOAT64 = np.dtype(np.float64)
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,52 @@ class PolicyNetwork:
     def layer_sizes(self) -> list[int]:
         """[in, hidden..., out]."""
         return [int(self.weights[0].shape[1])] + [int(w.shape[0]) for w in self.weights]
+
+
+class _OneObservation:
+    """:meth:`PolicyNetwork.mean` of one observation, the first output as a float.
+
+    Every layer writes into a buffer made once, and the bias is added at the buffer's own
+    shape (adding a (out,) bias to a (1, out) row broadcasts, which costs several times the
+    addition itself). The products keep the call form of :meth:`PolicyNetwork.mean`,
+    ``h @ w.T`` on a (1, in) row, so BLAS runs the same kernel; the elementwise additions and
+    activations give the same bits in place as into new arrays, and the output bias is added
+    in Python floats (IEEE double, as numpy's float64): the result equals
+    ``float(network.mean(x)[0, 0])`` to the bit.
+
+    Parameters
+    ----------
+    network : PolicyNetwork
+    """
+
+    def __init__(self, network: PolicyNetwork) -> None:
+        *hidden, (w_out, b_out) = zip(network.weights, network.biases, strict=True)
+        self._input = np.empty((1, network.layer_sizes[0]))
+        self._hidden = tuple(
+            (w.T, np.ascontiguousarray(b).reshape(1, -1), np.empty((1, w.shape[0])))
+            for w, b in hidden
+        )
+        self._relu = network.activation == "relu"
+        self._w_out = w_out.T
+        self._out = np.empty((1, w_out.shape[0]))
+        self._b_out = float(b_out[0])
+
+    def __call__(self, x: np.ndarray) -> float:
+        """The first mean action (policy units) of the (1, in) observation ``x``."""
+        h = self._input
+        h[...] = x  # as np.asarray(x, dtype=np.float64)
+        matmul, add, relu = np.matmul, np.add, self._relu
+        # The third argument of a ufunc is its output (positional: a little cheaper).
+        for w_t, b, out in self._hidden:
+            matmul(h, w_t, out)
+            add(out, b, out)
+            if relu:
+                np.maximum(out, 0.0, out=out)  # positionally, a third operand is deprecated
+            else:
+                np.tanh(out, out)
+            h = out
+        matmul(h, self._w_out, self._out)
+        return self._out.item(0) + self._b_out
 
 
 @dataclass(frozen=True)
@@ -376,6 +423,56 @@ class PolicyController(Controller):
         self._past = np.zeros(config.n_deflections)  # past measured deflections (um)
         self._last_error = self._last_measured = 0.0
         self._last_voltage: float | None = None
+        self._set_up_step(config)
+
+    _STEP_ATTRIBUTES = (
+        "_row",
+        "_raw_size",
+        "_head",
+        "_head_scratch",
+        "_history",
+        "_input_at",
+        "_error_at",
+        "_past_x",
+        "_past_scratch",
+        "_s",
+        "_u",
+        "_float32",
+        "_mean",
+    )
+    """What :meth:`_set_up_step` makes (left out of a pickle or a deep copy, made again)."""
+
+    def _set_up_step(self, config: ObservationConfig) -> None:
+        """Views, scratch buffers and Python-float scales of :meth:`_act`, made once.
+
+        ``_row``, ``_head`` and ``_past_x`` are views into ``_x``: a pickle or a deep copy
+        would copy them apart from the copied ``_x``, so :meth:`__getstate__` leaves them out
+        and :meth:`__setstate__` makes them again."""
+        x = self._row = self._x[0]
+        self._raw_size = config.raw_size
+        self._head = x[: config.raw_size]  # y_t / s, (r_t+k - y_t) / s
+        self._head_scratch = np.empty(config.raw_size)
+        # The input and error histories are adjacent: one shift moves both, and each
+        # segment's first entry is then written afresh.
+        start, stop = self._inputs.start, self._errors.stop
+        self._history = (slice(start + 1, stop), slice(start, stop - 1)) if stop > start else None
+        self._input_at = self._inputs.start if config.n_inputs else None
+        self._error_at = self._errors.start if config.n_errors else None
+        self._past_x = x[self._deflections] if config.n_deflections else None
+        self._past_scratch = np.empty(config.n_deflections)
+        self._s, self._u = float(config.stroke_um), float(config.u_max)
+        self._float32 = np.empty(1, dtype=np.float32)  # rounds a float to float32
+        self._mean = _OneObservation(self.policy.network)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        for name in self._STEP_ATTRIBUTES:
+            del state[name]
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._set_up_step(self.policy.observation)
 
     def _check_task(self, task: ControlTask) -> None:
         config, where = self.policy.observation, self.policy.folder / POLICY_FILE
@@ -414,32 +511,43 @@ class PolicyController(Controller):
         The normalised observation is kept in one buffer whose history segments shift by
         one entry per step: each entry is the same float64 quotient rounded to float32 as
         :class:`piezo_env.wrappers.ObservationHistory` computes it afresh every step, so the
-        two agree to the bit (a test holds them to it) at a third of the numpy calls."""
-        raw = np.asarray(observation[: self.policy.observation.raw_size], dtype=np.float64)
-        y, s = raw[0], self._stroke
-        x = self._x[0]
+        two agree to the bit (a test holds them to it) at a third of the numpy calls. The
+        scalar arithmetic runs on Python floats (IEEE double, as numpy's float64), the
+        vector arithmetic into buffers made once, and a float32 rounding is a store into a
+        one-entry float32 array: the same bits as the plain numpy expressions."""
+        if type(observation) is not np.ndarray or observation.dtype is not _FLOAT64:
+            observation = np.asarray(observation, dtype=np.float64)
+        y, s = observation.item(0), self._s
+        past = self._past
         if self._last_voltage is not None:  # the history advances by one step
-            inputs, errors, past = self._inputs, self._errors, self._past
-            if inputs.start != inputs.stop:
-                x[inputs.start + 1 : inputs.stop] = x[inputs.start : inputs.stop - 1]
-                x[inputs.start] = self._last_voltage / self._u_scale
-            if errors.start != errors.stop:
-                x[errors.start + 1 : errors.stop] = x[errors.start : errors.stop - 1]
-                x[errors.start] = self._last_error / s
-            if past.size:
+            if self._history is not None:
+                x = self._row
+                later, earlier = self._history
+                x[later] = x[earlier]
+                if self._input_at is not None:
+                    x[self._input_at] = self._last_voltage / self._u
+                if self._error_at is not None:
+                    x[self._error_at] = self._last_error / s
+            if self._past_x is not None:
                 past[1:] = past[:-1]
                 past[0] = self._last_measured
-        x[0] = y / s
-        x[1 : raw.size] = (raw[1:] - y) / s
-        if self._past.size:
-            x[self._deflections] = (self._past - y) / s
-        self._last_error, self._last_measured = raw[1] - y, y
-        mean = float(np.float32(self.policy.network.mean(self._x)[0, 0]))
+        head = self._head_scratch  # the third argument of a ufunc is its output
+        np.subtract(observation[: self._raw_size], y, head)
+        head[0] = y
+        np.divide(head, s, self._head)  # y / s, then (r - y) / s: float64, stored float32
+        if self._past_x is not None:
+            np.subtract(past, y, self._past_scratch)
+            np.divide(self._past_scratch, s, self._past_x)
+        self._last_error, self._last_measured = observation.item(1) - y, y
         # float32 first, as SB3 hands the action to the env wrapper in training; then
         # piezo_env.wrappers.action_to_voltage's arithmetic on one number
+        rounding = self._float32
+        rounding[0] = self._mean(self._x)
+        mean = rounding.item(0)
         if not math.isfinite(mean):
             raise ValueError(f"{self.name}: the policy's action is not finite ({mean})")
-        voltage = float(np.float32(min(max(mean, -1.0), 1.0) * self._u_scale))
+        rounding[0] = min(max(mean, -1.0), 1.0) * self._u
+        voltage = rounding.item(0)
         self._last_voltage = voltage
         return voltage
 

@@ -407,11 +407,18 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
         return 0.0 if self._reference is None else self._ref_values.item(t)
 
     def _observe(self, measured_um: float) -> np.ndarray:
+        """[measured, r_t .. r_t+P] (float32): after the first sample, a copy of the drawn
+        reference from r_t-1 on with its first entry replaced (one numpy call fewer than
+        filling an empty array; :meth:`_advance` keeps r_t+P drawn)."""
         if self._reference is None:
             return np.array([measured_um], dtype=np.float32)
-        obs = np.empty(2 + self.preview, dtype=np.float32)
+        t = self._t
+        if t:
+            obs = self._ref_values[t - 1 : t + self.preview + 1].copy()
+        else:
+            obs = np.empty(2 + self.preview, dtype=np.float32)
+            obs[1:] = self._ref_values[: self.preview + 1]
         obs[0] = measured_um
-        obs[1:] = self._ref_values[self._t : self._t + self.preview + 1]
         return obs
 
     def _draw_noise(self) -> None:
