@@ -456,6 +456,7 @@ def _run_group(
                             seed=config.seed + (draw or 0) + seed_index,
                             reference=reference,
                             stroke_um=config.stroke_um,
+                            describe=False,  # described once, after the group
                         )
                         record = {"plant": plant, "controller": controller, "reference": ref_name}
                         if draw is not None:

@@ -60,6 +60,7 @@ def run_episode(
     reference: np.ndarray | None = None,
     max_steps: int | None = None,
     stroke_um: float | None = None,
+    describe: bool = True,
 ) -> Episode:
     """Run ``controller`` on ``env`` for one episode.
 
@@ -82,6 +83,10 @@ def run_episode(
         One-sided stroke (um) the percentages refer to (default: the env's task stroke, the
         datasheet's; a benchmark over several plants passes the nominal one so that all share
         a scale).
+    describe : bool
+        Record the controller's ``describe()`` in :attr:`Episode.controller` (with the stats
+        summary, which is always there). A caller that describes the controller once for many
+        episodes, as the benchmark does, passes False: a description costs milliseconds.
 
     Returns
     -------
@@ -110,7 +115,7 @@ def run_episode(
     # target's worst case (a DAQP iteration adds or removes one active constraint).
     iterations = getattr(stats, "iterations", None)
     metrics["solver_iterations_max"] = int(max(iterations)) if iterations else None
-    describe = getattr(controller, "describe", dict)()
+    described = getattr(controller, "describe", dict)() if describe else {}
     summary = stats.summary() if hasattr(stats, "summary") else {}
     return Episode(
         deflection_um=arrays["y"],
@@ -121,7 +126,7 @@ def run_episode(
         compute_s=arrays["compute"],
         reward=arrays["rew"],
         metrics=metrics,
-        controller={**describe, "stats": summary},
+        controller={**described, "stats": summary},
     )
 
 

@@ -317,3 +317,19 @@ def test_the_env_observation_is_the_plain_one(settings):
             plain[1:] = base._ref_values[base._t : base._t + base.preview + 1]
         assert obs.dtype == np.float32 and obs.tobytes() == plain.tobytes()
         assert obs.flags.c_contiguous and obs.flags.owndata and obs.flags.writeable
+
+
+def test_an_episode_without_its_description_is_the_same_episode():
+    env = _env()
+    reference = _steps_reference(env)
+    controller = make_policy_controller(POLICIES / "ppo-seed1", env)
+    runs = [
+        controllers.run_episode(env, controller, seed=3, reference=reference, describe=describe)
+        for describe in (True, False, True)
+    ]
+    assert runs[0].voltage_V.tobytes() == runs[1].voltage_V.tobytes() == runs[2].voltage_V.tobytes()
+    timed = ("compute_median_us", "compute_p99_us", "compute_max_us", "deadline_misses")
+    assert {k: v for k, v in runs[0].metrics.items() if k not in timed} == {
+        k: v for k, v in runs[1].metrics.items() if k not in timed
+    }
+    assert "name" in runs[0].controller and set(runs[1].controller) == {"stats"}
