@@ -81,16 +81,13 @@ from controllers.base import ControllerStats
 from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.gain import GainEstimate
-from controllers.loop import (
-    feedback_law,
-    modulus_margins,
-    radii_matrix,
-)
+from controllers.loop import feedback_law, radii_matrix
 from controllers.memo import ContentCache
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer, rescale_states
 from controllers.prediction import PredictionModel, SteadyStart
+from controllers.predictive import filter_margins
 from controllers.settings import MS_MAX, check_settings, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
@@ -138,6 +135,7 @@ identified model and settings. A benchmark worker meets up to six models (three
 identification seeds, on the nominal bender and on the bench): 8 keeps them all."""
 
 _screens = ContentCache(SCREENS_KEPT)
+_loop_radii = ContentCache(SCREENS_KEPT)  # :meth:`AdaptiveMPC.loop_radii`, as many
 
 
 @dataclass(frozen=True)
@@ -483,9 +481,8 @@ class AdaptiveMPC(LinearMPC):
             out = []
             for (member, bank), filters in zip(banks, gains, strict=True):
                 law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-                margins = modulus_margins(
-                    bank.a_aug, bank.b_aug, bank.c_aug, filters, *law, n=bank.n
-                )
+                # The sweep the description of this member's loop reads too.
+                margins = filter_margins(bank, filters, law)
                 radii = np.full((len(filters), len(plants)), np.inf)
                 within = margins >= 1.0 / MS_MAX
                 if within.any():
@@ -711,17 +708,30 @@ class AdaptiveMPC(LinearMPC):
     def loop_radii(self) -> np.ndarray:
         """Spectral radius (-) of the unconstrained loop of each member's MPC (with its bank's
         prior filter, or its single filter) around each member, gains matched: (K, K), row =
-        the MPC's member, column = the plant's; below 1 where that loop is stable."""
+        the MPC's member, column = the plant's; below 1 where that loop is stable.
+
+        Kept by content as :meth:`filter_radii` is (a closed loop per member pair)."""
         plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
-        radii = []
+        loops = []
         for member in self._members:
             bank = member.observer
             filter_gain = bank.gains[bank.prior] if isinstance(bank, ObserverBank) else bank.gain
-            law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-            radii.append(
-                radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, filter_gain, *law, plants)
-            )
-        return np.concatenate(radii)
+            loops.append((member, bank, filter_gain))
+
+        def compute() -> np.ndarray:
+            radii = []
+            for member, bank, filter_gain in loops:
+                law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
+                radii.append(
+                    radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, filter_gain, *law, plants)
+                )
+            return np.concatenate(radii)
+
+        parts: list[Any] = []
+        for member, bank, filter_gain in loops:
+            parts += [member.hessian, member.q_matrix, bank.a_aug, bank.b_aug, bank.c_aug]
+            parts += [filter_gain, member.model.a, member.model.b, member.model.c]
+        return _loop_radii.get(parts, compute)
 
     def describe(self) -> dict:
         """The linear MPC's description plus the set: its members' first resonances and

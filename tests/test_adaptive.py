@@ -341,24 +341,39 @@ def test_a_swap_is_bumpless(controller):
 
 
 def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypatch):
-    """The stability screen of every filter on every member (most of the construction) is kept
-    by content: a second controller on the same model screens no filter again (its only loops
-    are :meth:`loop_radii`'s, one per member) and gets equal radii of its own."""
+    """The stability screen of every filter on every member and the loop radii of every
+    member's prior filter (most of the construction) are kept by content: a second controller
+    on the same model closes no loop again and gets equal radii of its own; a member changed
+    in its last bit is screened afresh."""
     import controllers.adaptive as adaptive
     from controllers.memo import ContentCache
 
     monkeypatch.setattr(adaptive, "_screens", ContentCache(adaptive.SCREENS_KEPT))
-    radii = controller.filter_radii()  # computed into the fresh cache
+    monkeypatch.setattr(adaptive, "_loop_radii", ContentCache(adaptive.SCREENS_KEPT))
+    radii = controller.filter_radii()  # computed into the fresh caches
+    loops = controller.loop_radii()
+    np.testing.assert_array_equal(loops, controller._radii)  # the fresh loops, to the bit
     calls = []
     original = adaptive.radii_matrix
     monkeypatch.setattr(
         adaptive, "radii_matrix", lambda *a, **k: calls.append(1) or original(*a, **k)
     )
     again = controllers.make("mpc-adaptive", MODEL_DIR, nominal)
-    assert calls == [1] * len(again._members)
+    assert calls == []
     np.testing.assert_array_equal(again._filter_radii, radii)
+    np.testing.assert_array_equal(again._radii, loops)
     again._filter_radii[:] = -1.0
+    again._radii[:] = -1.0
     np.testing.assert_array_equal(controller.filter_radii(), radii)
+    np.testing.assert_array_equal(controller.loop_radii(), loops)
+    member = again._members[5]
+    hessian = member.hessian.copy()
+    hessian[0, 0] = np.nextafter(hessian[0, 0], np.inf)
+    monkeypatch.setattr(member, "hessian", hessian)
+    again.loop_radii()
+    again.filter_radii()
+    assert calls  # closed afresh
+    assert (adaptive._loop_radii.misses, adaptive._screens.misses) == (2, 2)
 
 
 def test_a_set_whose_members_do_not_share_the_state_is_refused(controller, monkeypatch):

@@ -4,17 +4,25 @@ can change another's copy."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import types
+from pathlib import Path
 
 import numpy as np
 import pytest
 from handmade import first_mode
 
 import controllers.observer as observer_module
+import controllers.predictive as predictive
+from controllers import loop
 from controllers.memo import ContentCache
 from controllers.observer import DISTURBANCE_RATIOS, PROCESS_RATIOS, ObserverBank
+from controllers.predictive import PredictiveController
+from controllers.tolerance_box import ToleranceBox, vertex_models
 
 SIGMA = 0.5  # sensor noise (um)
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "benchmark" / "model")
 
 
 def _fresh_cache(monkeypatch, module, name: str) -> ContentCache:
@@ -118,3 +126,105 @@ def test_a_failing_bank_design_is_refused_each_time(monkeypatch) -> None:
         with pytest.raises(ValueError, match="DC gain"):
             ObserverBank(a, np.zeros_like(b), c, measurement_std=SIGMA)
     assert cache.misses == 0
+
+
+# -- the MPCs' box screen (controllers.predictive) ----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def mpc():
+    """The linear MPC on the committed benchmark model for the nominal PL140."""
+    import gymnasium as gym
+
+    import controllers
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, max_episode_steps=100)
+    return controllers.make("mpc", MODEL_DIR, env)
+
+
+def _kept(cache: ContentCache, parts: list):
+    """What ``cache`` holds for ``parts`` (fails if it holds nothing)."""
+    return cache.get(parts, lambda: pytest.fail("nothing kept for these inputs"))
+
+
+def test_a_kept_box_screen_is_the_fresh_one_to_the_bit(mpc, monkeypatch) -> None:
+    screens = _fresh_cache(monkeypatch, predictive, "_box_screens")
+    margins = _fresh_cache(monkeypatch, predictive, "_margins")
+    law, plants = mpc.feedback_law(), mpc.box_plants()
+    banks = [ObserverBank.for_controller(mpc.model, mpc.task, mpc.settings) for _ in range(2)]
+    first, again = (predictive.screen_bank(bank, law, plants) for bank in banks)
+    assert first == again and (screens.misses, screens.hits) == (1, 1)
+    assert (margins.misses, margins.hits) == (1, 1)
+    np.testing.assert_array_equal(banks[0].admissible, banks[1].admissible)
+    bank = banks[1]
+    fresh = loop.radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
+    parts = [bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants]
+    assert np.array_equal(_kept(screens, parts), fresh.max(axis=1))
+    fresh = loop.modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, n=bank.n)
+    kept = predictive.filter_margins(bank, bank.gains, law)
+    assert np.array_equal(kept, fresh)
+    # the description reads the screen's sweep
+    assert mpc.observer_description()["modulus_margin_prior"] == float(fresh[bank.prior])
+
+
+def test_a_box_screen_input_changed_in_its_last_bit_is_screened_afresh(mpc, monkeypatch) -> None:
+    screens = _fresh_cache(monkeypatch, predictive, "_box_screens")
+    margins = _fresh_cache(monkeypatch, predictive, "_margins")
+    law, plants = mpc.feedback_law(), mpc.box_plants()
+    bank = ObserverBank.for_controller(mpc.model, mpc.task, mpc.settings)
+    predictive.screen_bank(bank, law, plants)
+    moved = [(_nudged(plants[3][0]), *plants[3][1:]), *plants[1:]]
+    for count, (k_e, k_z, on) in enumerate(
+        [(_nudged(law[0]), law[1], plants), (law[0], np.nextafter(law[1], 2.0), plants)],
+        start=2,
+    ):
+        predictive.screen_bank(bank, (k_e, k_z), on)
+        assert (screens.misses, margins.misses) == (count, count)
+    predictive.screen_bank(bank, law, moved)  # the plants are the screen's only
+    assert (screens.misses, margins.misses, margins.hits) == (4, 3, 1)
+    bank._gains[0, 0] = np.nextafter(bank._gains[0, 0], np.inf)
+    predictive.screen_bank(bank, law, plants)
+    assert (screens.misses, margins.misses) == (5, 4)
+
+
+def test_box_screens_cannot_change_each_others_results(mpc, monkeypatch) -> None:
+    _fresh_cache(monkeypatch, predictive, "_box_screens")
+    _fresh_cache(monkeypatch, predictive, "_margins")
+    law = mpc.feedback_law()
+    bank = ObserverBank.for_controller(mpc.model, mpc.task, mpc.settings)
+    margins = predictive.filter_margins(bank, bank.gains, law)
+    expected = margins.copy()
+    margins[:] = -1.0
+    assert np.array_equal(predictive.filter_margins(bank, bank.gains, law), expected)
+    parts = [bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, mpc.box_plants()]
+    predictive.screen_bank(bank, law, mpc.box_plants())
+    radii = _kept(predictive._box_screens, parts)
+    expected = radii.copy()
+    radii[:] = -1.0
+    assert np.array_equal(_kept(predictive._box_screens, parts), expected)
+
+
+def test_kept_box_plants_are_the_fresh_ones_to_the_bit(mpc, monkeypatch) -> None:
+    cache = _fresh_cache(monkeypatch, predictive, "_box_plants")
+
+    def plants_of(model):
+        holder = types.SimpleNamespace(model=model, _box_plants=None)
+        return PredictiveController.box_plants(holder)
+
+    first, again = plants_of(mpc.model), plants_of(mpc.model)
+    assert (cache.misses, cache.hits) == (1, 1)
+    box = ToleranceBox()
+    fresh = [m for _, m in vertex_models(mpc.model, box, further_modes=True)]
+    matched = dataclasses.replace(box, gain=0.0)
+    fresh += [m for _, m in vertex_models(mpc.model, matched, further_modes=True)]
+    assert len(first) == len(fresh) == 12
+    for plants in (first, again):
+        for (a, b, c), model in zip(plants, fresh, strict=True):
+            assert all(np.array_equal(x, y) for x, y in ((a, model.a), (b, model.b), (c, model.c)))
+    first[0][0][:] = -1.0  # a caller's copy
+    assert np.array_equal(plants_of(mpc.model)[0][0], fresh[0].a)
+    for changed in ("a", "b", "c"):
+        nudged = dataclasses.replace(mpc.model, **{changed: _nudged(getattr(mpc.model, changed))})
+        plants_of(nudged)
+    plants_of(dataclasses.replace(mpc.model, dt=np.nextafter(mpc.model.dt, 1.0)))
+    assert cache.misses == 5
