@@ -9,6 +9,7 @@ import itertools
 import types
 from pathlib import Path
 
+import casadi
 import numpy as np
 import pytest
 from handmade import first_mode
@@ -17,6 +18,7 @@ import controllers.observer as observer_module
 import controllers.predictive as predictive
 from controllers import loop
 from controllers.memo import ContentCache
+from controllers.native import codegen
 from controllers.observer import DISTURBANCE_RATIOS, PROCESS_RATIOS, ObserverBank
 from controllers.predictive import PredictiveController
 from controllers.tolerance_box import ToleranceBox, vertex_models
@@ -228,3 +230,28 @@ def test_kept_box_plants_are_the_fresh_ones_to_the_bit(mpc, monkeypatch) -> None
         plants_of(nudged)
     plants_of(dataclasses.replace(mpc.model, dt=np.nextafter(mpc.model.dt, 1.0)))
     assert cache.misses == 5
+
+
+# -- generated code and the graphs it is generated from (controllers.native) -------------------
+
+
+def _probe(constant: float = 2.0) -> casadi.Function:
+    x = casadi.SX.sym("x", 3)
+    return casadi.Function("design_cache_probe", [x], [casadi.sin(x) * constant + casadi.sumsqr(x)])
+
+
+def test_kept_generated_c_is_casadis_to_the_byte(monkeypatch, tmp_path) -> None:
+    cache = _fresh_cache(monkeypatch, codegen, "_sources")
+    first = codegen.generated_c("probe.c", [_probe()])
+    again = codegen.generated_c("probe.c", [_probe()])  # an equal function built again
+    assert (cache.misses, cache.hits) == (1, 1)
+    generator = casadi.CodeGenerator("probe.c", {"with_header": False})
+    generator.add(_probe())
+    generator.generate(f"{tmp_path}/")
+    assert first == again == (tmp_path / "probe.c").read_bytes()
+    assert codegen.generated_text("probe.c", [_probe()]) == (tmp_path / "probe.c").read_text(
+        encoding="utf-8"
+    )
+    nudged = codegen.generated_c("probe.c", [_probe(np.nextafter(2.0, 3.0))])
+    other_name = codegen.generated_c("other.c", [_probe()])
+    assert cache.misses == 3 and nudged != first and other_name != first

@@ -55,13 +55,17 @@ The library is built once per machine and model through
 from __future__ import annotations
 
 import ctypes
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import NUMPY, NativeBuild, call_buffers, compile_source
+from controllers.native.codegen import (
+    NUMPY,
+    NativeBuild,
+    call_buffers,
+    compile_source,
+    generated_text,
+)
 from controllers.native.step_kernels import FLAGS
 
 __all__ = ["ERROR", "INSIDE", "NEED_QP", "IterationKernel", "compile_kernel", "unavailable"]
@@ -426,13 +430,7 @@ def partials_function(nls: Any) -> Any:
 def kernel_source(partials: Any) -> str:
     """The translation unit: the generated C of :func:`partials_function`'s Function
     (``nmpc_partials``) and the step."""
-    import casadi
-
-    with tempfile.TemporaryDirectory() as folder:
-        generator = casadi.CodeGenerator("nmpc_step.c", {"with_header": False})
-        generator.add(partials)
-        generator.generate(f"{folder}/")
-        generated = (Path(folder) / "nmpc_step.c").read_text(encoding="utf-8")
+    generated = generated_text("nmpc_step.c", [partials])
     return "\n".join((generated, STEP))
 
 
