@@ -100,7 +100,21 @@ class ContentCache:
     def get(self, parts: Iterable[Any], compute: Callable[[], T]) -> T:
         """A deep copy of ``compute()``'s result for these inputs, computed on the first call
         (an exception is raised each time and nothing is kept)."""
-        key = content_key(parts)
+        return self._get(content_key(parts), compute)
+
+    def get_or_compute(self, parts: Iterable[Any] | None, compute: Callable[[], T]) -> T:
+        """As :meth:`get`, for inputs whose content may not be known: with ``parts`` None, or
+        holding something :func:`content_key` cannot see (an object of a class the caller
+        does not know), ``compute()`` runs each time and nothing is kept."""
+        if parts is None:
+            return compute()
+        try:
+            key = content_key(parts)
+        except ValueError:
+            return compute()
+        return self._get(key, compute)
+
+    def _get(self, key: bytes, compute: Callable[[], T]) -> T:
         if key in self._results:
             self._results.move_to_end(key)
             self.hits += 1

@@ -12,16 +12,23 @@ from pathlib import Path
 import casadi
 import numpy as np
 import pytest
-from handmade import first_mode
+from handmade import AffineNonlinearity, first_mode, handmade_nls
 
 import controllers.observer as observer_module
+import controllers.prediction as prediction
 import controllers.predictive as predictive
 from controllers import loop
 from controllers.memo import ContentCache
-from controllers.native import codegen
+from controllers.native import codegen, compiled_inverse, nmpc_step
+from controllers.native.compiled_inverse import (
+    CompiledInverse,
+    inverse_function,
+    reachable_function,
+)
 from controllers.observer import DISTURBANCE_RATIOS, PROCESS_RATIOS, ObserverBank
 from controllers.predictive import PredictiveController
 from controllers.tolerance_box import ToleranceBox, vertex_models
+from identification.features import PastInputFeatures
 
 SIGMA = 0.5  # sensor noise (um)
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "benchmark" / "model")
@@ -255,3 +262,60 @@ def test_kept_generated_c_is_casadis_to_the_byte(monkeypatch, tmp_path) -> None:
     nudged = codegen.generated_c("probe.c", [_probe(np.nextafter(2.0, 3.0))])
     other_name = codegen.generated_c("other.c", [_probe()])
     assert cache.misses == 3 and nudged != first and other_name != first
+
+
+def _nls(out_weight: float = 0.5):
+    return handmade_nls(out_weight)
+
+
+def test_kept_inverse_graphs_are_the_fresh_ones(monkeypatch) -> None:
+    cache = _fresh_cache(monkeypatch, compiled_inverse, "_graphs")
+    first = CompiledInverse(_nls(), (-5.0, 5.0))
+    again = CompiledInverse(_nls(), (-5.0, 5.0))  # an equal NLS of its own
+    if first.functions is None:
+        pytest.skip(f"no compiled inverse here: {first.backend}")
+    assert (cache.misses, cache.hits) == (2, 2)
+    fresh = (inverse_function(_nls()), reachable_function(_nls()))
+    for inverse in (first, again):
+        for kept, built in zip(inverse.functions, fresh, strict=True):
+            assert kept.serialize() == built.serialize()
+    assert all(a is not b for a, b in zip(first.functions, again.functions, strict=True))
+    state = _nls().initial_state()
+    for target in (-3.0, 0.25, 4.0):
+        one, other = first.solve(target, state), again.solve(target, state)
+        assert (one.u, one.z, one.status) == (other.u, other.z, other.status)
+        assert np.array_equal(one.state, other.state)
+    CompiledInverse(_nls(np.nextafter(0.5, 1.0)), (-5.0, 5.0))
+    CompiledInverse(_nls(), (-5.0, 5.0), max_iter=39)  # the inverse's settings are keyed
+    assert (cache.misses, cache.hits) == (5, 3)
+
+
+def test_kept_z_bounds_are_the_fresh_ones(monkeypatch) -> None:
+    cache = _fresh_cache(monkeypatch, prediction, "_z_bounds_kept")
+    nonlinearity = prediction.IdentifiedNLS(_nls(), (-5.0, 5.0))
+    first = prediction._z_bounds(nonlinearity)
+    again = prediction._z_bounds(prediction.IdentifiedNLS(_nls(), (-5.0, 5.0)))
+    assert first == again == prediction._triangle_extremes(nonlinearity)
+    assert (cache.misses, cache.hits) == (1, 1)
+    prediction._z_bounds(prediction.IdentifiedNLS(_nls(np.nextafter(0.5, 1.0)), (-5.0, 5.0)))
+    prediction._z_bounds(prediction.IdentifiedNLS(_nls(), (-5.0, np.nextafter(5.0, 6.0))))
+    assert (cache.misses, cache.hits) == (3, 1)
+    affine = AffineNonlinearity()  # says nothing about what it computes from: not kept
+    assert prediction._z_bounds(affine) == prediction._triangle_extremes(affine)
+    assert cache.misses == 3
+
+
+def test_kept_partials_are_the_fresh_ones(monkeypatch) -> None:
+    cache = _fresh_cache(monkeypatch, nmpc_step, "_partials")
+    first, again = nmpc_step.partials_function(_nls()), nmpc_step.partials_function(_nls(0.9))
+    assert (cache.misses, cache.hits) == (1, 1)  # the network is not differentiated
+    assert first is not again
+    assert first.serialize() == again.serialize() == nmpc_step._partials_of(_nls()).serialize()
+    longer = handmade_nls(0.5)
+    longer = type(longer)(
+        PastInputFeatures(n_past=1, initial_input=np.nextafter(0.0, 1.0)),
+        longer.arrays(),
+        u_range=longer.u_range,
+    )
+    nmpc_step.partials_function(longer)
+    assert cache.misses == 2
