@@ -135,6 +135,7 @@ identified model and settings. A benchmark worker meets up to six models (three
 identification seeds, on the nominal bender and on the bench): 8 keeps them all."""
 
 _screens = ContentCache(SCREENS_KEPT)
+_member_sets = ContentCache(SCREENS_KEPT)  # the "modes" sets' members: one per screen
 _loop_radii = ContentCache(SCREENS_KEPT)  # :meth:`AdaptiveMPC.loop_radii`, as many
 
 
@@ -279,6 +280,17 @@ def damping_points(low: float, high: float) -> np.ndarray:
     return np.geomspace(low, high, steps + 1)
 
 
+def _set_members(arx: list[ARXModel]) -> dict[str, Any]:
+    """The members ``arx`` of a set with what the controller reads of them: their state-space
+    matrices, first resonances (Hz) and static gains."""
+    return {
+        "arx": arx,
+        "matrices": [m.state_space_matrices()[:3] for m in arx],
+        "resonances_hz": np.array([first_resonance_hz(m) for m in arx]),
+        "static_gains": np.array([m.static_gain() for m in arx]),
+    }
+
+
 @dataclass
 class _Member:
     """One model of the set and what the MPC needs to predict with it."""
@@ -332,17 +344,24 @@ class AdaptiveMPC(LinearMPC):
             self._member_arx = self._datasheet_members(arx, task)
             a, b, c, _ = self._member_arx[0].state_space_matrices()
             model = dataclasses.replace(model, a=a, b=b, c=c)
+            members = _set_members(self._member_arx)
         else:
-            self._member_arx = [arx] + [
-                box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in self._grid[1:]
-            ]
-        self._member_models = []
-        for member in self._member_arx:
-            a, b, c, _ = member.state_space_matrices()
-            self._member_models.append(dataclasses.replace(model, a=a, b=b, c=c))
+            # The ARX part is read from the model's matrices, and the members are moved from it
+            # to the grid's points: a pure function of both, kept by content.
+            grid = self._grid
+            members = _member_sets.get(
+                [model.a, model.b, model.c, model.dt, grid],
+                lambda: _set_members(
+                    [arx] + [box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in grid[1:]]
+                ),
+            )
+            self._member_arx = members["arx"]
+        self._member_models = [
+            dataclasses.replace(model, a=a, b=b, c=c) for a, b, c in members["matrices"]
+        ]
         # Read once: the trace and the properties must not find poles inside the loop.
-        self._member_hz = np.array([first_resonance_hz(m) for m in self._member_arx])
-        self._member_gains = np.array([m.static_gain() for m in self._member_arx])
+        self._member_hz = members["resonances_hz"]
+        self._member_gains = members["static_gains"]
         self._check_shared_state()
         self._members: list[_Member] = []
         self._bindings: list[np.ndarray] = []

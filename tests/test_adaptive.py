@@ -376,6 +376,43 @@ def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypa
     assert (adaptive._loop_radii.misses, adaptive._screens.misses) == (2, 2)
 
 
+def test_the_same_set_is_moved_to_the_grid_once(controller, monkeypatch):
+    """The members (the identified model moved to each grid point) are kept by content: a set
+    built again on the same model gets the fresh members to the bit, copies of its own, and a
+    model changed in its last bit is moved afresh."""
+    import controllers.adaptive as adaptive
+    from controllers.memo import ContentCache
+    from controllers.mpc import LinearMPC
+    from controllers.tolerance_box import Vertex, box_model
+
+    cache = ContentCache(adaptive.SCREENS_KEPT)
+    monkeypatch.setattr(adaptive, "_member_sets", cache)
+    monkeypatch.setattr(LinearMPC, "__init__", lambda self, *args, **kwargs: None)  # the set only
+    model, task = controller._member_models[0], controller.task
+    first, again = (AdaptiveMPC(model, task) for _ in range(2))
+    assert (cache.misses, cache.hits) == (1, 1)
+    arx = adaptive.arx_from_realization(model)
+    fresh = [arx] + [box_model(arx, Vertex(1.0, a, z)) for a, z in first._grid[1:]]
+    for built in (first, again, controller):
+        for member, expected in zip(built._member_arx, fresh, strict=True):
+            np.testing.assert_array_equal(member.a, expected.a)
+            np.testing.assert_array_equal(member.b, expected.b)
+        for member, expected in zip(built._member_models, fresh, strict=True):
+            matrices = expected.state_space_matrices()[:3]
+            for got, want in zip((member.a, member.b, member.c), matrices, strict=True):
+                np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(built._member_hz, [first_resonance_hz(m) for m in fresh])
+    first._member_arx[4].b[:] = 0.0
+    first._member_hz[:] = 0.0
+    third = AdaptiveMPC(model, task)
+    np.testing.assert_array_equal(third._member_arx[4].b, fresh[4].b)
+    np.testing.assert_array_equal(third._member_hz, again._member_hz)
+    a = model.a.copy()
+    a[0, 0] = np.nextafter(a[0, 0], np.inf)
+    AdaptiveMPC(dataclasses.replace(model, a=a), task)
+    assert cache.misses == 2
+
+
 def test_a_set_whose_members_do_not_share_the_state_is_refused(controller, monkeypatch):
     """A swap carries the state over, so every member must share the identified model's
     realization and static gain."""
