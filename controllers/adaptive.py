@@ -81,16 +81,13 @@ from controllers.base import ControllerStats
 from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.gain import GainEstimate
-from controllers.loop import (
-    feedback_law,
-    modulus_margins,
-    radii_matrix,
-)
+from controllers.loop import feedback_law, radii_matrix
 from controllers.memo import ContentCache
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer, rescale_states
 from controllers.prediction import PredictionModel, SteadyStart
+from controllers.predictive import filter_margins
 from controllers.settings import MS_MAX, check_settings, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
@@ -138,6 +135,8 @@ identified model and settings. A benchmark worker meets up to six models (three
 identification seeds, on the nominal bender and on the bench): 8 keeps them all."""
 
 _screens = ContentCache(SCREENS_KEPT)
+_member_sets = ContentCache(SCREENS_KEPT)  # the "modes" sets' members: one per screen
+_loop_radii = ContentCache(SCREENS_KEPT)  # :meth:`AdaptiveMPC.loop_radii`, as many
 
 
 @dataclass(frozen=True)
@@ -281,6 +280,17 @@ def damping_points(low: float, high: float) -> np.ndarray:
     return np.geomspace(low, high, steps + 1)
 
 
+def _set_members(arx: list[ARXModel]) -> dict[str, Any]:
+    """The members ``arx`` of a set with what the controller reads of them: their state-space
+    matrices, first resonances (Hz) and static gains."""
+    return {
+        "arx": arx,
+        "matrices": [m.state_space_matrices()[:3] for m in arx],
+        "resonances_hz": np.array([first_resonance_hz(m) for m in arx]),
+        "static_gains": np.array([m.static_gain() for m in arx]),
+    }
+
+
 @dataclass
 class _Member:
     """One model of the set and what the MPC needs to predict with it."""
@@ -334,17 +344,24 @@ class AdaptiveMPC(LinearMPC):
             self._member_arx = self._datasheet_members(arx, task)
             a, b, c, _ = self._member_arx[0].state_space_matrices()
             model = dataclasses.replace(model, a=a, b=b, c=c)
+            members = _set_members(self._member_arx)
         else:
-            self._member_arx = [arx] + [
-                box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in self._grid[1:]
-            ]
-        self._member_models = []
-        for member in self._member_arx:
-            a, b, c, _ = member.state_space_matrices()
-            self._member_models.append(dataclasses.replace(model, a=a, b=b, c=c))
+            # The ARX part is read from the model's matrices, and the members are moved from it
+            # to the grid's points: a pure function of both, kept by content.
+            grid = self._grid
+            members = _member_sets.get(
+                [model.a, model.b, model.c, model.dt, grid],
+                lambda: _set_members(
+                    [arx] + [box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in grid[1:]]
+                ),
+            )
+            self._member_arx = members["arx"]
+        self._member_models = [
+            dataclasses.replace(model, a=a, b=b, c=c) for a, b, c in members["matrices"]
+        ]
         # Read once: the trace and the properties must not find poles inside the loop.
-        self._member_hz = np.array([first_resonance_hz(m) for m in self._member_arx])
-        self._member_gains = np.array([m.static_gain() for m in self._member_arx])
+        self._member_hz = members["resonances_hz"]
+        self._member_gains = members["static_gains"]
         self._check_shared_state()
         self._members: list[_Member] = []
         self._bindings: list[np.ndarray] = []
@@ -483,9 +500,8 @@ class AdaptiveMPC(LinearMPC):
             out = []
             for (member, bank), filters in zip(banks, gains, strict=True):
                 law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-                margins = modulus_margins(
-                    bank.a_aug, bank.b_aug, bank.c_aug, filters, *law, n=bank.n
-                )
+                # The sweep the description of this member's loop reads too.
+                margins = filter_margins(bank, filters, law)
                 radii = np.full((len(filters), len(plants)), np.inf)
                 within = margins >= 1.0 / MS_MAX
                 if within.any():
@@ -711,17 +727,30 @@ class AdaptiveMPC(LinearMPC):
     def loop_radii(self) -> np.ndarray:
         """Spectral radius (-) of the unconstrained loop of each member's MPC (with its bank's
         prior filter, or its single filter) around each member, gains matched: (K, K), row =
-        the MPC's member, column = the plant's; below 1 where that loop is stable."""
+        the MPC's member, column = the plant's; below 1 where that loop is stable.
+
+        Kept by content as :meth:`filter_radii` is (a closed loop per member pair)."""
         plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
-        radii = []
+        loops = []
         for member in self._members:
             bank = member.observer
             filter_gain = bank.gains[bank.prior] if isinstance(bank, ObserverBank) else bank.gain
-            law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-            radii.append(
-                radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, filter_gain, *law, plants)
-            )
-        return np.concatenate(radii)
+            loops.append((member, bank, filter_gain))
+
+        def compute() -> np.ndarray:
+            radii = []
+            for member, bank, filter_gain in loops:
+                law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
+                radii.append(
+                    radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, filter_gain, *law, plants)
+                )
+            return np.concatenate(radii)
+
+        parts: list[Any] = []
+        for member, bank, filter_gain in loops:
+            parts += [member.hessian, member.q_matrix, bank.a_aug, bank.b_aug, bank.c_aug]
+            parts += [filter_gain, member.model.a, member.model.b, member.model.c]
+        return _loop_radii.get(parts, compute)
 
     def describe(self) -> dict:
         """The linear MPC's description plus the set: its members' first resonances and

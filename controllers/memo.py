@@ -1,11 +1,14 @@
 """Results of pure, costly design computations kept by the content of their inputs.
 
-A controller's design (a PID's box tuning, the adaptive MPC's stability screen of every filter
-on every member) is a deterministic function of numbers: the model's matrices, the sample time
-and the settings. A benchmark builds the same controller for every plant it runs, and a test
-suite in many tests; :class:`ContentCache` lets each design be computed once per process. The
-key is a digest of the inputs' exact bytes, so a changed input, even in its last bit, computes
-afresh; every caller gets its own deep copy, so no controller can change another's design.
+A controller's design (a PID's box tuning, an observer bank's Riccati filters, the MPCs'
+stability screens, the casadi graphs and generated C of the nonlinearity's inverse) is a
+deterministic function of numbers: the model's matrices and parameters, the sample time and
+the settings. A benchmark builds the same controller for every plant it runs, and a test suite
+in many tests; :class:`ContentCache` lets each design be computed once per process. The key
+is a digest of the inputs' exact bytes, so a changed input, even in its last bit, computes
+afresh; every caller gets its own deep copy, so no controller can change another's design
+(a casadi Function's copy shares its immutable definition). Each cache holds a documented
+number of results, derived from what one benchmark worker meets.
 """
 
 from __future__ import annotations
@@ -100,7 +103,21 @@ class ContentCache:
     def get(self, parts: Iterable[Any], compute: Callable[[], T]) -> T:
         """A deep copy of ``compute()``'s result for these inputs, computed on the first call
         (an exception is raised each time and nothing is kept)."""
-        key = content_key(parts)
+        return self._get(content_key(parts), compute)
+
+    def get_or_compute(self, parts: Iterable[Any] | None, compute: Callable[[], T]) -> T:
+        """As :meth:`get`, for inputs whose content may not be known: with ``parts`` None, or
+        holding something :func:`content_key` cannot see (an object of a class the caller
+        does not know), ``compute()`` runs each time and nothing is kept."""
+        if parts is None:
+            return compute()
+        try:
+            key = content_key(parts)
+        except ValueError:
+            return compute()
+        return self._get(key, compute)
+
+    def _get(self, key: bytes, compute: Callable[[], T]) -> T:
         if key in self._results:
             self._results.move_to_end(key)
             self.hits += 1

@@ -48,11 +48,13 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
+from controllers.memo import ContentCache
 from controllers.native.step_kernels import kernels_for
 from controllers.riccati import filter_riccati
 from controllers.settings import measurement_std
 
 __all__ = [
+    "BANKS_KEPT",
     "DISTURBANCE_RATIOS",
     "PROCESS_RATIOS",
     "RUNAWAY_CORRELATION",
@@ -193,9 +195,14 @@ class DisturbanceObserver:
         dt : float
             Sample time (s).
         """
-        closed = self.a_aug - np.outer(self.a_aug @ self.gain, self.c_aug)
-        radius = np.abs(np.linalg.eigvals(closed)).max()
-        return float(-np.log(max(radius, 1e-300)) / (2 * np.pi * dt))
+        return _slowest_pole_hz(self.a_aug, self.gain, self.c_aug, dt)
+
+
+def _slowest_pole_hz(a_aug: np.ndarray, gain: np.ndarray, c_aug: np.ndarray, dt: float) -> float:
+    """-ln|p| / (2 pi dt) (Hz) of the slowest pole of the filter ``(a_aug, gain, c_aug)``."""
+    closed = a_aug - np.outer(a_aug @ gain, c_aug)
+    radius = np.abs(np.linalg.eigvals(closed)).max()
+    return float(-np.log(max(radius, 1e-300)) / (2 * np.pi * dt))
 
 
 PROCESS_RATIOS = (0.0, 0.125, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -290,6 +297,74 @@ def state_scale_of(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if not variance.max() > 0:  # no input path (b = 0): nothing to scale by
         return np.ones(a.shape[0])
     return np.maximum(variance, 1e-12 * variance.max())
+
+
+BANKS_KEPT = 256
+"""Observer banks' designs kept by content (:func:`_bank_design`), one per linear model, sensor
+noise and grid. A benchmark worker meets up to six identified models (three identification
+seeds, on the nominal bender and on the bench), each with the adaptive MPC's 34 members (the
+fixed MPCs' banks are its first member's): 204, and a group's oracles (10 drawn plants at
+most) on top: 256."""
+
+_bank_designs = ContentCache(BANKS_KEPT)
+
+
+def _bank_design(
+    a: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    measurement_std: float,
+    ratios: list[tuple[float, float]],
+    slope_std: float,
+) -> dict[str, Any]:
+    """What an :class:`ObserverBank` of the model ``(a, b, c)`` fixes when it is built: every
+    filter's steady-state gain and innovation variance under the grid's noise levels
+    (``ratios``: (process, disturbance) ratio pairs), and the augmented model.
+
+    A pure function of its arguments, and most of a bank's construction (a Riccati equation
+    per filter), so the bank keeps it by content (:data:`BANKS_KEPT`,
+    :mod:`controllers.memo`): the adaptive MPC's set, and the fixed MPCs on the same model,
+    solve each bank once per process.
+
+    Raises
+    ------
+    ValueError
+        If the model's DC gain is not finite and nonzero, or a noise level is invalid
+        (:class:`DisturbanceObserver`).
+    """
+    n = a.shape[0]
+    dc_gain = abs((c @ np.linalg.solve(np.eye(n) - a, b)).item())
+    if not (np.isfinite(dc_gain) and dc_gain > 0):
+        raise ValueError(f"the model's DC gain must be finite and nonzero, got {dc_gain}")
+    scale = state_scale_of(a, b[:, 0])  # the same for every filter: solved once
+    levels = [(rx * measurement_std / dc_gain, rd * measurement_std) for rx, rd in ratios]
+    # Every filter's Riccati equation at once (controllers.riccati).
+    aa, _, ca = augmented(a, b, c, 2 if slope_std > 0 else 1)
+    q = np.array([noise_covariance(b, scale, px, dx, slope_std) for px, dx in levels])
+    covariances, fallbacks = filter_riccati(aa, ca, q, np.full(len(levels), measurement_std**2))
+    filters = [
+        DisturbanceObserver(
+            a,
+            b,
+            c,
+            measurement_std=measurement_std,
+            disturbance_std=dx,
+            process_std=px,
+            slope_std=slope_std,
+            covariance=p,
+        )
+        for (px, dx), p in zip(levels, covariances, strict=True)
+    ]
+    first = filters[0]
+    return {
+        "a_aug": first.a_aug,
+        "b_aug": first.b_aug,
+        "c_aug": first.c_aug,
+        "riccati_fallbacks": fallbacks,
+        "noise_levels": np.array([(f.process_std, f.disturbance_std) for f in filters]),
+        "gains": np.array([f.gain for f in filters]),
+        "innovation_var": np.array([f.innovation_var for f in filters]),
+    }
 
 
 class ObserverBank:
@@ -388,48 +463,26 @@ class ObserverBank:
     ) -> None:
         if not (isinstance(memory, int) and memory >= 1):
             raise ValueError(f"memory must be an integer >= 1 sample, got {memory!r}")
-        n = a.shape[0]
-        dc_gain = abs((c @ np.linalg.solve(np.eye(n) - a, b)).item())
-        if not (np.isfinite(dc_gain) and dc_gain > 0):
-            raise ValueError(f"the model's DC gain must be finite and nonzero, got {dc_gain}")
         ratios = list(itertools.product(process_ratios, disturbance_ratios))
-        scale = state_scale_of(a, b[:, 0])  # the same for every filter: solved once
-        levels = [(rx * measurement_std / dc_gain, rd * measurement_std) for rx, rd in ratios]
-        # Every filter's Riccati equation at once (controllers.riccati).
-        aa, _, ca = augmented(a, b, c, 2 if slope_std > 0 else 1)
-        q = np.array([noise_covariance(b, scale, px, dx, slope_std) for px, dx in levels])
-        covariances, self.riccati_fallbacks = filter_riccati(
-            aa, ca, q, np.full(len(levels), measurement_std**2)
+        design = _bank_designs.get(
+            [a, b, c, measurement_std, process_ratios, disturbance_ratios, slope_std],
+            lambda: _bank_design(a, b, c, measurement_std, ratios, slope_std),
         )
-        filters = [
-            DisturbanceObserver(
-                a,
-                b,
-                c,
-                measurement_std=measurement_std,
-                disturbance_std=dx,
-                process_std=px,
-                slope_std=slope_std,
-                covariance=p,
-            )
-            for (px, dx), p in zip(levels, covariances, strict=True)
-        ]
-        first = filters[0]
-        self.n, self.n_disturbance = first.n, first.n_disturbance
-        self.a_aug, self.b_aug, self.c_aug = first.a_aug, first.b_aug, first.c_aug
-        self._a_aug_t = first.a_aug.T.copy()
-        self.noise_levels = [(f.process_std, f.disturbance_std) for f in filters]
-        self._gains = np.array([f.gain for f in filters])
-        variance = np.array([f.innovation_var for f in filters])
+        self.n, self.n_disturbance = a.shape[0], 2 if slope_std > 0 else 1
+        self.a_aug, self.b_aug, self.c_aug = design["a_aug"], design["b_aug"], design["c_aug"]
+        self._a_aug_t = self.a_aug.T.copy()
+        self.riccati_fallbacks = design["riccati_fallbacks"]
+        self.noise_levels = [(p, d) for p, d in design["noise_levels"].tolist()]
+        self._gains = design["gains"]
+        variance = design["innovation_var"]
         self._half_inverse_var = 0.5 / variance
         self._half_log_var = 0.5 * np.log(variance)
         self._keep = 1.0 - 1.0 / memory
         self._guard_keep = 1.0 - 1.0 / RUNAWAY_MEMORY
         self.prior = int(np.argmin(_prior_distance(np.array(ratios))))
-        self._filters = filters
         self._ratios = ratios
-        self.admissible = np.ones(len(levels), dtype=bool)
-        self._allocate(len(levels))
+        self.admissible = np.ones(len(ratios), dtype=bool)
+        self._allocate(len(ratios))
         self.fallback = int(np.lexsort(np.array(ratios).T[::-1])[0])  # smallest process, then d
         self.reset()
 
@@ -660,7 +713,7 @@ class ObserverBank:
     def slowest_pole_hz(self, dt: float) -> float:
         """The prior filter's slowest-pole decay rate (Hz), for reports; see
         :meth:`DisturbanceObserver.slowest_pole_hz`."""
-        return self._filters[self.prior].slowest_pole_hz(dt)
+        return _slowest_pole_hz(self.a_aug, self._gains[self.prior].copy(), self.c_aug, dt)
 
     def selection_summary(self, top: int = 3) -> list[dict[str, float]]:
         """The filters selected most often since the last reset, with their share of the

@@ -21,10 +21,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from controllers.native.compiled_inverse import CompiledInverse, InverseMap
+from controllers.memo import ContentCache
+from controllers.native.compiled_inverse import CompiledInverse, InverseMap, nls_content
 from piezo_env.inverse import InverseResult
 
 __all__ = [
+    "Z_BOUNDS_KEPT",
     "HysteresisMap",
     "IdentifiedNLS",
     "InputNonlinearity",
@@ -77,6 +79,11 @@ class IdentifiedNLS:
     def native(self) -> list[Any]:
         """The native builds of the inverse (:class:`controllers.native.codegen.NativeBuild`)."""
         return self._inverse.native
+
+    def content(self) -> list[Any]:
+        """What :meth:`step` computes from, for a content key
+        (:func:`controllers.native.compiled_inverse.nls_content`)."""
+        return nls_content(self.nls)
 
     def initial_state(self) -> np.ndarray:
         return self.nls.initial_state()
@@ -133,6 +140,12 @@ class PlantHysteresis:
         """The native builds of the inverse (:class:`controllers.native.codegen.NativeBuild`;
         empty where the model has no generated inverse)."""
         return [] if self._inverse is None else self._inverse.native
+
+    def content(self) -> list[Any]:
+        """What :meth:`step` computes from, for a content key: the hysteresis model (a frozen
+        dataclass of numbers; any other is not keyed, :meth:`controllers.memo.ContentCache.
+        get_or_compute`)."""
+        return ["hysteresis", self.hysteresis]
 
     def initial_state(self) -> np.ndarray:
         return np.asarray(self.hysteresis.initial_state(0.0), dtype=np.float64)
@@ -192,6 +205,11 @@ class HysteresisMap(InverseMap):
         self, z_target: float, state: np.ndarray, u_range: tuple[float, float]
     ) -> InverseResult:
         return self.hysteresis.inverse(z_target, state, u_range)
+
+    def content(self) -> list[Any]:
+        """What the generated functions are built from: the hysteresis model (see
+        :meth:`PlantHysteresis.content`)."""
+        return ["hysteresis", self.hysteresis]
 
     def ends(self, state: np.ndarray, u_range: tuple[float, float]) -> tuple[float, float]:
         low = self.hysteresis.step(state, u_range[0])[1]
@@ -313,8 +331,29 @@ class PredictionModel:
         return y
 
 
+Z_BOUNDS_KEPT = 64
+"""Nonlinearities' z bounds kept by content (:func:`_z_bounds`), one per nonlinearity and
+drive range. A benchmark worker meets up to six identified models and the oracles' plants: 12
+plants, 10 random draws and 8 corners: 36 (two numbers each)."""
+
+_z_bounds_kept = ContentCache(Z_BOUNDS_KEPT)
+
+
 def _z_bounds(nonlinearity: Any) -> tuple[float, float]:
-    """Extremes of z on full-stroke triangles from rest (the major loop and its first branch)."""
+    """Extremes of z on full-stroke triangles from rest (the major loop and its first branch).
+
+    600 steps of the nonlinearity: kept by content (:data:`Z_BOUNDS_KEPT`) where the
+    nonlinearity says what its steps compute from (its ``content()``), so a model built
+    again simulates none."""
+    content = getattr(nonlinearity, "content", None)
+    return _z_bounds_kept.get_or_compute(
+        None if content is None else [*content(), nonlinearity.u_range],
+        lambda: _triangle_extremes(nonlinearity),
+    )
+
+
+def _triangle_extremes(nonlinearity: Any) -> tuple[float, float]:
+    """:func:`_z_bounds`, computed."""
     low, high = nonlinearity.u_range
     ramp = np.linspace(0.0, 1.0, 121)[1:]
     path = np.concatenate([high * ramp, high + (low - high) * ramp, low + (high - low) * ramp])

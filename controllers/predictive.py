@@ -32,13 +32,54 @@ from controllers.condensed import (
     rate_hessian,
 )
 from controllers.loop import feedback_law, modulus_margins, radii_matrix
+from controllers.memo import ContentCache
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX
 from controllers.task import ControlTask
 from controllers.tolerance_box import ToleranceBox, vertex_models
 
-__all__ = ["PredictiveController", "screen_bank"]
+__all__ = [
+    "BOX_PLANTS_KEPT",
+    "BOX_SCREENS_KEPT",
+    "MARGINS_KEPT",
+    "PredictiveController",
+    "filter_margins",
+    "screen_bank",
+]
+
+BOX_SCREENS_KEPT = 16
+"""Box screens kept by content (:func:`screen_bank`), one per bank and feedback law. A
+benchmark worker meets up to six identified models (three identification seeds, on the nominal
+bender and on the bench), each screened by the linear and the nonlinear MPC's laws: 12."""
+
+BOX_PLANTS_KEPT = 8
+"""Tolerance boxes' vertex models kept by content (:meth:`PredictiveController.box_plants`),
+one per identified model: a benchmark worker meets up to six (as :data:`BOX_SCREENS_KEPT`)."""
+
+MARGINS_KEPT = 256
+"""Filters' modulus margins kept by content (:func:`filter_margins`), one per observer and
+feedback law. A benchmark worker meets up to six identified models, each with the two MPCs'
+laws on its bank and the adaptive MPC's 34 members' (the one in use when it is described),
+and the oracles of its plants (two per plant, 12 plants): 6 x 36 + 24 = 240."""
+
+_box_screens = ContentCache(BOX_SCREENS_KEPT)
+_box_plants = ContentCache(BOX_PLANTS_KEPT)
+_margins = ContentCache(MARGINS_KEPT)
+
+
+def filter_margins(
+    observer: Any, gains: np.ndarray, law: tuple[np.ndarray, float]
+) -> np.ndarray:
+    """:func:`controllers.loop.modulus_margins` of the loops the filter ``gains`` ((F, m) or
+    (m,)) of ``observer``'s augmented model close with the feedback ``law``, kept by content
+    (:data:`MARGINS_KEPT`): the box screen and the description read the same sweep, and a
+    controller built again on the same model reads it from the first."""
+    a_aug, b_aug, c_aug, n = observer.a_aug, observer.b_aug, observer.c_aug, observer.n
+    return _margins.get(
+        [a_aug, b_aug, c_aug, gains, *law, n],
+        lambda: modulus_margins(a_aug, b_aug, c_aug, gains, *law, n=n),
+    )
 
 
 def _has_mode(model: PredictionModel) -> bool:
@@ -74,8 +115,17 @@ def screen_bank(
         ``applied`` True, ``robust``, ``filters_kept``, ``filters``, ``worst_radius`` (the
         largest spectral radius over the kept filters and the plants, -), ``ms_max``.
     """
-    radii = radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants).max(axis=1)
-    margins = modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, n=bank.n)
+
+    def compute() -> np.ndarray:
+        return radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants).max(
+            axis=1
+        )
+
+    # A closed loop per filter and plant, and a frequency sweep per filter: kept by content,
+    # so the same bank screened with the same law on the same plants is screened once.
+    parts = [bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants]
+    radii = _box_screens.get(parts, compute)
+    margins = filter_margins(bank, bank.gains, law)
     admissible = (radii < 1.0) & (margins >= 1.0 / MS_MAX)
     robust = bool(admissible.any())
     if not robust:
@@ -144,8 +194,6 @@ class PredictiveController(Controller):
         check_well_posed(self._blocked(self._gamma), settings.rate_weight, weight, name=self.name)
         self.observer = make_observer(model, task, settings)
         self._box_plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None
-        # (observer id, law) -> (observer, its filters' modulus margins): observer_description
-        self._margins_memo: dict[tuple, tuple[Any, np.ndarray]] = {}
         self._set_up()
         self.screen = self._screen(self.observer, self.feedback_law())
         self._reset(None)
@@ -156,16 +204,24 @@ class PredictiveController(Controller):
         (:func:`controllers.tolerance_box.vertex_models`), at the gain factors ``1 - w``,
         ``1`` and ``1 + w`` (w the datasheet's free-deflection tolerance: the plant's gain
         relative to the one the MPC predicts with lies between 1 and the plant's own, as the MPC
-        learns it, :mod:`controllers.gain`). Computed once."""
+        learns it, :mod:`controllers.gain`). Computed once, and kept by content
+        (:data:`BOX_PLANTS_KEPT`) for the next controller on the same model."""
         if self._box_plants is None:
-            box = ToleranceBox()
-            if not _has_mode(self.model):  # nothing to move but the gain
-                box = dataclasses.replace(box, resonance=0.0, damping=None)
-            models = [m for _, m in vertex_models(self.model, box, further_modes=True)]
-            matched = dataclasses.replace(box, gain=0.0)
-            if not matched.is_nominal:
-                models += [m for _, m in vertex_models(self.model, matched, further_modes=True)]
-            self._box_plants = [(m.a, m.b, m.c) for m in models]
+            model = self.model
+
+            def compute() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                box = ToleranceBox()
+                if not _has_mode(model):  # nothing to move but the gain
+                    box = dataclasses.replace(box, resonance=0.0, damping=None)
+                models = [m for _, m in vertex_models(model, box, further_modes=True)]
+                matched = dataclasses.replace(box, gain=0.0)
+                if not matched.is_nominal:
+                    models += [m for _, m in vertex_models(model, matched, further_modes=True)]
+                return [(m.a, m.b, m.c) for m in models]
+
+            # What vertex_models reads of the model, and the box's defaults.
+            parts = [model.a, model.b, model.c, model.dt, ToleranceBox()]
+            self._box_plants = _box_plants.get(parts, compute)
         return self._box_plants
 
     def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
@@ -248,22 +304,8 @@ class PredictiveController(Controller):
         observer = self.observer
         bank = isinstance(observer, ObserverBank)
         law = self.feedback_law()
-        # A frequency sweep per filter: worth keeping, since a benchmark describes its
-        # controller after every episode. The filters' gains are fixed once built, so the
-        # observer and the law (an adaptive MPC's member has its own) are the whole key; the
-        # memo holds the observer, so its id is not reused while the entry lives.
-        key = (id(observer), law[0].tobytes(), float(law[1]))
-        memo = self._margins_memo
-        if key not in memo:
-            memo[key] = observer, modulus_margins(
-                observer.a_aug,
-                observer.b_aug,
-                observer.c_aug,
-                observer.gains if bank else observer.gain,
-                *law,
-                n=observer.n,
-            )
-        margins = memo[key][1]
+        # A frequency sweep per filter, the box screen's (filter_margins keeps it by content).
+        margins = filter_margins(observer, observer.gains if bank else observer.gain, law)
         if not bank:
             return {"modulus_margin": float(margins[0])}
         kept = margins[observer.admissible]

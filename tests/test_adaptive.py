@@ -341,24 +341,76 @@ def test_a_swap_is_bumpless(controller):
 
 
 def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypatch):
-    """The stability screen of every filter on every member (most of the construction) is kept
-    by content: a second controller on the same model screens no filter again (its only loops
-    are :meth:`loop_radii`'s, one per member) and gets equal radii of its own."""
+    """The stability screen of every filter on every member and the loop radii of every
+    member's prior filter (most of the construction) are kept by content: a second controller
+    on the same model closes no loop again and gets equal radii of its own; a member changed
+    in its last bit is screened afresh."""
     import controllers.adaptive as adaptive
     from controllers.memo import ContentCache
 
     monkeypatch.setattr(adaptive, "_screens", ContentCache(adaptive.SCREENS_KEPT))
-    radii = controller.filter_radii()  # computed into the fresh cache
+    monkeypatch.setattr(adaptive, "_loop_radii", ContentCache(adaptive.SCREENS_KEPT))
+    radii = controller.filter_radii()  # computed into the fresh caches
+    loops = controller.loop_radii()
+    np.testing.assert_array_equal(loops, controller._radii)  # the fresh loops, to the bit
     calls = []
     original = adaptive.radii_matrix
     monkeypatch.setattr(
         adaptive, "radii_matrix", lambda *a, **k: calls.append(1) or original(*a, **k)
     )
     again = controllers.make("mpc-adaptive", MODEL_DIR, nominal)
-    assert calls == [1] * len(again._members)
+    assert calls == []
     np.testing.assert_array_equal(again._filter_radii, radii)
+    np.testing.assert_array_equal(again._radii, loops)
     again._filter_radii[:] = -1.0
+    again._radii[:] = -1.0
     np.testing.assert_array_equal(controller.filter_radii(), radii)
+    np.testing.assert_array_equal(controller.loop_radii(), loops)
+    member = again._members[5]
+    hessian = member.hessian.copy()
+    hessian[0, 0] = np.nextafter(hessian[0, 0], np.inf)
+    monkeypatch.setattr(member, "hessian", hessian)
+    again.loop_radii()
+    again.filter_radii()
+    assert calls  # closed afresh
+    assert (adaptive._loop_radii.misses, adaptive._screens.misses) == (2, 2)
+
+
+def test_the_same_set_is_moved_to_the_grid_once(controller, monkeypatch):
+    """The members (the identified model moved to each grid point) are kept by content: a set
+    built again on the same model gets the fresh members to the bit, copies of its own, and a
+    model changed in its last bit is moved afresh."""
+    import controllers.adaptive as adaptive
+    from controllers.memo import ContentCache
+    from controllers.mpc import LinearMPC
+    from controllers.tolerance_box import Vertex, box_model
+
+    cache = ContentCache(adaptive.SCREENS_KEPT)
+    monkeypatch.setattr(adaptive, "_member_sets", cache)
+    monkeypatch.setattr(LinearMPC, "__init__", lambda self, *args, **kwargs: None)  # the set only
+    model, task = controller._member_models[0], controller.task
+    first, again = (AdaptiveMPC(model, task) for _ in range(2))
+    assert (cache.misses, cache.hits) == (1, 1)
+    arx = adaptive.arx_from_realization(model)
+    fresh = [arx] + [box_model(arx, Vertex(1.0, a, z)) for a, z in first._grid[1:]]
+    for built in (first, again, controller):
+        for member, expected in zip(built._member_arx, fresh, strict=True):
+            np.testing.assert_array_equal(member.a, expected.a)
+            np.testing.assert_array_equal(member.b, expected.b)
+        for member, expected in zip(built._member_models, fresh, strict=True):
+            matrices = expected.state_space_matrices()[:3]
+            for got, want in zip((member.a, member.b, member.c), matrices, strict=True):
+                np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(built._member_hz, [first_resonance_hz(m) for m in fresh])
+    first._member_arx[4].b[:] = 0.0
+    first._member_hz[:] = 0.0
+    third = AdaptiveMPC(model, task)
+    np.testing.assert_array_equal(third._member_arx[4].b, fresh[4].b)
+    np.testing.assert_array_equal(third._member_hz, again._member_hz)
+    a = model.a.copy()
+    a[0, 0] = np.nextafter(a[0, 0], np.inf)
+    AdaptiveMPC(dataclasses.replace(model, a=a), task)
+    assert cache.misses == 2
 
 
 def test_a_set_whose_members_do_not_share_the_state_is_refused(controller, monkeypatch):

@@ -86,3 +86,21 @@ def test_a_failure_is_raised_each_time_and_not_kept():
     assert cache.misses == 0
     with pytest.raises(ValueError, match="size must be an integer >= 1"):
         ContentCache(0)
+
+
+def test_inputs_without_a_key_are_computed_each_time_and_not_kept():
+    cache = ContentCache(2)
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return [1.0]
+
+    for parts in (None, [object()], [np.array([1, None], dtype=object)]):
+        for _ in range(2):
+            assert cache.get_or_compute(parts, compute) == [1.0]
+    assert len(calls) == 6 and (cache.hits, cache.misses) == (0, 0)
+    first = cache.get_or_compute([np.ones(2)], compute)
+    first.append(2.0)
+    assert cache.get_or_compute([np.ones(2)], compute) == [1.0]
+    assert len(calls) == 7 and (cache.hits, cache.misses) == (1, 1)

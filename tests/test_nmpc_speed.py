@@ -199,11 +199,12 @@ def test_native_off_records_the_numpy_path(env, monkeypatch):
 def test_the_compiled_iteration_leaves_the_feature_recursion_uncompiled(env):
     """The compiled iteration computes the features itself: the unrolled horizon's generated
     C (the largest the NMPC has) is built at its first use, not with the controller, and the
-    description says so until then."""
+    description says so until then; so is its casadi graph."""
     c = controllers.make("nmpc", MODEL_DIR, env, horizon=5)
     if c._kernel is None:
         pytest.skip(f"no compiled iteration here: {c.describe()['native']['nmpc_step']}")
     described = c.describe()
+    assert c.horizon._function is None
     assert "nmpc_features" not in described["native"]
     assert "deferred: generated C built on first use" in described["jacobian"]
     u = np.linspace(-5.0, 5.0, 5)

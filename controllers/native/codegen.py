@@ -62,6 +62,7 @@ import ctypes
 import dataclasses
 import functools
 import hashlib
+import io
 import os
 import platform
 import shlex
@@ -78,10 +79,13 @@ from typing import Any
 
 import numpy as np
 
+from controllers.memo import ContentCache
+
 __all__ = [
     "CASADI_VM",
     "COMPILED",
     "NUMPY",
+    "SOURCES_KEPT",
     "CallBuffers",
     "CompiledFunction",
     "NativeBuild",
@@ -92,6 +96,8 @@ __all__ = [
     "call_buffers",
     "compile_function",
     "compile_source",
+    "generated_c",
+    "generated_text",
     "native_policy",
 ]
 
@@ -99,6 +105,45 @@ DEFAULT_FLAGS = ("-O1", "-shared", "-fPIC", "-ffp-contract=off")
 """Compiler flags of :func:`compile_function` unless the caller passes others. No fused
 multiply-adds: where the compiler would fuse them by default (e.g. aarch64), the generated C
 would round differently from casadi's virtual machine."""
+
+
+SOURCES_KEPT = 48
+"""Generated C files kept by content (:func:`generated_c`). A benchmark worker meets up to six
+identified models, each with four functions of its own (the NLS inverse, its reachable range,
+the MPC's fused step and the NMPC's partials: 24), the oracles' inverse, reachable range and
+fused step of each hysteresis model (the strength is an input: three for each of the two with
+a generated inverse) and the unrolled horizons of a group's drawn oracles (10 at most): 40."""
+
+_sources = ContentCache(SOURCES_KEPT)
+
+
+def generated_c(file_name: str, functions: Sequence[Any]) -> bytes:
+    """The C file ``casadi.CodeGenerator`` writes for ``functions`` (without a header), as
+    bytes.
+
+    Generating C is most of a native build whose library is already cached on disk; a
+    benchmark builds the same functions for every plant. So the file is kept by content
+    (:data:`SOURCES_KEPT`, :mod:`controllers.memo`): the file name and the SHA-256 of each
+    function's serialization, which is the whole of its definition.
+    """
+    import casadi
+
+    def compute() -> bytes:
+        with tempfile.TemporaryDirectory() as folder:
+            generator = casadi.CodeGenerator(file_name, {"with_header": False})
+            for function in functions:
+                generator.add(function)
+            generator.generate(f"{folder}/")
+            return (Path(folder) / file_name).read_bytes()
+
+    definitions = [hashlib.sha256(f.serialize().encode()).digest() for f in functions]
+    return _sources.get([file_name, *definitions], compute)
+
+
+def generated_text(file_name: str, functions: Sequence[Any]) -> str:
+    """:func:`generated_c` as text, read as ``Path.read_text(encoding="utf-8")`` reads it."""
+    with io.TextIOWrapper(io.BytesIO(generated_c(file_name, functions)), encoding="utf-8") as f:
+        return f.read()
 
 
 @dataclass(frozen=True)
@@ -473,13 +518,11 @@ def _build(
 
 
 def _generate(function: Any, folder: Path) -> Path:
-    """Write the C of a casadi Function into ``folder``; the source file."""
-    import casadi
-
-    generator = casadi.CodeGenerator(f"{function.name()}.c", {"with_header": False})
-    generator.add(function)
-    generator.generate(f"{folder}/")
-    return folder / f"{function.name()}.c"
+    """Write the C of a casadi Function into ``folder`` (:func:`generated_c`); the source
+    file."""
+    path = folder / f"{function.name()}.c"
+    path.write_bytes(generated_c(path.name, [function]))
+    return path
 
 
 def _load(

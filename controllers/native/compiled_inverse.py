@@ -60,11 +60,13 @@ from typing import Any
 
 import numpy as np
 
+from controllers.memo import ContentCache
 from controllers.native.codegen import NUMPY, CompiledFunction, NativeBuild, compile_function
 from piezo_env.inverse import InverseResult
 
 __all__ = [
     "FALLBACK",
+    "GRAPHS_KEPT",
     "OK",
     "OUT_OF_RANGE",
     "CompiledInverse",
@@ -82,6 +84,13 @@ _FLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off")  # see codegen.DEFAULT
 # Iteration vector: bracket (a, z(a), b, z(b)), iterate u, previous step, result, flags.
 _A, _ZA, _B, _ZB, _U, _STEP, _U_OUT, _Z_OUT, _STATUS, _DONE, _PASSES = range(11)
 _N_X = 11
+
+GRAPHS_KEPT = 32
+"""casadi Functions of inverses kept by content (:class:`CompiledInverse`), two per map (the
+inverse and the reachable range). A benchmark worker meets up to six identified models, and
+between two builds on one of them at most a group's oracles (10 drawn plants): 2 x 16."""
+
+_graphs = ContentCache(GRAPHS_KEPT)
 
 
 class InverseMap:
@@ -110,6 +119,12 @@ class InverseMap:
         symbols ``p`` standing for :attr:`parameters`."""
         raise NotImplementedError
 
+    def content(self) -> list[Any] | None:
+        """What :meth:`casadi_z` and :meth:`ends` are computed from, for a content key
+        (:func:`controllers.memo.content_key`); None (the default) when that is not known,
+        and then nothing built from the map is kept."""
+        return None
+
     def solve_inverse(
         self, z_target: float, state: np.ndarray, u_range: tuple[float, float]
     ) -> InverseResult:
@@ -135,6 +150,10 @@ class NLSMap(InverseMap):
         features, new_state = self.nls.feature_map.casadi_step(u, s)
         return self.nls.to_casadi()(features), new_state
 
+    def content(self) -> list[Any]:
+        """:func:`nls_content` of the NLS."""
+        return nls_content(self.nls)
+
     def solve_inverse(
         self, z_target: float, state: np.ndarray, u_range: tuple[float, float]
     ) -> InverseResult:
@@ -144,6 +163,13 @@ class NLSMap(InverseMap):
         network = self.nls.to_numpy()
         low, high = network(self.nls.feature_map.candidates(np.array(u_range), state))
         return float(low), float(high)
+
+
+def nls_content(nls: Any) -> list[Any]:
+    """What an identified NLS computes from, for a content key: its feature map (a frozen
+    dataclass of numbers) and its network parameters (the normalised arrays the evaluators
+    are folded from)."""
+    return ["nls", nls.feature_map, nls.arrays()]
 
 
 def as_map(source: Any) -> InverseMap:
@@ -386,15 +412,24 @@ class CompiledInverse:
         """The casadi Functions ``(nls_inverse, nls_reachable)`` when both are compiled (the
         MPC's fused step, :mod:`controllers.native.fused_step`, compiles them again with its
         own code); None otherwise."""
+        # The casadi graphs are a pure function of the map and the settings, and most of the
+        # set-up: kept by content (GRAPHS_KEPT), so the same map's inverse is built once.
+        content = self.map.content()
         if compiled:
-            function = inverse_function(self.map, max_iter=max_iter, xtol=xtol)
+            function = _graphs.get_or_compute(
+                None if content is None else ["inverse", *content, max_iter, xtol],
+                lambda: inverse_function(self.map, max_iter=max_iter, xtol=xtol),
+            )
             self._function, build = compile_function(
                 function, flags=_FLAGS, cache="inverse", fallback=NUMPY
             )
             self.native.append(build)
             self.backend = str(build)
         if self._function is not None:
-            ends = reachable_function(self.map)
+            ends = _graphs.get_or_compute(
+                None if content is None else ["reachable", *content],
+                lambda: reachable_function(self.map),
+            )
             self._reachable, build = compile_function(
                 ends, flags=_FLAGS, cache="inverse", fallback=NUMPY
             )

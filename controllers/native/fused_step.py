@@ -44,14 +44,18 @@ from __future__ import annotations
 
 import array
 import ctypes
-import tempfile
 import weakref
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import NUMPY, NativeBuild, call_buffers, compile_source
+from controllers.native.codegen import (
+    NUMPY,
+    NativeBuild,
+    call_buffers,
+    compile_source,
+    generated_text,
+)
 from controllers.native.step_kernels import FLAGS
 from controllers.native.step_kernels import SOURCE as KERNELS
 
@@ -296,14 +300,7 @@ def fused_source(inverse: Any, reachable: Any) -> str:
     """The translation unit (module docstring): the generated C of the casadi Functions
     ``inverse`` (``nls_inverse``) and ``reachable`` (``nls_reachable``), the estimator kernels
     and the step."""
-    import casadi
-
-    with tempfile.TemporaryDirectory() as folder:
-        generator = casadi.CodeGenerator("mpc_step.c", {"with_header": False})
-        generator.add(inverse)
-        generator.add(reachable)
-        generator.generate(f"{folder}/")
-        generated = (Path(folder) / "mpc_step.c").read_text(encoding="utf-8")
+    generated = generated_text("mpc_step.c", [inverse, reachable])
     return "\n".join((generated, KERNELS, STEP))
 
 

@@ -88,20 +88,8 @@ class StructuredHorizon:
     def __init__(
         self, nls: Any, horizon: int, *, compiled: bool = True, defer: bool = False
     ) -> None:
-        import casadi
-
-        fmap = nls.feature_map
-        u = casadi.SX.sym("u", horizon)
-        state0 = casadi.SX.sym("s", nls.n_state)
-        state, columns = state0, []
-        for k in range(horizon):
-            f, state = fmap.casadi_step(u[k], state)
-            columns.append(f)
-        features = casadi.horzcat(*columns)  # (n_f, N)
-        sens = casadi.densify(casadi.jacobian(casadi.vec(features), u)).T  # (N, n_f N)
-        self.function = casadi.Function(
-            "nmpc_features", [u, state0], [casadi.densify(features), sens], ["u", "s"], ["F", "dF"]
-        )
+        self._nls = nls
+        self._function: Any = None
         self.horizon, self.n_features = horizon, nls.n_features
         self.compile_requested = compiled
         self.backend = "casadi virtual machine (compilation not requested)"
@@ -120,6 +108,36 @@ class StructuredHorizon:
         self._w = list(mlp.weights)
         self._b = list(mlp.biases)
         self._out, self._skip, self._bias = mlp.out_weight, mlp.skip_weight, mlp.out_bias
+
+    @property
+    def function(self) -> Any:
+        """casadi.Function ``(u (N), s_t) -> (F (n_f, N), dF (N, n_f N))``: the feature
+        recursion unrolled over the horizon, and its sensitivities to the plan.
+
+        Built on first use: the unrolled graph and its Jacobian are most of a deferred
+        horizon's construction, and an NMPC whose compiled iteration computes the features
+        (:mod:`controllers.native.nmpc_step`) never evaluates them."""
+        if self._function is None:
+            import casadi
+
+            nls, horizon = self._nls, self.horizon
+            fmap = nls.feature_map
+            u = casadi.SX.sym("u", horizon)
+            state0 = casadi.SX.sym("s", nls.n_state)
+            state, columns = state0, []
+            for k in range(horizon):
+                f, state = fmap.casadi_step(u[k], state)
+                columns.append(f)
+            features = casadi.horzcat(*columns)  # (n_f, N)
+            sens = casadi.densify(casadi.jacobian(casadi.vec(features), u)).T  # (N, n_f N)
+            self._function = casadi.Function(
+                "nmpc_features",
+                [u, state0],
+                [casadi.densify(features), sens],
+                ["u", "s"],
+                ["F", "dF"],
+            )
+        return self._function
 
     def compile(self) -> None:
         """Build the generated C of the feature recursion, if it was requested and is not built

@@ -55,16 +55,29 @@ The library is built once per machine and model through
 from __future__ import annotations
 
 import ctypes
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from controllers.native.codegen import NUMPY, NativeBuild, call_buffers, compile_source
+from controllers.memo import ContentCache
+from controllers.native.codegen import (
+    NUMPY,
+    NativeBuild,
+    call_buffers,
+    compile_source,
+    generated_text,
+)
 from controllers.native.step_kernels import FLAGS
 
-__all__ = ["ERROR", "INSIDE", "NEED_QP", "IterationKernel", "compile_kernel", "unavailable"]
+__all__ = [
+    "ERROR",
+    "INSIDE",
+    "NEED_QP",
+    "PARTIALS_KEPT",
+    "IterationKernel",
+    "compile_kernel",
+    "unavailable",
+]
 
 INSIDE, NEED_QP, ERROR = range(3)
 """Return codes of ``nmpc_iterate`` (``nmpc_apply`` returns INSIDE or ERROR)."""
@@ -401,10 +414,26 @@ int nmpc_apply(void **p)
 """
 
 
+PARTIALS_KEPT = 8
+"""Feature maps' :func:`partials_function` kept by content, one per identified model: a
+benchmark worker meets up to six (three identification seeds, on the nominal bender and on the
+bench)."""
+
+_partials = ContentCache(PARTIALS_KEPT)
+
+
 def partials_function(nls: Any) -> Any:
     """casadi.Function ``(u, s) -> (F, s_next, dF/du, ds/du, dF/ds, ds/ds)``: one step of the
     NLS's feature map and its partial derivatives (the last two keep their sparsity; common
-    subexpressions merged, which changes no value)."""
+    subexpressions merged, which changes no value).
+
+    A pure function of the feature map (a frozen dataclass of numbers), kept by content
+    (:data:`PARTIALS_KEPT`): an NMPC built again on the same model differentiates none."""
+    return _partials.get_or_compute(["partials", nls.feature_map], lambda: _partials_of(nls))
+
+
+def _partials_of(nls: Any) -> Any:
+    """:func:`partials_function`, computed."""
     import casadi
 
     u = casadi.SX.sym("u")
@@ -426,13 +455,7 @@ def partials_function(nls: Any) -> Any:
 def kernel_source(partials: Any) -> str:
     """The translation unit: the generated C of :func:`partials_function`'s Function
     (``nmpc_partials``) and the step."""
-    import casadi
-
-    with tempfile.TemporaryDirectory() as folder:
-        generator = casadi.CodeGenerator("nmpc_step.c", {"with_header": False})
-        generator.add(partials)
-        generator.generate(f"{folder}/")
-        generated = (Path(folder) / "nmpc_step.c").read_text(encoding="utf-8")
+    generated = generated_text("nmpc_step.c", [partials])
     return "\n".join((generated, STEP))
 
 
