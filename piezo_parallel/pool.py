@@ -12,9 +12,10 @@ task the dead worker held is not reported.
 
 A run may have a *prerequisite*: one task (its own function) whose outcome some of the tasks
 need, such as the model the benchmark identifies before the rows built on it can run. It runs on
-a worker of its own from the start while the other workers take the tasks that do not need it;
-when it finishes, its ``then`` callback runs in this process and the tasks that waited join the
-queue. A worker that dies while running it is replaced as any other.
+one worker from the start while the other workers take the tasks that do not need it; when it
+finishes, its ``then`` callback runs in this process, the tasks that waited join the queue and
+its worker takes tasks as the others do. A worker that dies while running it is replaced as any
+other.
 
 Stopping is explicit. However the pool is left (results complete, a task's exception, an
 interruption such as ``KeyboardInterrupt`` raised by a signal handler), every worker still
@@ -99,12 +100,20 @@ _FIRST = -1
 """The task index of the prerequisite in the pool's bookkeeping."""
 
 
+@dataclass(frozen=True)
+class _Call:
+    """A message to a worker: run this function instead of the pool's (the prerequisite)."""
+
+    function: Callable[..., Any]
+    args: tuple
+
+
 @dataclass
 class _Worker:
     process: BaseProcess
     conn: Connection
     task: int | None = None
-    first: bool = False  # runs the prerequisite (its own function), then exits
+    first: bool = False  # running the prerequisite
 
 
 def run_pool(
@@ -160,14 +169,14 @@ def run_pool(
     pending_first = prerequisite is not None
     try:
         while pending_first or queue or any(w.task is not None for w in workers):
-            if pending_first:  # (re)start the prerequisite on a worker of its own
+            if pending_first:  # (re)start the prerequisite on a new worker
                 assert prerequisite is not None
-                first = _start(context, prerequisite.function)
+                first = _start(context, function)
                 first.first, first.task = True, _FIRST
                 first_attempts += 1
                 pending_first = False
                 workers.append(first)
-                _send(first, prerequisite.args)
+                _send(first, _Call(prerequisite.function, prerequisite.args))
             while queue and len(workers) < min(jobs, len(tasks) + (prerequisite is not None)):
                 workers.append(_start(context, function))
             for worker in workers:
@@ -200,10 +209,9 @@ def run_pool(
                 kind, value, text = outcome
                 if kind == "error":
                     raise value from RemoteTraceback(text)
-                if worker.first:  # its worker's function is not the tasks': it goes
+                if worker.first:  # its worker now takes tasks as the others do
                     assert prerequisite is not None
-                    workers.remove(worker)
-                    _stop([worker])
+                    worker.first = False
                     prerequisite.then(value)
                     queue.extend(waiting)
                     continue
@@ -212,7 +220,7 @@ def run_pool(
         _stop(workers)
 
 
-def _send(worker: _Worker, task: tuple) -> None:
+def _send(worker: _Worker, task: tuple | _Call) -> None:
     try:
         worker.conn.send(task)
     except (BrokenPipeError, ConnectionResetError):
@@ -277,8 +285,9 @@ def _stop(workers: list[_Worker]) -> None:
 
 
 def _serve(conn: Connection, function: Callable[..., Any], parent: int) -> None:
-    """A worker's loop: run each task received, send back ("ok", result, "") or ("error",
-    exception, traceback); exit on None or when the parent's end of the pipe closes."""
+    """A worker's loop: run each task received (``function(*task)``, or a :class:`_Call`'s
+    own function), send back ("ok", result, "") or ("error", exception, traceback); exit on
+    None or when the parent's end of the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     for number in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(number, signal.SIG_DFL)
@@ -291,7 +300,10 @@ def _serve(conn: Connection, function: Callable[..., Any], parent: int) -> None:
         if task is None:
             return
         try:
-            answer: tuple[str, Any, str] = ("ok", function(*task), "")
+            if isinstance(task, _Call):
+                answer: tuple[str, Any, str] = ("ok", task.function(*task.args), "")
+            else:
+                answer = ("ok", function(*task), "")
         except Exception as error:
             answer = ("error", error, traceback.format_exc())
         try:

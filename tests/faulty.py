@@ -141,3 +141,8 @@ def copy_model(source: str, target: str) -> dict[str, float]:
 
     shutil.copytree(source, target)
     return {"identification_s": 0.0}
+
+
+def process_id(*_: Any) -> int:
+    """The id of the process that ran this call."""
+    return os.getpid()

@@ -437,3 +437,21 @@ def test_runs_that_finish_before_the_models_exist_reach_the_checkpoint_once_it_o
     assert shown == list(range(len(SMALL["plants"]), len(config.runs()) + 1))
     kept = Checkpoint.resume(tmp_path, run_identity(config, model)).finished
     assert len(kept) == len(config.runs())
+
+
+def test_the_prerequisites_worker_takes_the_tasks_after_it():
+    from piezo_parallel.pool import Prerequisite, run_pool
+
+    ran: dict[int, int] = {}
+    first: list[int] = []
+    prerequisite = Prerequisite(faulty.process_id, (), "first", then=first.append)
+    run_pool(
+        faulty.process_id,
+        [(i,) for i in range(3)],
+        1,
+        ran.__setitem__,
+        labels=["a", "b", "c"],
+        prerequisite=prerequisite,
+        waits=[True, True, True],
+    )
+    assert set(ran.values()) == set(first) and first[0] != os.getpid()  # one spawned worker
