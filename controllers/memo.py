@@ -121,12 +121,15 @@ class ContentCache:
         if key in self._results:
             self._results.move_to_end(key)
             self.hits += 1
-        else:
-            self._results[key] = compute()
-            self.misses += 1
-            if len(self._results) > self.size:
-                self._results.popitem(last=False)
-        return copy.deepcopy(self._results[key])
+            return copy.deepcopy(self._results[key])
+        # The cache keeps a copy: what compute() returned may hold the caller's own objects
+        # (a model's arrays), which the caller may change after.
+        result = compute()
+        self._results[key] = copy.deepcopy(result)
+        self.misses += 1
+        if len(self._results) > self.size:
+            self._results.popitem(last=False)
+        return result
 
     def clear(self) -> None:
         """Forget every result."""

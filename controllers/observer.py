@@ -465,7 +465,7 @@ class ObserverBank:
             raise ValueError(f"memory must be an integer >= 1 sample, got {memory!r}")
         ratios = list(itertools.product(process_ratios, disturbance_ratios))
         design = _bank_designs.get(
-            [a, b, c, measurement_std, process_ratios, disturbance_ratios, slope_std],
+            [a, b, c, measurement_std, ratios, slope_std],
             lambda: _bank_design(a, b, c, measurement_std, ratios, slope_std),
         )
         self.n, self.n_disturbance = a.shape[0], 2 if slope_std > 0 else 1

@@ -319,3 +319,12 @@ def test_kept_partials_are_the_fresh_ones(monkeypatch) -> None:
     )
     nmpc_step.partials_function(longer)
     assert cache.misses == 2
+
+
+def test_a_bank_takes_its_ratios_as_any_sequence(monkeypatch) -> None:
+    _fresh_cache(monkeypatch, observer_module, "_bank_designs")
+    a, b, c = first_mode()
+    given = ObserverBank(a, b, c, measurement_std=SIGMA, process_ratios=range(0, 2))
+    listed = ObserverBank(a, b, c, measurement_std=SIGMA, process_ratios=[0, 1])
+    for got, want in zip(_bank_arrays(given), _bank_arrays(listed), strict=True):
+        assert np.array_equal(got, want)

@@ -74,6 +74,15 @@ def test_results_are_computed_once_and_every_caller_gets_a_copy():
     assert len(calls) == 4
 
 
+def test_what_the_first_caller_keeps_of_its_result_cannot_change_the_cache():
+    cache = ContentCache(2)
+    mine = np.arange(3.0)  # the caller's own array, which its result holds
+    first = cache.get([mine], lambda: {"model": mine})
+    assert first["model"] is mine
+    mine[0] = 7.0  # the caller changes its own model after the build
+    assert cache.get([np.arange(3.0)], lambda: {"model": None})["model"][0] == 0.0
+
+
 def test_a_failure_is_raised_each_time_and_not_kept():
     cache = ContentCache(1)
 
