@@ -610,7 +610,9 @@ def run_benchmark(
     Returns
     -------
     BenchmarkResult
-        Episodes ordered by plant, controller, model and reference, whatever ``jobs`` is.
+        Episodes ordered by plant, controller, model and reference, whatever ``jobs`` is. Its
+        ``timing["episodes_s"]`` is this call's wall time: with ``identification``, the
+        identification it ran beside included.
 
     Notes
     -----

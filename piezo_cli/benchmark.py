@@ -667,7 +667,8 @@ def run(args: argparse.Namespace) -> int:
             identification=identification,
         )
     except BaseException as error:
-        if checkpoint is not None:  # else the folder stays marked: no model, no checkpoint
+        if checkpoint is not None:  # else stopped during the identification: main marks
+            # the folder incomplete if it holds something, and removes it if empty
             _left_behind(out, checkpoint, len(config.runs()), error)
         raise
     timing["benchmark_s"] = round(time.perf_counter() - start, 1)

@@ -177,8 +177,10 @@ def run_pool(
                 pending_first = False
                 workers.append(first)
                 _send(first, _Call(prerequisite.function, prerequisite.args))
-            while queue and len(workers) < min(jobs, len(tasks) + (prerequisite is not None)):
+            idle = sum(w.task is None for w in workers)
+            while len(queue) > idle and len(workers) < jobs:  # a worker per task waiting
                 workers.append(_start(context, function))
+                idle += 1
             for worker in workers:
                 if worker.task is None and queue:
                     index = queue.popleft()

@@ -455,3 +455,27 @@ def test_the_prerequisites_worker_takes_the_tasks_after_it():
         waits=[True, True, True],
     )
     assert set(ran.values()) == set(first) and first[0] != os.getpid()  # one spawned worker
+
+
+def test_the_pool_starts_no_more_workers_than_tasks_to_run(monkeypatch):
+    import piezo_parallel.pool as pool
+
+    started = []
+    original = pool._start
+
+    def counted(context, function):
+        started.append(1)
+        return original(context, function)
+
+    monkeypatch.setattr(pool, "_start", counted)
+    first: list[int] = []
+    prerequisite = pool.Prerequisite(faulty.process_id, (), "first", then=first.append)
+    ran: dict[int, int] = {}
+    pool.run_pool(
+        faulty.process_id, [(0,), (1,)], 4, ran.__setitem__, labels=["a", "b"],
+        prerequisite=prerequisite, waits=[False, True],
+    )
+    assert len(ran) == 2 and len(started) == 2  # the prerequisite's and one for task a
+    started.clear()
+    pool.run_pool(faulty.process_id, [(0,), (1,)], 4, ran.__setitem__, labels=["a", "b"])
+    assert len(started) == 2
