@@ -407,7 +407,11 @@ def test_a_benchmark_identifying_its_model_runs_the_oracles_beside_it_to_the_sam
     in_process = BenchmarkConfig(**{**SMALL, "controllers": ("mpc", "mpc-oracle")})
     beside = run_benchmark(config, model, identification=identification)
     given = run_benchmark(in_process, model)
-    assert _same(beside, given)
+    # the results, as test_benchmark holds one and two jobs to them (the descriptions can name
+    # another state of the native cache in a worker)
+    assert json.dumps(deterministic_json(beside)) == json.dumps(deterministic_json(given))
+    assert json.dumps(beside.traces) == json.dumps(given.traces)
+    assert tracking_tables(beside) == tracking_tables(given)
     resumed = Checkpoint.resume(tmp_path, run_identity(config, model))
     assert len(opened) == 1 and len(resumed.finished) == len(config.runs())
     with pytest.raises(ValueError, match="identification's then"):
