@@ -449,15 +449,24 @@ def latency(data: dict[str, Any]) -> str:
     fast = data.get("mpc_10khz", [])
     if fast:
         clean = sum(r["misses"] == 0 for r in fast)
-        misses = ", ".join(f"{r['label']} {r['misses']}" for r in fast)
+        misses = ", ".join(f"{r['label']} {r['misses']}" for r in fast if r["misses"])
         medians = [r["median_us"] for r in fast]
         lines += [
             "",
             f"`mpc` at 10 kHz (PL140, 0.1 ms, deadline 100 us, {fast[0]['steps']} steps each): "
             f"{clean} of {len(fast)} references without a deadline miss; step medians "
             f"{min(medians):.0f}-{max(medians):.0f} us, at most "
-            f"{max(r['qp_iterations_max'] for r in fast)} QP iterations; misses: {misses}.",
+            f"{max(r['qp_iterations_max'] for r in fast)} QP iterations; misses: "
+            f"{misses or 'none'}.",
         ]
+        if all("own_max_us" in r for r in fast):
+            own = sum(r["own_misses"] for r in fast)
+            worst = max(fast, key=lambda r: r["own_max_us"])
+            lines[-1] += (
+                f" Each step's minimum over repeated runs (the controller's own cost, without "
+                f"the machine's interruptions): {own} misses, slowest step "
+                f"{worst['own_max_us']:.0f} us ({worst['label']})."
+            )
     mpc, adaptive, nmpc = (rows.get(k) for k in ("mpc", "mpc-adaptive", "nmpc"))
     missed = []
     if mpc and mpc["median_ratio"] > 2.0:

@@ -463,7 +463,12 @@ class AdaptiveMPC(LinearMPC):
             # Read once, so that a swap writes the compiled step's table by one slice.
             self._bindings = [
                 fused.bank_addresses(
-                    m.observer, m.unconstrained, self._vector, self._lower, self._upper
+                    m.observer,
+                    m.unconstrained,
+                    self._vector,
+                    self._lower,
+                    self._upper,
+                    m.q_matrix,
                 )
                 for m in self._members
             ]

@@ -46,6 +46,8 @@ import numpy as np
 import osqp
 import scipy.sparse
 
+from controllers.native import daqp_box
+from controllers.native.daqp_box import NativeDAQP, SetupRefused
 from controllers.settings import QP_SOLVERS, USABLE_OSQP_STATUS
 
 __all__ = [
@@ -124,7 +126,12 @@ class BoxQP:
         n = lower.size
         self.lower, self.upper = lower, upper
         self._rate = None if rate is None else np.full(n - 1, rate)
-        self.failed = False  # the last solve gave no usable solution
+        self._failed = False
+
+    @property
+    def failed(self) -> bool:
+        """Whether the last solve gave no usable solution."""
+        return self._failed
 
     def solve(
         self,
@@ -153,8 +160,8 @@ class BoxQP:
         if bounds is not None:
             self.lower, self.upper = bounds
         x, duals, status, iterations = self._solve(q, warm_x, warm_duals, hessian, bounds)
-        self.failed = x is None or not np.isfinite(x).all()
-        if self.failed:
+        self._failed = x is None or not np.isfinite(x).all()
+        if self._failed:
             return BoxQPSolution(None, None, status, iterations)
         return BoxQPSolution(np.clip(x, self.lower, self.upper), duals, status, iterations)
 
@@ -220,18 +227,40 @@ class DAQPBoxQP(BoxQP):
         n = lower.size
         rows = self._differences() if rate is not None else np.zeros((0, n))
         low, high = self._rows()
+        self.native: NativeDAQP | None = None
+        if hessian is not None and daqp_box.library() is not None:
+            try:
+                self.native = NativeDAQP(hessian, rows, low, high, int(max_iter))
+            except SetupRefused as exc:
+                raise _refused(exc.flag) from None
+            return
         self._model = daqp.Model()
         p = np.eye(n) if hessian is None else np.array(hessian, dtype=float)
         flag, _ = self._model.setup(p, np.zeros(n), rows, high.copy(), low.copy())
         if flag < 0:
-            raise ValueError(
-                f"DAQP refused the QP at set-up (exit flag {flag}: "
-                f"{DAQP_STATUS.get(flag, 'unknown')}); its Hessian must be positive definite"
-            )
+            raise _refused(flag)
         self._model.settings = {"iter_limit": int(max_iter)}
         self._no_active_set = np.zeros(low.size, dtype=np.intc)
 
+    @property
+    def failed(self) -> bool:
+        """Whether the last solve gave no usable solution (the workspace's own record when C
+        code solves in it too)."""
+        return self._failed if self.native is None else self.native.failed
+
     def _solve(self, q, warm_x, warm_duals, hessian, bounds):
+        native = self.native
+        if native is not None:
+            if hessian is not None:
+                raise ValueError("this DAQP workspace was set up with a fixed Hessian")
+            if bounds is not None:
+                native.lower[:], native.upper[:] = self._rows()
+            flag, iterations = native.solve(q, not warm_duals.any() or native.failed)
+            status = DAQP_STATUS.get(flag, f"exit flag {flag}")
+            if native.refused:  # data refused at the update (crossed bounds)
+                return None, None, status, 0
+            usable = not native.failed
+            return (native.x.copy() if usable else None), native.lam.copy(), status, iterations
         data: dict[str, np.ndarray] = {"f": q}
         if bounds is not None:
             data["blower"], data["bupper"] = self._rows()
@@ -246,6 +275,14 @@ class DAQPBoxQP(BoxQP):
         status = DAQP_STATUS.get(int(flag), f"exit flag {int(flag)}")
         usable = flag > 0
         return (x if usable else None), info["lam"], status, int(info["iterations"])
+
+
+def _refused(flag: int) -> ValueError:
+    """The error of a QP that DAQP refused at set-up."""
+    return ValueError(
+        f"DAQP refused the QP at set-up (exit flag {flag}: "
+        f"{DAQP_STATUS.get(flag, 'unknown')}); its Hessian must be positive definite"
+    )
 
 
 class OSQPBoxQP(BoxQP):

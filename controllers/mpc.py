@@ -50,9 +50,9 @@ from typing import Any
 
 import numpy as np
 
-from controllers.box_qp import BoxQP, box_qp, solver_version, within
+from controllers.box_qp import DAQP_STATUS, BoxQP, box_qp, solver_version, within
 from controllers.gain import GainEstimate
-from controllers.native import fused_step
+from controllers.native import daqp_box, fused_step
 from controllers.native.codegen import NativeBuild
 from controllers.native.compiled_inverse import STATUS_NAMES
 from controllers.observer import ObserverBank
@@ -278,6 +278,7 @@ class LinearMPC(PredictiveController):
         if fused is None:
             return
         fused.bind_gain(self._gain, self._member)
+        fused.scalars[fused_step.S_DUALS_ANY] = 0.0 if self._duals is None else self._duals.any()
         self._bind_fused_model()
 
     def _bind_fused_model(self) -> None:
@@ -285,6 +286,7 @@ class LinearMPC(PredictiveController):
         bounds, and its member of the gain estimate (:meth:`_fused_addresses`)."""
         fused = self._fused
         fused.bind_addresses(self._fused_addresses())
+        fused.bind_qp(getattr(self, "_qp", None))
         fused.dims[fused_step.D_MEMBER] = self._member
         scalars = fused.scalars
         scalars[fused_step.S_Z_MIN], scalars[fused_step.S_Z_MAX] = self.model.z_bounds
@@ -293,7 +295,12 @@ class LinearMPC(PredictiveController):
         """The compiled step's table entries of the model in use
         (:meth:`controllers.native.fused_step.FusedStep.bank_addresses`)."""
         return self._fused.bank_addresses(
-            self.observer, self._unconstrained, self._vector, self._lower, self._upper
+            self.observer,
+            self._unconstrained,
+            self._vector,
+            self._lower,
+            self._upper,
+            self._q_matrix,
         )
 
     def _setup_solver(self, hessian: np.ndarray | None = None) -> BoxQP:
@@ -426,6 +433,8 @@ class LinearMPC(PredictiveController):
             scalars[fused_step.S_Z_MODEL] = self._solve_constrained(self._vector)
             self._fused_in()
             code = fused.finish()
+        elif scalars[fused_step.S_QP_RAN]:  # the compiled step solved the QP
+            self._count_qp(scalars)
         elif code != fused_step.ERROR:
             stats.status["unconstrained"] += 1
             stats.iterations.append(0)
@@ -438,6 +447,16 @@ class LinearMPC(PredictiveController):
         if code == fused_step.NEED_INVERSE:
             return self._convert(scalars[fused_step.S_Z_MODEL])
         raise RuntimeError(f"{self.name}: the compiled step's generated inverse returned an error")
+
+    def _count_qp(self, scalars: Any) -> None:
+        """Count a QP the compiled step solved, as :meth:`_solve_constrained` counts its own
+        (its plan and warm start stay in the step's buffers)."""
+        stats = self.stats
+        stats.iterations.append(int(scalars[fused_step.S_QP_ITERATIONS]))
+        flag = int(scalars[fused_step.S_QP_FLAG])
+        stats.status[DAQP_STATUS.get(flag) or f"exit flag {flag}"] += 1
+        if scalars[fused_step.S_QP_RAN] == 2.0:
+            stats.fallbacks += 1
 
     def _fused_in(self) -> None:
         """The plan, the memory and the scalars Python may have replaced, into the compiled
@@ -561,9 +580,13 @@ class LinearMPC(PredictiveController):
         return bool(np.all(np.abs(np.diff(plan)) <= self._g * self.z_rate))
 
     def native_code(self) -> dict[str, dict[str, Any]]:
-        """The base class's records and ``mpc_step``: whether the compiled step runs
-        (:mod:`controllers.native.fused_step`), and why not."""
-        return {**super().native_code(), "mpc_step": self._fused_build.to_dict()}
+        """The base class's records, ``mpc_step``: whether the compiled step runs
+        (:mod:`controllers.native.fused_step`), and why not, and with DAQP ``daqp_box_qp``:
+        whether its QP is solved from C (:mod:`controllers.native.daqp_box`), and why not."""
+        records = {**super().native_code(), "mpc_step": self._fused_build.to_dict()}
+        if self.settings.qp_solver == "daqp":
+            records["daqp_box_qp"] = daqp_box.build_record().to_dict()
+        return records
 
     def describe(self) -> dict:
         """Settings, model source and observer speed (JSON-safe)."""

@@ -113,13 +113,33 @@ def test_a_step_without_active_constraint_is_one_native_call(env, monkeypatch, n
         assert calls["solve"] == 0
 
 
-def test_a_constrained_step_is_two_native_calls_around_the_qp(env, monkeypatch):
+def test_a_constrained_step_is_one_native_call_with_the_qp_inside(env, monkeypatch):
+    """With DAQP driven from C (the default), a step whose plan leaves the box solves its QP
+    inside the same call: no Python QP, no second call. With the QP handed to Python (DAQP's
+    Python interface here), it is two calls around the QP."""
+    from controllers.native import daqp_box
+
+    if daqp_box.library() is None:
+        pytest.skip(f"DAQP is not driven from C here: {daqp_box.build_record()}")
     controller = build("mpc", env, fused=True)
     calls = counted(controller, monkeypatch)
+    python_qp = {"solves": 0}
+    solve = controller._solve_constrained
+
+    def counted_solve(*args):
+        python_qp["solves"] += 1
+        return solve(*args)
+
+    monkeypatch.setattr(controller, "_solve_constrained", counted_solve)
     reference = make_reference("steps", 521, dt=1e-3, seed=0)
     run = controllers.run_episode(env, controller, seed=0, reference=reference, max_steps=500)
     solved = run.controller["stats"]["status"].get("solved", 0)
-    assert solved > 0 and calls["step"] == 500 and calls["finish"] == solved
+    assert solved > 0 and calls["step"] == 500 and calls["finish"] == 0
+    assert python_qp["solves"] == 0
+    monkeypatch.setattr(daqp_box, "library", lambda: None)  # QPs set up now use Python
+    run = controllers.run_episode(env, controller, seed=0, reference=reference, max_steps=500)
+    solved = run.controller["stats"]["status"].get("solved", 0)
+    assert solved > 0 and calls["finish"] == python_qp["solves"] == solved
 
 
 def test_a_non_finite_observation_raises_before_any_state_changes(env):

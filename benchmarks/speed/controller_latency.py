@@ -8,14 +8,16 @@ sample time is a deadline miss. The QP rows force a QP at every step (``shortcut
 DAQP (the default solver) and with OSQP. A second table runs the MPC at 10 kHz: the PL140 at
 0.1 ms (model ``tests/data/pl140-0.1ms-model``, identified there) on every benchmark reference
 and on a drive-saturating 500 Hz sine (a QP at every step), 2 s each, against the 100 us
-deadline. The adaptive MPC also runs where it adapts (the box's corner with its gain 20 %
-up, its resonance 20 % low, damping 0.04), and the MPCs run on the PL127 at its own 0.25 ms
-(model ``tests/data/pl127-model``; on its corner with gain and resonance 20 % up, damping
-0.01). Beside it, in the same process: the QP solve alone, the nonlinearity inverse alone, and
-a CartPole-v1 step through ``gymnasium.make``, the reference the ratios are taken against
-(absolute times on shared machines drift; ratios travel). IPOPT (``nmpc-ipopt``) runs a
-shorter episode. Writes ``benchmarks/results/controller_latency.md`` and the same numbers as
-``controller_latency.json`` (the latency block of docs/controllers.md is generated from it).
+deadline (each run three times: the per-step minimum over the runs is the controller's own
+cost, without the machine's interruptions). The adaptive MPC also runs where it adapts (the
+box's corner with its gain 20 % up, its resonance 20 % low, damping 0.04), and the MPCs run on
+the PL127 at its own 0.25 ms (model ``tests/data/pl127-model``; on its corner with gain and
+resonance 20 % up, damping 0.01). Beside it, in the same process: the QP solve alone, the
+nonlinearity inverse alone, and a CartPole-v1 step through ``gymnasium.make``, the reference
+the ratios are taken against (absolute times on shared machines drift; ratios travel). IPOPT
+(``nmpc-ipopt``) runs a shorter episode. Writes ``benchmarks/results/controller_latency.md``
+and the same numbers as ``controller_latency.json`` (the latency block of docs/controllers.md
+is generated from it).
 
 Run: ``python -m benchmarks.speed.controller_latency`` (a few minutes).
 """
@@ -114,10 +116,18 @@ def quiet_episode(env, controller, reference: np.ndarray, steps: int, stroke: fl
         )
 
 
+REPEATS_10KHZ = 3
+"""Runs of each 10 kHz episode. The runs compute the same numbers (same seed; checked), so a
+step's minimum over them is what the controller costs at that step without the machine's
+interruptions (a preemption of the virtual machine, another process), which land on
+different steps in each run."""
+
+
 def ten_khz_rows(cart_median: float, record: list[dict]) -> list[list[str]]:
     """``mpc`` on the PL140 at 0.1 ms over every benchmark reference and a saturating 500 Hz
-    sine: step times against the 100 us deadline, worst QP iterations, RMSE (each row also
-    appended to ``record`` as numbers)."""
+    sine: step times against the 100 us deadline (first run), the misses and slowest step of
+    the per-step minimum over :data:`REPEATS_10KHZ` runs, worst QP iterations, RMSE (each row
+    also appended to ``record`` as numbers)."""
     steps = round(EPISODE_S / DT_10KHZ)
     env = gym.make("piezo_env:PiezoBender-v0", preview=20, dt=DT_10KHZ, max_episode_steps=steps)
     stroke = env.unwrapped.model.stroke_um
@@ -127,15 +137,22 @@ def ten_khz_rows(cart_median: float, record: list[dict]) -> list[list[str]]:
     signals["sine-500Hz, 1500 um (saturating)"] = 1500.0 * np.sin(2 * np.pi * 500.0 * t)
     rows = []
     for name, reference in signals.items():
-        episode = quiet_episode(env, c, reference, steps, stroke)
-        step = episode.compute_s * 1e6
-        entry = numbers(name, step, DT_10KHZ, cart_median, episode.metrics)
+        runs = [quiet_episode(env, c, reference, steps, stroke) for _ in range(REPEATS_10KHZ)]
+        if any(run.metrics != runs[0].metrics for run in runs):
+            raise RuntimeError(f"10 kHz runs of {name} differ: the minimum over runs is void")
+        step = runs[0].compute_s * 1e6
+        own = np.min([run.compute_s for run in runs], axis=0) * 1e6
+        entry = numbers(name, step, DT_10KHZ, cart_median, runs[0].metrics)
+        entry["own_max_us"] = float(own.max())
+        entry["own_misses"] = int(np.sum(own > DT_10KHZ * 1e6))
         record.append(entry)
         rows.append(
             [
                 name,
                 *stats(step),
                 f"{entry['misses']} of {entry['steps']}",
+                f"{entry['own_max_us']:.1f}",
+                str(entry["own_misses"]),
                 f"{entry['median_ratio']:.1f}",
                 str(entry["qp_iterations_max"]),
                 f"{entry['rmse_percent']:.3f}",
@@ -260,6 +277,12 @@ def main() -> None:
         "",
         "## `mpc` at 10 kHz (PL140, 0.1 ms, 100 us deadline)",
         "",
+        f"Each reference runs {REPEATS_10KHZ} times with the same seed (the same numbers). The "
+        "first four columns are the first run's; the next two take each step's minimum over "
+        "the runs, which removes the machine's interruptions (they land on different steps in "
+        "each run) and keeps what the controller itself costs, including the samples that "
+        "solve a QP from a cold cache.",
+        "",
         markdown_table(
             [
                 "reference",
@@ -267,6 +290,8 @@ def main() -> None:
                 "step p99 (us)",
                 "step max (us)",
                 "deadline misses",
+                f"slowest step, minimum of {REPEATS_10KHZ} runs (us)",
+                f"misses, minimum of {REPEATS_10KHZ} runs",
                 "median / CartPole step",
                 "QP iterations (max)",
                 "RMSE (% stroke)",

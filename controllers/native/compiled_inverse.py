@@ -35,7 +35,8 @@ What is detected as non-monotone (status ``FALLBACK``; the caller then runs the 
 inverse, :meth:`InverseMap.solve_inverse`: for the NLS
 :meth:`identification.nls.NLS.solve_inverse`, which looks at a 17-node grid and picks among
 several roots, for a plant hysteresis :meth:`piezo_env.hysteresis.Hysteresis.inverse`):
-``z(u_lo) >= z(u_hi)``; ``z(g)`` outside ``[z(u_lo), z(u_hi)]`` for ``g`` inside the range; an
+``z(u_lo) >= z(u_hi)``; ``z(g)`` outside ``[z(u_lo), z(u_hi)]`` beyond rounding (1e-12
+relative) for ``g`` inside the range; an
 iterate whose ``z`` lies outside its bracket's values (beyond rounding, 1e-12 relative); a
 derivative ``<= 0`` at an iterate. The numpy path also checks the interior grid nodes, so a
 wiggle between nodes that no iterate touches can be flagged there and not here; then this path
@@ -207,12 +208,17 @@ def _start_function() -> Any:
     x[_B], x[_ZB] = if_else(below, hi, g), if_else(below, z_hi, z_g)
     x[_U] = x[_A] + (t - x[_ZA]) * (x[_B] - x[_A]) / (x[_ZB] - x[_ZA])
     x[_STEP] = x[_B] - x[_A]
+    # z(g) beyond an end's value by rounding is not evidence of a non-monotone map (a warm
+    # start an ulp inside the range, where a play feature's pass differs from the end's in
+    # ulps): the same tolerance as the iterations' test.
+    rounding = 1e-12 * (1.0 + casadi.fabs(t))
+    inside = land(z_lo - rounding <= z_g, z_g <= z_hi + rounding)
     # Cases from the least to the most important: each overrides the ones before.
     cases = [
         (t == z_g, g, z_g, OK),
         (t <= z_lo, lo, z_lo, _end_status(t, z_lo)),
         (t >= z_hi, hi, z_hi, _end_status(t, z_hi)),
-        (land(land(lo < g, g < hi), lnot(land(z_lo <= z_g, z_g <= z_hi))), g, z_g, FALLBACK),
+        (land(land(lo < g, g < hi), lnot(inside)), g, z_g, FALLBACK),
         (z_hi <= z_lo, lo, z_lo, FALLBACK),
     ]
     for condition, u_out, z_out, status in cases:

@@ -26,8 +26,20 @@ they are summed left to right, so a plan may differ from the unfused one in its 
 the float32 volts the plant receives then round alike but where such a difference straddles a
 float32 rounding boundary (the tests hold the two paths to one float32 ulp and z to 1e-11).
 
-What leaves the compiled call for Python (the return codes): a plan outside the box (the QP
-solver runs, then ``fused_finish`` converts its first move), an inverse the compiled Newton
+A plan outside the box goes to the QP in the same call when the MPC's QP is a DAQP workspace
+driven from C (:mod:`controllers.native.daqp_box`, the default): its linear term ``q = G
+stacked`` is summed left to right (numpy's matrix product may pair the terms differently, so q
+may differ in its last bits from the unfused path's), DAQP solves from its last active set
+unless the last plan was unconstrained or the last solve failed (as
+:meth:`controllers.mpc.LinearMPC._solve_constrained`), and the first move of the clipped
+solution goes on to the inverse; Python then only counts the solve's iterations and status.
+This is what keeps a 10 kHz loop within its deadline on the samples that need the QP: through
+DAQP's Python interface such a sample took 100-400 us after thousands that did not
+(``benchmarks/results/controller_latency.md``).
+
+What leaves the compiled call for Python (the return codes): a plan outside the box with any
+other QP workspace (OSQP, DAQP's Python interface: the QP solver runs, then ``fused_finish``
+converts its first move), an inverse the compiled Newton
 iteration hands back (a non-monotone map, a non-finite target: the numpy inverse runs), a
 non-finite observation (the base class's check raises, before any state changes), and for the
 adaptive MPC a sample on which its selection may change something (the set of plausible models
@@ -49,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from controllers.native import daqp_box
 from controllers.native.codegen import (
     NUMPY,
     NativeBuild,
@@ -56,6 +69,7 @@ from controllers.native.codegen import (
     compile_source,
     generated_text,
 )
+from controllers.native.daqp_box import HEADER as DAQP_HEADER
 from controllers.native.step_kernels import FLAGS
 from controllers.native.step_kernels import SOURCE as KERNELS
 
@@ -82,21 +96,23 @@ DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT = range(6)
     P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
     P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
     P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
-    P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_COUNT,
-) = range(38)  # fmt: skip
+    P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_Q_MATRIX,
+    P_QP, P_QP_SOLVE, P_SCRATCH, P_COUNT,
+) = range(42)  # fmt: skip
 (
     D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN, D_MEMBER,
     D_SHORTCUT, D_SELECTS, D_COUNT,
 ) = range(12)  # fmt: skip
 (
     S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS, S_RUNAWAY,
-    S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_COUNT,
-) = range(13)  # fmt: skip
+    S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_DUALS_ANY, S_QP_RAN, S_QP_FLAG,
+    S_QP_ITERATIONS, S_COUNT,
+) = range(17)  # fmt: skip
 BANK_SLOTS = np.array(
     [
         P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
         P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_LOWER,
-        P_UPPER,
+        P_UPPER, P_Q_MATRIX,
     ]
 )  # fmt: skip
 """The table's slots of the model in use (:meth:`FusedStep.bank_addresses`)."""
@@ -106,11 +122,13 @@ enum { P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, 
        P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
        P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
        P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
-       P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED };
+       P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_Q_MATRIX,
+       P_QP, P_QP_SOLVE, P_SCRATCH };
 enum { D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN,
        D_MEMBER, D_SHORTCUT, D_SELECTS };
 enum { S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS,
-       S_RUNAWAY, S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95 };
+       S_RUNAWAY, S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_DUALS_ANY, S_QP_RAN,
+       S_QP_FLAG, S_QP_ITERATIONS };
 enum { DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT };
 
 #define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
@@ -160,12 +178,59 @@ int fused_finish(void **p)
     return DONE;
 }
 
+/* numpy's clip of a finite x: minimum(maximum(x, lo), hi). */
+static double np_clip(double x, double lo, double hi)
+{
+    double m = x > lo ? x : lo;
+    return m < hi ? m : hi;
+}
+
+/* controllers.mpc.LinearMPC._solve_constrained: the box QP for the vector and bounds that
+   fused_solve set, in the DAQP workspace of the model in use (controllers.native.daqp_box),
+   from its last active set unless the last plan was unconstrained or the last solve failed;
+   then fused_finish. Without such a workspace (OSQP, or DAQP through Python), NEED_QP. */
+static int fused_qp(void **p)
+{
+    box_qp *qp = (box_qp *)p[P_QP];
+    if (qp == NULL) return NEED_QP;
+    double *sc = S(p), *plan = F(p, P_PLAN);
+    const double *lower = F(p, P_LOWER), *upper = F(p, P_UPPER);
+    const double *g = F(p, P_Q_MATRIX), *stacked = F(p, P_STACKED);
+    const int64_t moves = D(p, D_MOVES), columns = D(p, D_COLUMNS);
+    for (int64_t i = 0; i < moves; ++i) {  /* q = G stacked, summed left to right */
+        const double *row = g + i * columns;
+        double sum = 0.0;
+        for (int64_t j = 0; j < columns; ++j) sum += row[j] * stacked[j];
+        qp->qp.f[i] = sum;
+        qp->qp.blower[i] = lower[i];
+        qp->qp.bupper[i] = upper[i];
+    }
+    const int cold = sc[S_DUALS_ANY] == 0.0 || qp->status[2];
+    sc[S_QP_FLAG] = ((box_qp_solve_t)p[P_QP_SOLVE])(qp, cold);
+    sc[S_QP_ITERATIONS] = (double)qp->status[1];
+    sc[S_QP_RAN] = qp->status[2] ? 2.0 : 1.0;
+    if (qp->status[2]) {  /* no usable solution: the last plan, shifted, inside the box */
+        const double last = plan[moves - 1];
+        for (int64_t i = 0; i + 1 < moves; ++i) plan[i] = np_clip(plan[i + 1], lower[i], upper[i]);
+        plan[moves - 1] = np_clip(last, lower[moves - 1], upper[moves - 1]);
+    } else {
+        double any = 0.0;
+        for (int64_t i = 0; i < moves; ++i) plan[i] = np_clip(qp->x[i], lower[i], upper[i]);
+        for (int64_t i = 0; i < qp->qp.m; ++i)
+            if (qp->lam[i] != 0.0) any = 1.0;
+        sc[S_DUALS_ANY] = any;
+    }
+    sc[S_Z_MODEL] = plan[0];
+    return fused_finish(p);
+}
+
 /* controllers.mpc.LinearMPC._set_gain (without a slew limit) with g = the gain estimate's
    value of the member in use, the bank's measurement update, the QP's vector and bounds, the
    unconstrained plan and its box test; inside the box, fused_finish. */
 int fused_solve(void **p)
 {
     double *sc = S(p);
+    sc[S_QP_RAN] = 0.0;
     const int64_t n = D(p, D_STATES), m = D(p, D_ESTIMATE), moves = D(p, D_MOVES);
     const int64_t *bank_dims = (const int64_t *)p[P_BANK_DIMS];
     const int64_t filters = bank_dims[0];
@@ -215,19 +280,23 @@ int fused_solve(void **p)
     for (int64_t i = 1; i < moves; ++i) { lower[i] = g * sc[S_Z_MIN]; upper[i] = g * sc[S_Z_MAX]; }
     lower[0] = g * low;
     upper[0] = g * high;
-    if (!D(p, D_SHORTCUT)) return NEED_QP;
-    /* the unconstrained optimum -P^-1 q, summed left to right, tested against the box */
+    if (!D(p, D_SHORTCUT)) return fused_qp(p);
+    /* the unconstrained optimum -P^-1 q, summed left to right, tested against the box (in
+       scratch: outside it, the QP's warm start and fallback are the last plan, as in Python) */
     const double *u = F(p, P_UNCONSTRAINED);
+    double *candidate = F(p, P_SCRATCH);
     const int64_t columns = D(p, D_COLUMNS);
     int inside = 1;
     for (int64_t i = 0; i < moves; ++i) {
         const double *row = u + i * columns;
         double sum = 0.0;
         for (int64_t j = 0; j < columns; ++j) sum += row[j] * stacked[j];
-        plan[i] = sum;
+        candidate[i] = sum;
         if (!(sum >= lower[i] && sum <= upper[i])) inside = 0;
     }
-    if (!inside) return NEED_QP;
+    if (!inside) return fused_qp(p);
+    for (int64_t i = 0; i < moves; ++i) plan[i] = candidate[i];
+    sc[S_DUALS_ANY] = 0.0;  /* no bound is active: the optimal multipliers are zero */
     sc[S_Z_MODEL] = plan[0];
     return fused_finish(p);
 }
@@ -301,7 +370,7 @@ def fused_source(inverse: Any, reachable: Any) -> str:
     ``inverse`` (``nls_inverse``) and ``reachable`` (``nls_reachable``), the estimator kernels
     and the step."""
     generated = generated_text("mpc_step.c", [inverse, reachable])
-    return "\n".join((generated, KERNELS, STEP))
+    return "\n".join((generated, KERNELS, DAQP_HEADER, STEP))
 
 
 _LIBRARIES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -362,8 +431,11 @@ class FusedStep:
         The buffer the caller writes each observation into (float64).
     scalars : array.array
         g, z_t-1, z applied, u (V), the first move g z, z_min, z_max, the inverse's status,
-        the bank's runaway sample (-1: none), and for the selection test the sensor noise's
-        variance (um^2), the chi2 threshold and the one-sided normal quantile.
+        the bank's runaway sample (-1: none), for the selection test the sensor noise's
+        variance (um^2), the chi2 threshold and the one-sided normal quantile; then whether
+        the last QP's multipliers were not all zero (its warm start), and of this step's QP
+        in C: 0 none, 1 solved, 2 no usable solution (the shifted plan), DAQP's exit flag and
+        its iterations.
     plausible, allowed : numpy.ndarray
         Per member, 1.0 where the adaptive MPC's last selection kept it plausible, and where
         it has a filter stable on every plausible member.
@@ -381,6 +453,8 @@ class FusedStep:
         self._library = library
         self.observation = np.zeros(sizes["observation"])
         self.plan = np.zeros(sizes["moves"])
+        self._qp: Any = None  # the DAQP workspace the table points at (bind_qp)
+        self._scratch = np.zeros(sizes["moves"])
         self.memory = np.zeros(sizes["memory"])
         self.scalars = array.array("d", [0.0] * S_COUNT)
         self.dims = _int_array([0] * D_COUNT)
@@ -400,6 +474,7 @@ class FusedStep:
         self._keep: list[Any] = []  # what the table points into, kept alive
         self._point(P_OBS, self.observation)
         self._point(P_PLAN, self.plan)
+        self._point(P_SCRATCH, self._scratch)
         self._point(P_MEMORY, self.memory)
         self._point(P_DIMS, self.dims)
         # The adaptive MPC's member flags (one per member of its gain estimate; 0 or 1).
@@ -468,9 +543,11 @@ class FusedStep:
         stacked: np.ndarray,
         lower: np.ndarray,
         upper: np.ndarray,
+        q_matrix: np.ndarray,
     ) -> np.ndarray:
         """The table entries of an :class:`controllers.observer.ObserverBank`'s arrays, the
-        plan's matrix ``-P^-1 G``, the QP's vector and its bounds, checked and read once
+        plan's matrix ``-P^-1 G``, the QP's vector, its bounds and the matrix G of its linear
+        term ``q = G stacked``, checked and read once
         (uint64, one per slot of :data:`BANK_SLOTS`), for :meth:`bind_addresses`: a controller
         that changes banks mid-episode reads them before the episode and binds them by a slice
         assignment. The arrays must outlive their use: their owners (bank, controller) keep
@@ -491,6 +568,7 @@ class FusedStep:
             stacked,
             lower,
             upper,
+            q_matrix,
         )
         for index, buffer in zip(BANK_SLOTS, buffers, strict=True):
             _check_buffer(index, buffer)
@@ -499,3 +577,18 @@ class FusedStep:
     def bind_addresses(self, addresses: np.ndarray) -> None:
         """Write :meth:`bank_addresses`' entries into the table."""
         self.table[BANK_SLOTS] = addresses
+
+    def bind_qp(self, qp: Any) -> None:
+        """Solve the QP in ``qp``'s DAQP workspace when it has one driven from C
+        (:class:`controllers.native.daqp_box.NativeDAQP`, as
+        :attr:`controllers.box_qp.DAQPBoxQP.native`); else the step hands the QP to Python
+        (``NEED_QP``). The step keeps the workspace alive until the next binding, so that
+        the table never points at freed memory."""
+        native = getattr(qp, "native", None)
+        if native is None or native.x.size != self.plan.size:
+            self.table[P_QP] = 0
+            self._qp = None
+            return
+        self._qp = native
+        self.table[P_QP] = native.handle
+        self.table[P_QP_SOLVE] = daqp_box.solve_address()
