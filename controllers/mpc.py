@@ -278,6 +278,8 @@ class LinearMPC(PredictiveController):
         if fused is None:
             return
         fused.bind_gain(self._gain, self._member)
+        # Called at an episode's start only (from _start, after _duals is reset): mid-episode
+        # the step's own scalar holds the warm start (see _count_qp).
         fused.scalars[fused_step.S_DUALS_ANY] = 0.0 if self._duals is None else self._duals.any()
         self._bind_fused_model()
 
@@ -449,8 +451,13 @@ class LinearMPC(PredictiveController):
         raise RuntimeError(f"{self.name}: the compiled step's generated inverse returned an error")
 
     def _count_qp(self, scalars: Any) -> None:
-        """Count a QP the compiled step solved, as :meth:`_solve_constrained` counts its own
-        (its plan and warm start stay in the step's buffers)."""
+        """Count a QP the compiled step solved, as :meth:`_solve_constrained` counts its own.
+
+        Its plan stays in the step's buffer (``self._plan`` is it) and its warm start in the
+        step's scalars (``S_DUALS_ANY``) and the workspace (whether the last solve failed):
+        while a C workspace is bound, ``self._duals`` is not kept, and nothing reads it (only
+        :meth:`_solve_constrained`, which does not run then, and :meth:`_bind_fused` at an
+        episode's start, where both are reset)."""
         stats = self.stats
         stats.iterations.append(int(scalars[fused_step.S_QP_ITERATIONS]))
         flag = int(scalars[fused_step.S_QP_FLAG])
@@ -582,7 +589,9 @@ class LinearMPC(PredictiveController):
     def native_code(self) -> dict[str, dict[str, Any]]:
         """The base class's records, ``mpc_step``: whether the compiled step runs
         (:mod:`controllers.native.fused_step`), and why not, and with DAQP ``daqp_box_qp``:
-        whether its QP is solved from C (:mod:`controllers.native.daqp_box`), and why not."""
+        whether its QP's DAQP workspace is driven from C (:mod:`controllers.native.daqp_box`),
+        and why not. Both compiled: the QP is solved inside the step; only the second (a
+        slew limit, say): the C workspace is called from Python, one call per QP."""
         records = {**super().native_code(), "mpc_step": self._fused_build.to_dict()}
         if self.settings.qp_solver == "daqp":
             records["daqp_box_qp"] = daqp_box.build_record().to_dict()

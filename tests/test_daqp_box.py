@@ -5,6 +5,9 @@ and failures included; the layout check; and the record when the wrapper is not 
 from __future__ import annotations
 
 import ctypes
+import gc
+import weakref
+from importlib.metadata import version
 
 import daqp
 import gymnasium as gym
@@ -94,19 +97,23 @@ def daqp_box_status(flag):
 
 
 def test_the_layout_check_refuses_a_wrong_layout(wrapper):
-    """The check that guards the wrapper: the recorded layout passes; an offset or a size
-    that is not DAQP's fails, without a crash and without freeing what it did not allocate."""
-    layout = daqp_box.LAYOUTS[daqp.__version__ if hasattr(daqp, "__version__") else "0.11.0"]
+    """The check that guards the wrapper: the recorded layout passes; a settings offset that
+    is not DAQP's fails, and so does a workspace size too small by one word (DAQP's set-up
+    writes into the slack past it), without a crash and without freeing what it did not
+    allocate."""
+    layout = daqp_box.LAYOUTS[version("daqp")]
     exported = ctypes.CDLL(daqp.__file__)
     names = daqp_box._FUNCTIONS
     table = (ctypes.c_void_p * len(names))(
         *[ctypes.cast(getattr(exported, name), ctypes.c_void_p).value for name in names]
     )
     check = wrapper.box_qp_layout
-    assert check(table, layout.workspace, layout.settings_offset, layout.settings) == 1
-    assert check(table, layout.workspace, layout.settings_offset - 8, layout.settings) == 0
-    assert check(table, layout.workspace, layout.settings_offset + 8, layout.settings) == 0
-    assert check(table, layout.settings_offset, layout.settings_offset, layout.settings) == 0
+    size, offset = layout.workspace, layout.settings_offset
+    assert check(table, size, offset) == 1
+    assert check(table, size, offset - 8) == 0
+    assert check(table, size, offset + 8) == 0
+    assert check(table, size - 8, offset) == 0  # DAQP writes past it: the canary is hit
+    assert check(table, offset, offset) == 0  # the slot would lie past the workspace
 
 
 def test_an_unknown_daqp_version_is_recorded_and_runs_the_python_interface(monkeypatch):
@@ -171,6 +178,10 @@ def test_the_compiled_step_solves_the_qp_as_python_does(wrapper, monkeypatch, ma
     if max_iter == 3:
         assert in_c[3] > 0  # failures took the shifted plan
     assert in_c[3] == in_python[3]
+    # The iterations show the warm starts: each QP starts from the last active set unless the
+    # last plan was unconstrained or the last solve failed (a cold start takes as many
+    # iterations as active bounds).
+    assert in_c[4] == in_python[4]
 
 
 def trace(controller, env, reference):
@@ -186,4 +197,37 @@ def trace(controller, env, reference):
     controller.act = recorded
     controllers.run_episode(env, controller, seed=0, reference=reference, max_steps=800)
     stats = controller.stats
-    return np.array(volts), np.array(plans), dict(stats.status), stats.fallbacks
+    return np.array(volts), np.array(plans), dict(stats.status), stats.fallbacks, stats.iterations
+
+
+def test_the_step_points_at_the_live_workspace_across_episodes_and_swaps(wrapper):
+    """The compiled step's table holds the QP workspace in use after every reset and every
+    swap of the adaptive MPC's member (whose workspaces are set up afresh each episode), and
+    the workspaces of earlier episodes are freed."""
+    from benchmarks.studies.corners import vertex_env
+
+    plant = vertex_env((1.2, 0.8, 0.04))  # the adaptive MPC swaps members here
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    c = controllers.make("mpc-adaptive", MODEL_DIR, env)
+    if c._fused is None:
+        pytest.skip(f"no compiled step here: {c._fused_build}")
+    reference = make_reference("steps", 621, dt=1e-3, seed=0)
+    handles = []
+    swapped = []
+    use = c._use
+
+    def checked_use(index):
+        use(index)
+        assert c._fused.table[fused_step.P_QP] == c._qp.native.handle
+        swapped.append(index)
+
+    c._use = checked_use
+    for seed in range(3):
+        controllers.run_episode(plant, c, seed=seed, reference=reference, max_steps=600)
+        gc.collect()
+        assert c._fused.table[fused_step.P_QP] == c._qp.native.handle
+        handles.append([weakref.ref(m.qp.native) for m in c._members])
+    assert len(swapped) > 3  # resets and swaps
+    # Each episode set up its own workspaces; the first episode's are gone (freed).
+    assert all(ref() is None for ref in handles[0])
+    assert all(ref() is not None for ref in handles[2])

@@ -46,9 +46,13 @@ def build(name, env, *, fused, **options):
 
 
 def episode(controller, plant, reference):
-    """Volts and, after each step, the z applied and the plan's first move (doubles)."""
-    return recorded_episode(
-        controller, plant, reference, 1500, lambda c: (c._z_applied, float(c._plan[0]))
+    """Volts, after each step the z applied and the plan's first move (doubles), the stats'
+    summary and the controller."""
+    return (
+        *recorded_episode(
+            controller, plant, reference, 1500, lambda c: (c._z_applied, float(c._plan[0]))
+        ),
+        controller,
     )
 
 
@@ -66,6 +70,9 @@ def test_compiled_step_equals_the_numpy_step_in_closed_loop(env, corner, name, r
     np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-11)
     for key in ("status", "inverse", "fallbacks", "saturated", "observer_fallback_step"):
         assert fused[2][key] == numpy_step[2][key], key
+    # The same warm starts: a QP starts from the last active set unless the last plan was
+    # unconstrained or the last solve failed, in C as in Python.
+    assert fused[3].stats.iterations == numpy_step[3].stats.iterations
     if name == "mpc-adaptive":
         assert fused[2]["adaptation"] == numpy_step[2]["adaptation"]
         assert fused[2]["adaptation"].get("swaps", 0) >= 1  # the swap path ran

@@ -22,8 +22,10 @@ read with ctypes and handed to the wrapper (no link against the extension). The 
 struct is opaque here except for two facts, read from the headers of the version in
 :data:`LAYOUTS`: its size, and where it keeps its settings pointer. Both are checked before the
 first use in a process (:func:`library`): after DAQP allocates the settings of a zeroed
-workspace, the only non-zero word must be at the recorded offset and point to DAQP's defaults,
-and a solve must equal the Python interface's to the bit. A ``daqp`` whose version is not in
+workspace, the only non-zero word must be at the recorded offset and point to DAQP's defaults;
+every workspace is allocated with 4 kB of slack past the recorded size, filled with a canary
+that DAQP's set-up and solve must leave intact; and solves must equal the Python interface's
+to the bit. A ``daqp`` whose version is not in
 :data:`LAYOUTS`, or one that fails a check, is not called this way: the QP then runs through the
 Python interface, and the MPC's ``describe()["native"]["daqp_box_qp"]`` record says why
 (nothing falls back silently). The structs that are DAQP's public interface (the problem, the
@@ -71,16 +73,13 @@ class Layout:
         ``sizeof(DAQPWorkspace)``.
     settings_offset : int
         ``offsetof(DAQPWorkspace, settings)``.
-    settings : int
-        ``sizeof(DAQPSettings)``.
     """
 
     workspace: int
     settings_offset: int
-    settings: int
 
 
-LAYOUTS = {"0.11.0": Layout(workspace=328, settings_offset=224, settings=136)}
+LAYOUTS = {"0.11.0": Layout(workspace=328, settings_offset=224)}
 """DAQP versions whose workspace layout this wrapper knows (read from each version's
 ``csrc/include/types.h`` on x86-64 and aarch64 Linux and macOS: LP64, double precision)."""
 
@@ -148,15 +147,39 @@ typedef int (*update_t)(int, void *, daqp_problem *);
 typedef void (*solve_t)(daqp_result *, void *);
 typedef void (*workspace_t)(void *);
 
-/* Whether the layout is the one DAQP uses: in a zeroed workspace of `bytes`, DAQP's
-   allocation of its settings writes one pointer, at `offset`, to its defaults (`settings`
-   bytes). 1 if so, else 0; nothing is left allocated. */
-int box_qp_layout(void **functions, int64_t bytes, int64_t offset, int64_t settings)
+/* Every workspace is allocated with SLACK bytes past the recorded size, filled with CANARY:
+   were DAQP's workspace larger than recorded, its writes would land there (checked by
+   box_qp_layout) instead of past the allocation. */
+enum { SLACK = 4096, CANARY = 0xA5 };
+
+static void *workspace_alloc(int64_t bytes)
+{
+    unsigned char *work = malloc(bytes + SLACK);
+    if (work == NULL) return NULL;
+    memset(work, 0, bytes);
+    memset(work + bytes, CANARY, SLACK);
+    return work;
+}
+
+static int slack_intact(const void *work, int64_t bytes)
+{
+    const unsigned char *tail = (const unsigned char *)work + bytes;
+    for (int i = 0; i < SLACK; ++i)
+        if (tail[i] != CANARY) return 0;
+    return 1;
+}
+
+/* Whether the layout is the one DAQP uses. (1) In a zeroed workspace of `bytes`, DAQP's
+   allocation of its settings writes one pointer, at `offset`, to its defaults (the head this
+   file declares: the fields up to iter_limit). (2) DAQP's set-up and a solve of a small QP
+   write nothing past `bytes`. 1 if so, else 0; nothing is freed that DAQP did not allocate
+   (a workspace that fails a check is leaked rather than freed through a wrong layout). */
+int box_qp_layout(void **functions, int64_t bytes, int64_t offset)
 {
     if (bytes % sizeof(void *) || offset % sizeof(void *) || offset + sizeof(void *) > bytes)
         return 0;
-    void **work = calloc(1, bytes);
-    unsigned char *defaults = calloc(1, settings);
+    void **work = workspace_alloc(bytes);
+    unsigned char *defaults = calloc(1, SLACK);
     int ok = work != NULL && defaults != NULL;
     if (ok) {
         ((workspace_t)functions[FN_ALLOCATE_SETTINGS])(work);
@@ -164,8 +187,36 @@ int box_qp_layout(void **functions, int64_t bytes, int64_t offset, int64_t setti
         for (int64_t i = 0; i < bytes / (int64_t)sizeof(void *); ++i)
             if ((work[i] != NULL) != (i == offset / (int64_t)sizeof(void *))) ok = 0;
         void *found = work[offset / sizeof(void *)];
-        if (ok && memcmp(found, defaults, settings) != 0) ok = 0;
-        if (found != NULL && ok) free(found);  /* a wrong layout leaks rather than frees */
+        if (!ok || !slack_intact(work, bytes) ||
+            memcmp(found, defaults, sizeof(daqp_settings_head)) != 0) {
+            free(defaults);
+            return 0;
+        }
+        double H[4] = {2.0, 0.5, 0.5, 1.0}, f[2] = {-4.0, 3.0};
+        double upper[2] = {1.0, 1.0}, lower[2] = {-1.0, -1.0}, x[2], lam[2];
+        int sense[2] = {0, 0};
+        daqp_problem qp = {2, 2, 2, H, f, NULL, upper, lower, sense, NULL, 0, 0};
+        double setup_time = 0.0;
+        int flag = ((setup_t)functions[FN_SETUP])(&qp, work, &setup_time, 0);
+        if (!slack_intact(work, bytes)) {
+            free(defaults);
+            return 0;
+        }
+        if (flag >= 0) {
+            daqp_result result = {x, lam, 0.0, 0.0, 0, 0, 0, 0.0, 0.0};
+            ((solve_t)functions[FN_SOLVE])(&result, work);
+            ok = slack_intact(work, bytes) && result.exitflag > 0;
+            if (!ok) {
+                free(defaults);
+                return 0;
+            }
+            ((workspace_t)functions[FN_FREE_WORKSPACE])(work);
+            ((workspace_t)functions[FN_FREE_LDP])(work);
+        } else {
+            ok = 0;
+            ((workspace_t)functions[FN_FREE_WORKSPACE])(work);
+            free(found);  /* DAQP's failed set-up drops the settings it did not allocate */
+        }
     }
     free(defaults);
     free(work);
@@ -174,13 +225,14 @@ int box_qp_layout(void **functions, int64_t bytes, int64_t offset, int64_t setti
 
 /* DAQP's set-up of min 1/2 v'Hv + f'v s.t. blower <= [v; A v] <= bupper (ms = n simple
    bounds, m - n rows of A), with the default settings and then iter_limit (DAQP's Python
-   Model: setup, then settings). Returns the handle, or NULL with status[0] = DAQP's flag. */
+   Model: setup, then settings). Returns the handle, or NULL with status[0] = DAQP's flag
+   (-100: out of memory). */
 box_qp *box_qp_new(void **functions, int64_t bytes, int64_t offset, int n, int m, double *H,
                    double *f, double *A, double *bupper, double *blower, int *sense,
                    int *no_active_set, double *x, double *lam, int64_t *status, int iter_limit)
 {
     box_qp *b = calloc(1, sizeof(box_qp));
-    void *work = calloc(1, bytes);
+    void *work = workspace_alloc(bytes);
     status[0] = -100;
     if (b == NULL || work == NULL) { free(b); free(work); return NULL; }
     memcpy(b->functions, functions, sizeof(b->functions));
@@ -192,18 +244,21 @@ box_qp *box_qp_new(void **functions, int64_t bytes, int64_t offset, int n, int m
     b->lam = lam;
     b->status = status;
     ((workspace_t)functions[FN_ALLOCATE_SETTINGS])(work);
+    void *settings = *(void **)((char *)work + offset);
     double setup_time = 0.0;
     int flag = ((setup_t)functions[FN_SETUP])(&b->qp, work, &setup_time, 0);
     status[0] = flag;
     if (flag < 0) {
+        /* DAQP's failed set-up frees its own arrays and drops the settings it did not
+           allocate (the pointer, not the memory): free them here. */
         ((workspace_t)functions[FN_FREE_WORKSPACE])(work);
         ((workspace_t)functions[FN_FREE_LDP])(work);
+        if (*(void **)((char *)work + offset) == NULL) free(settings);
         free(work);
         free(b);
         return NULL;
     }
-    daqp_settings_head *settings = *(daqp_settings_head **)((char *)work + offset);
-    settings->iter_limit = iter_limit;
+    ((daqp_settings_head *)settings)->iter_limit = iter_limit;
     status[1] = status[2] = status[3] = 0;
     return b;
 }
@@ -288,7 +343,7 @@ def _bound() -> tuple[ctypes.CDLL | None, NativeBuild, tuple[int, ...], Layout |
     lib, build = compile_source("daqp_box_qp", SOURCE, flags=FLAGS, cache="kernels")
     if lib is None:
         return None, build, (), None
-    lib.box_qp_layout.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64]
+    lib.box_qp_layout.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64]
     lib.box_qp_layout.restype = ctypes.c_int
     lib.box_qp_new.argtypes = (
         [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64]
@@ -302,7 +357,7 @@ def _bound() -> tuple[ctypes.CDLL | None, NativeBuild, tuple[int, ...], Layout |
     lib.box_qp_free.argtypes = [ctypes.c_void_p]
     lib.box_qp_free.restype = None
     table = (ctypes.c_void_p * len(addresses))(*addresses)
-    if not lib.box_qp_layout(table, layout.workspace, layout.settings_offset, layout.settings):
+    if not lib.box_qp_layout(table, layout.workspace, layout.settings_offset):
         reason = (
             f"daqp {found}: its workspace does not have the recorded layout; "
             "the QP runs through daqp's Python interface"
