@@ -119,7 +119,7 @@ def test_the_layout_check_refuses_a_wrong_layout(wrapper):
 def test_an_unknown_daqp_version_is_recorded_and_runs_the_python_interface(monkeypatch):
     """Nothing falls back silently: with a DAQP whose layout the wrapper does not know, the QP
     runs through DAQP's Python interface and the MPC's record says so."""
-    daqp_box._bound.cache_clear()
+    daqp_box._bound_under.cache_clear()
     monkeypatch.setattr(daqp_box, "version", lambda name: "99.0.0")
     try:
         record = daqp_box.build_record()
@@ -132,7 +132,7 @@ def test_an_unknown_daqp_version_is_recorded_and_runs_the_python_interface(monke
         assert described["path"] == "numpy" and "99.0.0" in described["reason"]
     finally:
         monkeypatch.undo()
-        daqp_box._bound.cache_clear()
+        daqp_box._bound_under.cache_clear()
 
 
 def test_a_workspace_cannot_be_copied(wrapper):
@@ -231,3 +231,12 @@ def test_the_step_points_at_the_live_workspace_across_episodes_and_swaps(wrapper
     # Each episode set up its own workspaces; the first episode's are gone (freed).
     assert all(ref() is None for ref in handles[0])
     assert all(ref() is not None for ref in handles[2])
+
+
+def test_piezo_native_off_switches_the_wrapper_off(monkeypatch):
+    """``PIEZO_NATIVE=off`` compiles nothing: QPs set up under it run DAQP's Python interface
+    (whatever ran before in the process), and the record says why."""
+    monkeypatch.setenv("PIEZO_NATIVE", "off")
+    record = daqp_box.build_record()
+    assert record.path == "numpy" and "PIEZO_NATIVE=off" in record.reason
+    assert DAQPBoxQP(np.full(3, -1.0), np.ones(3), hessian=np.eye(3), max_iter=10).native is None

@@ -47,7 +47,7 @@ from importlib.metadata import version
 import daqp
 import numpy as np
 
-from controllers.native.codegen import NUMPY, NativeBuild, compile_source
+from controllers.native.codegen import NUMPY, NativeBuild, compile_source, native_policy
 from controllers.native.step_kernels import FLAGS
 
 __all__ = [
@@ -59,7 +59,6 @@ __all__ = [
     "SetupRefused",
     "build_record",
     "library",
-    "solve_address",
 ]
 
 
@@ -316,10 +315,12 @@ _FUNCTIONS = (
 """DAQP's exported C functions the wrapper calls (the order of its ``FN_`` enum)."""
 
 
-@functools.lru_cache(maxsize=1)
-def _bound() -> tuple[ctypes.CDLL | None, NativeBuild, tuple[int, ...], Layout | None]:
-    """The wrapper's library, its record, DAQP's function addresses and layout (once per
-    process; see the module docstring for the checks)."""
+@functools.cache
+def _bound_under(
+    policy: str,
+) -> tuple[ctypes.CDLL | None, NativeBuild, tuple[int, ...], Layout | None]:
+    """The wrapper's library, its record, DAQP's function addresses and layout, once per
+    process and ``PIEZO_NATIVE`` policy (see the module docstring for the checks)."""
     found = version("daqp")
     layout = LAYOUTS.get(found)
     if layout is None:
@@ -403,6 +404,12 @@ def _self_check(bound: tuple) -> str:
     return ""
 
 
+def _bound() -> tuple[ctypes.CDLL | None, NativeBuild, tuple[int, ...], Layout | None]:
+    """:func:`_bound_under` the ``PIEZO_NATIVE`` policy in force now (``off`` switches the
+    wrapper off for the QPs set up after it, as for every other native build)."""
+    return _bound_under(native_policy())
+
+
 def _refused(build: NativeBuild, reason: str) -> NativeBuild:
     """The record of a compiled wrapper that is not used, and why."""
     return NativeBuild(
@@ -419,13 +426,6 @@ def library() -> ctypes.CDLL | None:
 def build_record() -> NativeBuild:
     """Whether the box QP runs DAQP from C, and why not if it does not (for ``describe()``)."""
     return _bound()[1]
-
-
-def solve_address() -> int:
-    """Address of the wrapper's ``box_qp_solve`` (the compiled MPC step calls it); 0 without
-    the wrapper."""
-    lib = library()
-    return 0 if lib is None else ctypes.cast(lib.box_qp_solve, ctypes.c_void_p).value
 
 
 class SetupRefused(ValueError):
@@ -498,6 +498,9 @@ class NativeDAQP:
             raise SetupRefused(int(self.status[0]))
         self.handle = handle
         self._solve = lib.box_qp_solve
+        self.solve_address = ctypes.cast(lib.box_qp_solve, ctypes.c_void_p).value
+        """Address of the wrapper's ``box_qp_solve`` (the compiled MPC step calls it with
+        :attr:`handle`)."""
         weakref.finalize(self, lib.box_qp_free, handle)
 
     def __reduce__(self):

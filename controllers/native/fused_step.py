@@ -61,7 +61,6 @@ from typing import Any
 
 import numpy as np
 
-from controllers.native import daqp_box
 from controllers.native.codegen import (
     NUMPY,
     NativeBuild,
@@ -591,4 +590,4 @@ class FusedStep:
             return
         self._qp = native
         self.table[P_QP] = native.handle
-        self.table[P_QP_SOLVE] = daqp_box.solve_address()
+        self.table[P_QP_SOLVE] = native.solve_address
