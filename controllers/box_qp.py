@@ -277,8 +277,10 @@ class DAQPBoxQP(BoxQP):
         return (x if usable else None), info["lam"], status, int(info["iterations"])
 
 
-def _refused(flag: int) -> ValueError:
-    """The error of a QP that DAQP refused at set-up."""
+def _refused(flag: int) -> ValueError | MemoryError:
+    """The error of a QP that DAQP refused at set-up (or that found no memory for it)."""
+    if flag == daqp_box.OUT_OF_MEMORY:
+        return MemoryError("no memory for DAQP's workspace")
     return ValueError(
         f"DAQP refused the QP at set-up (exit flag {flag}: "
         f"{DAQP_STATUS.get(flag, 'unknown')}); its Hessian must be positive definite"

@@ -53,6 +53,7 @@ from controllers.native.step_kernels import FLAGS
 __all__ = [
     "HEADER",
     "LAYOUTS",
+    "OUT_OF_MEMORY",
     "SOURCE",
     "Layout",
     "NativeDAQP",
@@ -60,6 +61,10 @@ __all__ = [
     "build_record",
     "library",
 ]
+
+
+OUT_OF_MEMORY = -100
+"""The set-up's flag when the wrapper found no memory for the workspace (not a DAQP flag)."""
 
 
 @dataclass(frozen=True)
