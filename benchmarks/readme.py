@@ -467,6 +467,16 @@ def latency(data: dict[str, Any]) -> str:
                 f"the machine's interruptions): {own} misses, slowest step "
                 f"{worst['own_max_us']:.0f} us ({worst['label']})."
             )
+        period = data.get("mpc_10khz_resonance", [])
+        if period and all("own_max_us" in r for r in period):
+            own = sum(r["own_misses"] for r in period)
+            worst = max(period, key=lambda r: r["own_max_us"])
+            lines[-1] += (
+                f" Predicting over one period of the first mode "
+                f"({data['resonance_prediction_samples']} samples, 20 moves): "
+                f"{sum(r['misses'] for r in period)} misses in the first runs, {own} in the "
+                f"per-step minimum, slowest step {worst['own_max_us']:.0f} us."
+            )
     mpc, adaptive, nmpc = (rows.get(k) for k in ("mpc", "mpc-adaptive", "nmpc"))
     missed = []
     if mpc and mpc["median_ratio"] > 2.0:
