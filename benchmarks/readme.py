@@ -426,6 +426,12 @@ LATENCY_ROWS = (
 """The rows of the latency block, in its order."""
 
 
+def _own_cost(rows: list[dict[str, Any]]) -> tuple[int, dict[str, Any]]:
+    """Misses of the per-step minimum over repeated runs, summed over the 10 kHz rows, and the
+    row with the slowest such step."""
+    return sum(r["own_misses"] for r in rows), max(rows, key=lambda r: r["own_max_us"])
+
+
 def latency(data: dict[str, Any]) -> str:
     """Step times against a CartPole-v1 step, the MPC at 10 kHz, and the targets missed."""
     rows = {r["label"]: r for r in data["controllers"]}
@@ -460,8 +466,7 @@ def latency(data: dict[str, Any]) -> str:
             f"{misses or 'none'}.",
         ]
         if all("own_max_us" in r for r in fast):
-            own = sum(r["own_misses"] for r in fast)
-            worst = max(fast, key=lambda r: r["own_max_us"])
+            own, worst = _own_cost(fast)
             lines[-1] += (
                 f" Each step's minimum over repeated runs (the controller's own cost, without "
                 f"the machine's interruptions): {own} misses, slowest step "
@@ -469,8 +474,7 @@ def latency(data: dict[str, Any]) -> str:
             )
         period = data.get("mpc_10khz_resonance", [])
         if period and all("own_max_us" in r for r in period):
-            own = sum(r["own_misses"] for r in period)
-            worst = max(period, key=lambda r: r["own_max_us"])
+            own, worst = _own_cost(period)
             lines[-1] += (
                 f" Predicting over one period of the first mode "
                 f"({data['resonance_prediction_samples']} samples, 20 moves): "

@@ -85,7 +85,8 @@ class Layout:
 
 LAYOUTS = {"0.11.0": Layout(workspace=328, settings_offset=224)}
 """DAQP versions whose workspace layout this wrapper knows (read from each version's
-``csrc/include/types.h`` on x86-64 and aarch64 Linux and macOS: LP64, double precision)."""
+``csrc/include/types.h`` with its default double precision, compiled on x86-64 Linux; other
+platforms rely on the checks in :func:`library`)."""
 
 HEADER = r"""
 #include <stddef.h>
@@ -153,7 +154,7 @@ typedef void (*workspace_t)(void *);
 
 /* Every workspace is allocated with SLACK bytes past the recorded size, filled with CANARY:
    were DAQP's workspace larger than recorded, its writes would land there (checked by
-   box_qp_layout) instead of past the allocation. */
+   box_qp_layout) instead of past the allocation. SLACK: 12 times the recorded 328 bytes. */
 enum { SLACK = 4096, CANARY = 0xA5 };
 
 static void *workspace_alloc(int64_t bytes)
