@@ -91,6 +91,7 @@ from identification.records import (
     records_from_env,
 )
 from identification.report import format_free_run
+from identification.runner import StepRunner, step_runner
 from identification.steps import (
     ArxEstimate,
     HiddenSignal,
@@ -104,6 +105,7 @@ from identification.steps import (
     refine_and_choose,
     refine_linear_part,
     validate,
+    warm_up,
 )
 
 # collect, IdentificationConfig and write_outputs: the public names of their own modules,
@@ -124,6 +126,7 @@ def identify(
     *,
     config: IdentificationConfig | None = None,
     progress: Callable[[str], None] | None = None,
+    jobs: int = 1,
     **overrides: Any,
 ) -> IdentificationResult:
     """Identify the Hammerstein model of a bender (paper section 3.4, steps a-f).
@@ -142,6 +145,11 @@ def identify(
         at_sample_time`); ``report["config"]`` holds the counts used.
     progress : callable, optional
         Called with one line of text per step.
+    jobs : int
+        Processes to use (>= 1): with 2 or more, step e's candidate networks and step e''s
+        refinements that do not depend on each other run beside each other on a helper process
+        started now (:mod:`identification.runner`). The model is the same to the bit; only
+        the time changes.
 
     Returns
     -------
@@ -150,11 +158,13 @@ def identify(
     """
     config = _settings(config, overrides)
     log = _StepLog(progress)
-    env = env if env is not None else identification_env(config)
-    dt = sample_time(env)
-    config = config.at_sample_time(dt)
-    records = records_from_env(env, experiment_inputs(config, dt), config.seed)
-    return _identify(records, config, log, true_plant=env.unwrapped.model.state_space())
+    with step_runner(jobs, warm_up) as runner:
+        env = env if env is not None else identification_env(config)
+        dt = sample_time(env)
+        config = config.at_sample_time(dt)
+        records = records_from_env(env, experiment_inputs(config, dt), config.seed)
+        true_plant = env.unwrapped.model.state_space()
+        return _identify(records, config, log, true_plant=true_plant, runner=runner)
 
 
 def identify_records(
@@ -171,6 +181,7 @@ def identify_records(
     bender: str | None = None,
     config: IdentificationConfig | None = None,
     progress: Callable[[str], None] | None = None,
+    jobs: int = 1,
     **overrides: Any,
 ) -> IdentificationResult:
     """Identify the Hammerstein model from measured records (steps b-f of section 3.4).
@@ -199,6 +210,8 @@ def identify_records(
         from the records (a manifest written by ``piezo excite`` carries the former).
     progress : callable, optional
         Called with one line of text per step.
+    jobs : int
+        Processes to use (>= 1), as in :func:`identify`.
 
     Returns
     -------
@@ -214,6 +227,24 @@ def identify_records(
     """
     config = _settings(config, overrides)
     log = _StepLog(progress)
+    with step_runner(jobs, warm_up) as runner:
+        return _identify_records(
+            records, config, log, split, seed, dt, drive_range_V, bender, runner
+        )
+
+
+def _identify_records(
+    records: Any,
+    config: IdentificationConfig,
+    log: _StepLog,
+    split: float | None,
+    seed: int | None,
+    dt: float | None,
+    drive_range_V: tuple[float, float] | None,
+    bender: str | None,
+    runner: StepRunner,
+) -> IdentificationResult:
+    """The body of :func:`identify_records`, beside ``runner``'s helper."""
     if isinstance(records, (str, os.PathLike)):
         records, config = read_records_folder(records, config, split=split)
     elif not isinstance(records, Records):
@@ -238,7 +269,7 @@ def identify_records(
         rich_samples=lengths["rich"],
         validation_samples=lengths["validation"],
     )
-    return _identify(records, config, log, true_plant=None)
+    return _identify(records, config, log, true_plant=None, runner=runner)
 
 
 def read_records_folder(
@@ -290,17 +321,27 @@ def _settings(
 
 
 def _identify(
-    records: Records, config: IdentificationConfig, log: _StepLog, *, true_plant: Any
+    records: Records,
+    config: IdentificationConfig,
+    log: _StepLog,
+    *,
+    true_plant: Any,
+    runner: StepRunner,
 ) -> IdentificationResult:
     """Steps b-f on measured records (``true_plant``: the simulated plant's linear part, for
     the report's comparisons only, or None). The models of a run share their feature maps and
     are evaluated on the same records many times: their features are computed once each."""
     with reused_features():
-        return _identify_steps(records, config, log, true_plant=true_plant)
+        return _identify_steps(records, config, log, true_plant=true_plant, runner=runner)
 
 
 def _identify_steps(
-    records: Records, config: IdentificationConfig, log: _StepLog, *, true_plant: Any
+    records: Records,
+    config: IdentificationConfig,
+    log: _StepLog,
+    *,
+    true_plant: Any,
+    runner: StepRunner,
 ) -> IdentificationResult:
     """The body of :func:`_identify`."""
     seeds, dt = step_seeds(config.seed), records.dt
@@ -333,12 +374,13 @@ def _identify_steps(
         u_prbs=u_prbs,
         lead_in=records.lead_in.get("selection", 0),
         say=log.say,
+        runner=runner,
     )
     log("e_nls_training", _gain_line(nls))
     nls_refinement = None
     if config.nls_refinement == "output-error":
         nls, nls_refinement = refine_and_choose(
-            nls, training, config, sensor_noise_bound=records.noise_bound_um
+            nls, training, config, sensor_noise_bound=records.noise_bound_um, runner=runner
         )
         log("e2_nls_output_error", _nls_refinement_line(nls_refinement))
     model = nls.model if nls_refinement is None else nls_refinement.model

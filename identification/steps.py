@@ -26,11 +26,11 @@ from identification.experiment import (
     sample_time,
     step_seeds,
 )
-from identification.features import FEATURE_SETS
+from identification.features import FEATURE_SETS, PlayFeatures
 from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
-from identification.nls import fit_nls
+from identification.nls import NLS, fit_nls
 from identification.nls.output_error import (
     NlsOutputErrorFit,
     move_gain,
@@ -38,6 +38,7 @@ from identification.nls.output_error import (
     refine_nls_output_error,
 )
 from identification.refine import OutputErrorFit, refine_output_error
+from identification.runner import StepRunner
 
 __all__ = [
     "ArxEstimate",
@@ -430,6 +431,7 @@ def fit_nonlinearity(
     u_prbs: np.ndarray,
     lead_in: int = 0,
     say: Callable[[str], None] = lambda _msg: None,
+    runner: StepRunner | None = None,
 ) -> NlsFit:
     """Step e: fit the NLS to (u, z_hat); choose its features on the held-out selection record.
 
@@ -437,29 +439,64 @@ def fit_nonlinearity(
     model it makes with ``arx`` scored by free-run fit (%) on ``selection`` (u V, y um).
     ``u_max`` (V) bounds the drive range the network is scaled to; ``u_prbs`` (V), the PRBS
     record, measures its small-signal gain; the first ``lead_in`` samples of ``selection`` are
-    run over but not scored.
+    run over but not scored. ``runner`` (:mod:`identification.runner`; default: all here) may
+    train the candidates beside each other: the same networks to the bit.
     """
     u_sel, y_sel = selection
+    runner = StepRunner() if runner is None else runner
     candidates = FEATURE_SETS if config.features == "auto" else (config.features,)
+    data = (u_train, z_train, arx, selection, config, seeds["nls"] % 2**31, u_max, lead_in)
+    # The first candidate here, the others beside it (all here, in order, with one job): play
+    # comes first and trains longest (about the other two together on the PL140).
+    first, *others = candidates
+    pending = {f: runner.beside(_fit_candidate, f, *data) for f in others}
+    pending[first] = runner.here(_fit_candidate, first, *data)
     fitted, scores = {}, {}
     for features in candidates:
-        fitted[features] = fit_nls(
-            u_train,
-            z_train,
-            features=features,
-            hidden=config.hidden,
-            n_bouc_wen=config.n_bouc_wen,
-            seed=seeds["nls"] % 2**31,
-            max_epochs=config.max_epochs,
-            u_range=(-u_max, u_max),
-        )
-        y_hat = HammersteinModel(fitted[features], arx).simulate(u_sel)
-        scores[features] = float(fit_metrics(y_sel[lead_in:], y_hat[lead_in:])["fit_percent"])
+        fitted[features], scores[features] = pending[features].result()
         say(f"e) NLS with {features} features: selection fit {scores[features]:.2f} %")
     best = max(scores, key=scores.get)
     model = HammersteinModel(fitted[best], arx)
     gain = _small_signal_gain(model, u_prbs)
     return NlsFit(model, best, scores, gain, (u_sel, y_sel), lead_in, fitted)
+
+
+def warm_up() -> None:
+    """What a helper process of :mod:`identification.runner` runs first: this module's imports
+    (torch among them, through the training and refinement modules), then one epoch of a small
+    network on a short ramp, since a process's first training pays about a second for torch's
+    first autograd and optimiser calls (measured on the PL140's step e)."""
+    u = np.linspace(-1.0, 1.0, 200)
+    fit_nls(u, u, features="past-inputs", hidden=(8,), max_epochs=1, u_range=(-1.0, 1.0))
+
+
+def _fit_candidate(
+    features: str,
+    u_train: np.ndarray,
+    z_train: np.ndarray,
+    arx: ARXModel,
+    selection: tuple[np.ndarray, np.ndarray],
+    config: IdentificationConfig,
+    seed: int,
+    u_max: float,
+    lead_in: int,
+) -> tuple[NLS, float]:
+    """Step e for one feature set: the network fitted to (u, z_hat), and the free-run fit (%)
+    on the selection record (u V, y um; its first ``lead_in`` samples not scored) of the
+    Hammerstein model it makes with ``arx``."""
+    nls = fit_nls(
+        u_train,
+        z_train,
+        features=features,
+        hidden=config.hidden,
+        n_bouc_wen=config.n_bouc_wen,
+        seed=seed,
+        max_epochs=config.max_epochs,
+        u_range=(-u_max, u_max),
+    )
+    u_sel, y_sel = selection
+    y_hat = HammersteinModel(nls, arx).simulate(u_sel)
+    return nls, float(fit_metrics(y_sel[lead_in:], y_hat[lead_in:])["fit_percent"])
 
 
 def refine_and_choose(
@@ -468,6 +505,7 @@ def refine_and_choose(
     config: IdentificationConfig,
     *,
     sensor_noise_bound: float | None,
+    runner: StepRunner | None = None,
 ) -> tuple[NlsFit, NlsRefinement]:
     """Step e' on step e's choice and, where step e could not judge it, on the play features
     too; the feature set is then chosen on the held-out selection record after step e'.
@@ -493,11 +531,14 @@ def refine_and_choose(
         Step e's fit of the kept feature set and its refinement, whose ``feature_choice``
         records the comparison (None when the question did not arise).
     """
-    refinement = refine_nonlinearity(nls, records, config)
+    runner = StepRunner() if runner is None else runner
     if not (
         config.play_radii == "learned" and "play" in nls.candidates and nls.features != "play"
     ):
-        return nls, refinement
+        return nls, refine_nonlinearity(nls, records, config, runner=runner)
+    # The rival starts beside the choice's refinement; the noise floor may withdraw it.
+    rival_pending = runner.beside(_refine_rival, nls, records, config)
+    refinement = refine_nonlinearity(nls, records, config, runner=runner)
     held_out = _kept_rms(refinement)
     n = nls.selection_record[0].size - nls.selection_lead_in
     choice: dict = {"step_e": nls.features, "held_out_rms_um": {nls.features: held_out}}
@@ -511,9 +552,9 @@ def refine_and_choose(
                 why="step e's choice is at the sensor's noise floor on the held-out record: "
                 "no rival can do measurably better, so play was not refined",
             )
+            rival_pending.withdraw()
             return nls, replace(refinement, feature_choice=choice)
-    rival = nls.rival("play", records[0][0])
-    rival_refinement = refine_nonlinearity(rival, records, config)
+    rival, rival_refinement = rival_pending.result()
     choice["held_out_rms_um"]["play"] = _kept_rms(rival_refinement)
     choice["play_wall_time_s"] = rival_refinement.wall_time_s
     if choice["held_out_rms_um"]["play"] < held_out:
@@ -523,6 +564,14 @@ def refine_and_choose(
         why="the lower free-run RMS error on the held-out selection record after step e'",
     )
     return nls, replace(refinement, feature_choice=choice)
+
+
+def _refine_rival(
+    nls: NlsFit, records: list[tuple[np.ndarray, np.ndarray]], config: IdentificationConfig
+) -> tuple[NlsFit, NlsRefinement]:
+    """Step e's play network as the rival of its choice, and its step e' refinement."""
+    rival = nls.rival("play", records[0][0])
+    return rival, refine_nonlinearity(rival, records, config)
 
 
 def _kept_rms(refinement: NlsRefinement) -> float:
@@ -535,6 +584,8 @@ def refine_nonlinearity(
     nls: NlsFit,
     records: list[tuple[np.ndarray, np.ndarray]],
     config: IdentificationConfig,
+    *,
+    runner: StepRunner | None = None,
 ) -> NlsRefinement:
     """Step e': refine the network, then the network and the linear part together, on the
     free-run output error of ``records`` (the PRBS record first, then the rich record; u V,
@@ -546,7 +597,12 @@ def refine_nonlinearity(
     when step e's linear part is unstable and has no free run to refine). A joint stage that
     ends at an unstable or no longer minimum-phase linear part (the inverse of step d and the
     feedforward invert B) is dropped for the network-only stage, and ``note`` says so.
+
+    With ``rate="auto"`` and learned play radii, the rate-dependent refinement starts beside
+    the rate-independent one (``runner``, :mod:`identification.runner`), and is withdrawn if
+    the learned radii leave the rate undetermined.
     """
+    runner = StepRunner() if runner is None else runner
     start = nls.model
     selection = {"before": _selection_rms(start, nls)}
     if not start.arx.is_stable():
@@ -561,6 +617,13 @@ def refine_nonlinearity(
             small_signal_gain=_small_signal_gain(start, records[0][0]),
             wall_time_s=0.0,
         )
+    rate_pending = (
+        runner.beside(_refine, start, records, config, learn_rate=True)
+        if config.rate == "auto"
+        and config.play_radii == "learned"
+        and isinstance(start.nls.feature_map, PlayFeatures)
+        else None
+    )
     fit, refined, gain = _refine(start, records, config, learn_rate=config.rate == "on")
     rate_choice = None
     if (
@@ -573,13 +636,18 @@ def refine_nonlinearity(
             "determined": rate_is_determined(fit.stages[0]["radii_after"], records, start.arx.dt)
         }
         if rate_choice["determined"]:
-            rate_fit, rate_refined, rate_gain = _refine(start, records, config, learn_rate=True)
+            if rate_pending is None:  # (the radius stage runs only where it was started)
+                rate_pending = runner.here(_refine, start, records, config, learn_rate=True)
+            rate_fit, rate_refined, rate_gain = rate_pending.result()
+            rate_pending = None
             rate_choice.update(_rate_choice(refined, rate_refined, nls))
             rate_choice["wall_time_s"] = fit.wall_time_s + rate_fit.wall_time_s
             if rate_choice["kept"]:
                 fit, refined, gain = rate_fit, rate_refined, rate_gain
         else:
             rate_choice["kept"] = False
+    if rate_pending is not None:
+        rate_pending.withdraw()
     model, refusal = start, None
     if refined is None:
         refusal = f"the refined network's small-signal gain is {gain:.3g}, not positive"

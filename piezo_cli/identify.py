@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from piezo_cli.arguments import add_env_arguments, env_kwargs, seed
+from piezo_cli.arguments import add_env_arguments, env_kwargs, positive_int, seed
 from piezo_cli.command import CommandLineError, Subcommand
 from piezo_cli.output import prepare_output_dir
 
@@ -55,6 +55,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "constant learned with the radii in step e' (auto: kept only if the held-out selection "
         "record's error falls by more than its noise allows)",
     )
+    from piezo_parallel.backends import default_jobs
+
+    parser.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=default_jobs(),
+        help="processes: 2 or more let step e's candidate networks and step e''s independent "
+        "refinements run beside each other on a second process (the same model to the bit)",
+    )
     add_env_arguments(parser)
 
 
@@ -98,9 +107,11 @@ def run(args: argparse.Namespace) -> int:
             rate=args.rate,
             env_kwargs=env_kwargs(args),
         )
-        result = identify(config=config, progress=print)
+        result = identify(config=config, progress=print, jobs=args.jobs)
     else:
-        result = identify_records(records, seed=args.seed, config=settings, progress=print)
+        result = identify_records(
+            records, seed=args.seed, config=settings, progress=print, jobs=args.jobs
+        )
     paths = write_outputs(result, out)
     print()
     print(summary(result.report))

@@ -146,3 +146,35 @@ def copy_model(source: str, target: str) -> dict[str, float]:
 def process_id(*_: Any) -> int:
     """The id of the process that ran this call."""
     return os.getpid()
+
+
+def mark_then(value: int, marker: str, seconds: float = 0.0) -> int:
+    """``value``, after leaving the file ``marker`` and sleeping ``seconds`` (a helper's call
+    whose running can be seen from outside)."""
+    import time
+
+    Path(marker).touch()
+    time.sleep(seconds)
+    return value
+
+
+def raise_value_error(text: str) -> None:
+    """Raise ``ValueError(text)`` (a helper's call that fails)."""
+    raise ValueError(text)
+
+
+def die() -> None:
+    """Kill this process as the out-of-memory killer would."""
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def always_fail() -> None:
+    """A warm-up that fails."""
+    raise OSError("no such thing on this worker")
+
+
+def append(value: int, path: str) -> int:
+    """``value``, after appending it as a line to the file ``path`` (the order calls ran in)."""
+    with open(path, "a", encoding="utf-8") as file:
+        file.write(f"{value}\n")
+    return value

@@ -21,7 +21,7 @@ def report() -> dict:
 
 
 def test_identify_prints_a_short_summary_and_no_json(report, tmp_path, monkeypatch, capsys):
-    def fake_identify(*, config, progress):
+    def fake_identify(*, config, progress, jobs):
         progress("a) ...")
         return SimpleNamespace(report=report)
 

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {
     "piezo_env": set(),
     "piezo_parallel": set(),
-    "identification": {"piezo_env"},
+    "identification": {"piezo_env", "piezo_parallel"},
     "controllers": {"piezo_env", "identification"},
     "piezo_rl": {"piezo_env", "controllers", "piezo_parallel"},
     "benchmarks": {"piezo_env", "identification", "controllers", "piezo_parallel", "piezo_rl"},

@@ -11,7 +11,7 @@ its rate constant, the validation fit, the time of the identification, and ``mpc
 the full stroke) and its ratio to the oracle at 10, 50 and 100 Hz and on the multisine.
 
 Writes ``benchmarks/results/rate_aware_identification.md``. Run:
-``python -m benchmarks.studies.rate_aware_identification`` (about fifteen minutes on 2 cores).
+``python -m benchmarks.studies.rate_aware_identification`` (about half an hour on 2 cores).
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from benchmarks._common import header, markdown_table, write_result
 from benchmarks.plants import PLANTS
@@ -37,6 +39,8 @@ STUDY_PLANTS = {
 }
 """Row label -> benchmark plant (None: the rate-dependent hysteresis alone, no bench options)."""
 REFERENCES = ("sine-10Hz", "sine-50Hz", "sine-100Hz", "multisine")
+JOBS = (1, 2)
+"""Processes each identification runs with: alone, then with one helper."""
 
 
 def _env(label: str) -> dict[str, Any]:
@@ -46,11 +50,34 @@ def _env(label: str) -> dict[str, Any]:
     return PLANTS[plant](BENDER)
 
 
+def _same_model(a: Any, b: Any) -> bool:
+    """Whether two Hammerstein models hold the same features, network and linear part, to
+    the bit."""
+    arrays_a, arrays_b = a.nls.arrays(), b.nls.arrays()
+    return (
+        a.nls.feature_map == b.nls.feature_map
+        and arrays_a.keys() == arrays_b.keys()
+        and all(np.array_equal(arrays_a[k], arrays_b[k]) for k in arrays_a)
+        and np.array_equal(a.arx.a, b.arx.a)
+        and np.array_equal(a.arx.b, b.arx.b)
+        and a.arx.noise_bound == b.arx.noise_bound
+    )
+
+
 def _one(label: str, seed: int, folder: Path) -> dict[str, Any]:
-    """Identify on the plant with ``seed``, then run ``mpc`` and ``mpc-oracle`` on it."""
-    start = time.perf_counter()
-    result = identify(config=IdentificationConfig(seed=seed, env_kwargs=_env(label)))
-    took = time.perf_counter() - start
+    """Identify on the plant with ``seed`` in one process and with a helper (``jobs=2``,
+    :mod:`identification.runner`), check that both give the same model, then run ``mpc`` and
+    ``mpc-oracle`` on it."""
+    config = IdentificationConfig(seed=seed, env_kwargs=_env(label))
+    took = {}
+    for jobs in JOBS:
+        start = time.perf_counter()
+        result = identify(config=config, jobs=jobs)
+        took[jobs] = time.perf_counter() - start
+        if jobs == JOBS[0]:
+            first = result.model
+        elif not _same_model(first, result.model):
+            raise AssertionError(f"{label}, seed {seed}: jobs={jobs} gave another model")
     result.model.save(folder)
     report = result.report
     rate = (report["nls"].get("output_error") or {}).get("rate_choice") or {}
@@ -87,9 +114,9 @@ def main() -> None:
                 rate = {True: "kept", False: "not kept", None: "-"}[out["rate_kept"]]
                 if out["rate_kept"] and out["rate_time_s"] is not None:
                     rate += f", c = {out['rate_time_s'] * 1e3:.3g} ms"
+                times = " / ".join(f"{out['time_s'][jobs]:.0f}" for jobs in JOBS)
                 rows.append(
-                    [label, str(seed), out["features"], rate, f"{out['fit']:.2f}",
-                     f"{out['time_s']:.0f}", *cells]
+                    [label, str(seed), out["features"], rate, f"{out['fit']:.2f}", times, *cells]
                 )
                 print(rows[-1], flush=True)
     lines = [
@@ -98,12 +125,15 @@ def main() -> None:
         "on the held-out selection record, learned play radii, `rate=\"auto\"`), then `mpc` "
         "on that model and `mpc-oracle` on the plant's own, seed 0, whole 2 s episodes: RMSE "
         "in % of the full stroke (ratio to the oracle). The rate-dependent plant without an "
-        "amplifier is identified but not a benchmark plant, so it has no MPC cells. Times on "
-        "a shared machine.",
+        "amplifier is identified but not a benchmark plant, so it has no MPC cells. Each "
+        "identification runs twice, in one process and with a helper process (`jobs=2`, what "
+        "`piezo identify` does on 2 cores: step e's candidates and step e''s independent "
+        "refinements beside each other), and the two models are checked equal to the bit; "
+        "the times are wall seconds of both, on a machine that may be shared.",
         "",
         markdown_table(
             ["plant", "seed", "features", "rate model", "validation fit %",
-             "identification s", *REFERENCES],
+             "identification s (jobs 1 / 2)", *REFERENCES],
             rows,
         ),
         "",

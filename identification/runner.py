@@ -1,0 +1,131 @@
+"""Where the independent computations of one identification run: :func:`step_runner`.
+
+Two steps hold computations that do not depend on each other:
+
+- step e trains one network per candidate feature set, each from its own seed on the same
+  data (:func:`identification.steps.fit_nonlinearity`);
+- step e' refines the chosen network and then, depending on what that refinement shows, also
+  a rate-dependent variant (``rate="auto"``, when the learned radii let the records determine a
+  rate constant) or the play rival (learned radii, when the choice is not at the sensor's noise
+  floor) (:func:`identification.steps.refine_and_choose`). Each of those starts from step e's
+  result alone, so it can start before the decision that needs it is made.
+
+A :class:`StepRunner` runs such a computation "beside" the main line. With one job it is
+computed here, when its result is first asked for (a computation the decision does not need is
+never computed: the work is what it was before there was a runner). With two or more, a
+:class:`piezo_parallel.helper.Helper` process, started when the run starts so that its imports
+(torch above all) overlap the experiment and step b, computes it while this process computes the
+main line; one whose decision falls the other way is withdrawn.
+
+The model is the same to the bit whatever the jobs: every computation is deterministic (float64,
+one torch thread, its own seeded generators), reads nothing another one writes, and gets the
+same arrays, pickled exactly; only where it runs changes (a test holds it). One helper, not
+more: the run's two parallel branches are at most two wide.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from functools import partial
+from typing import Any, Protocol
+
+__all__ = ["Pending", "StepRunner", "step_runner"]
+
+
+class Pending(Protocol):
+    """A computation started by :meth:`StepRunner.beside` or :meth:`StepRunner.here`."""
+
+    def result(self) -> Any:
+        """Its value (computed, or waited for, on the first call)."""
+
+    def withdraw(self) -> None:
+        """It is no longer wanted."""
+
+
+class _Here:
+    """Computed in this process on the first :meth:`result` (never, if withdrawn first)."""
+
+    def __init__(self, call: Callable[[], Any]) -> None:
+        self._call: Callable[[], Any] | None = call
+        self._value: Any = None
+
+    def result(self) -> Any:
+        if self._call is not None:
+            self._value, self._call = self._call(), None
+        return self._value
+
+    def withdraw(self) -> None:
+        self._call = None
+
+
+class _There:
+    """Computed by the helper process."""
+
+    def __init__(self, helper: Any, call: Callable[[], Any]) -> None:
+        self._helper, self._ticket = helper, helper.submit(call)
+        self._done, self._value = False, None
+
+    def result(self) -> Any:
+        if not self._done:
+            self._value, self._done = self._helper.result(self._ticket), True
+        return self._value
+
+    def withdraw(self) -> None:
+        if not self._done:
+            self._helper.withdraw(self._ticket)
+            self._done = True
+
+
+class StepRunner:
+    """Runs an identification's independent computations here or beside it (module docstring).
+
+    Parameters
+    ----------
+    helper : piezo_parallel.helper.Helper, optional
+        The process that computes :meth:`beside` calls; None computes them here, lazily.
+    """
+
+    def __init__(self, helper: Any | None = None) -> None:
+        self._helper = helper
+
+    @property
+    def parallel(self) -> bool:
+        """Whether :meth:`beside` runs on another process."""
+        return self._helper is not None
+
+    def beside(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
+        """``function(*args, **kwargs)`` (module-level) on the helper, or here when first
+        asked for."""
+        call = partial(function, *args, **kwargs)
+        return _There(self._helper, call) if self._helper is not None else _Here(call)
+
+    @staticmethod
+    def here(function: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
+        """``function(*args, **kwargs)`` in this process, when first asked for."""
+        return _Here(partial(function, *args, **kwargs))
+
+
+@contextmanager
+def step_runner(jobs: int = 1, warm_up: Callable[[], Any] | None = None) -> Iterator[StepRunner]:
+    """A :class:`StepRunner` for one identification; with ``jobs >= 2`` its helper process is
+    started now and stopped when the block ends (a computation still running is terminated).
+
+    Parameters
+    ----------
+    jobs : int
+        Processes the run may use (>= 1): 1 computes everything here; 2 or more start one
+        helper (module docstring).
+    warm_up : callable, optional
+        A module-level function the helper runs first, while this process starts the run
+        (:func:`identification.steps.warm_up`: its imports and torch's first training).
+    """
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs must be an integer >= 1 (processes to use), got {jobs!r}")
+    if jobs == 1:
+        yield StepRunner()
+        return
+    from piezo_parallel.helper import Helper
+
+    with Helper(warm_up=warm_up) as helper:
+        yield StepRunner(helper)

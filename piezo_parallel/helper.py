@@ -1,0 +1,170 @@
+"""One spawned worker process that runs calls beside this process: :class:`Helper`.
+
+The pool (:mod:`piezo_parallel.pool`) runs a known list of tasks and returns when they are done.
+A computation whose independent parts appear one after the other (the identification's
+candidate fits, then a refinement that may or may not be needed) wants a worker that is
+started early, so that its imports overlap this process's own work, and that takes calls as
+they come while this process computes beside it. :class:`Helper` is that worker: calls run one
+at a time, in the order submitted; :meth:`Helper.result` waits for one. A call that is no longer
+wanted is withdrawn (:meth:`Helper.withdraw`): dropped if it has not started, left to finish and
+its outcome discarded if it has. :meth:`Helper.close` stops the worker, terminating a call still
+running, so that nothing outlives the computation that started it.
+
+The worker is the pool's (the same spawned process, signal handling and exit with its parent),
+and a call's exception comes back as the pool's do, with the worker's traceback chained. A
+worker that dies (the out-of-memory killer's SIGKILL, a crash in native code) ends every call
+not yet answered with :class:`~piezo_parallel.pool.WorkerLost`; no call runs twice, so a helper
+is for computations that are cheap to redo in this process instead.
+"""
+
+from __future__ import annotations
+
+import threading
+import traceback
+from collections import deque
+from collections.abc import Callable
+from multiprocessing import get_context
+from multiprocessing.connection import wait
+from typing import Any
+
+from piezo_parallel.pool import RemoteTraceback, WorkerLost, _Call, _ending, _start, _stop
+
+__all__ = ["Helper"]
+
+
+def _no_default(*_args: Any) -> None:
+    """The worker's default function: a helper sends every call with its own function."""
+    raise RuntimeError("a helper runs only calls sent with their function")
+
+
+class Helper:
+    """A spawned worker process running submitted calls one at a time (module docstring).
+
+    Parameters
+    ----------
+    warm_up : callable, optional
+        A module-level function run first in the worker (its imports, say), so that the first
+        real call does not pay for them; its outcome is discarded, its exception kept for the
+        next :meth:`result`, which raises it (a warm-up that fails leaves the worker unusable
+        for the calls that need it).
+    """
+
+    def __init__(self, warm_up: Callable[[], Any] | None = None) -> None:
+        self._worker = _start(get_context("spawn"), _no_default)
+        self._lock = threading.Condition()
+        self._queue: deque[tuple[int, _Call]] = deque()
+        self._answers: dict[int, tuple[str, Any, str]] = {}
+        self._withdrawn: set[int] = set()
+        self._running: int | None = None
+        self._next = 0
+        self._lost: str | None = None
+        self._closed = False
+        self._warm_up: int | None = None
+        self._warm_up_error: tuple[str, Any, str] | None = None
+        self._feeder = threading.Thread(target=self._feed, name="piezo-helper", daemon=True)
+        self._feeder.start()
+        if warm_up is not None:  # runs first; its outcome is discarded unless it failed
+            self._warm_up = self.submit(warm_up)
+
+    def submit(self, function: Callable[..., Any], *args: Any) -> int:
+        """Queue ``function(*args)`` (module-level, picklable); returns its ticket."""
+        with self._lock:
+            if self._closed:
+                raise RuntimeError("the helper is closed")
+            ticket = self._next
+            self._next += 1
+            self._queue.append((ticket, _Call(function, args)))
+            self._lock.notify_all()
+        return ticket
+
+    def result(self, ticket: int) -> Any:
+        """Wait for the call ``ticket`` and return its value, or raise its exception (the
+        worker's traceback chained) or :class:`~piezo_parallel.pool.WorkerLost`."""
+        with self._lock:
+            while ticket not in self._answers:
+                if self._warm_up_error is not None:
+                    _, error, text = self._warm_up_error
+                    raise RuntimeError(f"the helper's warm-up failed: {error}") from (
+                        RemoteTraceback(text)
+                    )
+                if self._lost is not None:
+                    raise WorkerLost(
+                        f"the helper process {self._lost} before call {ticket} was answered; "
+                        "run without a helper (jobs=1) to compute it in this process"
+                    )
+                if self._closed:
+                    raise RuntimeError("the helper is closed")
+                self._lock.wait()
+            kind, value, text = self._answers.pop(ticket)
+        if kind == "error":
+            raise value from RemoteTraceback(text)
+        return value
+
+    def withdraw(self, ticket: int) -> None:
+        """The call ``ticket`` is no longer wanted: dropped if not started; otherwise it runs
+        on, and its outcome is discarded."""
+        with self._lock:
+            queued = [t for t, _ in self._queue]
+            if ticket in queued:
+                del self._queue[queued.index(ticket)]
+            else:
+                self._withdrawn.add(ticket)
+                self._answers.pop(ticket, None)
+
+    def close(self) -> None:
+        """Stop the worker (a call still running is terminated) and reap it."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._queue.clear()
+            self._worker.task = self._running  # the pool's stop terminates a busy worker
+            self._lock.notify_all()
+        _stop([self._worker])
+        self._feeder.join()
+
+    def __enter__(self) -> Helper:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def _feed(self) -> None:
+        """The feeder thread: send the next call when the worker is idle, file its answer."""
+        worker = self._worker
+        while True:
+            with self._lock:
+                while not self._queue and not self._closed:
+                    self._lock.wait()
+                if self._closed:
+                    return
+                ticket, call = self._queue.popleft()
+                self._running = ticket
+            answer: tuple[str, Any, str] | None
+            try:
+                worker.conn.send(call)
+            except OSError:  # the worker is gone: its sentinel tells how
+                answer = None
+            except Exception as error:  # an argument that cannot be pickled
+                answer = ("error", error, traceback.format_exc())
+            else:
+                try:
+                    wait([worker.conn, worker.process.sentinel])
+                    answer = worker.conn.recv() if worker.conn.poll() else None
+                except (EOFError, OSError):
+                    answer = None
+            with self._lock:
+                self._running = None
+                if self._closed:
+                    return
+                if answer is None:  # the worker died
+                    self._lost = _ending(worker)
+                    self._lock.notify_all()
+                    return
+                if ticket in self._withdrawn:
+                    self._withdrawn.discard(ticket)
+                elif ticket == self._warm_up:  # kept only when it failed: result() raises it
+                    self._warm_up_error = answer if answer[0] == "error" else None
+                else:
+                    self._answers[ticket] = answer
+                self._lock.notify_all()

@@ -1,0 +1,125 @@
+"""Step e's candidates and step e''s refinements computed beside each other on a helper process
+(:mod:`identification.runner`) give the model computed in one process, to the bit."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_nls_output_error import _rate_plant, _step_e
+
+from identification.config import IdentificationConfig
+from identification.hammerstein import HammersteinModel
+from identification.runner import StepRunner, step_runner
+from identification.steps import (
+    NlsFit,
+    fit_nonlinearity,
+    refine_and_choose,
+    refine_nonlinearity,
+    warm_up,
+)
+
+
+@pytest.fixture(scope="module")
+def beside():
+    """A runner with a helper process, shared by this module's tests."""
+    with step_runner(2, warm_up) as runner:
+        assert runner.parallel
+        yield runner
+
+
+def _both(beside: StepRunner) -> tuple[StepRunner, StepRunner]:
+    """A runner that computes everything here, and ``beside``."""
+    return StepRunner(), beside
+
+
+def _without_times(record):
+    """A record with its wall times left out (they differ from run to run)."""
+    if isinstance(record, dict):
+        return {k: _without_times(v) for k, v in record.items() if not k.endswith("wall_time_s")}
+    if isinstance(record, (list, tuple)):
+        return [_without_times(v) for v in record]
+    return record
+
+
+def _assert_same_model(a: HammersteinModel, b: HammersteinModel) -> None:
+    for key, value in a.nls.arrays().items():
+        np.testing.assert_array_equal(value, b.nls.arrays()[key], err_msg=key)
+    assert a.nls.feature_map == b.nls.feature_map
+    np.testing.assert_array_equal(a.arx.a, b.arx.a)
+    np.testing.assert_array_equal(a.arx.b, b.arx.b)
+    assert a.arx.noise_bound == b.arx.noise_bound
+    assert _without_times(a.nls.training) == _without_times(b.nls.training)
+
+
+def test_step_e_candidates_beside_each_other_are_the_networks_of_one_process(beside):
+    """The three candidate feature sets trained here one by one, and two of them on the
+    helper: the same networks, selection scores and choice."""
+    from identification.arx import ARXModel
+    from piezo_env.operators import play_sequence
+
+    rng = np.random.default_rng(2)
+    u = np.repeat(rng.uniform(-30, 30, 300), 10)
+    plays, _ = play_sequence(u, np.array([7.0, 16.0]), np.zeros(2))
+    z = 0.7 * u + plays @ np.array([0.15, 0.15])
+    arx = ARXModel([0.6], [0.4], dt=1e-3)
+    y = arx.simulate(z) + rng.uniform(-0.05, 0.05, u.size)
+    config = IdentificationConfig(hidden=(2,), max_epochs=3)
+    here, there = (
+        fit_nonlinearity(
+            arx, u, z, (u[:1000], y[:1000]), config, {"nls": 5}, u_max=30.0, u_prbs=u, runner=r
+        )
+        for r in _both(beside)
+    )
+    assert list(here.candidates) == ["play", "past-inputs", "bouc-wen"]
+    assert here.features == there.features
+    assert here.selection_scores == there.selection_scores
+    for features, nls in here.candidates.items():
+        _assert_same_model(
+            HammersteinModel(nls, arx), HammersteinModel(there.candidates[features], arx)
+        )
+
+
+def _same_refinement(a, b) -> None:
+    _assert_same_model(a.model, b.model)
+    assert _without_times(a.record()) == _without_times(b.record())
+
+
+def test_the_play_rival_refined_beside_is_the_rival_refined_here(beside):
+    """Step e chose past-inputs on plays off the grid: the rival's refinement on the helper,
+    started before the choice's, wins as it does here, with the same records."""
+    config = IdentificationConfig(nls_refinement_iterations=40, rate="off")
+    results = []
+    for runner in _both(beside):
+        fit, records = _step_e("past-inputs", (7.0, 16.0), seed=0)
+        results.append(
+            refine_and_choose(fit, records, config, sensor_noise_bound=0.05, runner=runner)
+        )
+    (kept_here, here), (kept_there, there) = results
+    assert kept_here.features == kept_there.features == "play"
+    _same_refinement(here, there)
+
+
+def test_the_rate_refinement_started_beside_is_used_or_withdrawn_as_here(beside):
+    """Play chosen, rate="auto": the rate-dependent refinement starts on the helper beside the
+    rate-independent one. On moving inputs the learned radii determine the rate and the
+    helper's refinement is the one used; on held inputs they do not and it is withdrawn. Both
+    give what one process gives."""
+    config = IdentificationConfig(nls_refinement_iterations=20, rate="auto")
+    start, arx, records = _rate_plant(7e-4)
+    selection = _rate_plant(7e-4, seed=1)[2][0]
+    fit = NlsFit(HammersteinModel(start, arx), "play", {}, 1.0, selection, 0, {"play": start})
+    here, there = (refine_nonlinearity(fit, records, config, runner=r) for r in _both(beside))
+    assert here.rate_choice["determined"] and "rate_rms_um" in here.rate_choice
+    _same_refinement(here, there)
+    held, records = _step_e("play", (7.0, 16.0), seed=1)
+    here, there = (refine_nonlinearity(held, records, config, runner=r) for r in _both(beside))
+    assert here.rate_choice == {"determined": False, "kept": False}
+    _same_refinement(here, there)
+    assert beside.beside(int, "7").result() == 7  # the helper is still at work
+
+
+def test_jobs_must_be_a_positive_integer():
+    for jobs in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="jobs must be an integer >= 1"):
+            with step_runner(jobs):
+                pass
