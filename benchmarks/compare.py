@@ -29,7 +29,7 @@ import numpy as np
 
 from benchmarks.cells import KEYS, TIE, aggregate, ci95_half_width, different
 
-__all__ = ["compare_files", "compare_runs", "load_run"]
+__all__ = ["SAME_TASK", "compare_files", "compare_runs", "load_run"]
 
 
 def load_run(path: str | Path) -> dict[str, Any]:
@@ -61,9 +61,34 @@ def _seed_set(data: dict[str, Any]) -> set[tuple[int, int]]:
     return {_seeds(data, e) for e in data["results"]["episodes"]}
 
 
+SAME_TASK = ("bender", "dt", "steps", "preview")
+"""Settings of ``results.config`` two runs must share to be compared: another bender, sample
+time, episode length or preview makes every cell another experiment."""
+
+
 def compare_runs(old: dict[str, Any], new: dict[str, Any]) -> tuple[str, int]:
     """A Markdown table of every cell's RMSE in both runs, and the number of marked changes
-    (see the module docstring for when a change is marked)."""
+    (see the module docstring for when a change is marked).
+
+    Raises
+    ------
+    ValueError
+        The runs differ in a setting of :data:`SAME_TASK` (one a run does not record is not
+        checked).
+    """
+    config_old = old["results"].get("config", {})
+    config_new = new["results"].get("config", {})
+    differ = [
+        f"{key} {config_old[key]!r} against {config_new[key]!r}"
+        for key in SAME_TASK
+        if key in config_old and key in config_new and config_old[key] != config_new[key]
+    ]
+    if differ:
+        raise ValueError(
+            "the runs are of different tasks (" + ", ".join(differ) + "): their cells are not "
+            "the same experiments; compare runs of one bender, sample time, episode length and "
+            "preview"
+        )
     before, after = _episodes(old), _episodes(new)
     cells_before = {tuple(c.get(k) for k in KEYS): c for c in aggregate(old["results"]["episodes"])}
     cells_after = {tuple(c.get(k) for k in KEYS): c for c in aggregate(new["results"]["episodes"])}

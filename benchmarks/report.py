@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -736,6 +737,18 @@ def deterministic_json(result: BenchmarkResult) -> dict[str, Any]:
     }
 
 
+def finite_or_null(value: Any) -> Any:
+    """``value`` with every float that is not finite replaced by None, through dicts, lists
+    and tuples (JSON has no infinity or NaN)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v) for v in value]
+    return value
+
+
 def write_benchmark(
     result: BenchmarkResult, out: str | Path, meta: dict[str, Any], *, figures: bool = True
 ) -> list[Path]:
@@ -746,7 +759,9 @@ def write_benchmark(
 
     ``meta`` holds ``model``, ``dt`` (s), ``noise_bound_um``, ``stroke_um`` (one-sided, um),
     ``machine`` and ``timing``, and optionally ``policies_left_out`` (folder -> reason). A
-    figure with nothing to show is not written; the report says why.
+    figure with nothing to show is not written; the report says why. A number that is not
+    finite in a controller's description (a user's controller may report an infinite margin)
+    is written as null in the JSON, which has no infinity; the report shows it as it is.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -764,7 +779,7 @@ def write_benchmark(
             {k: e[k] for k in ("plant", "controller", "reference", *_TIMING_KEYS)}
             for e in result.episodes
         ],
-        "controllers": result.controllers,
+        "controllers": finite_or_null(result.controllers),
         "targets": checks,
     }
     path = out / "benchmark.json"

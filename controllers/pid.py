@@ -419,9 +419,10 @@ class PIDController(Controller):
     def describe(self) -> dict[str, Any]:
         """Settings, gains, notch, loop margins, Ms, bandwidth and the tuning rule (JSON-safe).
 
-        The loop figures at the top level are the nominal model's; under ``"box"``, the
-        tolerances tuned over and each vertex's Ms, margins (None: no crossing), crossover and
-        bandwidth, with the worst vertex (largest Ms) and the smallest margins.
+        The loop figures at the top level are the nominal model's (None: no crossing, an
+        infinite margin); under ``"box"``, the tolerances tuned over and each vertex's Ms,
+        margins (None likewise), crossover and bandwidth, with the worst vertex (largest Ms)
+        and the smallest margins.
         """
         where = "the nominal model" if self.box.is_nominal else (
             f"the nominal model and each of the {len(self.vertices)} vertices of the tolerance box"
@@ -435,7 +436,7 @@ class PIDController(Controller):
                 "frequency grid up to Nyquist, maximised over a grid of (kp, kd) and refined)"
             ),
             "gains": asdict(self.gains),
-            **self.report,
+            **{key: _finite_or_none(value) for key, value in self.report.items()},
             "box": self._describe_box(),
             "loop": self.loop_polynomials(),
             "native": self.native_code() if self.settings.feedforward else {},

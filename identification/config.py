@@ -13,6 +13,7 @@ from piezo_env.signals import SIGNAL_DEFAULTS, make_signal
 from piezo_env.task import TaskConfig
 
 __all__ = [
+    "MAX_RECORD_SAMPLES",
     "NLS_REFINEMENTS",
     "ORDER_TIE_PERCENT",
     "PLAY_RADII",
@@ -52,6 +53,12 @@ RECORD_SECONDS: dict[str, float] = {"rich": 12.0, "validation": 6.0}
 """Length (s) of the rich and the validation records when their sample counts are None: what
 the NLS learns from is the number of RAND levels (length over hold), so the length is a
 duration, as the hold is (12000 and 6000 samples at 1 ms)."""
+
+MAX_RECORD_SAMPLES = 1_000_000
+"""Most samples a record of :data:`RECORD_SECONDS` may become at a fine dt: the rich record's
+features then take about 136 MB (17 features of 8 bytes per sample) and each training epoch a
+million samples; 12 s reach it at dt = 12 us, a tenth of the finest default sample time
+(the PL112's 0.1 ms). ``piezo simulate`` has the same limit on a run."""
 
 RICH_DEFAULTS: dict[str, dict[str, float]] = {"sine": {"frequency": 5.0}}
 """Parameters of the rich signal when ``rich_params`` is None, besides RAND's hold
@@ -303,17 +310,28 @@ class IdentificationConfig:
         ------
         ValueError
             If ``dt`` is not a positive number, or a record would be shorter than 200 samples
-            at it (then give the record's length in samples).
+            or longer than :data:`MAX_RECORD_SAMPLES` at it (then give the record's length in
+            samples, or another dt).
         """
         require_number("dt (s)", dt, low=0.0, low_open=True)
         counts = {}
         for name, key in (("rich_samples", "rich"), ("validation_samples", "validation")):
             if getattr(self, name) is None:
-                counts[name] = _samples(RECORD_SECONDS[key], dt)
+                seconds = RECORD_SECONDS[key]
+                counts[name] = _samples(seconds, dt)
                 if counts[name] < 200:
                     raise ValueError(
-                        f"the {key} record of {RECORD_SECONDS[key]:g} s is {counts[name]} "
-                        f"samples at dt = {dt:g} s, fewer than 200; pass {name} (>= 200)"
+                        f"the {key} record of {seconds:g} s is {counts[name]} samples at "
+                        f"dt = {dt:g} s, fewer than 200: use a dt of at most {seconds / 200:g} s "
+                        f"(--dt on the command line), or give {name} (>= 200) in "
+                        "IdentificationConfig"
+                    )
+                if counts[name] > MAX_RECORD_SAMPLES:
+                    raise ValueError(
+                        f"the {key} record of {seconds:g} s is {counts[name]:,} samples at "
+                        f"dt = {dt:g} s, more than the {MAX_RECORD_SAMPLES:,} an identification "
+                        f"takes: use a dt of at least {seconds / MAX_RECORD_SAMPLES:g} s (--dt "
+                        f"on the command line), or give {name} in IdentificationConfig"
                     )
         if self.validation_hold is None:
             counts["validation_hold"] = _samples(RAND_HOLD_S, dt)

@@ -8,7 +8,11 @@ Two steps hold computations that do not depend on each other:
   a rate-dependent variant (``rate="auto"``, when the learned radii let the records determine a
   rate constant) or the play rival (learned radii, when the choice is not at the sensor's noise
   floor) (:func:`identification.steps.refine_and_choose`). Each of those starts from step e's
-  result alone, so it can start before the decision that needs it is made.
+  result alone, so it can start before the decision that needs it is made: the rate-dependent
+  refinement always does, the rival when no sensor bound can rule it out (measured records
+  without one); with a bound it waits for the noise-floor test, which on the nominal PL140
+  finds it unneeded, and two processes sharing two cores slow each other more than a rival
+  started in vain could save.
 
 A :class:`StepRunner` runs such a computation "beside" the main line. With one job it is
 computed here, when its result is first asked for (a computation the decision does not need is

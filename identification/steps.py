@@ -536,8 +536,15 @@ def refine_and_choose(
         config.play_radii == "learned" and "play" in nls.candidates and nls.features != "play"
     ):
         return nls, refine_nonlinearity(nls, records, config, runner=runner)
-    # The rival starts beside the choice's refinement; the noise floor may withdraw it.
-    rival_pending = runner.beside(_refine_rival, nls, records, config)
+    # Without a sensor bound the rival is always refined: it starts beside the choice's
+    # refinement. With one it waits for the noise-floor test, which often finds it unneeded
+    # (the nominal PL140): refined beside the choice and then withdrawn, it slows the choice's
+    # refinement more than it could save (``design_measurements.md``, identification/runner).
+    rival_pending = (
+        runner.beside(_refine_rival, nls, records, config)
+        if sensor_noise_bound is None
+        else runner.here(_refine_rival, nls, records, config)
+    )
     refinement = refine_nonlinearity(nls, records, config, runner=runner)
     held_out = _kept_rms(refinement)
     n = nls.selection_record[0].size - nls.selection_lead_in

@@ -85,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandLineError(
             "--split applies to --records (a single long record); add --records DIR"
         )
+    from identification.config import env_sample_time
     from identification.pipeline import (
         IdentificationConfig,
         identify,
@@ -99,14 +100,17 @@ def run(args: argparse.Namespace) -> int:
             IdentificationConfig(features=args.features, rate=args.rate),
             split=args.split,
         )
-    out = prepare_output_dir(args.out)
-    if args.records is None:
+    else:
         config = IdentificationConfig(
             seed=0 if args.seed is None else args.seed,
             features=args.features,
             rate=args.rate,
             env_kwargs=env_kwargs(args),
         )
+        # a dt at which a record would be too short or too long is refused before --out is made
+        config.at_sample_time(env_sample_time(config.env_kwargs))
+    out = prepare_output_dir(args.out)
+    if args.records is None:
         result = identify(config=config, progress=print, jobs=args.jobs)
     else:
         result = identify_records(

@@ -61,8 +61,9 @@ def check_reference_band(band: object, dt: float) -> tuple[float, float]:
     """The band ``(low, high)`` (Hz) as two floats, or ValueError saying what is wrong.
 
     A band needs 0 < low <= high <= 0.25 / dt (half the Nyquist frequency, so that a period
-    has at least four samples). :data:`DEFAULT_BAND` is always valid: at a sample time too
-    coarse for it, its top is cut to 0.25 / dt when drawing.
+    has at least four samples). :data:`DEFAULT_BAND` is accepted at any dt: at a sample time
+    too coarse for it, its top is cut to 0.25 / dt when drawing, and a dt so coarse that the
+    cut band is empty (dt > 0.25 / low, half a second) is refused then, with the reason.
     """
     try:
         low, high = (float(f) for f in band)  # type: ignore[union-attr]
@@ -135,8 +136,14 @@ def draw_reference(
         raise ValueError(
             f"unknown reference {kind!r}; use one of {REFERENCE_NAMES} or an array (um)"
         )
-    amplitude = stroke_um * rng.uniform(0.2, 0.8)
     f_min, f_max = band[0], min(band[1], 0.25 / dt)
+    if f_max < f_min:  # only the default band gets here: a given one was checked at dt
+        raise ValueError(
+            f"the reference band {band[0]:g}-{band[1]:g} Hz, cut to 0.25/dt = {f_max:g} Hz "
+            f"at dt = {dt:g} s, is empty: use dt <= {0.25 / f_min:g} s, a band "
+            f"reference_band=(low, high) with high <= {f_max:g} Hz, or an array reference (um)"
+        )
+    amplitude = stroke_um * rng.uniform(0.2, 0.8)
     frequency = math.exp(rng.uniform(math.log(f_min), math.log(f_max)))
     if kind == "steps":
         hold = int(rng.integers(50, 401))

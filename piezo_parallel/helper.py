@@ -61,10 +61,10 @@ class Helper:
         self._closed = False
         self._warm_up: int | None = None
         self._warm_up_error: tuple[str, Any, str] | None = None
-        self._feeder = threading.Thread(target=self._feed, name="piezo-helper", daemon=True)
-        self._feeder.start()
         if warm_up is not None:  # runs first; its outcome is discarded unless it failed
             self._warm_up = self.submit(warm_up)
+        self._feeder = threading.Thread(target=self._feed, name="piezo-helper", daemon=True)
+        self._feeder.start()
 
     def submit(self, function: Callable[..., Any], *args: Any) -> int:
         """Queue ``function(*args)`` (module-level, picklable); returns its ticket."""

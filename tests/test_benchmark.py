@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -380,3 +381,40 @@ def test_no_collection_keeps_the_collector_off_inside_and_freezes_once(monkeypat
         assert gc.get_freeze_count() <= frozen  # no second freeze: only new objects collected
     assert gc.isenabled() and calls == [1]
     gc.unfreeze()  # the rest of the session's heap stays collectable
+
+
+def test_an_infinite_number_in_a_description_is_written_as_null(tmp_path):
+    """A loop with no phase crossing has an infinite gain margin: the PID describes it as None,
+    and any other controller's infinity or NaN becomes null in the JSON (which has neither)
+    instead of failing the write after the run."""
+    from benchmarks.report import finite_or_null
+
+    config = BenchmarkConfig(
+        controllers=("pid",), references=("sine-10Hz",), plants=("nominal",), steps=50
+    )
+    result = run_benchmark(config, MODEL_DIR)
+    result.controllers["pid"]["user_margin"] = math.inf
+    result.controllers["pid"]["nested"] = {"values": (1.0, math.nan, -math.inf)}
+    meta = {"model": MODEL_DIR, "dt": 1e-3, "noise_bound_um": 1.0, "stroke_um": 1000.0,
+            "machine": machine()}
+    write_benchmark(result, tmp_path, meta, figures=False)
+    data = json.loads((tmp_path / "benchmark.json").read_text())
+    assert data["controllers"]["pid"]["user_margin"] is None
+    assert data["controllers"]["pid"]["nested"] == {"values": [1.0, None, None]}
+    assert finite_or_null({"a": [2.0, math.inf], "b": "text", "c": 3}) == {
+        "a": [2.0, None], "b": "text", "c": 3
+    }
+
+
+def test_the_pid_describes_an_infinite_margin_as_none(monkeypatch):
+    import gymnasium as gym
+
+    from controllers.registry import make
+    from identification.hammerstein import HammersteinModel
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20)
+    pid = make("pid", HammersteinModel.load(MODEL_DIR), env)
+    pid.report = {**pid.report, "gain_margin_db": math.inf, "crossover_hz": math.nan}
+    info = pid.describe()
+    assert info["gain_margin_db"] is None and info["crossover_hz"] is None
+    json.dumps(info, allow_nan=False)

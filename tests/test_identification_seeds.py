@@ -107,6 +107,16 @@ def test_compare_pairs_runs_on_their_shared_seeds(one_seed):
     assert compare_runs(three, copy.deepcopy(three))[1] == 0
 
 
+@pytest.mark.parametrize(("key", "value"), [("bender", "PL122"), ("dt", 2e-4), ("steps", 61)])
+def test_compare_refuses_runs_of_another_task(one_seed, key, value):
+    """Another bender, sample time or episode length: no cell is the same experiment."""
+    other = copy.deepcopy(one_seed)
+    assert key in other["results"]["config"]
+    other["results"]["config"][key] = value
+    with pytest.raises(ValueError, match=f"different tasks \\({key} "):
+        compare_runs(one_seed, other)
+
+
 def test_identification_plants_are_the_bender_itself():
     from piezo_cli.benchmark import identification_plants
 

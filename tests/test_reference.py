@@ -151,3 +151,14 @@ def test_single_env_equals_vector_env_with_a_band():
     np.testing.assert_array_equal(np.array(obs_v), np.array(obs_s))
     default = gym.make("piezo_env:PiezoBender-v0", preview=4)
     assert not np.array_equal(default.reset(seed=seed)[0][1:], obs_s[0][0][1:])
+
+
+@pytest.mark.parametrize("reference", ["random", "sine", "steps"])
+def test_a_sample_time_too_coarse_for_the_default_band_is_refused_with_the_fix(reference):
+    """At dt = 1 s the default band's top, cut to 0.25/dt = 0.25 Hz, falls below its 0.5 Hz
+    bottom: the reset says so and what to change, not a numpy error."""
+    env = gym.make("piezo_env:PiezoBender-v0", dt=1.0, reference=reference)
+    with pytest.raises(ValueError, match=r"is empty: use dt <= 0\.5 s"):
+        env.reset(seed=0)
+    ok = gym.make("piezo_env:PiezoBender-v0", dt=0.5, reference=reference)
+    ok.reset(seed=0)

@@ -184,7 +184,7 @@ def test_identification_records_follow_the_env_s_sample_time():
     given = IdentificationConfig(rich_samples=500, validation_hold=7).at_sample_time(dt)
     assert (given.rich_samples, given.validation_hold) == (500, 7)
     assert env_sample_time({"bender": "PL127", "dt": 1e-3}) == 1e-3
-    with pytest.raises(ValueError, match="pass validation_samples"):
+    with pytest.raises(ValueError, match="give validation_samples"):
         IdentificationConfig().at_sample_time(0.05)
 
 
@@ -208,3 +208,26 @@ def test_the_command_line_leaves_dt_to_the_bender_unless_given():
     assert "dt" not in env_kwargs(args) and sample_time(args) == 2.5e-4
     args = parser.parse_args(["--bender", "PL127", "--dt", "1e-3"])
     assert env_kwargs(args)["dt"] == 1e-3 and sample_time(args) == 1e-3
+
+
+@pytest.mark.parametrize(
+    ("dt", "message"),
+    [
+        (1e-7, r"more than the 1,000,000 an identification takes: use a dt of at least 1\.2e-05 s"),
+        (0.1, r"fewer than 200: use a dt of at most 0\.06 s \(--dt on the command line\)"),
+    ],
+)
+def test_a_dt_too_fine_or_too_coarse_for_the_records_is_refused_before_work(
+    dt, message, tmp_path, capsys
+):
+    """Default record durations at a dt that makes them a billion samples or a handful: refused
+    with the dt that works, by the library and by ``piezo excite`` / ``piezo identify``."""
+    from identification.config import IdentificationConfig
+    from piezo_cli.main import main
+
+    with pytest.raises(ValueError, match=message):
+        IdentificationConfig().at_sample_time(dt)
+    for command in ("excite", "identify"):
+        assert main([command, "--dt", str(dt), "--out", str(tmp_path / command)]) == 2
+        assert "use a dt of" in capsys.readouterr().err
+        assert not (tmp_path / command).exists()
