@@ -148,7 +148,13 @@ def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> 
         start = clock()
         action = act(obs)
         add_compute(clock() - start)
-        obs, reward, terminated, truncated, info = step(action)
+        try:
+            obs, reward, terminated, truncated, info = step(action)
+        except ValueError as error:  # the env's own message says what is wrong with it
+            name = getattr(controller, "name", type(controller).__name__)
+            raise ValueError(
+                f"the env refused {name!r}'s action at step {steps}: {error}"
+            ) from error
         voltage = info["voltage_V"]
         add_y(info["deflection_um"])
         add_m(float(obs[0]))

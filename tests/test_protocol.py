@@ -61,6 +61,27 @@ def test_a_bare_protocol_object_runs_an_episode(env):
     assert np.isfinite(episode.metrics["rmse_percent"])
 
 
+class WrongShape(Bare):
+    """A controller whose action has the wrong shape from its third step on."""
+
+    name = "wrong-shape"
+
+    def __init__(self) -> None:
+        super().__init__(None, None)
+        self.calls = 0
+
+    def act(self, observation):
+        self.calls += 1
+        action = super().act(observation)
+        return action if self.calls <= 2 else np.repeat(action, 2)
+
+
+def test_an_action_the_env_refuses_names_the_controller_and_the_step(env):
+    with pytest.raises(ValueError, match=r"the env refused 'wrong-shape''s action at step 2: "
+                       r"action must have shape \(1,\)"):
+        controllers.run_episode(env, WrongShape(), seed=0, max_steps=10)
+
+
 class Scripted(Bare):
     """A controller whose every act takes a scripted time on an injected clock."""
 
