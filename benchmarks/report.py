@@ -761,7 +761,8 @@ def write_benchmark(
     ``machine`` and ``timing``, and optionally ``policies_left_out`` (folder -> reason). A
     figure with nothing to show is not written; the report says why. A number that is not
     finite in a controller's description (a user's controller may report an infinite margin)
-    is written as null in the JSON, which has no infinity; the report shows it as it is.
+    is written as null in the JSON, which has no infinity; this report shows it as it is, one
+    rewritten from the JSON (:func:`rewrite_report`) as None.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

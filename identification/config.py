@@ -314,25 +314,28 @@ class IdentificationConfig:
             samples, or another dt).
         """
         require_number("dt (s)", dt, low=0.0, low_open=True)
-        counts = {}
+        counts, seconds = {}, {}
         for name, key in (("rich_samples", "rich"), ("validation_samples", "validation")):
             if getattr(self, name) is None:
-                seconds = RECORD_SECONDS[key]
-                counts[name] = _samples(seconds, dt)
-                if counts[name] < 200:
-                    raise ValueError(
-                        f"the {key} record of {seconds:g} s is {counts[name]} samples at "
-                        f"dt = {dt:g} s, fewer than 200: use a dt of at most {seconds / 200:g} s "
-                        f"(--dt on the command line), or give {name} (>= 200) in "
-                        "IdentificationConfig"
-                    )
-                if counts[name] > MAX_RECORD_SAMPLES:
-                    raise ValueError(
-                        f"the {key} record of {seconds:g} s is {counts[name]:,} samples at "
-                        f"dt = {dt:g} s, more than the {MAX_RECORD_SAMPLES:,} an identification "
-                        f"takes: use a dt of at least {seconds / MAX_RECORD_SAMPLES:g} s (--dt "
-                        f"on the command line), or give {name} in IdentificationConfig"
-                    )
+                seconds[name] = RECORD_SECONDS[key]
+                counts[name] = _samples(seconds[name], dt)
+        # Each message names the dt that suits every record left to its default duration.
+        for name, count in counts.items():
+            key = name.split("_")[0]
+            if count < 200:
+                raise ValueError(
+                    f"the {key} record of {seconds[name]:g} s is {count} samples at "
+                    f"dt = {dt:g} s, fewer than 200: use a dt of at most "
+                    f"{min(seconds.values()) / 200:g} s (--dt on the command line), or give "
+                    f"{name} (>= 200) in IdentificationConfig"
+                )
+            if count > MAX_RECORD_SAMPLES:
+                raise ValueError(
+                    f"the {key} record of {seconds[name]:g} s is {count:,} samples at "
+                    f"dt = {dt:g} s, more than the {MAX_RECORD_SAMPLES:,} an identification "
+                    f"takes: use a dt of at least {max(seconds.values()) / MAX_RECORD_SAMPLES:g} "
+                    f"s (--dt on the command line), or give {name} in IdentificationConfig"
+                )
         if self.validation_hold is None:
             counts["validation_hold"] = _samples(RAND_HOLD_S, dt)
         return dataclasses.replace(self, rich_params=self.rich_signal_params(dt), **counts)

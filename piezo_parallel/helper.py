@@ -13,8 +13,10 @@ running, so that nothing outlives the computation that started it.
 The worker is the pool's (the same spawned process, signal handling and exit with its parent),
 and a call's exception comes back as the pool's do, with the worker's traceback chained. A
 worker that dies (the out-of-memory killer's SIGKILL, a crash in native code) ends every call
-not yet answered with :class:`~piezo_parallel.pool.WorkerLost`; no call runs twice, so a helper
-is for computations that are cheap to redo in this process instead.
+not yet answered with :class:`~piezo_parallel.pool.WorkerLost` (naming how it ended); no call
+runs twice, and the caller decides what to do. A call's arguments are pickled when it is
+submitted, so the worker gets them as they were then, and an argument that cannot be pickled
+is refused at once.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from collections import deque
 from collections.abc import Callable
 from multiprocessing import get_context
 from multiprocessing.connection import wait
+from multiprocessing.reduction import ForkingPickler
 from typing import Any
 
 from piezo_parallel.pool import RemoteTraceback, WorkerLost, _Call, _ending, _start, _stop
@@ -44,49 +47,48 @@ class Helper:
     ----------
     warm_up : callable, optional
         A module-level function run first in the worker (its imports, say), so that the first
-        real call does not pay for them; its outcome is discarded, its exception kept for the
-        next :meth:`result`, which raises it (a warm-up that fails leaves the worker unusable
-        for the calls that need it).
+        real call does not pay for them. Its outcome is discarded, a failure too: a warm-up
+        only saves time, and a cause that outlives it (a module that cannot be imported) makes
+        the calls that need it fail with their own error.
     """
 
     def __init__(self, warm_up: Callable[[], Any] | None = None) -> None:
         self._worker = _start(get_context("spawn"), _no_default)
         self._lock = threading.Condition()
-        self._queue: deque[tuple[int, _Call]] = deque()
+        self._queue: deque[tuple[int, bytes]] = deque()
         self._answers: dict[int, tuple[str, Any, str]] = {}
-        self._withdrawn: set[int] = set()
+        self._waiting: set[int] = set()  # submitted, neither answered to result() nor withdrawn
         self._running: int | None = None
         self._next = 0
         self._lost: str | None = None
         self._closed = False
-        self._warm_up: int | None = None
-        self._warm_up_error: tuple[str, Any, str] | None = None
-        if warm_up is not None:  # runs first; its outcome is discarded unless it failed
-            self._warm_up = self.submit(warm_up)
+        if warm_up is not None:  # runs first; its outcome, a failure too, is discarded
+            self.withdraw_later(self.submit(warm_up))
         self._feeder = threading.Thread(target=self._feed, name="piezo-helper", daemon=True)
         self._feeder.start()
 
     def submit(self, function: Callable[..., Any], *args: Any) -> int:
-        """Queue ``function(*args)`` (module-level, picklable); returns its ticket."""
+        """Queue ``function(*args)`` (module-level, picklable; pickled now); returns its
+        ticket."""
+        call = ForkingPickler.dumps(_Call(function, args))  # what Connection.send would send
         with self._lock:
             if self._closed:
                 raise RuntimeError("the helper is closed")
             ticket = self._next
             self._next += 1
-            self._queue.append((ticket, _Call(function, args)))
+            self._queue.append((ticket, bytes(call)))
+            self._waiting.add(ticket)
             self._lock.notify_all()
         return ticket
 
     def result(self, ticket: int) -> Any:
         """Wait for the call ``ticket`` and return its value, or raise its exception (the
-        worker's traceback chained) or :class:`~piezo_parallel.pool.WorkerLost`."""
+        worker's traceback chained) or :class:`~piezo_parallel.pool.WorkerLost`; each ticket
+        answers once (KeyError after that, or after :meth:`withdraw`)."""
         with self._lock:
+            if ticket not in self._waiting:
+                raise KeyError(f"no call {ticket} is waiting for its result")
             while ticket not in self._answers:
-                if self._warm_up_error is not None:
-                    _, error, text = self._warm_up_error
-                    raise RuntimeError(f"the helper's warm-up failed: {error}") from (
-                        RemoteTraceback(text)
-                    )
                 if self._lost is not None:
                     raise WorkerLost(
                         f"the helper process {self._lost} before call {ticket} was answered; "
@@ -96,6 +98,7 @@ class Helper:
                     raise RuntimeError("the helper is closed")
                 self._lock.wait()
             kind, value, text = self._answers.pop(ticket)
+            self._waiting.discard(ticket)
         if kind == "error":
             raise value from RemoteTraceback(text)
         return value
@@ -107,9 +110,14 @@ class Helper:
             queued = [t for t, _ in self._queue]
             if ticket in queued:
                 del self._queue[queued.index(ticket)]
-            else:
-                self._withdrawn.add(ticket)
-                self._answers.pop(ticket, None)
+            self._waiting.discard(ticket)
+            self._answers.pop(ticket, None)
+
+    def withdraw_later(self, ticket: int) -> None:
+        """The call ``ticket`` runs, but its outcome is not wanted (a warm-up)."""
+        with self._lock:
+            self._waiting.discard(ticket)
+            self._answers.pop(ticket, None)
 
     def close(self) -> None:
         """Stop the worker (a call still running is terminated) and reap it."""
@@ -118,10 +126,13 @@ class Helper:
                 return
             self._closed = True
             self._queue.clear()
-            self._worker.task = self._running  # the pool's stop terminates a busy worker
+            running = self._running is not None
             self._lock.notify_all()
+        if running:  # the feeder waits on the worker: its end wakes the feeder
+            self._worker.process.terminate()
+        self._feeder.join()  # before the pipe is closed under it
+        self._worker.task = 0 if self._worker.process.is_alive() and running else None
         _stop([self._worker])
-        self._feeder.join()
 
     def __enter__(self) -> Helper:
         return self
@@ -130,7 +141,10 @@ class Helper:
         self.close()
 
     def _feed(self) -> None:
-        """The feeder thread: send the next call when the worker is idle, file its answer."""
+        """The feeder thread: send the next call when the worker is idle, file its answer.
+
+        Whatever goes wrong here is filed as the call's answer or as the worker's loss, so
+        that :meth:`result` never waits for an answer that cannot come."""
         worker = self._worker
         while True:
             with self._lock:
@@ -142,17 +156,14 @@ class Helper:
                 self._running = ticket
             answer: tuple[str, Any, str] | None
             try:
-                worker.conn.send(call)
-            except OSError:  # the worker is gone: its sentinel tells how
+                worker.conn.send_bytes(call)
+                wait([worker.conn, worker.process.sentinel])
+                answer = worker.conn.recv() if worker.conn.poll() else None
+            except (EOFError, OSError):  # the worker is gone: its sentinel tells how
                 answer = None
-            except Exception as error:  # an argument that cannot be pickled
-                answer = ("error", error, traceback.format_exc())
-            else:
-                try:
-                    wait([worker.conn, worker.process.sentinel])
-                    answer = worker.conn.recv() if worker.conn.poll() else None
-                except (EOFError, OSError):
-                    answer = None
+            except BaseException as error:  # an answer that cannot be unpickled here
+                failure = RuntimeError(f"cannot read the helper's answer to call {ticket}: {error}")
+                answer = ("error", failure, traceback.format_exc())
             with self._lock:
                 self._running = None
                 if self._closed:
@@ -161,10 +172,6 @@ class Helper:
                     self._lost = _ending(worker)
                     self._lock.notify_all()
                     return
-                if ticket in self._withdrawn:
-                    self._withdrawn.discard(ticket)
-                elif ticket == self._warm_up:  # kept only when it failed: result() raises it
-                    self._warm_up_error = answer if answer[0] == "error" else None
-                else:
+                if ticket in self._waiting:
                     self._answers[ticket] = answer
                 self._lock.notify_all()

@@ -178,3 +178,16 @@ def append(value: int, path: str) -> int:
     with open(path, "a", encoding="utf-8") as file:
         file.write(f"{value}\n")
     return value
+
+
+class TwoArgumentError(Exception):
+    """An exception that cannot be unpickled: its ``__init__`` takes two arguments, and a
+    pickle rebuilds it with the one message in ``args``."""
+
+    def __init__(self, first: str, second: str) -> None:
+        super().__init__(f"{first} {second}")
+
+
+def raise_unpicklable() -> None:
+    """Raise an exception whose pickle cannot be read back."""
+    raise TwoArgumentError("cannot", "come back")

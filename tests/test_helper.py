@@ -72,8 +72,36 @@ def test_close_terminates_a_running_call_and_reaps_the_worker(tmp_path):
         helper.submit(faulty.mark_then, 2, "/dev/null")
 
 
-def test_a_failed_warm_up_is_raised_by_the_next_result():
+def test_a_failed_warm_up_only_costs_its_time():
     with Helper(warm_up=faulty.always_fail) as helper:
-        with pytest.raises(RuntimeError, match="warm-up failed") as caught:
-            helper.result(helper.submit(faulty.mark_then, 1, "/dev/null"))
-        assert isinstance(caught.value.__cause__, RemoteTraceback)
+        assert helper.result(helper.submit(faulty.mark_then, 1, "/dev/null")) == 1
+
+
+def test_an_answer_that_cannot_be_read_is_an_error_not_a_wait():
+    with Helper() as helper:
+        with pytest.raises(RuntimeError, match="cannot read the helper's answer to call 0"):
+            helper.result(helper.submit(faulty.raise_unpicklable))
+        assert helper.result(helper.submit(faulty.mark_then, 2, "/dev/null")) == 2
+
+
+def test_arguments_are_pickled_when_submitted(tmp_path):
+    with Helper() as helper:
+        with pytest.raises(Exception, match="pickle"):
+            helper.submit(faulty.mark_then, lambda: 1, "/dev/null")
+        values = [1]
+        busy = helper.submit(faulty.mark_then, 0, str(tmp_path / "busy"), 0.3)
+        later = helper.submit(faulty.append, values, str(tmp_path / "log"))
+        values.append(99)  # a change after submitting, before the call starts, does not reach it
+        assert helper.result(busy) == 0 and helper.result(later) == [1]
+
+
+def test_each_ticket_answers_once():
+    with Helper() as helper:
+        ticket = helper.submit(faulty.mark_then, 1, "/dev/null")
+        assert helper.result(ticket) == 1
+        with pytest.raises(KeyError, match="no call 0 is waiting"):
+            helper.result(ticket)
+        withdrawn = helper.submit(faulty.mark_then, 2, "/dev/null")
+        helper.withdraw(withdrawn)
+        with pytest.raises(KeyError):
+            helper.result(withdrawn)

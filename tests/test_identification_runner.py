@@ -119,6 +119,27 @@ def test_the_rate_refinement_started_beside_is_used_or_withdrawn_as_here(beside)
     assert beside.beside(int, "7").result() == 7  # the helper is still at work
 
 
+def test_beside_runs_on_another_process_and_here_runs_here(beside):
+    import os
+
+    assert beside.beside(os.getpid).result() != os.getpid()
+    assert StepRunner().beside(os.getpid).result() == os.getpid()
+    assert beside.here(os.getpid).result() == os.getpid()
+
+
+def test_identify_with_a_helper_gives_the_model_of_one_process(fast_pl140_identification):
+    """The pipeline end to end with ``jobs=2`` (play features: the rate-dependent refinement
+    starts on the helper) against the session's one-process identification."""
+    from short_runs import FAST, FAST_SEED
+
+    from identification.pipeline import identify
+
+    config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **FAST)
+    here, there = fast_pl140_identification, identify(config=config, jobs=2)
+    _assert_same_model(here.model, there.model)
+    assert _without_times(here.report["nls"]) == _without_times(there.report["nls"])
+
+
 def test_jobs_must_be_a_positive_integer():
     for jobs in (0, -1, 1.5, True, "2"):
         with pytest.raises(ValueError, match="jobs must be an integer >= 1"):

@@ -214,7 +214,7 @@ def test_the_command_line_leaves_dt_to_the_bender_unless_given():
     ("dt", "message"),
     [
         (1e-7, r"more than the 1,000,000 an identification takes: use a dt of at least 1\.2e-05 s"),
-        (0.1, r"fewer than 200: use a dt of at most 0\.06 s \(--dt on the command line\)"),
+        (0.1, r"fewer than 200: use a dt of at most 0\.03 s \(--dt on the command line\)"),
     ],
 )
 def test_a_dt_too_fine_or_too_coarse_for_the_records_is_refused_before_work(
