@@ -539,7 +539,7 @@ def refine_and_choose(
     # Without a sensor bound the rival is always refined: it starts beside the choice's
     # refinement. With one it waits for the noise-floor test, which often finds it unneeded
     # (the nominal PL140): refined beside the choice and then withdrawn, it slows the choice's
-    # refinement more than it could save (``design_measurements.md``, identification/runner).
+    # refinement more than it could save (``design_measurements.md``, identification.runner).
     rival_pending = (
         runner.beside(_refine_rival, nls, records, config)
         if sensor_noise_bound is None
