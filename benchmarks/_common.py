@@ -96,3 +96,17 @@ def single_env_step_times(
         times[i] = clock() - start
     env.close()
     return times
+
+
+def same_model(a: Any, b: Any) -> bool:
+    """Whether two Hammerstein models hold the same features, network and linear part, to
+    the bit."""
+    arrays_a, arrays_b = a.nls.arrays(), b.nls.arrays()
+    return (
+        a.nls.feature_map == b.nls.feature_map
+        and arrays_a.keys() == arrays_b.keys()
+        and all(np.array_equal(arrays_a[k], arrays_b[k]) for k in arrays_a)
+        and np.array_equal(a.arx.a, b.arx.a)
+        and np.array_equal(a.arx.b, b.arx.b)
+        and a.arx.noise_bound == b.arx.noise_bound
+    )

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +39,7 @@ from benchmarks.verdict import (
 from controllers.adaptive import AdaptiveMPCSettings
 from controllers.mpc import MPCSettings
 from controllers.observer import RUNAWAY_MEMORY, RUNAWAY_PERSISTENCE
+from identification.outputs import jsonable
 
 __all__ = [
     "SCHEMA",
@@ -737,18 +737,6 @@ def deterministic_json(result: BenchmarkResult) -> dict[str, Any]:
     }
 
 
-def finite_or_null(value: Any) -> Any:
-    """``value`` with every float that is not finite replaced by None, through dicts, lists
-    and tuples (JSON has no infinity or NaN)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: finite_or_null(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite_or_null(v) for v in value]
-    return value
-
-
 def write_benchmark(
     result: BenchmarkResult, out: str | Path, meta: dict[str, Any], *, figures: bool = True
 ) -> list[Path]:
@@ -761,7 +749,8 @@ def write_benchmark(
     ``machine`` and ``timing``, and optionally ``policies_left_out`` (folder -> reason). A
     figure with nothing to show is not written; the report says why. A number that is not
     finite in a controller's description (a user's controller may report an infinite margin)
-    is written as null in the JSON, which has no infinity; this report shows it as it is, one
+    is written as null in the JSON, which has no infinity (:func:`identification.outputs.
+    jsonable`, as the identification's report.json); this report shows it as it is, one
     rewritten from the JSON (:func:`rewrite_report`) as None.
     """
     out = Path(out)
@@ -780,7 +769,7 @@ def write_benchmark(
             {k: e[k] for k in ("plant", "controller", "reference", *_TIMING_KEYS)}
             for e in result.episodes
         ],
-        "controllers": finite_or_null(result.controllers),
+        "controllers": jsonable(result.controllers),
         "targets": checks,
     }
     path = out / "benchmark.json"

@@ -314,27 +314,27 @@ class IdentificationConfig:
             samples, or another dt).
         """
         require_number("dt (s)", dt, low=0.0, low_open=True)
-        counts, seconds = {}, {}
-        for name, key in (("rich_samples", "rich"), ("validation_samples", "validation")):
-            if getattr(self, name) is None:
-                seconds[name] = RECORD_SECONDS[key]
-                counts[name] = _samples(seconds[name], dt)
+        seconds = {
+            name: RECORD_SECONDS[key]
+            for name, key in (("rich_samples", "rich"), ("validation_samples", "validation"))
+            if getattr(self, name) is None
+        }
+        counts = {name: _samples(duration, dt) for name, duration in seconds.items()}
         # Each message names the dt that suits every record left to its default duration.
         for name, count in counts.items():
-            key = name.split("_")[0]
+            record = f"the {name.removesuffix('_samples')} record of {seconds[name]:g} s"
             if count < 200:
                 raise ValueError(
-                    f"the {key} record of {seconds[name]:g} s is {count} samples at "
-                    f"dt = {dt:g} s, fewer than 200: use a dt of at most "
-                    f"{min(seconds.values()) / 200:g} s (--dt on the command line), or give "
-                    f"{name} (>= 200) in IdentificationConfig"
+                    f"{record} is {count} samples at dt = {dt:g} s, fewer than 200: use a dt "
+                    f"of at most {min(seconds.values()) / 200:g} s (--dt on the command line), "
+                    f"or give {name} (>= 200) in IdentificationConfig"
                 )
             if count > MAX_RECORD_SAMPLES:
                 raise ValueError(
-                    f"the {key} record of {seconds[name]:g} s is {count:,} samples at "
-                    f"dt = {dt:g} s, more than the {MAX_RECORD_SAMPLES:,} an identification "
-                    f"takes: use a dt of at least {max(seconds.values()) / MAX_RECORD_SAMPLES:g} "
-                    f"s (--dt on the command line), or give {name} in IdentificationConfig"
+                    f"{record} is {count:,} samples at dt = {dt:g} s, more than the "
+                    f"{MAX_RECORD_SAMPLES:,} an identification takes: use a dt of at least "
+                    f"{max(seconds.values()) / MAX_RECORD_SAMPLES:g} s (--dt on the command "
+                    f"line), or give {name} in IdentificationConfig"
                 )
         if self.validation_hold is None:
             counts["validation_hold"] = _samples(RAND_HOLD_S, dt)

@@ -158,10 +158,10 @@ def identify(
     """
     config = _settings(config, overrides)
     log = _StepLog(progress)
-    with step_runner(jobs, warm_up) as runner:
-        env = env if env is not None else identification_env(config)
-        dt = sample_time(env)
-        config = config.at_sample_time(dt)
+    env = env if env is not None else identification_env(config)
+    dt = sample_time(env)
+    config = config.at_sample_time(dt)
+    with step_runner(jobs, warm_up) as runner:  # the helper's imports overlap the experiment
         records = records_from_env(env, experiment_inputs(config, dt), config.seed)
         true_plant = env.unwrapped.model.state_space()
         return _identify(records, config, log, true_plant=true_plant, runner=runner)
@@ -227,24 +227,6 @@ def identify_records(
     """
     config = _settings(config, overrides)
     log = _StepLog(progress)
-    with step_runner(jobs, warm_up) as runner:
-        return _identify_records(
-            records, config, log, split, seed, dt, drive_range_V, bender, runner
-        )
-
-
-def _identify_records(
-    records: Any,
-    config: IdentificationConfig,
-    log: _StepLog,
-    split: float | None,
-    seed: int | None,
-    dt: float | None,
-    drive_range_V: tuple[float, float] | None,
-    bender: str | None,
-    runner: StepRunner,
-) -> IdentificationResult:
-    """The body of :func:`identify_records`, beside ``runner``'s helper."""
     if isinstance(records, (str, os.PathLike)):
         records, config = read_records_folder(records, config, split=split)
     elif not isinstance(records, Records):
@@ -269,7 +251,8 @@ def _identify_records(
         rich_samples=lengths["rich"],
         validation_samples=lengths["validation"],
     )
-    return _identify(records, config, log, true_plant=None, runner=runner)
+    with step_runner(jobs, warm_up) as runner:  # records checked first: no process for bad input
+        return _identify(records, config, log, true_plant=None, runner=runner)
 
 
 def read_records_folder(

@@ -624,36 +624,30 @@ def refine_nonlinearity(
             small_signal_gain=_small_signal_gain(start, records[0][0]),
             wall_time_s=0.0,
         )
+    # The radius stage (which the rate question needs) runs on play features with learned radii.
+    learns_radii = config.play_radii == "learned" and isinstance(
+        start.nls.feature_map, PlayFeatures
+    )
     rate_pending = (
         runner.beside(_refine, start, records, config, learn_rate=True)
-        if config.rate == "auto"
-        and config.play_radii == "learned"
-        and isinstance(start.nls.feature_map, PlayFeatures)
+        if config.rate == "auto" and learns_radii
         else None
     )
     fit, refined, gain = _refine(start, records, config, learn_rate=config.rate == "on")
     rate_choice = None
-    if (
-        config.rate == "auto"
-        and refined is not None
-        and fit.stages
-        and "radii_after" in fit.stages[0]
-    ):
+    if rate_pending is not None and refined is not None:
         rate_choice = {
             "determined": rate_is_determined(fit.stages[0]["radii_after"], records, start.arx.dt)
         }
         if rate_choice["determined"]:
-            if rate_pending is None:  # (the radius stage runs only where it was started)
-                rate_pending = runner.here(_refine, start, records, config, learn_rate=True)
             rate_fit, rate_refined, rate_gain = rate_pending.result()
-            rate_pending = None
             rate_choice.update(_rate_choice(refined, rate_refined, nls))
             rate_choice["wall_time_s"] = fit.wall_time_s + rate_fit.wall_time_s
             if rate_choice["kept"]:
                 fit, refined, gain = rate_fit, rate_refined, rate_gain
         else:
             rate_choice["kept"] = False
-    if rate_pending is not None:
+    if rate_pending is not None:  # not needed (a no-op once its result was taken)
         rate_pending.withdraw()
     model, refusal = start, None
     if refined is None:

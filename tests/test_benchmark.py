@@ -387,7 +387,7 @@ def test_an_infinite_number_in_a_description_is_written_as_null(tmp_path):
     """A loop with no phase crossing has an infinite gain margin: the PID describes it as None,
     and any other controller's infinity or NaN becomes null in the JSON (which has neither)
     instead of failing the write after the run."""
-    from benchmarks.report import finite_or_null
+    from identification.outputs import jsonable
 
     config = BenchmarkConfig(
         controllers=("pid",), references=("sine-10Hz",), plants=("nominal",), steps=50
@@ -401,7 +401,7 @@ def test_an_infinite_number_in_a_description_is_written_as_null(tmp_path):
     data = json.loads((tmp_path / "benchmark.json").read_text())
     assert data["controllers"]["pid"]["user_margin"] is None
     assert data["controllers"]["pid"]["nested"] == {"values": [1.0, None, None]}
-    assert finite_or_null({"a": [2.0, math.inf], "b": "text", "c": 3}) == {
+    assert jsonable({"a": [2.0, math.inf], "b": "text", "c": 3}) == {
         "a": [2.0, None], "b": "text", "c": 3
     }
 

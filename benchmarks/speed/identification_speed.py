@@ -20,9 +20,8 @@ import statistics
 import time
 from typing import Any
 
-from benchmarks._common import header, markdown_table, write_result
+from benchmarks._common import header, markdown_table, same_model, write_result
 from benchmarks.plants import PLANTS
-from benchmarks.studies.rate_aware_identification import _same_model
 from identification.pipeline import IdentificationConfig, identify
 from identification.steps import warm_up
 
@@ -52,7 +51,7 @@ def main() -> None:
                 times[jobs].append((wall, steps))
                 if first is None:
                     first = model
-                elif not _same_model(first, model):
+                elif not same_model(first, model):
                     raise AssertionError(f"{plant}: jobs={jobs} gave another model")
                 print(plant, jobs, f"{wall:.1f} s", flush=True)
 

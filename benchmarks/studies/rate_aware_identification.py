@@ -21,9 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from benchmarks._common import header, markdown_table, write_result
+from benchmarks._common import header, markdown_table, same_model, write_result
 from benchmarks.plants import PLANTS
 from benchmarks.runner import BenchmarkConfig, run_benchmark
 from identification.pipeline import IdentificationConfig, identify
@@ -50,20 +48,6 @@ def _env(label: str) -> dict[str, Any]:
     return PLANTS[plant](BENDER)
 
 
-def _same_model(a: Any, b: Any) -> bool:
-    """Whether two Hammerstein models hold the same features, network and linear part, to
-    the bit."""
-    arrays_a, arrays_b = a.nls.arrays(), b.nls.arrays()
-    return (
-        a.nls.feature_map == b.nls.feature_map
-        and arrays_a.keys() == arrays_b.keys()
-        and all(np.array_equal(arrays_a[k], arrays_b[k]) for k in arrays_a)
-        and np.array_equal(a.arx.a, b.arx.a)
-        and np.array_equal(a.arx.b, b.arx.b)
-        and a.arx.noise_bound == b.arx.noise_bound
-    )
-
-
 def _one(label: str, seed: int, folder: Path) -> dict[str, Any]:
     """Identify on the plant with ``seed`` in one process and with a helper (``jobs=2``,
     :mod:`identification.runner`), check that both give the same model, then run ``mpc`` and
@@ -76,7 +60,7 @@ def _one(label: str, seed: int, folder: Path) -> dict[str, Any]:
         took[jobs] = time.perf_counter() - start
         if jobs == JOBS[0]:
             first = result.model
-        elif not _same_model(first, result.model):
+        elif not same_model(first, result.model):
             raise AssertionError(f"{label}, seed {seed}: jobs={jobs} gave another model")
     result.model.save(folder)
     report = result.report
