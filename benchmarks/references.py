@@ -135,10 +135,17 @@ def make_reference(
     Raises
     ------
     ValueError
-        For an unknown name (the message lists the valid ones).
+        For an unknown name (the message lists the valid ones), or a reference this dt
+        cannot sample (the message names the reference and the fix).
     """
     if name not in REFERENCES:
         raise ValueError(f"unknown reference {name!r}; valid: {', '.join(REFERENCES)}")
     rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
-    reference = np.asarray(REFERENCES[name].build(n, dt, rng), dtype=float)
+    try:
+        reference = np.asarray(REFERENCES[name].build(n, dt, rng), dtype=float)
+    except ValueError as error:
+        raise ValueError(
+            f"the reference {name!r} cannot be sampled at dt = {dt:g} s ({error}); pass a "
+            "smaller dt, or leave it out with --references"
+        ) from error
     return reference if stroke_um == 1000.0 else reference * (stroke_um / 1000.0)

@@ -287,7 +287,9 @@ def _fe_response(
     plant = PiezoBenderModel(
         datasheet, dt=dt, hysteresis=None, damping_ratio=damping_ratio, **elements
     )
-    return frequency_response(PredictionModel.from_plant(plant), _fit_frequencies(dt))
+    return frequency_response(
+        PredictionModel.from_plant(plant, reduce=False), _fit_frequencies(dt)
+    )
 
 
 def datasheet_model(

@@ -28,7 +28,7 @@ from piezo_env.reference import (
     check_reference_array,
     check_reference_band,
 )
-from piezo_env.sampling import default_dt
+from piezo_env.sampling import default_dt, warn_if_resonance_aliases
 from piezo_env.sensor import Sensor
 
 __all__ = ["DEFAULT_HORIZON", "NOISE_BLOCK", "TaskConfig"]
@@ -156,6 +156,8 @@ class TaskConfig:
         if self.dt is None:
             object.__setattr__(self, "dt", default_dt(sheet))
         require_number("dt (s; None for the bender's default)", self.dt, low=0.0, low_open=True)
+        if not self._dt_from_rule:
+            warn_if_resonance_aliases(sheet, self.dt)
         if not (self.hysteresis is None or isinstance(self.hysteresis, (str, Hysteresis))):
             raise ValueError(
                 f"hysteresis must be one of {HYSTERESIS_NAMES}, None or a Hysteresis, "

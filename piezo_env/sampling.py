@@ -15,10 +15,18 @@ a controller acting on it has a few samples per period. PL140 (160 Hz): 1 ms; PL
 
 from __future__ import annotations
 
+import warnings
+
 from piezo_env.datasheet import BenderDatasheet, get_datasheet
 from piezo_env.randomization import DomainRandomization
 
-__all__ = ["DT_LADDER", "RESONANCE_SAMPLES", "default_dt", "highest_resonance"]
+__all__ = [
+    "DT_LADDER",
+    "RESONANCE_SAMPLES",
+    "default_dt",
+    "highest_resonance",
+    "warn_if_resonance_aliases",
+]
 
 DT_LADDER: tuple[float, ...] = (1e-3, 5e-4, 2.5e-4, 2e-4, 1e-4, 5e-5, 2.5e-5, 2e-5, 1e-5)
 """Sample times (s) the default is chosen from, largest first: sampling rates of 1, 2, 4 and 5
@@ -68,3 +76,32 @@ def default_dt(bender: str | BenderDatasheet) -> float:
         f"tolerance, above a quarter of the fastest default rate ({1.0 / DT_LADDER[-1]:g} Hz); "
         f"pass dt explicitly (at most {1.0 / (RESONANCE_SAMPLES * f_top):.3g} s)"
     )
+
+
+def warn_if_resonance_aliases(bender: str | BenderDatasheet, dt: float) -> bool:
+    """Warn (UserWarning) when an explicit sample time puts the highest first resonance of the
+    tolerance box above the Nyquist frequency 1 / (2 dt); returns whether it did.
+
+    Such a dt is the user's choice and stays legal (the discrete model is exact at any dt),
+    but the sampled bender then aliases its first mode: a controller sees it at a false
+    frequency and cannot act on it, and the benchmark's robustness rows can diverge on the
+    box's stiff corners. The message names the default dt, which keeps four samples per
+    period of that resonance.
+    """
+    f_top = highest_resonance(bender)
+    if 2.0 * f_top * dt <= 1.0:
+        return False
+    sheet = get_datasheet(bender)
+    try:
+        fix = f"the default for the {sheet.name} is dt = {default_dt(sheet):g} s"
+    except ValueError:
+        fix = f"a dt of at most {1.0 / (RESONANCE_SAMPLES * f_top):.3g} s keeps four samples"
+    warnings.warn(
+        f"dt = {dt:g} s samples the {sheet.name} at {1.0 / dt:g} Hz, but its first resonance "
+        f"reaches {f_top:g} Hz within the datasheet's tolerance, above the Nyquist frequency "
+        f"{0.5 / dt:g} Hz: the sampled bender aliases its first mode and a controller cannot "
+        f"act on it; {fix}",
+        UserWarning,
+        stacklevel=4,
+    )
+    return True

@@ -418,3 +418,8 @@ def test_the_pid_describes_an_infinite_margin_as_none(monkeypatch):
     info = pid.describe()
     assert info["gain_margin_db"] is None and info["crossover_hz"] is None
     json.dumps(info, allow_nan=False)
+
+
+def test_a_reference_the_sample_time_cannot_carry_is_named_with_the_fix():
+    with pytest.raises(ValueError, match=r"'sine-1Hz' cannot be sampled at dt = 0.7 s.*--ref"):
+        make_reference("sine-1Hz", 10, dt=0.7, seed=0)

@@ -448,3 +448,32 @@ def test_resonance_horizon_refuses_a_pole_that_is_no_bending_mode():
         from controllers.condensed import move_blocks
 
         move_blocks(1, 10)
+
+
+def test_the_oracle_model_drops_only_the_modes_its_error_budget_allows():
+    """The plant's prediction model carries the overdamped high modes as their one-step
+    response while the proven error stays within PLANT_REDUCTION_ERROR of the full stroke,
+    checked by simulating both models on a drive-range random input; where no mode fits the
+    budget (the nominal PL140 at 1 ms) the model is the plant's own, bit for bit."""
+    from controllers.prediction import PLANT_REDUCTION_ERROR
+    from piezo_env import PiezoBenderModel
+
+    nominal = PiezoBenderModel("PL140")
+    kept, full = PredictionModel.from_plant(nominal), nominal.state_space_matrices()
+    for mine, theirs in zip((kept.a, kept.b, kept.c), full[:3], strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+
+    plant = PiezoBenderModel("PL127", dt=2.5e-4)  # 42 states: high modes of radius ~1e-6
+    reduced = PredictionModel.from_plant(plant)
+    exact = PredictionModel.from_plant(plant, reduce=False)
+    assert reduced.n_states <= 12 < exact.n_states == plant.discrete.n_states
+    z = np.random.default_rng(3).uniform(*reduced.z_bounds, 4000)
+    outputs = []
+    for model in (reduced, exact):
+        x, y = np.zeros(model.n_states), []
+        for value in z:
+            x = model.a @ x + model.b[:, 0] * value
+            y.append(float(model.c[0] @ x))
+        outputs.append(np.array(y))
+    error = np.abs(outputs[0] - outputs[1]).max()
+    assert 0.0 < error <= PLANT_REDUCTION_ERROR * 2.0 * plant.stroke_um

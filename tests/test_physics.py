@@ -255,3 +255,61 @@ def test_deflection_bound_covers_creep():
     peak = np.abs(creeping.simulate(drive).deflection_um).max()
     assert peak > plain.deflection_bound_um()  # creep really adds to the worst case
     assert peak <= creeping.deflection_bound_um()
+
+
+def _dropped_error_l1(discrete, drop, samples):
+    """Exact l1 norm (m / V) of the impulse response of the tip-deflection error that
+    carrying the kept modes ``drop`` as their one-step response makes: the error the worst
+    input of amplitude 1 V reaches."""
+    impulse = np.r_[1.0, np.zeros(samples - 1)]
+    difference = discrete.simulate(impulse) - discrete.without_modes(drop).simulate(impulse)
+    return float(np.abs(difference).sum())
+
+
+@pytest.mark.parametrize(("bender", "dt"), [("PL127", 2.5e-4), ("PL140", 1e-3)])
+def test_mode_error_bound_is_the_worst_input_error(bender, dt):
+    """Without creep the bound is the exact l1 norm of the error's impulse response (to its
+    0.1 % tail allowance), checked by simulating the full and the reduced model."""
+    discrete = PiezoBenderModel(bender, hysteresis=None, dt=dt, damping_ratio=0.04).discrete
+    bounds = discrete.mode_error_bounds()
+    high = list(range(2, len(bounds)))
+    assert len(high) >= 2
+    for i in [0, 1, *high[:3]]:
+        exact = _dropped_error_l1(discrete, [i], 20_000)
+        assert exact <= bounds[i] <= 1.01 * exact
+    together = _dropped_error_l1(discrete, high, 4000)
+    assert together <= bounds[high].sum() <= 1.01 * together * len(high)
+
+
+def test_mode_error_bound_covers_creep():
+    """Creep states feed every mode: after a drive that charges them for 10 s and then
+    reverses, dropping the high modes errs by no more than their bounds."""
+    discrete = PiezoBenderModel(
+        "PL127", hysteresis=None, dt=2.5e-4, damping_ratio=0.04, creep=True
+    ).discrete
+    high = list(range(2, len(discrete.kept_modes)))
+    assert len(high) >= 2
+    drive = np.r_[np.full(40_000, 1.0), -np.ones(2000)]
+    error = discrete.simulate(drive) - discrete.without_modes(high).simulate(drive)
+    assert 0.0 < np.abs(error).max() <= discrete.mode_error_bounds()[high].sum()
+
+
+def test_dropping_modes_equals_discretizing_with_a_larger_tolerance():
+    params = bender_parameters("PL127")
+    beam = assemble_beam(params, 10, damping_ratio=0.04)
+    dt = 2.5e-4
+    full = discretize(beam, dt)
+    radii = np.array(
+        [
+            np.abs(np.linalg.eigvals(full.a[2 * i : 2 * i + 2, 2 * i : 2 * i + 2])).max()
+            for i in range(len(full.kept_modes))
+        ]
+    )
+    tolerance = float(np.sqrt(np.sort(radii)[2] * np.sort(radii)[3]))  # between two radii
+    coarse = discretize(beam, dt, tolerance=tolerance)
+    dropped = full.without_modes(np.flatnonzero(radii < tolerance))
+    assert 2 < dropped.n_states < full.n_states
+    np.testing.assert_array_equal(dropped.kept_modes, coarse.kept_modes)
+    scale = np.abs(coarse.step_matrix).max(axis=1, keepdims=True)
+    np.testing.assert_allclose(dropped.step_matrix / scale, coarse.step_matrix / scale, atol=1e-14)
+    np.testing.assert_allclose(dropped.output_matrix, coarse.output_matrix, rtol=0, atol=0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
+import warnings
 from pathlib import Path
 
 import gymnasium as gym
@@ -71,6 +72,23 @@ def test_an_explicit_dt_overrides_the_rule():
     assert TaskConfig(bender="PL127", dt=1e-3).dt == 1e-3
     env = gym.make(ENV_ID, bender="PL112", dt=5e-4)
     assert env.unwrapped.model.dt == 5e-4
+
+
+@pytest.mark.parametrize("bender", BENDERS)
+def test_an_explicit_dt_that_aliases_the_resonance_is_warned_about(bender):
+    """Above the Nyquist frequency the first mode aliases: an explicit dt that puts the top of
+    the resonance's tolerance there is kept, with a warning naming the default; the default
+    dt and any dt that samples the resonance are silent."""
+    f_top = (1.0 + DomainRandomization().resonance) * get_datasheet(bender).resonance
+    aliasing = 1.01 / (2.0 * f_top)
+    fix = rf"Nyquist.*default for the .* is dt = {default_dt(bender):g} s"
+    with pytest.warns(UserWarning, match=fix):
+        config = TaskConfig(bender=bender, dt=aliasing)
+    assert config.dt == aliasing
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        TaskConfig(bender=bender)
+        TaskConfig(bender=bender, dt=0.99 / (2.0 * f_top))
 
 
 def test_dt_none_and_the_config_validation():
