@@ -134,3 +134,30 @@ def test_drift_is_validated():
         Drift(duration=0.0)
     with pytest.raises(ValueError, match="segment_steps"):
         Drift(segment_steps=0)
+
+
+def test_the_drift_bound_is_computed_once_per_setting_and_kept_apart_per_setting(monkeypatch):
+    """A second env with the same settings reuses the proven bound; another drift or damping
+    computes its own, equal to the bound computed afresh."""
+    import piezo_env.task as task
+
+    calls = []
+    real = task.drift_deflection_bound_um
+
+    def counted(model, plan):
+        calls.append(plan)
+        return real(model, plan)
+
+    monkeypatch.setattr(task, "drift_deflection_bound_um", counted)
+    monkeypatch.setattr(task, "_drift_bounds", {})
+    first = PiezoBenderEnv(drift=Drift(), dt=1e-3)
+    again = PiezoBenderEnv(drift=Drift(), dt=1e-3)
+    assert len(calls) == 1 and again.task.bound == first.task.bound
+    for other in (
+        {"drift": Drift(stiffness=(1.0, 0.8)), "dt": 1e-3},
+        {"drift": Drift(), "dt": 1e-3, "damping_ratio": 0.03},
+    ):
+        env = PiezoBenderEnv(**other)
+        fresh = drift_deflection_bound_um(env.task.model, env.task.drift_plan)
+        assert task._drift_bounds[task._drift_key(env.config)] == fresh
+    assert len(calls) == 3
