@@ -231,9 +231,7 @@ class LinearMPC(PredictiveController):
         here, so that the step itself validates nothing but the observation."""
         why = None
         observer, gain = self.observer, self._gain
-        if self._slew_step is not None:
-            why = "a slew limit (its window is kept in Python)"
-        elif not isinstance(observer, ObserverBank) or observer._correct_native is None:
+        if not isinstance(observer, ObserverBank) or observer._correct_native is None:
             why = "the observer is not a bank run by the compiled kernels"
         elif gain is not None and gain._update_native is None:
             why = "the gain estimate is not run by the compiled kernels"
@@ -261,6 +259,7 @@ class LinearMPC(PredictiveController):
         }
         if sizes["columns"] != m + sizes["samples"] + 1 or sizes["moves"] != self._lower.size:
             raise RuntimeError(f"{self.name}: the QP's sizes do not match the fused step's")
+        slew = None if self._slew_step is None else (self._slew_step, self._u_max, self.z_rate)
         fused = fused_step.FusedStep(
             library,
             inverse,
@@ -268,6 +267,7 @@ class LinearMPC(PredictiveController):
             self.model.nonlinearity.u_range,
             compiled.map.parameters,
             sizes,
+            slew,
         )
         return fused, build
 
@@ -429,7 +429,10 @@ class LinearMPC(PredictiveController):
         if code == fused_step.NON_FINITE:
             self.task.check_observation(observation)  # raises, naming the entry
             raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")
-        self._g, self._z_prev = scalars[fused_step.S_G], scalars[fused_step.S_Z_PREV]
+        g = scalars[fused_step.S_G]
+        if g != self._g and self._slew_step is not None:  # the rate rows of a QP run here
+            self._qp.set_rate(g * self.z_rate)
+        self._g, self._z_prev = g, scalars[fused_step.S_Z_PREV]
         stats = self.stats
         if code == fused_step.NEED_QP:
             scalars[fused_step.S_Z_MODEL] = self._solve_constrained(self._vector)
@@ -445,6 +448,7 @@ class LinearMPC(PredictiveController):
             stats.inverse[STATUS_NAMES[int(scalars[fused_step.S_INVERSE_STATUS])]] += 1
             self._z_applied = scalars[fused_step.S_Z_APPLIED]
             self._z_prev = scalars[fused_step.S_Z_PREV]
+            self._u_prev = scalars[fused_step.S_U_PREV]  # u itself with a slew limit
             return scalars[fused_step.S_U]
         if code == fused_step.NEED_INVERSE:
             return self._convert(scalars[fused_step.S_Z_MODEL])
@@ -477,6 +481,7 @@ class LinearMPC(PredictiveController):
             self._memory = fused.memory
         scalars = fused.scalars
         scalars[fused_step.S_G], scalars[fused_step.S_Z_PREV] = self._g, self._z_prev
+        scalars[fused_step.S_U_PREV] = self._u_prev
 
     def _act(self, observation: np.ndarray) -> float:
         y = float(observation[0])
@@ -573,8 +578,12 @@ class LinearMPC(PredictiveController):
         return float(self._plan[0])
 
     def _reachable_in_window(self) -> tuple[float, float]:
-        """z reachable this sample (equivalent V): the map at the slew window's two ends."""
+        """z reachable this sample (equivalent V): the map at the slew window's two ends (the
+        generated reachable range where the nonlinearity has one: the compiled step's)."""
         low, high = self._slew_window()
+        compiled = getattr(self.model.nonlinearity, "_inverse", None)
+        if compiled is not None:
+            return compiled.reachable(self._memory, (low, high))
         step = self.model.nonlinearity.step
         z_low, z_high = step(low, self._memory)[0], step(high, self._memory)[0]
         return (z_low, z_high) if z_low <= z_high else (z_high, z_low)

@@ -498,16 +498,22 @@ class CompiledInverse:
             float(self._u[0]), float(self._z[0]), STATUS_NAMES[status], self._next.copy()
         )
 
-    def reachable(self, state: np.ndarray) -> tuple[float, float]:
-        """Range of z (equivalent V) reachable in one sample from ``state`` over the drive range.
+    def reachable(
+        self, state: np.ndarray, u_range: tuple[float, float] | None = None
+    ) -> tuple[float, float]:
+        """Range of z (equivalent V) reachable in one sample from ``state`` over ``u_range``
+        (V; default the drive range, the slew window with a slew limit).
 
         Generated C (two passes), else :meth:`InverseMap.ends` in numpy; sorted like
         :meth:`controllers.prediction.IdentifiedNLS.reachable`.
         """
+        ends = self.u_range if u_range is None else u_range
         if self._reachable is None:
-            low, high = self.map.ends(state, self.u_range)
+            low, high = self.map.ends(state, ends)
         else:
-            self._reachable.inputs[0][:] = state
+            inputs = self._reachable.inputs
+            inputs[0][:] = state
+            inputs[1][0], inputs[2][0] = ends
             self._reachable.run()
             low, high = self._ends[0][0], self._ends[1][0]
         return (float(low), float(high)) if low <= high else (float(high), float(low))

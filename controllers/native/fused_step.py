@@ -37,10 +37,20 @@ This is what keeps a 10 kHz loop within its deadline on the samples that need th
 DAQP's Python interface such a sample took 100-400 us after thousands that did not
 (``benchmarks/results/controller_latency.md``).
 
+With the amplifier's slew limit (the ``bench`` plant) the step does what
+:meth:`controllers.mpc.LinearMPC._solve` does then: the first move's z bounds are the map at
+the slew window's ends u_t-1 +- S dt (the same generated ``nls_reachable``, called with the
+window instead of the drive range, that the Python step calls), the unconstrained plan must
+also meet the z rate rows, and the QP gets those rows' bounds g z_rate. Through Python that
+step took 80-130 us against 20-25 us here (PL140 at 1 ms, 77 mA amplifier); the volts are the
+same to the bit (``tests/test_fused_step.py``).
+
 What leaves the compiled call for Python (the return codes): a plan outside the box with any
 other QP workspace (OSQP, DAQP's Python interface: the QP solver runs, then ``fused_finish``
 converts its first move), an inverse the compiled Newton
-iteration hands back (a non-monotone map, a non-finite target: the numpy inverse runs), a
+iteration hands back (a non-monotone map, a non-finite target: the numpy inverse runs), with
+a slew limit a first move whose float32 volts leave the window (Python clips it and steps the
+map there, :meth:`controllers.mpc.LinearMPC._act_slewing`), a
 non-finite observation (the base class's check raises, before any state changes), and for the
 adaptive MPC a sample on which its selection may change something (the set of plausible models
 or the model in use: Python then runs :meth:`controllers.adaptive.AdaptiveMPC._select` and
@@ -100,13 +110,13 @@ DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT = range(6)
 ) = range(42)  # fmt: skip
 (
     D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN, D_MEMBER,
-    D_SHORTCUT, D_SELECTS, D_COUNT,
-) = range(12)  # fmt: skip
+    D_SHORTCUT, D_SELECTS, D_SLEW, D_COUNT,
+) = range(13)  # fmt: skip
 (
     S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS, S_RUNAWAY,
     S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_DUALS_ANY, S_QP_RAN, S_QP_FLAG,
-    S_QP_ITERATIONS, S_COUNT,
-) = range(17)  # fmt: skip
+    S_QP_ITERATIONS, S_U_PREV, S_SLEW_STEP, S_U_MAX, S_Z_RATE, S_COUNT,
+) = range(21)  # fmt: skip
 BANK_SLOTS = np.array(
     [
         P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
@@ -124,15 +134,29 @@ enum { P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, 
        P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_Q_MATRIX,
        P_QP, P_QP_SOLVE, P_SCRATCH };
 enum { D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN,
-       D_MEMBER, D_SHORTCUT, D_SELECTS };
+       D_MEMBER, D_SHORTCUT, D_SELECTS, D_SLEW };
 enum { S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS,
        S_RUNAWAY, S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_DUALS_ANY, S_QP_RAN,
-       S_QP_FLAG, S_QP_ITERATIONS };
+       S_QP_FLAG, S_QP_ITERATIONS, S_U_PREV, S_SLEW_STEP, S_U_MAX, S_Z_RATE };
 enum { DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT };
 
 #define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
 #define S(p) ((double *)(p)[P_SCALARS])
 #define F(p, i) ((double *)(p)[i])
+
+/* Python's max(a, b) and min(a, b): the first argument unless the second compares beyond it
+   (NaN stays where Python keeps it). */
+static double py_max(double a, double b) { return b > a ? b : a; }
+static double py_min(double a, double b) { return b < a ? b : a; }
+
+/* controllers.predictive.PredictiveController._slew_window: the volts this sample's move may
+   take with a slew limit, u_t-1 +- S dt within the drive range (D_SLEW only). */
+static void slew_window(void **p, double *low, double *high)
+{
+    const double *sc = S(p), step = sc[S_SLEW_STEP], u_max = sc[S_U_MAX];
+    *low = py_max(sc[S_U_PREV] - step, -u_max);
+    *high = py_min(sc[S_U_PREV] + step, u_max);
+}
 
 /* The observation's check (non-finite entries) and the gain estimate's update. */
 int fused_begin(void **p)
@@ -170,8 +194,15 @@ int fused_finish(void **p)
     if (nls_inverse((const casadi_real **)arg, res, p[P_INV_IW], p[P_INV_W], 0)) return ERROR;
     double status = res[2][0];
     if (status == 2.0) return NEED_INVERSE;
+    const double u = (double)(float)res[0][0];  /* the float32 volts the plant receives */
+    if (D(p, D_SLEW)) {  /* LinearMPC._act_slewing: outside the window, Python clips */
+        double low, high;
+        slew_window(p, &low, &high);
+        if (!(low <= u && u <= high)) return NEED_INVERSE;
+        sc[S_U_PREV] = u;
+    }
     sc[S_INVERSE_STATUS] = status;
-    sc[S_U] = (double)(float)res[0][0];  /* the float32 volts the plant receives */
+    sc[S_U] = u;
     for (int64_t i = 0; i < n_memory; ++i) memory[i] = res[3][i];
     applied(p, res[1][0]);
     return DONE;
@@ -204,6 +235,13 @@ static int fused_qp(void **p)
         qp->qp.blower[i] = lower[i];
         qp->qp.bupper[i] = upper[i];
     }
+    if (D(p, D_SLEW)) {  /* the rate rows |v_k - v_k-1| <= g z_rate (BoxQP.set_rate) */
+        const double rate = sc[S_G] * sc[S_Z_RATE];
+        for (int64_t i = moves; i < qp->qp.m; ++i) {
+            qp->qp.blower[i] = -rate;
+            qp->qp.bupper[i] = rate;
+        }
+    }
     const int cold = sc[S_DUALS_ANY] == 0.0 || qp->status[2];
     sc[S_QP_FLAG] = ((box_qp_solve_t)p[P_QP_SOLVE])(qp, cold);
     sc[S_QP_ITERATIONS] = (double)qp->status[1];
@@ -223,9 +261,10 @@ static int fused_qp(void **p)
     return fused_finish(p);
 }
 
-/* controllers.mpc.LinearMPC._set_gain (without a slew limit) with g = the gain estimate's
-   value of the member in use, the bank's measurement update, the QP's vector and bounds, the
-   unconstrained plan and its box test; inside the box, fused_finish. */
+/* controllers.mpc.LinearMPC._set_gain with g = the gain estimate's value of the member in use
+   (with a slew limit, fused_qp gives the QP its rate bound g z_rate), the bank's measurement
+   update, the QP's vector and bounds, the unconstrained plan and its box (and rate) test;
+   inside them, fused_finish. */
 int fused_solve(void **p)
 {
     double *sc = S(p);
@@ -270,6 +309,7 @@ int fused_solve(void **p)
     double **arg = (double **)p[P_REACH_ARG], **res = (double **)p[P_REACH_RES];
     const double *memory = F(p, P_MEMORY);
     for (int64_t i = 0; i < D(p, D_MEMORY); ++i) arg[0][i] = memory[i];
+    if (D(p, D_SLEW)) slew_window(p, arg[1], arg[2]);  /* LinearMPC._reachable_in_window */
     if (nls_reachable((const casadi_real **)arg, res, p[P_REACH_IW], p[P_REACH_W], 0))
         return ERROR;
     double low = res[0][0], high = res[1][0];
@@ -293,17 +333,17 @@ int fused_solve(void **p)
         candidate[i] = sum;
         if (!(sum >= lower[i] && sum <= upper[i])) inside = 0;
     }
+    if (inside && D(p, D_SLEW)) {  /* LinearMPC._rates_within */
+        const double rate = g * sc[S_Z_RATE];
+        for (int64_t i = 1; i < moves; ++i)
+            if (!(fabs(candidate[i] - candidate[i - 1]) <= rate)) inside = 0;
+    }
     if (!inside) return fused_qp(p);
     for (int64_t i = 0; i < moves; ++i) plan[i] = candidate[i];
     sc[S_DUALS_ANY] = 0.0;  /* no bound is active: the optimal multipliers are zero */
     sc[S_Z_MODEL] = plan[0];
     return fused_finish(p);
 }
-
-/* Python's max(a, b) and min(a, b): the first argument unless the second compares beyond it
-   (NaN stays where Python keeps it). */
-static double py_max(double a, double b) { return b > a ? b : a; }
-static double py_min(double a, double b) { return b < a ? b : a; }
 
 /* controllers.gain.GainEstimate.independent_fraction_of */
 static double independent_fraction(const double *st, int64_t k, int64_t index)
@@ -423,6 +463,13 @@ class FusedStep:
         ``observation``, ``states`` (n), ``estimate`` (n + disturbance states), ``moves``,
         ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1), ``selects`` (1 for the
         adaptive MPC's selection test), ``members`` (its gain estimate's parts).
+    slew : (float, float, float), optional
+        With an amplifier's slew limit: the largest move per sample S dt (V), the drive limit
+        (V) and the z rate per sample at g = 1 (:attr:`controllers.mpc.LinearMPC.z_rate`).
+        The step then takes the first move's z bounds over the slew window u_t-1 +- S dt
+        (u_t-1 in the scalars, written by the caller), tests the unconstrained plan's rates,
+        gives the QP its rate rows and hands a first move whose volts leave the window to
+        Python (``NEED_INVERSE``: :meth:`controllers.mpc.LinearMPC._act_slewing` clips it).
 
     Attributes
     ----------
@@ -434,7 +481,8 @@ class FusedStep:
         variance (um^2), the chi2 threshold and the one-sided normal quantile; then whether
         the last QP's multipliers were not all zero (its warm start), and of this step's QP
         in C: 0 none, 1 solved, 2 no usable solution (the shifted plan), DAQP's exit flag and
-        its iterations.
+        its iterations; with a slew limit u_t-1 (V, updated by a step that ends in C), S dt,
+        the drive limit and the z rate.
     plausible, allowed : numpy.ndarray
         Per member, 1.0 where the adaptive MPC's last selection kept it plausible, and where
         it has a filter stable on every plausible member.
@@ -448,6 +496,7 @@ class FusedStep:
         u_range: tuple[float, float],
         parameters: np.ndarray,
         sizes: dict[str, int],
+        slew: tuple[float, float, float] | None = None,
     ) -> None:
         self._library = library
         self.observation = np.zeros(sizes["observation"])
@@ -469,6 +518,10 @@ class FusedStep:
             (D_SELECTS, "selects"),
         ):
             self.dims[index] = sizes[key]
+        if slew is not None:
+            self.dims[D_SLEW] = 1
+            scalars = self.scalars
+            scalars[S_SLEW_STEP], scalars[S_U_MAX], scalars[S_Z_RATE] = slew
         self.table = np.zeros(P_COUNT, dtype=np.uint64)
         self._keep: list[Any] = []  # what the table points into, kept alive
         self._point(P_OBS, self.observation)
