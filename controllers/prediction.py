@@ -307,8 +307,9 @@ class PredictionModel:
         outlives a sample to 1e-10 (:func:`piezo_env.discrete.discretize`); under
         stiffness-proportional damping the overdamped high modes can pass that test with
         radii of 1e-6 (the PL127 at 0.25 ms, or a damping of 0.04), and the plant then carries
-        42 states where 8 to 12 predict it to a nanometre: a controller predicting with all of
-        them spends most of its step on them. ``reduce=False`` keeps the plant's own states.
+        up to 42 states where 8 often predict it to a nanometre: a controller predicting with
+        all of them spends most of its step on them (``benchmarks/results/
+        design_measurements.md``). ``reduce=False`` keeps the plant's own states.
         """
         u_max = plant.rated_voltage
         nonlinearity = PlantHysteresis(plant.hysteresis, (-u_max, u_max))
