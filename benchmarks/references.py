@@ -144,8 +144,10 @@ def make_reference(
     try:
         reference = np.asarray(REFERENCES[name].build(n, dt, rng), dtype=float)
     except ValueError as error:
+        if "Nyquist" not in str(error):
+            raise
         raise ValueError(
             f"the reference {name!r} cannot be sampled at dt = {dt:g} s ({error}); pass a "
-            "smaller dt, or leave it out with --references"
+            "smaller dt, or leave the reference out (piezo benchmark --references)"
         ) from error
     return reference if stroke_um == 1000.0 else reference * (stroke_um / 1000.0)

@@ -600,7 +600,7 @@ class LinearMPC(PredictiveController):
         (:mod:`controllers.native.fused_step`), and why not, and with DAQP ``daqp_box_qp``:
         whether its QP's DAQP workspace is driven from C (:mod:`controllers.native.daqp_box`),
         and why not. Both compiled: the QP is solved inside the step; only the second (a
-        slew limit, say): the C workspace is called from Python, one call per QP."""
+        fixed observer, say): the C workspace is called from Python, one call per QP."""
         records = {**super().native_code(), "mpc_step": self._fused_build.to_dict()}
         if self.settings.qp_solver == "daqp":
             records["daqp_box_qp"] = daqp_box.build_record().to_dict()

@@ -183,7 +183,7 @@ def _drift_key(config: TaskConfig) -> tuple[Any, ...] | None:
         return None
     if not (config.hysteresis is None or isinstance(config.hysteresis, str)):
         return None
-    return (
+    key = (
         config.bender,
         config.n_elements,
         float(config.dt),
@@ -192,6 +192,11 @@ def _drift_key(config: TaskConfig) -> tuple[Any, ...] | None:
         float(config.damping_ratio),
         config.drift,
     )
+    try:
+        hash(key)
+    except TypeError:  # a setting that is not a value (the cache is only a shortcut)
+        return None
+    return key
 
 
 def check_max_episode_steps(max_episode_steps: object) -> int | None:

@@ -161,3 +161,19 @@ def test_the_drift_bound_is_computed_once_per_setting_and_kept_apart_per_setting
         fresh = drift_deflection_bound_um(env.task.model, env.task.drift_plan)
         assert task._drift_bounds[task._drift_key(env.config)] == fresh
     assert len(calls) == 3
+
+
+def test_a_drifting_plant_with_creep_given_as_lists_is_built_and_its_bound_kept():
+    """Creep's settings become tuples (values, not objects that could change), so a drifting
+    env with creep given as lists builds, and its bound is kept like any other."""
+    from piezo_env.discrete import Creep
+
+    creep = Creep(time_constants=[0.01, 0.1], weights=np.array([0.015, 0.015]))
+    assert creep.time_constants == (0.01, 0.1) and creep.weights == (0.015, 0.015)
+    env = PiezoBenderEnv(drift=True, creep=creep, dt=1e-3)
+    fresh = drift_deflection_bound_um(env.task.model, env.task.drift_plan)
+    import piezo_env.task as task
+
+    assert task._drift_bounds[task._drift_key(env.config)] == fresh
+    with pytest.raises(ValueError, match="sequence of numbers"):
+        Creep(time_constants=[0.01, "slow"], weights=[0.015, 0.015])

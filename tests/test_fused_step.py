@@ -87,27 +87,41 @@ def slewing():
     return gym.make("piezo_env:PiezoBender-v0", preview=20, amplifier=Amplifier(77.0))
 
 
-@pytest.mark.parametrize("name", ["mpc", "mpc-adaptive"])
-@pytest.mark.parametrize("reference_name", ["steps", "sine-100Hz"])
-def test_compiled_step_with_a_slew_limit_equals_the_numpy_step(slewing, name, reference_name):
+@pytest.mark.parametrize(
+    ("name", "reference_name", "plant"),
+    [
+        ("mpc", "steps", "nominal"),
+        ("mpc", "sine-100Hz", "nominal"),
+        ("mpc-adaptive", "steps", "nominal"),
+        ("mpc-adaptive", "random-steps", "corner"),  # the gain moves, the set swaps models
+    ],
+)
+def test_compiled_step_with_a_slew_limit_equals_the_numpy_step(
+    slewing, name, reference_name, plant
+):
     """With a slew limit the compiled step takes the first move's z bounds over the slew
-    window, tests the plan's rates, gives the QP its rate rows and hands a move that leaves
-    the window to Python: the same volts, plans, statuses (QPs, window clips) and warm starts
-    as the numpy step's."""
+    window, tests the plan's rates, gives the QP (DAQP) its rate rows and hands a move that
+    leaves the window to Python: the same volts, plans, statuses (QPs, window clips) and warm
+    starts as the numpy step's, also where the learned gain changes the rate rows' bound and
+    the adaptive MPC swaps models."""
     reference = make_reference(reference_name, 1521, dt=1e-3, seed=0)
-    fused = episode(build(name, slewing, fused=True), slewing, reference)
-    numpy_step = episode(build(name, slewing, fused=False), slewing, reference)
+    env = slewing if plant == "nominal" else vertex_env((1.2, 0.8, 0.04), amplifier=Amplifier(77.0))
+    fused = episode(build(name, slewing, fused=True), env, reference)
+    numpy_step = episode(build(name, slewing, fused=False), env, reference)
     np.testing.assert_array_max_ulp(fused[0], numpy_step[0], maxulp=1)
     np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-11)
     for key in ("status", "inverse", "fallbacks", "saturated", "observer_fallback_step"):
         assert fused[2][key] == numpy_step[2][key], key
     assert fused[3].stats.iterations == numpy_step[3].stats.iterations
     assert fused[2]["status"].get("solved", 0) > 0  # the QP with its rate rows ran
-    if reference_name == "steps":
+    if reference_name != "sine-100Hz":
         assert fused[2]["inverse"].get("slew-window", 0) > 0  # Python clipped a move
     volts = np.r_[0.0, fused[0]]
     step = fused[3].task.slew_step
     assert np.all(np.abs(np.diff(volts)) <= step * (1 + 1e-6))  # the amplifier's limit held
+    if plant == "corner":
+        assert fused[2]["adaptation"] == numpy_step[2]["adaptation"]
+        assert fused[2]["adaptation"].get("swaps", 0) >= 1
 
 
 def counted(controller, monkeypatch):
