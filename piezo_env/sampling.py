@@ -102,6 +102,25 @@ def warn_if_resonance_aliases(bender: str | BenderDatasheet, dt: float) -> bool:
         f"{0.5 / dt:g} Hz: the sampled bender aliases its first mode and a controller cannot "
         f"act on it; {fix}",
         UserWarning,
-        stacklevel=4,
+        stacklevel=_caller_level(),
     )
     return True
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` of the first frame outside this package, gymnasium and dataclasses'
+    generated code: the warning then names the line of the user's that asked for the dt
+    (``gym.make``, ``PiezoBenderEnv``, ``TaskConfig``), however deep the call."""
+    import sys
+    from pathlib import Path
+
+    package = Path(__file__).resolve().parent
+    frame, level = sys._getframe(1), 1  # the caller of this function: its warn is level 1
+    while frame is not None:
+        name = frame.f_code.co_filename
+        path = Path(name)
+        generated = name.startswith("<")  # a dataclass's __init__, exec'd code
+        if not (generated or path.resolve().parent == package or "gymnasium" in path.parts):
+            return level
+        frame, level = frame.f_back, level + 1
+    return level

@@ -82,9 +82,13 @@ def test_an_explicit_dt_that_aliases_the_resonance_is_warned_about(bender):
     f_top = (1.0 + DomainRandomization().resonance) * get_datasheet(bender).resonance
     aliasing = 1.01 / (2.0 * f_top)
     fix = rf"Nyquist.*default for the .* is dt = {default_dt(bender):g} s"
-    with pytest.warns(UserWarning, match=fix):
+    with pytest.warns(UserWarning, match=fix) as caught:
         config = TaskConfig(bender=bender, dt=aliasing)
     assert config.dt == aliasing
+    with pytest.warns(UserWarning, match=fix) as through_make:
+        gym.make(ENV_ID, bender=bender, dt=aliasing)
+    # The warning names the line that asked for the dt, not the library's.
+    assert {w.filename for w in [*caught, *through_make]} == {__file__}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         TaskConfig(bender=bender)
