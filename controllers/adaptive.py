@@ -82,7 +82,6 @@ from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.gain import GainEstimate
 from controllers.loop import feedback_law, radii_matrix
-from controllers.memo import ContentCache
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer, rescale_states
@@ -99,6 +98,7 @@ from controllers.tolerance_box import (
 )
 from identification.arx import ARXModel
 from identification.correction import first_mode_pole
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "MEMBER_SETS",
@@ -494,7 +494,7 @@ class AdaptiveMPC(LinearMPC):
         loop on its own member exceeds :data:`controllers.settings.MS_MAX` (never selected).
 
         Most of the controller's construction (K x F x K closed loops); kept by the content of
-        its inputs (:mod:`controllers.memo`), so the same set built again screens once."""
+        its inputs (:mod:`piezo_env.memo`), so the same set built again screens once."""
         plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
         banks = [(m, m.observer) for m in self._members]
         gains = [

@@ -48,10 +48,10 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 
-from controllers.memo import ContentCache
 from controllers.native.step_kernels import kernels_for
 from controllers.riccati import filter_riccati
 from controllers.settings import measurement_std
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "BANKS_KEPT",
@@ -323,7 +323,7 @@ def _bank_design(
 
     A pure function of its arguments, and most of a bank's construction (a Riccati equation
     per filter), so the bank keeps it by content (:data:`BANKS_KEPT`,
-    :mod:`controllers.memo`): the adaptive MPC's set, and the fixed MPCs on the same model,
+    :mod:`piezo_env.memo`): the adaptive MPC's set, and the fixed MPCs on the same model,
     solve each bank once per process.
 
     Raises

@@ -74,7 +74,7 @@ nothing changes (bitwise).
 **The design is kept.** Notch, gains and loop reports are a pure function of the model's linear
 part, the tolerance box and the settings of the tuning rule, and the box tuning is most of a
 PID's construction. The last :data:`DESIGNS_KEPT` designs are kept by content
-(:mod:`controllers.memo`), so a benchmark that builds the same PID for every plant, or a test
+(:mod:`piezo_env.memo`), so a benchmark that builds the same PID for every plant, or a test
 suite that builds it in many tests, tunes it once; every controller gets its own copies.
 """
 
@@ -87,7 +87,6 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller
-from controllers.memo import ContentCache
 from controllers.pid_tuning import (
     NOTCH_DAMPING_RANGE,
     PIDGains,
@@ -109,6 +108,7 @@ from controllers.tolerance_box import (
     vertex_models,
 )
 from piezo_env.checks import require_number
+from piezo_env.memo import ContentCache
 
 __all__ = ["DESIGNS_KEPT", "PIDController", "PIDGains", "TuningError"]
 

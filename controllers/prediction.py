@@ -21,9 +21,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from controllers.memo import ContentCache
 from controllers.native.compiled_inverse import CompiledInverse, InverseMap, nls_content
 from piezo_env.inverse import InverseResult
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "PLANT_REDUCTION_ERROR",
@@ -144,7 +144,7 @@ class PlantHysteresis:
 
     def content(self) -> list[Any]:
         """What :meth:`step` computes from, for a content key: the hysteresis model (a frozen
-        dataclass of numbers; any other is not keyed, :meth:`controllers.memo.ContentCache.
+        dataclass of numbers; any other is not keyed, :meth:`piezo_env.memo.ContentCache.
         get_or_compute`)."""
         return ["hysteresis", self.hysteresis]
 
@@ -324,8 +324,7 @@ class PredictionModel:
             order = np.argsort(per_mode, kind="stable")
             affordable = int(np.searchsorted(np.cumsum(per_mode[order]), budget_m, "right"))
             discrete = discrete.without_modes(order[:affordable])
-        a, b = discrete.a.copy(), discrete.b.reshape(-1, 1).copy()
-        c = discrete.output_matrix[:1] * 1e6
+        a, b, c, _ = discrete.state_space_matrices()
         return cls(a, b, c, plant.dt, nonlinearity, "plant", z_bounds)
 
     def steady_start(self, y0: float, noise_bound_um: float) -> SteadyStart:

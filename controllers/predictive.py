@@ -32,12 +32,12 @@ from controllers.condensed import (
     rate_hessian,
 )
 from controllers.loop import feedback_law, modulus_margins, radii_matrix
-from controllers.memo import ContentCache
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX
 from controllers.task import ControlTask
 from controllers.tolerance_box import ToleranceBox, vertex_models
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "BOX_PLANTS_KEPT",

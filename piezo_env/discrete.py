@@ -112,6 +112,13 @@ class DiscreteBender:
         """Input vector B (per volt of u_eff)."""
         return self.step_matrix[: self.n_states, -1]
 
+    def state_space_matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, C, D) from u_eff (V) to the tip deflection (um), copies: ``x_t+1 = A x_t +
+        B u_eff,t``, ``y_t = C x_t``, D = 0 (:meth:`piezo_env.PiezoBenderModel.
+        state_space_matrices`)."""
+        c = self.output_matrix[:1] * 1e6
+        return self.a.copy(), self.b.reshape(-1, 1).copy(), c, np.zeros((1, 1))
+
     def square_step_matrix(self) -> np.ndarray:
         """Step matrix on [state, u_eff, unused] giving [next state, y, theta] (square).
 

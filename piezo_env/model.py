@@ -107,9 +107,7 @@ class PiezoBenderModel:
         :class:`piezo_env.discrete.DiscreteBender` (D = 0: the deflection at the end of a sample
         depends on the voltages held before it). The same units as an identified ARX model.
         """
-        d = self.discrete
-        c = d.output_matrix[:1] * 1e6
-        return d.a.copy(), d.b.reshape(-1, 1).copy(), c, np.zeros((1, 1))
+        return self.discrete.state_space_matrices()
 
     def state_space(self):
         """Discrete state space (python-control, sampling time ``dt``) of the linear beam.

@@ -20,6 +20,7 @@ from piezo_env.checks import require_int, require_number
 from piezo_env.config import DEFAULT_HORIZON, NOISE_BLOCK, TaskConfig
 from piezo_env.disturbance import VibrationFilter, vibration_filter
 from piezo_env.drift import DriftPlan, drift_deflection_bound_um
+from piezo_env.memo import ContentCache
 from piezo_env.model import PiezoBenderModel
 from piezo_env.randomization import PlantDraw, scale_hysteresis
 from piezo_env.randomized_bound import randomized_deflection_bound_um
@@ -85,15 +86,7 @@ class BenderTask:
         self.drift_plan = None
         if config.drift is not None:
             self.drift_plan = DriftPlan(self.model, config.drift)
-            key = _drift_key(config)
-            deflection = _drift_bounds.get(key) if key is not None else None
-            if deflection is None:
-                with single_blas_thread():  # tiny matrices: threads only stall (see drawn_plant)
-                    deflection = drift_deflection_bound_um(self.model, self.drift_plan)
-                if key is not None:
-                    if len(_drift_bounds) >= DRIFT_BOUNDS_KEPT:
-                        del _drift_bounds[next(iter(_drift_bounds))]  # the oldest
-                    _drift_bounds[key] = deflection
+            deflection = _drift_bounds.get_or_compute(_drift_parts(config), self._drift_bound)
             self.bound = max(self.bound, _rounded_bound(deflection, beyond))
         if self.randomization is not None:
             deflection = randomized_deflection_bound_um(self.model, self.randomization)
@@ -102,6 +95,11 @@ class BenderTask:
             self.bound = max(self.bound, float(np.float32(math.ceil(self.sensor_range))))
         if isinstance(self.reference, np.ndarray):  # fail at construction, not at the first reset
             self.reference_stream(self.reference, None)
+
+    def _drift_bound(self) -> float:
+        """The drifting plant's proven deflection bound (um)."""
+        with single_blas_thread():  # tiny matrices: threads only stall (see drawn_plant)
+            return drift_deflection_bound_um(self.model, self.drift_plan)
 
     @property
     def stroke_um(self) -> float:
@@ -168,35 +166,26 @@ class TaskAttributes:
 
 
 DRIFT_BOUNDS_KEPT = 16
-"""Drift deflection bounds kept in a process (:func:`_drift_key`): the proven bound takes 0.3 s
+"""Drift deflection bounds kept in a process (:func:`_drift_parts`): the proven bound takes 0.3 s
 on the PL140 and about 1 s on the PL127 at 0.25 ms, and a benchmark worker builds the drifting
 plant once per controller (and the robustness studies once per reference)."""
 
-_drift_bounds: dict[tuple[Any, ...], float] = {}
+_drift_bounds = ContentCache(DRIFT_BOUNDS_KEPT)
 
 
-def _drift_key(config: TaskConfig) -> tuple[Any, ...] | None:
-    """The settings the drifting plant and its bound are built from, or None where one of them
-    is an object that could change after it was used (a datasheet or a hysteresis instance):
-    such a config computes its bound afresh."""
-    if not isinstance(config.bender, str):
-        return None
-    if not (config.hysteresis is None or isinstance(config.hysteresis, str)):
-        return None
-    key = (
+def _drift_parts(config: TaskConfig) -> list[Any]:
+    """The settings the drifting plant and its bound are built from: the bound is kept by
+    their content (:class:`piezo_env.memo.ContentCache`; a setting whose content it cannot see
+    computes the bound afresh)."""
+    return [
         config.bender,
         config.n_elements,
-        float(config.dt),
+        config.dt,
         config.hysteresis,
         config.creep,
-        float(config.damping_ratio),
+        config.damping_ratio,
         config.drift,
-    )
-    try:
-        hash(key)
-    except TypeError:  # a setting that is not a value (the cache is only a shortcut)
-        return None
-    return key
+    ]
 
 
 def check_max_episode_steps(max_episode_steps: object) -> int | None:

@@ -346,7 +346,7 @@ def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypa
     on the same model closes no loop again and gets equal radii of its own; a member changed
     in its last bit is screened afresh."""
     import controllers.adaptive as adaptive
-    from controllers.memo import ContentCache
+    from piezo_env.memo import ContentCache
 
     monkeypatch.setattr(adaptive, "_screens", ContentCache(adaptive.SCREENS_KEPT))
     monkeypatch.setattr(adaptive, "_loop_radii", ContentCache(adaptive.SCREENS_KEPT))
@@ -381,9 +381,9 @@ def test_the_same_set_is_moved_to_the_grid_once(controller, monkeypatch):
     built again on the same model gets the fresh members to the bit, copies of its own, and a
     model changed in its last bit is moved afresh."""
     import controllers.adaptive as adaptive
-    from controllers.memo import ContentCache
     from controllers.mpc import LinearMPC
     from controllers.tolerance_box import Vertex, box_model
+    from piezo_env.memo import ContentCache
 
     cache = ContentCache(adaptive.SCREENS_KEPT)
     monkeypatch.setattr(adaptive, "_member_sets", cache)

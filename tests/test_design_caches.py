@@ -1,4 +1,4 @@
-"""The designs the controllers keep by content (:mod:`controllers.memo`): a kept result is the
+"""The designs the controllers keep by content (:mod:`piezo_env.memo`): a kept result is the
 fresh computation to the bit, an input changed in its last bit computes afresh, and no caller
 can change another's copy."""
 
@@ -18,7 +18,6 @@ import controllers.observer as observer_module
 import controllers.prediction as prediction
 import controllers.predictive as predictive
 from controllers import loop
-from controllers.memo import ContentCache
 from controllers.native import codegen, compiled_inverse, nmpc_step
 from controllers.native.compiled_inverse import (
     CompiledInverse,
@@ -29,6 +28,7 @@ from controllers.observer import DISTURBANCE_RATIOS, PROCESS_RATIOS, ObserverBan
 from controllers.predictive import PredictiveController
 from controllers.tolerance_box import ToleranceBox, vertex_models
 from identification.features import PastInputFeatures
+from piezo_env.memo import ContentCache
 
 SIGMA = 0.5  # sensor noise (um)
 MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "benchmark" / "model")

@@ -9,6 +9,7 @@ import pytest
 
 from piezo_env.drift import Drift, DriftPlan, drift_deflection_bound_um
 from piezo_env.env import PiezoBenderEnv
+from piezo_env.memo import ContentCache
 from piezo_env.model import PiezoBenderModel
 from piezo_env.parameters import cantilever_frequencies
 
@@ -136,6 +137,12 @@ def test_drift_is_validated():
         Drift(segment_steps=0)
 
 
+def _kept(task, env):
+    """The bound the process keeps for ``env``'s settings (fails if none is kept)."""
+    parts = task._drift_parts(env.config)
+    return task._drift_bounds.get(parts, lambda: pytest.fail("no bound kept for the settings"))
+
+
 def test_the_drift_bound_is_computed_once_per_setting_and_kept_apart_per_setting(monkeypatch):
     """A second env with the same settings reuses the proven bound; another drift or damping
     computes its own, equal to the bound computed afresh."""
@@ -149,7 +156,7 @@ def test_the_drift_bound_is_computed_once_per_setting_and_kept_apart_per_setting
         return real(model, plan)
 
     monkeypatch.setattr(task, "drift_deflection_bound_um", counted)
-    monkeypatch.setattr(task, "_drift_bounds", {})
+    monkeypatch.setattr(task, "_drift_bounds", ContentCache(task.DRIFT_BOUNDS_KEPT))
     first = PiezoBenderEnv(drift=Drift(), dt=1e-3)
     again = PiezoBenderEnv(drift=Drift(), dt=1e-3)
     assert len(calls) == 1 and again.task.bound == first.task.bound
@@ -159,7 +166,7 @@ def test_the_drift_bound_is_computed_once_per_setting_and_kept_apart_per_setting
     ):
         env = PiezoBenderEnv(**other)
         fresh = drift_deflection_bound_um(env.task.model, env.task.drift_plan)
-        assert task._drift_bounds[task._drift_key(env.config)] == fresh
+        assert _kept(task, env) == fresh
     assert len(calls) == 3
 
 
@@ -174,6 +181,6 @@ def test_a_drifting_plant_with_creep_given_as_lists_is_built_and_its_bound_kept(
     fresh = drift_deflection_bound_um(env.task.model, env.task.drift_plan)
     import piezo_env.task as task
 
-    assert task._drift_bounds[task._drift_key(env.config)] == fresh
+    assert _kept(task, env) == fresh
     with pytest.raises(ValueError, match="sequence of numbers"):
         Creep(time_constants=[0.01, "slow"], weights=[0.015, 0.015])

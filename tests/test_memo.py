@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from controllers.memo import ContentCache, content_key
+from piezo_env.memo import ContentCache, content_key
 
 
 @dataclass(frozen=True)

@@ -79,7 +79,7 @@ from typing import Any
 
 import numpy as np
 
-from controllers.memo import ContentCache
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "CASADI_VM",
@@ -123,7 +123,7 @@ def generated_c(file_name: str, functions: Sequence[Any]) -> bytes:
 
     Generating C is most of a native build whose library is already cached on disk; a
     benchmark builds the same functions for every plant. So the file is kept by content
-    (:data:`SOURCES_KEPT`, :mod:`controllers.memo`): the file name and the SHA-256 of each
+    (:data:`SOURCES_KEPT`, :mod:`piezo_env.memo`): the file name and the SHA-256 of each
     function's serialization, which is the whole of its definition.
     """
     import casadi

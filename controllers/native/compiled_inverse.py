@@ -61,9 +61,9 @@ from typing import Any
 
 import numpy as np
 
-from controllers.memo import ContentCache
 from controllers.native.codegen import NUMPY, CompiledFunction, NativeBuild, compile_function
 from piezo_env.inverse import InverseResult
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "FALLBACK",
@@ -122,7 +122,7 @@ class InverseMap:
 
     def content(self) -> list[Any] | None:
         """What :meth:`casadi_z` and :meth:`ends` are computed from, for a content key
-        (:func:`controllers.memo.content_key`); None (the default) when that is not known,
+        (:func:`piezo_env.memo.content_key`); None (the default) when that is not known,
         and then nothing built from the map is kept."""
         return None
 

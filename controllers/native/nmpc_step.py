@@ -59,7 +59,6 @@ from typing import Any
 
 import numpy as np
 
-from controllers.memo import ContentCache
 from controllers.native.codegen import (
     NUMPY,
     NativeBuild,
@@ -68,6 +67,7 @@ from controllers.native.codegen import (
     generated_text,
 )
 from controllers.native.step_kernels import FLAGS
+from piezo_env.memo import ContentCache
 
 __all__ = [
     "ERROR",

@@ -1,10 +1,12 @@
 """Results of pure, costly design computations kept by the content of their inputs.
 
 A controller's design (a PID's box tuning, an observer bank's Riccati filters, the MPCs'
-stability screens, the casadi graphs and generated C of the nonlinearity's inverse) is a
-deterministic function of numbers: the model's matrices and parameters, the sample time and
-the settings. A benchmark builds the same controller for every plant it runs, and a test suite
-in many tests; :class:`ContentCache` lets each design be computed once per process. The key
+stability screens, the casadi graphs and generated C of the nonlinearity's inverse), and a
+plant's proven bound (the drifting plant's, :mod:`piezo_env.task`), is a deterministic
+function of numbers: the model's matrices and parameters, the sample time and the settings. A
+benchmark builds the same controller and plant for every run, and a test suite in many tests;
+:class:`ContentCache` lets each be computed once per process. It lives in the env's package,
+the lowest layer, so that the env and the controllers share it. The key
 is a digest of the inputs' exact bytes, so a changed input, even in its last bit, computes
 afresh; every caller gets its own deep copy, so no controller can change another's design
 (a casadi Function's copy shares its immutable definition). Each cache holds a documented
