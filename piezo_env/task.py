@@ -166,9 +166,10 @@ class TaskAttributes:
 
 
 DRIFT_BOUNDS_KEPT = 16
-"""Drift deflection bounds kept in a process (:func:`_drift_parts`): the proven bound takes 0.3 s
-on the PL140 and about 1 s on the PL127 at 0.25 ms, and a benchmark worker builds the drifting
-plant once per controller (and the robustness studies once per reference)."""
+"""Drift deflection bounds kept in a process (:func:`_drift_parts`): a benchmark worker meets
+one drifting setting (the bender at its dt) and builds it once per controller; 16 leaves room
+for a process that builds several benders and drifts (a test run). Each takes 0.3 s on the
+PL140 and about 1 s on the PL127 at 0.25 ms."""
 
 _drift_bounds = ContentCache(DRIFT_BOUNDS_KEPT)
 
