@@ -395,7 +395,8 @@ def _build(controller: str, model_dir: str, plant_env: Any, config: BenchmarkCon
     elif controller in config.policy_folders:
         name, model = "policy", config.policy_folders[controller]
     elif controller.endswith("-oracle"):
-        model = ctl.PredictionModel.from_plant(plant_env.unwrapped.model)
+        plant = plant_env.unwrapped
+        model = ctl.PredictionModel.from_plant(plant.model, sensor=plant.config.sensor)
     else:
         model = model_dir
     built = ctl.make(name, model, nominal, **config.controller_options.get(controller, {}))

@@ -540,7 +540,7 @@ class AdaptiveMPC(LinearMPC):
 
     def _member(self, model: PredictionModel, arx: ARXModel) -> _Member:
         samples = self.prediction_samples
-        phi, gamma = prediction_matrices(model.a, model.b, model.c, samples)
+        phi, gamma = prediction_matrices(model.a, model.b, model.c_tracked, samples)
         check_well_posed(self._blocked(gamma), self.settings.rate_weight, 1.0, name=self.name)
         hessian, q_matrix = self._qp_matrices(phi, gamma)
         unconstrained = unconstrained_law(hessian, q_matrix)

@@ -256,6 +256,11 @@ class PredictionModel:
         ``"identified"`` or ``"plant"`` (oracle).
     z_bounds : (float, float)
         Range of z over the drive range from any state reached from rest (equivalent V).
+    tracked : numpy.ndarray or None
+        (1, n): the output the controller steers to the reference, where it differs from the
+        measured ``c x``: the true deflection of a plant seen through a sensor
+        (:meth:`from_plant`), which the reward scores. None: the measured output itself (an
+        identified model knows only what was measured).
     """
 
     a: np.ndarray
@@ -265,6 +270,20 @@ class PredictionModel:
     nonlinearity: Any
     source: str
     z_bounds: tuple[float, float] = field(default=(-math.inf, math.inf))
+    tracked: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.tracked is not None and np.shape(self.tracked) != np.shape(self.c):
+            raise ValueError(
+                f"PredictionModel.tracked must have c's shape {np.shape(self.c)}, got "
+                f"{np.shape(self.tracked)}; pass None to track the measured output"
+            )
+
+    @property
+    def c_tracked(self) -> np.ndarray:
+        """(1, n): the output the predictions steer to the reference (:attr:`tracked`, else
+        the measured ``c``)."""
+        return self.c if self.tracked is None else self.tracked
 
     @property
     def n_states(self) -> int:
@@ -295,8 +314,19 @@ class PredictionModel:
         return cls(a, b, c, model.dt, nonlinearity, "identified", _z_bounds(nonlinearity))
 
     @classmethod
-    def from_plant(cls, plant: Any, *, reduce: bool = True) -> PredictionModel:
+    def from_plant(
+        cls, plant: Any, *, sensor: Any = None, reduce: bool = True
+    ) -> PredictionModel:
         """From the true plant :class:`piezo_env.PiezoBenderModel` (``env.unwrapped.model``).
+
+        With the env's ``sensor`` (:class:`piezo_env.Sensor`, ``env.unwrapped.config.sensor``)
+        the model's measured output ``c`` is the beam in series with the sensor's filter and
+        delay (:meth:`piezo_env.Sensor.state_space`), and its :attr:`tracked` output is the
+        true deflection, which the reward scores: the oracle estimates through the sensor and
+        steers the tip, not the measurement. An identified model can only steer the
+        measurement, which lags the tip by the sensor's lag tau (an error of 2 pi f tau of the
+        amplitude at f); an oracle blind to the sensor did worse than that
+        (``benchmarks/results/design_measurements.md``).
 
         With ``reduce``, the beam modes whose memory the predictions cannot see are carried
         as their one-step response (:meth:`piezo_env.discrete.DiscreteBender.without_modes`):
@@ -325,7 +355,16 @@ class PredictionModel:
             affordable = int(np.searchsorted(np.cumsum(per_mode[order]), budget_m, "right"))
             discrete = discrete.without_modes(order[:affordable])
         a, b, c, _ = discrete.state_space_matrices()
-        return cls(a, b, c, plant.dt, nonlinearity, "plant", z_bounds)
+        if sensor is None:
+            return cls(a, b, c, plant.dt, nonlinearity, "plant", z_bounds)
+        a_s, b_s, c_s, d_s = sensor.state_space(plant.dt)
+        n, k = a.shape[0], a_s.shape[0]
+        series = np.zeros((n + k, n + k))  # [x; q]: the sensor's input is y = c x
+        series[:n, :n], series[n:, :n], series[n:, n:] = a, np.outer(b_s, c[0]), a_s
+        measured = np.hstack([d_s * c, c_s[None, :]])
+        tip = np.hstack([c, np.zeros((1, k))])
+        b = np.vstack([b, np.zeros((k, 1))])
+        return cls(series, b, measured, plant.dt, nonlinearity, "plant", z_bounds, tip)
 
     def steady_start(self, y0: float, noise_bound_um: float) -> SteadyStart:
         """The model at rest holding the first measured deflection ``y0`` (um).

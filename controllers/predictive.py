@@ -186,7 +186,7 @@ class PredictiveController(Controller):
         self.settings = settings = settings or self.Settings()
         n_hor = settings.horizon
         self.prediction_samples = samples = self._prediction_samples(model, settings)
-        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c, samples)
+        self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c_tracked, samples)
         self.blocks = move_blocks(n_hor, samples)
         self._blocking = None if samples == n_hor else blocking_matrix(self.blocks)
         self._rate_hessian = rate_hessian(n_hor, settings.rate_weight)

@@ -38,14 +38,15 @@ def prediction_model(model: Any, env: Any) -> PredictionModel:
     ----------
     model : HammersteinModel, str, pathlib.Path, PredictionModel or "plant"
         An identified model (or the folder it was saved in), a ready prediction model, or
-        ``"plant"`` for the oracle built from the env's true plant (``env.unwrapped.model``).
+        ``"plant"`` for the oracle built from the env's true plant (``env.unwrapped.model``,
+        seen through the env's sensor: :meth:`PredictionModel.from_plant`).
     env : gymnasium.Env
         The env (its drive range bounds the nonlinearity's search range).
     """
     if isinstance(model, PredictionModel):
         return model
     if isinstance(model, str) and model == "plant":
-        return PredictionModel.from_plant(env.unwrapped.model)
+        return PredictionModel.from_plant(env.unwrapped.model, sensor=env.unwrapped.config.sensor)
     u_max = float(env.action_space.high[0])
     if isinstance(model, (str, Path)):
         if not Path(model).is_dir():

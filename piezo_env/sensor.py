@@ -30,6 +30,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
 from piezo_env.checks import require_int, require_number
 
 __all__ = ["MAX_DELAY", "Sensor", "SensorState"]
@@ -74,6 +76,45 @@ class Sensor:
         p = math.exp(-dt / tau)
         share = (tau / dt) * (-math.expm1(-dt / tau))
         return p, 1.0 - share, share - p
+
+    def state_space(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """The sensor as a discrete linear system from the true deflection y_t to the measured
+        m_t (before noise), for a model that predicts what a controller measures.
+
+        ``q_t+1 = a q_t + b y_t``, ``m_t = c q_t + d y_t``, with the state
+        ``q_t = [s_t-1, y_t-1, s_t-2, ..., s_t-D]`` (D = max(delay, 1)): the filter's last
+        output and input, then the delay line. ``d`` is b_0 without a delay and 0 with one. The
+        static gain is 1 (p + b_0 + b_1 = 1), so a sensor at rest holds the deflection, as
+        :class:`SensorState` starts.
+
+        Parameters
+        ----------
+        dt : float
+            Sample time (s).
+
+        Returns
+        -------
+        a : numpy.ndarray
+            (n, n), n = 1 + max(delay, 1).
+        b, c : numpy.ndarray
+            (n,) input and output vectors (dimensionless).
+        d : float
+            Feedthrough (dimensionless).
+        """
+        p, b0, b1 = self.coefficients(dt)
+        n = 1 + max(self.delay, 1)
+        a, b, c = np.zeros((n, n)), np.zeros(n), np.zeros(n)
+        a[0, :2] = p, b1  # s_t = p s_t-1 + b_1 y_t-1 + b_0 y_t
+        b[0] = b0
+        b[1] = 1.0  # y_t-1 of the next sample
+        if n > 2:
+            a[2, 0] = 1.0  # s_t-2 of the next sample is this s_t-1
+            a[3:, 2:-1] = np.eye(n - 3)  # and the rest of the line moves on by one
+        if self.delay == 0:
+            c[:2], d = (p, b1), b0
+        else:
+            c[0 if self.delay == 1 else self.delay], d = 1.0, 0.0
+        return a, b, c, d
 
     def state(self, dt: float) -> SensorState:
         """A stepping state at sample time ``dt`` (s)."""

@@ -113,6 +113,38 @@ def test_sensor_bandwidth_lags_a_ramp_by_tau():
     assert min(p, b0, b1) >= 0 and p + b0 + b1 == pytest.approx(1.0, abs=1e-15)
 
 
+@pytest.mark.parametrize("delay", [0, 1, 2])
+def test_sensor_state_space_lags_a_ramp_by_tau_plus_its_delay(delay):
+    """The sensor as a linear system (what an oracle predicts with) against the continuous
+    closed form: a ramp comes out delayed by tau + delay samples, from rest (static gain 1)."""
+    f_s, dt, slope = 300.0, 1e-3, 5.0
+    tau = 1 / (2 * math.pi * f_s)
+    a, b, c, d = Sensor(delay=delay, bandwidth_Hz=f_s).state_space(dt)
+    assert float(c @ np.linalg.solve(np.eye(len(b)) - a, b)) + d == pytest.approx(1.0, rel=1e-12)
+    q = np.zeros(len(b))
+    for t in range(200):
+        out = float(c @ q) + d * slope * t
+        q = a @ q + b * slope * t
+    assert out == pytest.approx(slope * (199 - tau / dt - delay), rel=1e-12)
+
+
+@pytest.mark.parametrize("sensor", [Sensor(delay=0), Sensor(delay=2, bandwidth_Hz=2000.0)])
+def test_oracle_predicts_what_the_sensor_measures(sensor):
+    """The oracle's model (the plant in series with the env's sensor) against the env's own
+    measured deflection, noise off: within the model reduction's budget (2 nm on the PL140)."""
+    from controllers.prediction import PredictionModel
+
+    env = _env(sensor=sensor)
+    voltages = 30.0 * np.random.default_rng(3).uniform(-1.0, 1.0, 300)
+    measured = np.array([env.step(np.array([v], np.float32))[0][0] for v in voltages])
+    model = PredictionModel.from_plant(env.model, sensor=sensor)
+    beam = PredictionModel.from_plant(env.model)
+    assert model.n_states == beam.n_states + 1 + max(sensor.delay, 1)
+    np.testing.assert_allclose(model.simulate(voltages.astype(np.float32)), measured, atol=5e-3)
+    blind = beam.simulate(voltages.astype(np.float32))
+    assert np.max(np.abs(blind - measured)) > 1.0  # the sensor is no rounding error
+
+
 def test_sensor_reward_keeps_the_true_deflection():
     env = _env(sensor=Sensor(delay=2, bandwidth_Hz=500.0), reference=np.full(50, 100.0))
     for _ in range(10):

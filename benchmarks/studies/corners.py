@@ -122,7 +122,9 @@ def run_vertex(
         for row, (name, options) in ROWS.items():
             model = model_dir
             if row.endswith("-oracle"):
-                model = ctl.PredictionModel.from_plant(env.unwrapped.model)
+                model = ctl.PredictionModel.from_plant(
+                    env.unwrapped.model, sensor=env.unwrapped.config.sensor
+                )
             controller = ctl.make(name, model, nominal, **options)
             for ref_name in REFERENCES_RUN:
                 reference = vertex_reference(ref_name, bender)
