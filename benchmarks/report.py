@@ -509,7 +509,8 @@ def _disclosure_lines(result: BenchmarkResult) -> list[str]:
         "over the same box (their loop meets its margin on every vertex). Every "
         "controller is built for the nominal task and runs unchanged on the robustness "
         "plants; an oracle differs only in its prediction model (the plant's hysteresis and "
-        "exact beam; its z is the plant's effective voltage).",
+        "exact beam; its z is the plant's effective voltage; behind the bench's sensor, the "
+        "beam seen through the sensor, and it steers the tip, not the measurement).",
         "",
         "### Tuning disclosure",
         "",
@@ -590,8 +591,8 @@ def _setup_lines(result: BenchmarkResult, meta: dict[str, Any]) -> list[str]:
         "RMSE and max error: true deflection against the reference sample each action is "
         f"scored against, in % of the full stroke (2 x {stroke:g} um = {2 * stroke:g} um). "
         "`-oracle`: the same controller on the true plant's model instead of the identified "
-        "one (not deployable: it shows what identification costs, and is left out of the "
-        "verdict).",
+        "one (not deployable: it shows what identification costs, and behind a sensor what "
+        "steering the measurement instead of the tip costs; it is left out of the verdict).",
         "",
         *_disclosure_lines(result),
         *_left_out_lines(meta),

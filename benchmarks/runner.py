@@ -10,8 +10,10 @@ the tables and figures (:mod:`benchmarks.report`).
 Fairness. Every controller sees the same observation: the measured deflection and a preview
 of the reference (``preview`` samples, 20 by default), on the same noise sequence (the same
 env seed) and the same reference arrays. A controller name with the suffix ``-oracle`` runs on
-the true plant's model (its hysteresis and exact beam) instead of the identified one: the
-distance between the two rows is what identification costs.
+the true plant's model (its hysteresis and exact beam, seen through the plant's sensor, and
+steering the tip) instead of the identified one: the distance between the two rows is what
+identification costs, and behind a sensor what steering the measurement instead of the tip
+costs.
 
 Reproducibility. Episodes are grouped by (plant, controller); each group builds its env and its
 controller afresh and runs its references in a fixed order, in a worker process (``jobs``).

@@ -204,7 +204,10 @@ def _why(
     oracle = index.get((plant, "mpc-oracle", ref))
     ratio = None if oracle is None else cell["rmse_percent"] / oracle["rmse_percent"]
     if ratio is not None and ratio >= _AT_ORACLE:
-        return f"model-limited: {ratio:.1f}x `mpc-oracle`, which predicts with the true plant"
+        return (
+            f"model-limited: {ratio:.1f}x `mpc-oracle`, which predicts with the true plant "
+            "(and steers the tip behind a sensor)"
+        )
     at_oracle = "" if ratio is None else f"; at the oracle's level ({ratio:.2f}x `mpc-oracle`)"
     times = None
     if noise_bound_um:

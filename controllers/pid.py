@@ -299,10 +299,12 @@ class PIDController(Controller):
         self._g_aw = self.settings.antiwindup_gain
 
     def _setup_feedforward(self) -> None:
-        """Stable (or regularised) one-step inverse of the linear model."""
+        """Stable (or regularised) one-step inverse of the linear model, from z to the output
+        the model steers (:attr:`PredictionModel.c_tracked`: the tip of an oracle behind a
+        sensor); the feedback compares the model's measured output with the measurement."""
         m = self.model
-        self._ca = (m.c @ m.a).ravel()
-        cb = float((m.c @ m.b).item())
+        self._ca = (m.c_tracked @ m.a).ravel()
+        cb = float((m.c_tracked @ m.b).item())
         zeros = _transmission_zeros(m)
         self.minimum_phase = bool(zeros.size == 0 or np.abs(zeros).max() < 1.0)
         rho = 0.0 if self.minimum_phase else self.settings.inverse_regularization
@@ -492,10 +494,11 @@ def _notch_depth_db(notch: tuple[np.ndarray, np.ndarray], f_hz: float, dt: float
 
 
 def _transmission_zeros(model: PredictionModel) -> np.ndarray:
-    """Finite nonzero zeros of C (zI - A)^-1 B, from the numerator polynomial (np.roots)."""
+    """Finite nonzero zeros of C (zI - A)^-1 B, C the steered output
+    (:attr:`PredictionModel.c_tracked`), from the numerator polynomial (np.roots)."""
     import scipy.signal
 
-    num, _ = scipy.signal.ss2tf(model.a, model.b, model.c, np.zeros((1, 1)))
+    num, _ = scipy.signal.ss2tf(model.a, model.b, model.c_tracked, np.zeros((1, 1)))
     num = np.trim_zeros(np.real_if_close(num[0]), "f")
     zeros = np.roots(num) if num.size > 1 else np.zeros(0)
     return zeros[np.abs(zeros) > 1e-9]

@@ -1,15 +1,18 @@
 """One prediction-model interface for every model-based controller.
 
 A Hammerstein prediction model is an input nonlinearity (voltage u in V -> hidden signal z in
-equivalent V, with memory) in series with a discrete linear state space (z -> tip deflection in
-um)::
+equivalent V, with memory) in series with a discrete linear state space (z -> measured tip
+deflection in um)::
 
     z_t = N(u_t; s_t),   s_t+1 = S(u_t; s_t),   x_t+1 = A x_t + B z_t,   y_t = C x_t
 
 Two sources give one: the identified :class:`identification.HammersteinModel` (NLS + ARX) and,
 for an oracle comparison, the true plant :class:`piezo_env.PiezoBenderModel` (hysteresis + exact
-ZOH beam). A controller sees only this object, so the same controller code runs on either, and
-the difference of their results is what identification costs.
+ZOH beam, seen through the env's sensor where it has one). A controller sees only this object,
+so the same controller code runs on either, and the difference of their results is what
+identification costs, and, behind a sensor, what steering the measurement instead of the tip
+costs: the oracle knows the sensor and steers the tip (:attr:`PredictionModel.tracked`), an
+identified model can only steer what was measured.
 """
 
 from __future__ import annotations
@@ -384,15 +387,17 @@ class PredictionModel:
         held = self.nonlinearity.inverse(z0, memory)
         return SteadyStart(per_z * held.z, held.z, held.u, held.state)
 
-    def simulate(self, u: np.ndarray) -> np.ndarray:
-        """Deflection (um) after each voltage of ``u`` (V), from rest: y[t] follows u[t]."""
+    def simulate(self, u: np.ndarray, *, tracked: bool = False) -> np.ndarray:
+        """Measured deflection (um) after each voltage of ``u`` (V), from rest: y[t] follows
+        u[t]; with ``tracked``, the steered output (:attr:`c_tracked`) instead."""
         state = self.nonlinearity.initial_state()
         x = np.zeros(self.n_states)
         y = np.empty(len(u))
+        out = (self.c_tracked if tracked else self.c)[0]
         for t, v in enumerate(np.asarray(u, dtype=np.float64)):
             z, state = self.nonlinearity.step(float(v), state)
             x = self.a @ x + self.b[:, 0] * z
-            y[t] = float(self.c[0] @ x)
+            y[t] = float(out @ x)
         return y
 
 

@@ -377,6 +377,12 @@ def datasheet_model(
     return member, error
 
 
+def _scaled(model: PredictionModel, gain: float) -> PredictionModel:
+    """``model`` with its linear part's gain times ``gain``: every output scaled."""
+    tracked = None if model.tracked is None else model.tracked * gain
+    return dataclasses.replace(model, c=model.c * gain, tracked=tracked)
+
+
 def vertex_models(
     model: PredictionModel, box: ToleranceBox, *, further_modes: bool = False
 ) -> list[tuple[Vertex, PredictionModel]]:
@@ -409,7 +415,7 @@ def vertex_models(
         return []
     if box.resonance == 0.0 and box.damping is None:  # the gain alone: no mode to move
         return [
-            (vertex, dataclasses.replace(model, c=model.c * vertex.gain))
+            (vertex, _scaled(model, vertex.gain))
             for vertex in box.vertices()
         ]
     arx = arx_of(model)
@@ -417,5 +423,7 @@ def vertex_models(
     for vertex in box.vertices():
         moved = box_model(arx, vertex, further_modes=further_modes)
         a, b, c, _ = moved.state_space_matrices()
-        out.append((vertex, dataclasses.replace(model, a=a, b=b, c=c)))
+        # The realization of the measured output's ARX: a plant's steered output (an oracle's
+        # tip behind a sensor) has no place in it, and the loops close on the measurement.
+        out.append((vertex, dataclasses.replace(model, a=a, b=b, c=c, tracked=None)))
     return out

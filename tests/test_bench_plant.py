@@ -128,7 +128,24 @@ def test_sensor_state_space_lags_a_ramp_by_tau_plus_its_delay(delay):
     assert out == pytest.approx(slope * (199 - tau / dt - delay), rel=1e-12)
 
 
-@pytest.mark.parametrize("sensor", [Sensor(delay=0), Sensor(delay=2, bandwidth_Hz=2000.0)])
+@pytest.mark.parametrize(
+    "sensor", [Sensor(0, None), Sensor(0, 20e3), Sensor(1, 300.0), Sensor(2, 2000.0)], ids=str
+)
+def test_sensor_state_space_steps_as_the_envs_sensor(sensor):
+    """The state space against the stepping sensor the env runs, from rest at a deflection
+    that is not zero (the state space's steady state there) on a random deflection."""
+    dt = 1e-3
+    a, b, c, d = sensor.state_space(dt)
+    stepping = sensor.state(dt)
+    rest = 37.0
+    stepping.reset(rest)
+    q = np.linalg.solve(np.eye(len(b)) - a, b * rest)
+    for y in np.random.default_rng(5).uniform(-500.0, 500.0, 200):
+        q, measured = a @ q + b * y, float(c @ q) + d * y
+        assert measured == pytest.approx(stepping.measure(y), abs=1e-11)
+
+
+@pytest.mark.parametrize("sensor", [Sensor(0, None), Sensor(0, 20e3), Sensor(2, 2000.0)], ids=str)
 def test_oracle_predicts_what_the_sensor_measures(sensor):
     """The oracle's model (the plant in series with the env's sensor) against the env's own
     measured deflection, noise off: within the model reduction's budget (2 nm on the PL140)."""
@@ -141,8 +158,10 @@ def test_oracle_predicts_what_the_sensor_measures(sensor):
     beam = PredictionModel.from_plant(env.model)
     assert model.n_states == beam.n_states + 1 + max(sensor.delay, 1)
     np.testing.assert_allclose(model.simulate(voltages.astype(np.float32)), measured, atol=5e-3)
-    blind = beam.simulate(voltages.astype(np.float32))
-    assert np.max(np.abs(blind - measured)) > 1.0  # the sensor is no rounding error
+    tip = model.simulate(voltages.astype(np.float32), tracked=True)
+    np.testing.assert_allclose(tip, beam.simulate(voltages.astype(np.float32)), atol=1e-9)
+    if sensor.delay or sensor.bandwidth_Hz:
+        assert np.max(np.abs(tip - measured)) > 1.0  # the sensor is no rounding error
 
 
 def test_sensor_reward_keeps_the_true_deflection():

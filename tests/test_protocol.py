@@ -61,6 +61,37 @@ def test_a_bare_protocol_object_runs_an_episode(env):
     assert np.isfinite(episode.metrics["rmse_percent"])
 
 
+class Offset(gym.ObservationWrapper):
+    """A user's wrapper: the measured deflection read 5 um high."""
+
+    def observation(self, observation):
+        return observation + np.array([5.0] + [0.0] * (len(observation) - 1), np.float32)
+
+
+def test_the_loop_steps_below_makes_wrappers_and_through_a_users():
+    """The loop steps the env below ``gymnasium.make``'s pass-through wrappers and counts the
+    time limit itself: the record is the one a step through every wrapper gives, bit for bit,
+    and a user's wrapper anywhere in the stack is stepped through."""
+    made = gym.make("piezo_env:PiezoBender-v0", preview=20, max_episode_steps=120)
+    opaque = gym.Wrapper(made)  # no pass-through wrapper on top: every wrapper is stepped
+    records = [
+        controllers.run_episode(env, controllers.make("test_protocol:Bare", MODEL_DIR, made),
+                                seed=3, reference=np.full(200, 100.0))
+        for env in (made, opaque)
+    ]
+    for field in ("deflection_um", "measured_um", "voltage_V", "reward"):
+        np.testing.assert_array_equal(getattr(records[0], field), getattr(records[1], field))
+    assert len(records[0].voltage_V) == 120
+    shifted = gym.wrappers.TimeLimit(Offset(made.unwrapped), 50)
+    episode = controllers.run_episode(
+        shifted, Bare(None, None), seed=3, reference=np.full(200, 100.0)
+    )
+    assert len(episode.voltage_V) == 50
+    np.testing.assert_allclose(
+        episode.measured_um[:50] - 5.0, episode.deflection_um[:50], atol=4.0
+    )
+
+
 class WrongShape(Bare):
     """A controller whose action has the wrong shape from its third step on."""
 
