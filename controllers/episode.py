@@ -139,7 +139,9 @@ def _stepper(env: Any, max_steps: int | None) -> tuple[Any, int | None]:
     length itself: the same data, without about 3 us per step of wrapper calls, a quarter of
     the env's step (2.6 million steps in the quick-start benchmark). The first other wrapper
     (a user's) is stepped through as given, with everything below it. The episode was reset
-    through the whole stack.
+    through the whole stack, and the loop moves each time limit's step count on by the steps
+    it took (:func:`_count_steps`), so a caller who steps on after it truncates where the
+    whole stack would.
     """
     from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
 
@@ -150,6 +152,16 @@ def _stepper(env: Any, max_steps: int | None) -> tuple[Any, int | None]:
             max_steps = limit if max_steps is None else min(limit, max_steps)
         inner = inner.env
     return inner.step, max_steps
+
+
+def _count_steps(env: Any, steps: int) -> None:
+    """Move the step count of each time limit the loop stepped below on by ``steps``."""
+    from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
+
+    while type(env) in (TimeLimit, OrderEnforcing, PassiveEnvChecker):
+        if type(env) is TimeLimit:
+            env._elapsed_steps += steps
+        env = env.env
 
 
 def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> dict:
@@ -189,6 +201,7 @@ def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> 
         steps += 1
         if terminated or truncated:
             break
+    _count_steps(env, steps)
     arrays = {
         k: np.asarray(v, dtype=float)
         for k, v in zip(("y", "m", "r", "u", "sat", "rew", "compute"), columns, strict=True)

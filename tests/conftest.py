@@ -5,6 +5,9 @@ random by default, so a suite could pass on one run and fail on the next; derand
 search is a fixed function of the test, like every other random draw here (seeded generators).
 Explore more widely on purpose with ``HYPOTHESIS_PROFILE=explore``.
 
+The suite runs on one process per core (pytest-xdist); a session fixture below is made once
+per test process that uses it.
+
 The short identification of the PL140 (:func:`fast_pl140_identification`) is made once: the
 records tests compare the identification from files against it, the pipeline tests a second run
 of the same settings.

@@ -74,17 +74,22 @@ def test_the_loop_steps_below_makes_wrappers_and_through_a_users():
     and a user's wrapper anywhere in the stack is stepped through."""
     made = gym.make("piezo_env:PiezoBender-v0", preview=20, max_episode_steps=120)
     opaque = gym.Wrapper(made)  # no pass-through wrapper on top: every wrapper is stepped
-    records = [
+    records = [  # max_steps beyond the time limit: a limit lost would run 500 steps
         controllers.run_episode(env, controllers.make("test_protocol:Bare", MODEL_DIR, made),
-                                seed=3, reference=np.full(200, 100.0))
+                                seed=3, reference=np.full(200, 100.0), max_steps=500)
         for env in (made, opaque)
     ]
     for field in ("deflection_um", "measured_um", "voltage_V", "reward"):
         np.testing.assert_array_equal(getattr(records[0], field), getattr(records[1], field))
     assert len(records[0].voltage_V) == 120
+    # Stopped early, the time limit has counted the loop's steps: a step on truncates where
+    # the whole stack would.
+    controllers.run_episode(made, Bare(None, None), seed=3, max_steps=100)
+    flags = [made.step(np.zeros(1, np.float32))[3] for _ in range(20)]
+    assert flags == [False] * 19 + [True]
     shifted = gym.wrappers.TimeLimit(Offset(made.unwrapped), 50)
     episode = controllers.run_episode(
-        shifted, Bare(None, None), seed=3, reference=np.full(200, 100.0)
+        shifted, Bare(None, None), seed=3, reference=np.full(200, 100.0), max_steps=500
     )
     assert len(episode.voltage_V) == 50
     np.testing.assert_allclose(
