@@ -248,6 +248,7 @@ def no_output_folder(monkeypatch: pytest.MonkeyPatch) -> None:
         (["simulate", "--duration", "-.5e1"], ["--duration", "greater than 0, got '-.5e1'"]),
     ],
 )
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_bad_calls_are_refused_before_the_output_folder_is_made(
     argv, fragments, tmp_path, capsys, no_work, no_output_folder
 ):

@@ -300,6 +300,7 @@ def test_bad_settings_raise_naming_the_field(kwargs, match):
         Disturbance(**kwargs)
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_band_is_checked_against_the_sample_time():
     with pytest.raises(ValueError, match=r"Nyquist frequency 0.5 / dt = 500 Hz"):
         gym.make("piezo_env:PiezoBender-v0", disturbance=Disturbance(vibration_band_Hz=(8, 500)))

@@ -113,6 +113,7 @@ def test_draws_stay_in_the_band_and_take_as_many_numbers_as_the_default(band):
         np.testing.assert_allclose(rendered, _signal_of(draw, 3000), rtol=0, atol=1e-9)
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_band_is_validated_and_stored_as_floats():
     assert TaskConfig().reference_band == DEFAULT_BAND
     assert TaskConfig(reference_band=[1, 100]).reference_band == (1.0, 100.0)
@@ -153,6 +154,7 @@ def test_single_env_equals_vector_env_with_a_band():
     assert not np.array_equal(default.reset(seed=seed)[0][1:], obs_s[0][0][1:])
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 @pytest.mark.parametrize("reference", ["random", "sine", "steps"])
 def test_a_sample_time_too_coarse_for_the_default_band_is_refused_with_the_fix(reference):
     """At dt = 1 s the default band's top, cut to 0.25/dt = 0.25 Hz, falls below its 0.5 Hz

@@ -144,6 +144,7 @@ def fixed_on_the_damped_pl127():
     return _episode("PL127", "damping-0.04", "steps", 1000)
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_the_damped_pl127_no_longer_runs_away_on_steps(fixed_on_the_damped_pl127) -> None:
     """Twice the damping of the PL127's datasheet: the fast filters' loops oscillate at Nyquist
     (41.6 % of the stroke over 2 s without the guard). The box screen removes those filters
@@ -164,6 +165,7 @@ def test_the_damped_pl127_no_longer_runs_away_on_steps(fixed_on_the_damped_pl127
     assert controller.observer.runaway_at is None
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_the_adaptive_mpc_holds_the_damped_pl127_without_the_guard(
     fixed_on_the_damped_pl127,
 ) -> None:
@@ -177,6 +179,7 @@ def test_the_adaptive_mpc_holds_the_damped_pl127_without_the_guard(
     assert adaptive.metrics["rmse_percent"] < fixed.metrics["rmse_percent"]
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_on_the_damped_pl127_the_bank_is_no_worse_than_the_single_filter() -> None:
     """The single filter of the earlier default holds the damped PL127 (0.98 % of the stroke
     over the benchmark's 2 s of steps); the bank's fast filters run away there, and the guard

@@ -68,6 +68,7 @@ def test_gym_make_follows_the_rule_for_another_bender():
     assert env.unwrapped.model.dt == 2.5e-4
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_an_explicit_dt_overrides_the_rule():
     assert TaskConfig(bender="PL127", dt=1e-3).dt == 1e-3
     env = gym.make(ENV_ID, bender="PL112", dt=5e-4)
@@ -102,6 +103,7 @@ def test_dt_none_and_the_config_validation():
             TaskConfig(dt=bad)
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_a_new_bender_gets_its_own_default_unless_dt_was_given():
     assert TaskConfig.from_kwargs(TaskConfig(), bender="PL127").dt == 2.5e-4
     assert TaskConfig.from_kwargs(TaskConfig(dt=1e-3), bender="PL127").dt == 1e-3
@@ -182,6 +184,7 @@ def test_the_benchmark_command_defaults_to_2_s_episodes():
 # -- identification ---------------------------------------------------------------------------
 
 
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_identification_records_follow_the_env_s_sample_time():
     from identification.config import IdentificationConfig, env_sample_time
 
@@ -239,6 +242,7 @@ def test_the_command_line_leaves_dt_to_the_bender_unless_given():
         (0.1, r"fewer than 200: use a dt of at most 0\.03 s \(--dt on the command line\)"),
     ],
 )
+@pytest.mark.filterwarnings("ignore:dt = .*aliases its first mode:UserWarning")  # on purpose
 def test_a_dt_too_fine_or_too_coarse_for_the_records_is_refused_before_work(
     dt, message, tmp_path, capsys
 ):
