@@ -90,7 +90,7 @@ def _label(row: str, data: dict[str, Any], members: dict[str, list[str]]) -> str
     return f"`{row}`"
 
 
-def _nominal(data: dict[str, Any], plant: str = "nominal") -> dict[tuple[str, str], float]:
+def _plant_rmse(data: dict[str, Any], plant: str = "nominal") -> dict[tuple[str, str], float]:
     """Mean RMSE (%) per (controller, reference) on ``plant``."""
     return {
         (c["controller"], c["reference"]): c["rmse_percent"]
@@ -202,9 +202,9 @@ def bad_news(data: dict[str, Any]) -> list[str]:
         )
         news.append(f"Worst case of each controller on the robustness plants: {listed}.")
     news += _divergences(data)
-    span = _oracle_span(_nominal(data))
+    span = _oracle_span(_plant_rmse(data))
     if span:
-        bench = _oracle_span(_nominal(data, "bench"))
+        bench = _oracle_span(_plant_rmse(data, "bench"))
         own = "bench" in (data["meta"].get("identify_on") or ())[1:]
         news.append(
             f"Identification costs {span}x the oracle's RMSE on smooth references on the "

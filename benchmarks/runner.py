@@ -397,8 +397,7 @@ def _build(controller: str, model_dir: str, plant_env: Any, config: BenchmarkCon
     elif controller in config.policy_folders:
         name, model = "policy", config.policy_folders[controller]
     elif controller.endswith("-oracle"):
-        plant = plant_env.unwrapped
-        model = ctl.PredictionModel.from_plant(plant.model, sensor=plant.config.sensor)
+        model = ctl.prediction_model("plant", plant_env)  # the plant and its sensor
     else:
         model = model_dir
     built = ctl.make(name, model, nominal, **config.controller_options.get(controller, {}))

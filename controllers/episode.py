@@ -130,8 +130,9 @@ def run_episode(
     )
 
 
-def _stepper(env: Any, max_steps: int | None) -> tuple[Any, int | None]:
-    """``(step, max_steps)``: the step the loop calls and where it stops.
+def _stepper(env: Any, max_steps: int | None) -> tuple[Any, int | None, list[Any]]:
+    """``(step, max_steps, limits)``: the step the loop calls, where it stops, and the time
+    limits it stepped below.
 
     ``gymnasium.make`` wraps the env in a time limit, a reset-before-step check and a checker
     of the first step's types, which leave every step's data as it is. The loop steps below
@@ -140,28 +141,18 @@ def _stepper(env: Any, max_steps: int | None) -> tuple[Any, int | None]:
     the env's step (2.6 million steps in the quick-start benchmark). The first other wrapper
     (a user's) is stepped through as given, with everything below it. The episode was reset
     through the whole stack, and the loop moves each time limit's step count on by the steps
-    it took (:func:`_count_steps`), so a caller who steps on after it truncates where the
-    whole stack would.
+    it took, so a caller who steps on after it truncates where the whole stack would.
     """
     from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
 
-    inner = env
+    inner, limits = env, []
     while type(inner) in (TimeLimit, OrderEnforcing, PassiveEnvChecker):
         if type(inner) is TimeLimit:
+            limits.append(inner)
             limit = int(inner._max_episode_steps)
             max_steps = limit if max_steps is None else min(limit, max_steps)
         inner = inner.env
-    return inner.step, max_steps
-
-
-def _count_steps(env: Any, steps: int) -> None:
-    """Move the step count of each time limit the loop stepped below on by ``steps``."""
-    from gymnasium.wrappers import OrderEnforcing, PassiveEnvChecker, TimeLimit
-
-    while type(env) in (TimeLimit, OrderEnforcing, PassiveEnvChecker):
-        if type(env) is TimeLimit:
-            env._elapsed_steps += steps
-        env = env.env
+    return inner.step, max_steps, limits
 
 
 def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> dict:
@@ -174,7 +165,7 @@ def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> 
     """
     saturation = float(env.action_space.high[0]) * (1 - 1e-6)
     clock = time.perf_counter
-    step, max_steps = _stepper(env, max_steps)
+    step, max_steps, limits = _stepper(env, max_steps)
     act = controller.act
     y, m, r, u, sat, rew, compute = columns = tuple([] for _ in range(7))
     add_y, add_m, add_r, add_u = y.append, m.append, r.append, u.append
@@ -201,7 +192,8 @@ def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> 
         steps += 1
         if terminated or truncated:
             break
-    _count_steps(env, steps)
+    for limit in limits:
+        limit._elapsed_steps += steps
     arrays = {
         k: np.asarray(v, dtype=float)
         for k, v in zip(("y", "m", "r", "u", "sat", "rew", "compute"), columns, strict=True)

@@ -122,9 +122,7 @@ def run_vertex(
         for row, (name, options) in ROWS.items():
             model = model_dir
             if row.endswith("-oracle"):
-                model = ctl.PredictionModel.from_plant(
-                    env.unwrapped.model, sensor=env.unwrapped.config.sensor
-                )
+                model = ctl.prediction_model("plant", env)
             controller = ctl.make(name, model, nominal, **options)
             for ref_name in REFERENCES_RUN:
                 reference = vertex_reference(ref_name, bender)
