@@ -12,7 +12,9 @@ Two steps hold computations that do not depend on each other:
   refinement always does, the rival when no sensor bound can rule it out (measured records
   without one); with a bound it waits for the noise-floor test, which on the nominal PL140
   finds it unneeded, and two processes sharing two cores slow each other more than a rival
-  started in vain could save.
+  started in vain could save. A rival refined in this process hands its own rate-dependent
+  refinement to the helper, as step e's play choice does (the bench plant when step e chose
+  Bouc-Wen features).
 
 A :class:`StepRunner` runs such a computation "beside" the main line. With one job it is
 computed here, when its result is first asked for (a computation the decision does not need is

@@ -540,10 +540,13 @@ def refine_and_choose(
     # refinement. With one it waits for the noise-floor test, which often finds it unneeded
     # (the nominal PL140): refined beside the choice and then withdrawn, it slows the choice's
     # refinement more than it could save (``design_measurements.md``, identification.runner).
+    # Refined here, the rival hands its own rate-dependent refinement to the helper, which the
+    # choice's refinement left idle (step e chose a set without a rate variant); refined on the
+    # helper, it computes that there.
     rival_pending = (
         runner.beside(_refine_rival, nls, records, config)
         if sensor_noise_bound is None
-        else runner.here(_refine_rival, nls, records, config)
+        else runner.here(_refine_rival, nls, records, config, runner=runner)
     )
     refinement = refine_nonlinearity(nls, records, config, runner=runner)
     held_out = _kept_rms(refinement)
@@ -574,11 +577,15 @@ def refine_and_choose(
 
 
 def _refine_rival(
-    nls: NlsFit, records: list[tuple[np.ndarray, np.ndarray]], config: IdentificationConfig
+    nls: NlsFit,
+    records: list[tuple[np.ndarray, np.ndarray]],
+    config: IdentificationConfig,
+    runner: StepRunner | None = None,
 ) -> tuple[NlsFit, NlsRefinement]:
-    """Step e's play network as the rival of its choice, and its step e' refinement."""
+    """Step e's play network as the rival of its choice, and its step e' refinement (whose
+    rate-dependent refinement ``runner`` may compute beside it)."""
     rival = nls.rival("play", records[0][0])
-    return rival, refine_nonlinearity(rival, records, config)
+    return rival, refine_nonlinearity(rival, records, config, runner=runner)
 
 
 def _kept_rms(refinement: NlsRefinement) -> float:

@@ -145,3 +145,41 @@ def test_jobs_must_be_a_positive_integer():
         with pytest.raises(ValueError, match="jobs must be an integer >= 1"):
             with step_runner(jobs):
                 pass
+
+
+class _Recording(StepRunner):
+    """A runner that records the name of each computation it is asked to run beside."""
+
+    def __init__(self, helper) -> None:
+        super().__init__(helper)
+        self.asked: list[str] = []
+
+    def beside(self, function, *args, **kwargs):
+        self.asked.append(function.__name__)
+        return super().beside(function, *args, **kwargs)
+
+
+def test_a_rival_refined_here_refines_its_rate_dependent_variant_beside(beside):
+    """Step e chose past-inputs on a plant of rate-dependent plays, with a sensor bound that
+    does not put the choice at the noise floor: the play rival is refined here, and its
+    rate-dependent refinement (which its learned radii determine) on the helper. The same
+    choice and refinement as in one process."""
+    from identification.nls import fit_nls
+
+    start, arx, records = _rate_plant(7e-4)
+    u = records[0][0]
+    past = fit_nls(u, u, features="past-inputs", hidden=(2,), max_epochs=5, u_range=(-30, 30))
+    selection = _rate_plant(7e-4, seed=1)[2][0]
+    candidates = {"play": start, "past-inputs": past}
+    fit = NlsFit(HammersteinModel(past, arx), "past-inputs", {}, 1.0, selection, 0, candidates)
+    config = IdentificationConfig(nls_refinement_iterations=20, rate="auto")
+    recording = _Recording(beside._helper)
+    results = [
+        refine_and_choose(fit, records, config, sensor_noise_bound=0.05, runner=r)
+        for r in (StepRunner(), recording)
+    ]
+    (kept_here, here), (kept_there, there) = results
+    assert recording.asked == ["_refine"]  # the rival's rate-dependent refinement, nothing else
+    assert kept_here.features == kept_there.features == "play"
+    assert here.rate_choice["determined"] and "rate_rms_um" in here.rate_choice
+    _same_refinement(here, there)
