@@ -19,7 +19,10 @@ block:
   identify --out docs/identify``);
 - ``latency`` (docs/controllers.md) from ``benchmarks/results/controller_latency.json``
   (``python -m benchmarks.speed.controller_latency``): step times as ratios to a CartPole-v1 step of
-  the same run, deadline misses, the MPC at 10 kHz, and the speed targets they miss.
+  the same run, deadline misses, the MPC at 10 kHz, and the speed targets they miss;
+- ``main-job`` (README.md) from ``benchmarks/results/main_job.json`` (``python -m
+  benchmarks.speed.main_job``): the main commands' wall times, also in seconds of the machine
+  the time targets were set on, against those targets.
 
 Links in the blocks are written from the repository's root and made relative to the page that
 holds them. ``--check`` only compares (a test runs it).
@@ -50,6 +53,7 @@ __all__ = [
     "headline_table",
     "identification",
     "latency",
+    "main_job",
     "render",
     "update_pages",
 ]
@@ -513,12 +517,52 @@ def latency(data: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+MAIN_JOB_NAMES = {
+    "quick start": "`piezo benchmark`",
+    "identify": "`piezo identify`",
+    "PL127": "`piezo benchmark --bender PL127`",
+    "bench identification": "the bench plant's identification (`identify(jobs=2)`, per seed)",
+}
+"""How the main-job block names each row of ``main_job.json``."""
+
+
+def _span(values: list[float], digits: int = 0) -> str:
+    """One value, or "low-high"."""
+    low, high = min(values), max(values)
+    if round(low, digits) == round(high, digits):
+        return f"{low:.{digits}f}"
+    return f"{low:.{digits}f}-{high:.{digits}f}"
+
+
+def main_job(data: dict[str, Any]) -> str:
+    """The main commands' wall times, here and in seconds of the reference machine, against
+    their targets (``benchmarks/results/main_job.json``)."""
+    reference = data["reference_cartpole_us"]
+    here, there, cartpole = [], [], []
+    for name, runs in data["rows"].items():
+        walls = [run["wall_s"] for run in runs]
+        scaled = [run["wall_s"] * reference / run["cartpole_us"] for run in runs]
+        cartpole += [run["cartpole_us"] for run in runs]
+        target = data["targets_s"][name]
+        verdict = "" if max(scaled) <= target else ": missed"
+        here.append(f"{MAIN_JOB_NAMES[name]} {_span(walls)} s")
+        there.append(f"{_span(scaled)} s (target {target:g} s{verdict})")
+    return (
+        f"Measured on {data['date']} ({data['machine'].split(', Python')[0]}), each command in a "
+        "fresh process with an empty native-code cache ([benchmarks/results/main_job.md]"
+        "(benchmarks/results/main_job.md)): " + ", ".join(here) + ". On the machine the "
+        f"targets were set on (a CartPole-v1 step of {reference:g} us, {_span(cartpole, 1)} us "
+        "while the commands ran here) that is " + ", ".join(there) + "."
+    )
+
+
 BLOCKS = {
     "headline": ("README.md", "docs/benchmark/benchmark.json", headline),
     "headline-PL127": ("README.md", "docs/benchmark-PL127/benchmark.json", other_bender),
     "identification": ("docs/identification.md", "docs/identify/report.json", identification),
     "adaptation": ("docs/controllers.md", "docs/benchmark/benchmark.json", adaptation),
     "latency": ("docs/controllers.md", "benchmarks/results/controller_latency.json", latency),
+    "main-job": ("README.md", "benchmarks/results/main_job.json", main_job),
 }
 """Marker name -> (the page that holds it, the committed file it is generated from, the function
 that renders it). Paths are from the repository's root."""

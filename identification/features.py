@@ -528,6 +528,11 @@ class BoucWenFeatures(_StateChecks):
 def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
     """Saturation levels spaced geometrically from 0.1 to 2 half-spans of the input range (V).
 
+    Fixed, unlike play radii (which step e' learns): a Bouc-Wen loop is smooth, and the network
+    draws a plant's level between two grid levels as closely as one on them, to the sensor's
+    noise floor (``benchmarks/results/bouc_wen_levels.md``); only levels beyond the grid's ends
+    leave a measurable error.
+
     Parameters
     ----------
     u_range : (float, float)
