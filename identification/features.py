@@ -529,9 +529,9 @@ def default_bouc_wen_levels(u_range: Sequence[float], n: int) -> np.ndarray:
     """Saturation levels spaced geometrically from 0.1 to 2 half-spans of the input range (V).
 
     Fixed, unlike play radii (which step e' learns): a Bouc-Wen loop is smooth, and the network
-    draws a plant's level between two grid levels as closely as one on them, to the sensor's
-    noise floor (``benchmarks/results/bouc_wen_levels.md``); only levels beyond the grid's ends
-    leave a measurable error.
+    draws a plant's level between two grid levels within about 0.01 um of one on a grid level,
+    well inside the sensor's noise (``benchmarks/results/bouc_wen_levels.md``, one seed per
+    plant); only levels beyond the grid's ends leave an error several times larger.
 
     Parameters
     ----------

@@ -9,5 +9,8 @@ machine and the date, to ``benchmarks/results/``:
   shows in closed loop;
 - :mod:`benchmarks.studies.arx_estimation`: accuracy and speed of the three ARX estimators;
 - :mod:`benchmarks.studies.corners`: every controller on the corners of the datasheet's
-  tolerance box.
+  tolerance box;
+- :mod:`benchmarks.studies.rate_aware_identification`: the default identification on plants
+  with and without rate-dependent hysteresis, over identification seeds;
+- :mod:`benchmarks.studies.bouc_wen_levels`: Bouc-Wen plants between the features' levels.
 """

@@ -1,11 +1,12 @@
 """Bouc-Wen plants whose loop shape falls between the features' levels: identified as well as
 one on them?
 
-The ``bouc-wen`` memory features (:class:`identification.features.BoucWenFeatures`) are 16
-normalized Bouc-Wen operators whose saturation levels are fixed on a geometric grid from 0.1 to
-2 half-spans of the drive range (:func:`identification.features.default_bouc_wen_levels`: 3 to
-60 V on the PL140, 22 % apart); the network weighs them. Play radii are learned in step e',
-because a sharp-cornered Prandtl-Ishlinskii loop needs its radii exactly
+The ``bouc-wen`` memory features (:class:`identification.features.BoucWenFeatures`) are
+``IdentificationConfig.n_bouc_wen`` (16) normalized Bouc-Wen operators whose saturation levels
+are fixed on a geometric grid from 0.1 to 2 half-spans of the drive range
+(:func:`identification.features.default_bouc_wen_levels`: 3 to 60 V on the PL140, 22 % apart);
+the network weighs them. Play radii are learned in step e', because a sharp-cornered
+Prandtl-Ishlinskii loop needs its radii exactly
 (``rate_aware_identification.md``). This study asks whether Bouc-Wen levels need the same.
 
 The PL140's Bouc-Wen hysteresis has beta = gamma = b, whose loop is the features' operator of
@@ -60,7 +61,8 @@ def main() -> None:
             result = identify(config=IdentificationConfig(seed=0, env_kwargs=env), jobs=2)
             if grid is None:
                 u_max = result.report["environment"]["drive_range_V"]
-                grid = [float(g) for g in default_bouc_wen_levels(u_max, 16)]
+                count = IdentificationConfig().n_bouc_wen
+                grid = [float(g) for g in default_bouc_wen_levels(u_max, count)]
             fit = result.report["validation"]["hammerstein"]
             rmse = fit["rmse"]
             own = math.sqrt(max(rmse**2 - sigma**2, 0.0))
