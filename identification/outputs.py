@@ -375,8 +375,12 @@ def jsonable(obj: Any) -> Any:
     return obj
 
 
-def write_outputs(result: IdentificationResult, out: str | Path) -> list[Path]:
-    """Write the model files, report.json, report.md and the figures into ``out``."""
+def write_outputs(
+    result: IdentificationResult, out: str | Path, runner: Any | None = None
+) -> list[Path]:
+    """Write the model files, report.json, report.md and the figures into ``out``; a
+    ``runner`` with a helper (:class:`identification.runner.StepRunner`, the one the result
+    was identified with) draws some of the figures beside this process."""
     from identification.figures import write_figures
     from identification.report import markdown_report
 
@@ -385,7 +389,7 @@ def write_outputs(result: IdentificationResult, out: str | Path) -> list[Path]:
     paths = [result.model.save(out / "model")]
     report_json = out / "report.json"
     report_json.write_text(json.dumps(result.report, indent=2), encoding="utf-8")
-    figures = write_figures(result, out)
+    figures = write_figures(result, out, runner=runner)
     report_md = out / "report.md"
     report_md.write_text(
         markdown_report(result.report, [p.name for p in figures]), encoding="utf-8"

@@ -57,7 +57,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 import gymnasium as gym
@@ -127,6 +128,7 @@ def identify(
     config: IdentificationConfig | None = None,
     progress: Callable[[str], None] | None = None,
     jobs: int = 1,
+    runner: StepRunner | None = None,
     **overrides: Any,
 ) -> IdentificationResult:
     """Identify the Hammerstein model of a bender (paper section 3.4, steps a-f).
@@ -150,6 +152,10 @@ def identify(
         refinements that do not depend on each other run beside each other on a helper process
         started now (:mod:`identification.runner`). The model is the same to the bit; only
         the time changes.
+    runner : StepRunner, optional
+        A runner the caller started (:func:`identification.runner.step_runner`) instead of
+        ``jobs``: its helper outlives the call, so that :func:`write_outputs` can draw figures
+        on it too.
 
     Returns
     -------
@@ -161,7 +167,7 @@ def identify(
     env = env if env is not None else identification_env(config)
     dt = sample_time(env)
     config = config.at_sample_time(dt)
-    with step_runner(jobs, warm_up) as runner:  # the helper's imports overlap the experiment
+    with _runner(jobs, runner) as runner:  # the helper's imports overlap the experiment
         records = records_from_env(env, experiment_inputs(config, dt), config.seed)
         true_plant = env.unwrapped.model.state_space()
         return _identify(records, config, log, true_plant=true_plant, runner=runner)
@@ -182,6 +188,7 @@ def identify_records(
     config: IdentificationConfig | None = None,
     progress: Callable[[str], None] | None = None,
     jobs: int = 1,
+    runner: StepRunner | None = None,
     **overrides: Any,
 ) -> IdentificationResult:
     """Identify the Hammerstein model from measured records (steps b-f of section 3.4).
@@ -212,6 +219,8 @@ def identify_records(
         Called with one line of text per step.
     jobs : int
         Processes to use (>= 1), as in :func:`identify`.
+    runner : StepRunner, optional
+        A runner the caller started, instead of ``jobs``, as in :func:`identify`.
 
     Returns
     -------
@@ -251,7 +260,7 @@ def identify_records(
         rich_samples=lengths["rich"],
         validation_samples=lengths["validation"],
     )
-    with step_runner(jobs, warm_up) as runner:  # records checked first: no process for bad input
+    with _runner(jobs, runner) as runner:  # records checked first: no process for bad input
         return _identify(records, config, log, true_plant=None, runner=runner)
 
 
@@ -291,6 +300,18 @@ def read_records_folder(
         known = {k: v for k, v in excitation.items() if k in EXCITATION_FIELDS}
         config = dataclasses.replace(config, **known)
     return read_records(folder, config, split=split), config
+
+
+@contextmanager
+def _runner(jobs: int, runner: StepRunner | None) -> Iterator[StepRunner]:
+    """``runner`` if given (left running), else a new :func:`step_runner` of ``jobs``."""
+    if runner is None:
+        with step_runner(jobs, warm_up) as started:
+            yield started
+        return
+    if jobs != 1:
+        raise ValueError(f"pass jobs or runner, not both (got jobs={jobs!r} and a runner)")
+    yield runner
 
 
 def _settings(

@@ -48,6 +48,10 @@ class Pending(Protocol):
     def withdraw(self) -> None:
         """It is no longer wanted."""
 
+    def take_back(self) -> bool:
+        """Compute it in this process (at :meth:`result`) if the helper has not started it;
+        whether it will be computed here."""
+
 
 class _Here:
     """Computed in this process on the first :meth:`result` (never, if withdrawn first)."""
@@ -64,23 +68,33 @@ class _Here:
     def withdraw(self) -> None:
         self._call = None
 
+    def take_back(self) -> bool:
+        return True
+
 
 class _There:
-    """Computed by the helper process."""
+    """Computed by the helper process, or here once taken back before the helper started it."""
 
     def __init__(self, helper: Any, call: Callable[[], Any]) -> None:
-        self._helper, self._ticket = helper, helper.submit(call)
-        self._done, self._value = False, None
+        self._helper, self._ticket, self._call = helper, helper.submit(call), call
+        self._done, self._taken, self._value = False, False, None
 
     def result(self) -> Any:
         if not self._done:
-            self._value, self._done = self._helper.result(self._ticket), True
+            value = self._call() if self._taken else self._helper.result(self._ticket)
+            self._value, self._done = value, True
         return self._value
 
     def withdraw(self) -> None:
         if not self._done:
-            self._helper.withdraw(self._ticket)
+            if not self._taken:
+                self._helper.withdraw(self._ticket)
             self._done = True
+
+    def take_back(self) -> bool:
+        if not (self._done or self._taken):
+            self._taken = self._helper.take_back(self._ticket)
+        return self._taken
 
 
 class StepRunner:
@@ -99,6 +113,13 @@ class StepRunner:
     def parallel(self) -> bool:
         """Whether :meth:`beside` runs on another process."""
         return self._helper is not None
+
+    @property
+    def idle(self) -> bool:
+        """Whether a helper is there and computes nothing now, so that a computation asked of
+        it starts at once (step e' then shares its objective with it,
+        :mod:`identification.nls.record_terms`)."""
+        return self._helper is not None and not self._helper.busy
 
     def beside(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
         """``function(*args, **kwargs)`` (module-level) on the helper, or here when first

@@ -446,11 +446,18 @@ def fit_nonlinearity(
     runner = StepRunner() if runner is None else runner
     candidates = FEATURE_SETS if config.features == "auto" else (config.features,)
     data = (u_train, z_train, arx, selection, config, seeds["nls"] % 2**31, u_max, lead_in)
-    # The first candidate here, the others beside it (all here, in order, with one job): play
-    # comes first and trains longest (about the other two together on the PL140).
-    first, *others = candidates
-    pending = {f: runner.beside(_fit_candidate, f, *data) for f in others}
-    pending[first] = runner.here(_fit_candidate, first, *data)
+    # With a helper every candidate goes to it, in order, while this process imports torch and
+    # makes its first training (warm_up; step e' needs both here), then takes back from the
+    # last the candidates the helper has not started: the helper is busy from the start, and
+    # neither process waits for the other longer than one candidate. With one job all are
+    # computed here, in order.
+    pending = {f: runner.beside(_fit_candidate, f, *data) for f in candidates}
+    if runner.parallel:
+        warm_up()
+        for features in reversed(candidates):
+            if not pending[features].take_back():
+                break
+            pending[features].result()
     fitted, scores = {}, {}
     for features in candidates:
         fitted[features], scores[features] = pending[features].result()
@@ -640,7 +647,9 @@ def refine_nonlinearity(
         if config.rate == "auto" and learns_radii
         else None
     )
-    fit, refined, gain = _refine(start, records, config, learn_rate=config.rate == "on")
+    fit, refined, gain = _refine(
+        start, records, config, learn_rate=config.rate == "on", runner=runner
+    )
     rate_choice = None
     if rate_pending is not None and refined is not None:
         rate_choice = {
@@ -688,10 +697,12 @@ def _refine(
     config: IdentificationConfig,
     *,
     learn_rate: bool,
+    runner: StepRunner | None = None,
 ) -> tuple[NlsOutputErrorFit, HammersteinModel | None, float]:
     """Step e''s refinement of ``start`` on ``records``: the fit, the refined model with the
     gain moved to the linear part (None when its small-signal gain is not positive) and that
-    gain."""
+    gain. A ``runner`` whose helper is idle evaluates one record's share of the objective
+    (the same model to the bit, :mod:`identification.nls.record_terms`)."""
     fit = refine_nls_output_error(
         start.nls,
         start.arx,
@@ -699,6 +710,7 @@ def _refine(
         max_iterations=config.nls_refinement_iterations,
         radius_iterations=RADIUS_ITERATIONS if config.play_radii == "learned" else 0,
         learn_rate=learn_rate,
+        beside=runner if runner is not None and runner.idle else None,
     )
     gain = _small_signal_gain(HammersteinModel(fit.nls, fit.arx), records[0][0])
     if not (np.isfinite(gain) and gain > 0):

@@ -93,6 +93,8 @@ def run(args: argparse.Namespace) -> int:
         read_records_folder,
         write_outputs,
     )
+    from identification.runner import step_runner
+    from identification.steps import warm_up
 
     if args.records is not None:  # a malformed folder is refused before --out is made
         records, settings = read_records_folder(
@@ -110,13 +112,14 @@ def run(args: argparse.Namespace) -> int:
         # a dt at which a record would be too short or too long is refused before --out is made
         config.at_sample_time(env_sample_time(config.env_kwargs))
     out = prepare_output_dir(args.out)
-    if args.records is None:
-        result = identify(config=config, progress=print, jobs=args.jobs)
-    else:
-        result = identify_records(
-            records, seed=args.seed, config=settings, progress=print, jobs=args.jobs
-        )
-    paths = write_outputs(result, out)
+    with step_runner(args.jobs, warm_up) as runner:  # its helper draws figures too
+        if args.records is None:
+            result = identify(config=config, progress=print, runner=runner)
+        else:
+            result = identify_records(
+                records, seed=args.seed, config=settings, progress=print, runner=runner
+            )
+        paths = write_outputs(result, out, runner=runner)
     print()
     print(summary(result.report))
     names = ", ".join(p.name + ("/" if p.is_dir() else "") for p in paths)

@@ -28,7 +28,7 @@ from piezo_cli.signals import Caught, signals_interrupt
 from piezo_cli.simulate import SIMULATE
 from piezo_cli.train_rl import TRAIN_RL
 
-__all__ = ["SUBCOMMANDS", "build_parser", "main"]
+__all__ = ["SUBCOMMANDS", "build_parser", "console_main", "main"]
 
 SUBCOMMANDS: list[Subcommand] = [SIMULATE, EXCITE, IDENTIFY, BENCHMARK, COMPARE, TRAIN_RL]
 """Every ``piezo`` subcommand, in the order ``piezo --help`` lists them."""
@@ -191,5 +191,14 @@ def main(argv: list[str] | None = None) -> int:
         return 128 + signum
 
 
+def console_main() -> NoReturn:
+    """The ``piezo`` console script: :func:`main`, then exit with its status without the
+    interpreter's finalization (:func:`piezo_parallel.pool.quick_exit`: about a second with
+    torch loaded, after the command's work and output are done)."""
+    from piezo_parallel.pool import quick_exit
+
+    quick_exit(main())
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    console_main()

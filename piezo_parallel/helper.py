@@ -113,11 +113,29 @@ class Helper:
             self._waiting.discard(ticket)
             self._answers.pop(ticket, None)
 
+    def take_back(self, ticket: int) -> bool:
+        """Drop the call ``ticket`` if the worker has not started it (the caller computes it
+        itself then); True when it was dropped, False when it has started or been answered."""
+        with self._lock:
+            queued = [t for t, _ in self._queue]
+            if ticket not in queued:
+                return False
+            del self._queue[queued.index(ticket)]
+            self._waiting.discard(ticket)
+            return True
+
     def withdraw_later(self, ticket: int) -> None:
         """The call ``ticket`` runs, but its outcome is not wanted (a warm-up)."""
         with self._lock:
             self._waiting.discard(ticket)
             self._answers.pop(ticket, None)
+
+    @property
+    def busy(self) -> bool:
+        """Whether the worker is running a call or has calls queued (a call submitted now
+        would wait for them)."""
+        with self._lock:
+            return self._running is not None or bool(self._queue)
 
     def close(self) -> None:
         """Stop the worker (a call still running is terminated) and reap it."""

@@ -362,3 +362,22 @@ def test_identify_writes_model_report_and_figures(tmp_path):
     assert report["validation"]["hammerstein"]["fit_percent"] > 95.0
     for name in ("model/model.json", "model/weights.npz", "report.md", "validation.png"):
         assert (tmp_path / name).exists()
+
+
+def test_the_console_script_exits_with_its_status_after_its_output_and_exit_handlers():
+    """``piezo`` skips the interpreter's finalization (piezo_parallel.pool.quick_exit), not
+    the exit handlers or the end of its output, even into a pipe."""
+    import subprocess
+    import sys
+
+    code = (
+        "import atexit, sys; atexit.register(print, 'exit handlers ran'); "
+        "sys.argv = ['piezo', 'identify', '--split', '0.5']; "
+        "from piezo_cli.main import console_main; print('before', end=''); console_main()"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+    )
+    assert done.returncode == 2
+    assert done.stdout == "beforeexit handlers ran\n"
+    assert done.stderr.startswith("piezo identify: --split applies to --records")

@@ -105,3 +105,21 @@ def test_each_ticket_answers_once():
         helper.withdraw(withdrawn)
         with pytest.raises(KeyError):
             helper.result(withdrawn)
+
+
+def test_a_call_taken_back_before_it_started_never_runs_there(tmp_path):
+    """take_back drops a queued call (its caller computes it) and refuses one that started."""
+    with Helper() as helper:
+        running = helper.submit(faulty.mark_then, 1, str(tmp_path / "running"), 1.0)
+        queued = helper.submit(faulty.mark_then, 2, str(tmp_path / "queued"))
+        deadline = time.monotonic() + 60.0
+        while not (tmp_path / "running").exists():  # the worker has started the first call
+            assert time.monotonic() < deadline, "the helper never started its first call"
+            time.sleep(0.01)
+        assert helper.busy
+        assert helper.take_back(queued)
+        assert not helper.take_back(running) and helper.result(running) == 1
+        with pytest.raises(KeyError):
+            helper.result(queued)
+        assert not helper.busy
+    assert not (tmp_path / "queued").exists()

@@ -21,18 +21,18 @@ def report() -> dict:
 
 
 def test_identify_prints_a_short_summary_and_no_json(report, tmp_path, monkeypatch, capsys):
-    def fake_identify(*, config, progress, jobs):
+    def fake_identify(*, config, progress, runner):
         progress("a) ...")
         return SimpleNamespace(report=report)
 
-    def fake_write(result, out):
+    def fake_write(result, out, runner=None):
         (Path(out) / "model").mkdir()
         (Path(out) / "report.json").write_text(json.dumps(result.report), encoding="utf-8")
         return [Path(out) / "model", Path(out) / "report.json"]
 
     monkeypatch.setattr("identification.pipeline.identify", fake_identify)
     monkeypatch.setattr("identification.pipeline.write_outputs", fake_write)
-    assert main(["identify", "--out", str(tmp_path)]) == 0
+    assert main(["identify", "--jobs", "1", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "{" not in out and '"arx"' not in out
     assert len(out.splitlines()) <= 12

@@ -64,19 +64,36 @@ def test_step_e_candidates_beside_each_other_are_the_networks_of_one_process(bes
     arx = ARXModel([0.6], [0.4], dt=1e-3)
     y = arx.simulate(z) + rng.uniform(-0.05, 0.05, u.size)
     config = IdentificationConfig(hidden=(2,), max_epochs=3)
-    here, there = (
-        fit_nonlinearity(
-            arx, u, z, (u[:1000], y[:1000]), config, {"nls": 5}, u_max=30.0, u_prbs=u, runner=r
+
+    def step_e(runner):
+        return fit_nonlinearity(
+            arx,
+            u,
+            z,
+            (u[:1000], y[:1000]),
+            config,
+            {"nls": 5},
+            u_max=30.0,
+            u_prbs=u,
+            runner=runner,
         )
-        for r in _both(beside)
-    )
+
+    assert beside.beside(int, "0").result() == 0  # the helper's warm-up is over
+    here, there = (step_e(r) for r in _both(beside))
+    # The helper kept busy: this process takes every candidate back and trains it itself.
+    import time
+
+    busy = beside.beside(time.sleep, 3.0)
+    taken = step_e(beside)
+    assert not busy.take_back() and busy.result() is None
     assert list(here.candidates) == ["play", "past-inputs", "bouc-wen"]
-    assert here.features == there.features
-    assert here.selection_scores == there.selection_scores
-    for features, nls in here.candidates.items():
-        _assert_same_model(
-            HammersteinModel(nls, arx), HammersteinModel(there.candidates[features], arx)
-        )
+    for other in (there, taken):
+        assert here.features == other.features
+        assert here.selection_scores == other.selection_scores
+        for features, nls in here.candidates.items():
+            _assert_same_model(
+                HammersteinModel(nls, arx), HammersteinModel(other.candidates[features], arx)
+            )
 
 
 def _same_refinement(a, b) -> None:
@@ -183,3 +200,87 @@ def test_a_rival_refined_here_refines_its_rate_dependent_variant_beside(beside):
     assert kept_here.features == kept_there.features == "play"
     assert here.rate_choice["determined"] and "rate_rms_um" in here.rate_choice
     _same_refinement(here, there)
+
+
+@pytest.mark.parametrize("features", ["play", "rate-play", "past-inputs", "bouc-wen"])
+def test_step_e2_sharing_its_objective_with_the_helper_gives_the_fit_of_one_graph(beside, features):
+    """Step e''s network and joint stages with the longer record's term on the helper (and
+    with it computed here, as one job does): the fit of the objective as one graph, to the
+    bit, on two records of different lengths (so different grids) and every feature family
+    (a radius stage first for the plays, a rate constant too for rate-play)."""
+    from identification.arx import ARXModel
+    from identification.nls import fit_nls
+    from identification.nls.output_error import refine_nls_output_error
+    from piezo_env.operators import play_sequence
+
+    rng = np.random.default_rng(5)
+    arx = ARXModel([1.2, -0.5], [0.2, 0.1], dt=1e-3)
+    records = []
+    for holds in (150, 260):
+        u = np.repeat(rng.uniform(-30.0, 30.0, holds), 5)
+        plays, _ = play_sequence(u, np.array([7.0, 16.0]), np.zeros(2))
+        z = 0.7 * u + plays @ np.array([0.15, 0.15])
+        records.append((u, z, arx.simulate(z) + rng.uniform(-0.05, 0.05, u.size)))
+    family = "play" if features == "rate-play" else features
+    extra = {"n_play": 2} if family == "play" else {}
+    start = fit_nls(
+        np.concatenate([u for u, _, _ in records]),
+        np.concatenate([z for _, z, _ in records]),
+        features=family,
+        u_range=(-30.0, 30.0),
+        hidden=(2, 2),
+        max_epochs=20,
+        seed=0,
+        **extra,
+    )
+    kwargs = {
+        "max_iterations": 25,
+        "radius_iterations": 10 if family == "play" else 0,
+        "learn_rate": features == "rate-play",
+    }
+    data = [(u, y) for u, _, y in records]
+    one = refine_nls_output_error(start, arx, data, **kwargs)
+    for runner in (beside, StepRunner()):
+        split = refine_nls_output_error(start, arx, data, beside=runner, **kwargs)
+        for key, value in one.nls.arrays().items():
+            np.testing.assert_array_equal(value, split.nls.arrays()[key], err_msg=key)
+        assert one.nls.feature_map == split.nls.feature_map
+        np.testing.assert_array_equal(one.arx.a, split.arx.a)
+        np.testing.assert_array_equal(one.arx.b, split.arx.b)
+        assert one.arx.noise_bound == split.arx.noise_bound
+        assert one.stages == split.stages and one.rms_after == split.rms_after
+    assert one.stages[-1]["evaluations"] > 10  # the stages ran, not a start returned
+
+
+def test_the_runner_is_idle_only_when_its_helper_computes_nothing(beside):
+    """Step e' shares its objective only with a helper that would start at once."""
+    import time
+
+    assert beside.idle and not StepRunner().idle
+    pending = beside.beside(time.sleep, 0.5)
+    assert not beside.idle
+    pending.result()
+    assert beside.idle
+
+
+def test_figures_drawn_beside_are_the_figures_drawn_here(
+    beside, fast_pl140_identification, tmp_path
+):
+    from identification.figures import write_figures
+
+    (tmp_path / "here").mkdir()
+    (tmp_path / "there").mkdir()
+    here = write_figures(fast_pl140_identification, tmp_path / "here")
+    there = write_figures(fast_pl140_identification, tmp_path / "there", runner=beside)
+    assert [p.name for p in here] == [p.name for p in there]
+    assert len(here) == 5
+    for a, b in zip(here, there, strict=True):
+        assert a.parent == tmp_path / "here" and b.parent == tmp_path / "there"
+        assert a.read_bytes() == b.read_bytes(), a.name
+
+
+def test_a_runner_and_jobs_are_not_both_given(beside):
+    from identification.pipeline import identify
+
+    with pytest.raises(ValueError, match="pass jobs or runner, not both"):
+        identify(jobs=2, runner=beside)

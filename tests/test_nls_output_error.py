@@ -539,7 +539,7 @@ def test_lbfgs_stops_within_its_tolerance_of_the_least_squares_optimum(seed):
     (numpy's lstsq, an independent method) is within that tolerance, a fraction
     (``STOP_FRACTION``) of the estimation's own excess error p sigma^2 / N."""
     torch = pytest.importorskip("torch")
-    from identification.nls.output_error import STOP_FRACTION, _lbfgs, stop_tolerance
+    from identification.nls.output_error import STOP_FRACTION, _autograd, _lbfgs, stop_tolerance
 
     n, p = 4000, 30
     x, y = _regression(n, p, seed)
@@ -552,7 +552,7 @@ def test_lbfgs_stops_within_its_tolerance_of_the_least_squares_optimum(seed):
         error = xt @ theta - yt
         return (error * error).mean()
 
-    stage = _lbfgs([theta], objective, 300, torch, n)
+    stage = _lbfgs([theta], _autograd(objective, torch), 300, torch, n)
     reached = float(objective().detach())
     assert stage["stopped"] == "tolerance" and not stage["capped"]
     assert stage["iterations"] < 300
@@ -564,7 +564,7 @@ def test_lbfgs_started_at_the_optimum_has_converged():
     """At the exact least-squares optimum the gradient vanishes (to rounding): L-BFGS's own test
     ends the stage before a line search."""
     torch = pytest.importorskip("torch")
-    from identification.nls.output_error import _lbfgs
+    from identification.nls.output_error import _autograd, _lbfgs
 
     x, y = _regression(500, 4, 5)
     x, y = x * np.logspace(0.0, 2.0, 4), y  # a well-scaled optimum, exact to rounding
@@ -579,14 +579,14 @@ def test_lbfgs_started_at_the_optimum_has_converged():
     with torch.no_grad():
         error = xt @ theta - yt
         gradient = 2.0 * (xt.T @ error) / 500
-    stage = _lbfgs([theta], objective, 300, torch, 500)
+    stage = _lbfgs([theta], _autograd(objective, torch), 300, torch, 500)
     assert stage["stopped"] == "converged", (stage, float(gradient.abs().max()))
     assert stage["iterations"] <= 1
 
 
 def test_lbfgs_reports_its_cap():
     torch = pytest.importorskip("torch")
-    from identification.nls.output_error import _lbfgs
+    from identification.nls.output_error import _autograd, _lbfgs
 
     x, y = _regression(2000, 30, 4)
     theta = torch.zeros(30, dtype=torch.float64, requires_grad=True)
@@ -598,7 +598,7 @@ def test_lbfgs_reports_its_cap():
 
     for cap in (8, 21):  # within one window, and one iteration past the first
         theta = torch.zeros(30, dtype=torch.float64, requires_grad=True)
-        stage = _lbfgs([theta], objective, cap, torch, 2000)
+        stage = _lbfgs([theta], _autograd(objective, torch), cap, torch, 2000)
         assert stage["stopped"] == "cap" and stage["capped"]
         evaluations = cap * 5 // 4
         assert stage["iterations"] == cap or stage["evaluations"] >= evaluations

@@ -39,7 +39,6 @@ have; the weightings compared in closed loop are in ``benchmarks/results/design_
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -64,6 +63,14 @@ from identification.nls.play_radii import (
     radius_coordinates,
     rate_play_outputs,
     rate_play_runs,
+)
+from identification.nls.record_terms import (
+    RecordTerm,
+    _FreeRunGrid,
+    close_term,
+    evaluate_term,
+    new_key,
+    open_term,
 )
 from identification.nls.torch_module import TorchNLS, load_torch
 
@@ -169,6 +176,7 @@ def refine_nls_output_error(
     radius_iterations: int = 0,
     learn_rate: bool = False,
     num_threads: int = 1,
+    beside: Any | None = None,
 ) -> NlsOutputErrorFit:
     """Refine ``NLS -> arx`` by minimising its free-run output error on ``records``.
 
@@ -196,6 +204,12 @@ def refine_nls_output_error(
         (:class:`identification.features.RatePlayFeatures`, ``dt`` the linear part's).
     num_threads : int
         Torch threads during the refinement (the previous setting is restored).
+    beside : object, optional
+        Where the network and joint stages may evaluate the longer of two records' terms
+        beside this process (an object with ``beside(function, *args)`` returning a pending
+        result, as :class:`identification.runner.StepRunner` with an idle helper): the same
+        numbers to the bit, in about the time of the longer record
+        (:mod:`identification.nls.record_terms`). None, or other than two records: all here.
 
     Returns
     -------
@@ -260,25 +274,27 @@ def refine_nls_output_error(
                 total = total + (error * error).sum()
             return total / count
 
+        def stage(parameters: list, linear: bool, iterations: int) -> dict:
+            """An L-BFGS stage on ``parameters`` (``linear``: ``a`` and ``b`` among them),
+            its objective by record beside this process where it can be, else as one graph."""
+            if beside is None or len(data) != 2:
+                evaluate = _autograd(partial(objective, None if linear else held), torch)
+                return _lbfgs(parameters, evaluate, iterations, torch, count)
+            stage_data = (TorchNLS.to_params(module), inputs, outputs, a, b, count, linear)
+            split = _SplitObjective(parameters, stage_data, beside, torch)
+            record = _lbfgs(parameters, split.evaluate, iterations, torch, count)
+            split.close()
+            return record
+
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
         # L-BFGS meets the network's and the poles' very different curvatures and stalls.
-        stages.append(
-            _lbfgs(
-                list(module.parameters()),
-                partial(objective, held),
-                int(max_iterations),
-                torch,
-                count,
-            )
-        )
+        stages.append(stage(list(module.parameters()), False, int(max_iterations)))
         network_only = TorchNLS.to_params(module)
         if refine_linear:
             a.requires_grad_(True)
             b.requires_grad_(True)
-            stages.append(
-                _lbfgs([*module.parameters(), a, b], objective, max_iterations, torch, count)
-            )
+            stages.append(stage([*module.parameters(), a, b], True, int(max_iterations)))
         params = TorchNLS.to_params(module)
         a_new, b_new = a.detach().numpy().copy(), b.detach().numpy().copy()
     linear, linear_note = arx, None
@@ -369,7 +385,7 @@ def _radius_stage(
         return total / count
 
     parameters = [coordinates, *extra, *module.parameters()]
-    stage = _lbfgs(parameters, objective, max_iterations, torch, count)
+    stage = _lbfgs(parameters, _autograd(objective, torch), max_iterations, torch, count)
     with torch.no_grad():
         learned = radii_from_coordinates(coordinates).numpy().copy()
     return learned, {**stage, "radii_before": start.tolist(), "radii_after": learned.tolist()}
@@ -541,15 +557,74 @@ def stop_tolerance(loss: float, n_parameters: int, n_samples: int) -> float:
     return STOP_FRACTION * n_parameters * loss / n_samples
 
 
+def _autograd(objective: Callable[[], object], torch: Any) -> Callable[[bool], object]:
+    """The ``evaluate(grad)`` of :func:`_lbfgs` for an ``objective`` that returns a loss
+    differentiable by autograd: the loss, with ``grad`` also its backward pass."""
+
+    def evaluate(grad: bool) -> object:
+        if not grad:
+            with torch.no_grad():
+                return objective()
+        loss = objective()
+        loss.backward()
+        return loss
+
+    return evaluate
+
+
+class _SplitObjective:
+    """The objective of :func:`_lbfgs` over two records, the longer one's term computed
+    ``beside`` (:mod:`identification.nls.record_terms`): the loss as one graph gives it,
+    ``(S_1 + S_2) / N``, and each parameter's gradient set to the sum of the two terms'.
+
+    ``stage_data``: the network's arrays at the stage's start, each record's normalized input
+    and output (torch tensors), ``a``, ``b``, ``N`` and whether the stage varies ``a`` and
+    ``b`` (then the last two of ``parameters``). :meth:`close` drops the term held beside.
+    """
+
+    def __init__(self, parameters: list, stage_data: tuple, beside: Any, torch: Any) -> None:
+        params, inputs, outputs, a, b, count, linear = stage_data
+        records = [(x.numpy(), y.numpy()) for x, y in zip(inputs, outputs, strict=True)]
+        there = int(np.argmax([y.size for _, y in records]))  # the longer record beside
+        arrays = (a.detach().numpy().copy(), b.detach().numpy().copy(), count, linear)
+        self._parameters, self._beside, self._torch, self._count = parameters, beside, torch, count
+        self._here = RecordTerm(params, *records[1 - there], *arrays)
+        self._key = new_key()
+        beside.beside(open_term, self._key, params, *records[there], *arrays).result()
+
+    def evaluate(self, grad: bool) -> object:
+        """The loss (a torch scalar); with ``grad``, each parameter's ``.grad`` set."""
+        torch = self._torch
+        values = [p.detach().numpy().copy() for p in self._parameters]
+        pending = self._beside.beside(evaluate_term, self._key, values, grad)  # runs meanwhile
+        sum_here, grad_here = self._here.evaluate(values, grad)
+        sum_there, grad_there = pending.result()
+        if grad:
+            for parameter, g_here, g_there in zip(
+                self._parameters, grad_here, grad_there, strict=True
+            ):
+                parameter.grad = torch.from_numpy(g_here) + torch.from_numpy(g_there)
+        total = torch.tensor(sum_here, dtype=torch.float64) + torch.tensor(
+            sum_there, dtype=torch.float64
+        )
+        return total / self._count
+
+    def close(self) -> None:
+        """Drop the term held beside."""
+        self._beside.beside(close_term, self._key).result()
+
+
 def _lbfgs(
     parameters: list,
-    objective: Callable[[], object],
+    evaluate: Callable[[bool], object],
     max_iterations: int,
     torch: object,
     n_samples: int,
 ) -> dict[str, int | bool | str]:
     """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``, the mean squared error
-    ``objective`` over ``n_samples`` samples, in windows of :data:`STOP_WINDOW` iterations.
+    over ``n_samples`` samples that ``evaluate(grad)`` returns (with ``grad``, each parameter's
+    ``.grad`` set too: :func:`_autograd`, :class:`_SplitObjective`), in windows of
+    :data:`STOP_WINDOW` iterations.
 
     A window is :data:`STOP_WINDOW` iterations or 1.25 times as many evaluations (torch's
     default ratio), whichever ends first, so that a window stands for a fixed amount of work.
@@ -577,13 +652,10 @@ def _lbfgs(
 
     def closure() -> object:
         optimiser.zero_grad()
-        loss = objective()
-        loss.backward()
-        return loss
+        return evaluate(True)
 
     def current() -> float:
-        with torch.no_grad():
-            return float(objective())
+        return float(evaluate(False))
 
     loss, iterations, evaluations = current(), 0, 0
     while True:
@@ -610,36 +682,6 @@ def _lbfgs(
             "stopped": stopped,
             "capped": stopped == "cap",
         }
-
-
-class _FreeRunGrid:
-    """The ARX part's free run from rest on a record of ``n`` samples, as a product of spectra:
-    ``irfft(Z * B / (1 - A))`` on a zero-padded grid of at least twice the record's length
-    (linear convolution; the IIR tail wraps around by ``|p|^n`` only). The Fourier bases of the
-    lags are the same at every evaluation and are built once."""
-
-    def __init__(self, n: int, na: int, nb: int, torch: object) -> None:
-        self.n, self.size, self.torch = n, 1 << (2 * n).bit_length(), torch
-        omega = torch.arange(self.size // 2 + 1, dtype=torch.float64) * (2.0 * math.pi / self.size)
-        lags_a = torch.arange(1, na + 1, dtype=torch.float64)
-        lags_b = torch.arange(1, nb + 1, dtype=torch.float64)
-        self.basis_a = torch.exp(-1j * torch.outer(omega, lags_a))
-        self.basis_b = torch.exp(-1j * torch.outer(omega, lags_b))
-
-    def response(self, a: object, b: object) -> tuple[object, object]:
-        """``B`` and ``1 - A`` on the grid, for the coefficients ``a`` and ``b``. A stage that
-        holds the linear part computes them once and passes them to every :meth:`free_run`."""
-        torch = self.torch
-        numerator = self.basis_b @ b.to(torch.complex128)
-        denominator = 1.0 - self.basis_a @ a.to(torch.complex128)
-        return numerator, denominator
-
-    def free_run(self, z: object, response: tuple[object, object]) -> object:
-        """The free run (um) of ``z`` (equivalent V) through ``B / (1 - A)``, given as
-        ``response = (B, 1 - A)`` on the grid (:meth:`response`)."""
-        numerator, denominator = response
-        spectrum = self.torch.fft.rfft(z, self.size) * numerator / denominator
-        return self.torch.fft.irfft(spectrum, self.size)[: self.n]
 
 
 def _check_records(
