@@ -16,6 +16,15 @@ Two steps hold computations that do not depend on each other:
   refinement to the helper, as step e's play choice does (the bench plant when step e chose
   Bouc-Wen features).
 
+Where nothing else runs beside, the helper would sit idle, so two computations use it in smaller
+pieces: every evaluation of a refinement's objective computes the longer training record's term
+there when the helper is idle at the refinement's start (:attr:`StepRunner.idle`,
+:mod:`identification.nls.record_terms`), and the figures of
+:func:`identification.outputs.write_outputs` are drawn on both processes. In step e every
+candidate goes to the helper while this process imports torch and makes its first training,
+which it needs for step e' anyway; it then takes back (:meth:`Pending.take_back`) the candidates
+the helper has not started.
+
 A :class:`StepRunner` runs such a computation "beside" the main line. With one job it is
 computed here, when its result is first asked for (a computation the decision does not need is
 never computed: the work is what it was before there was a runner). With two or more, a
