@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -44,19 +45,21 @@ def write_figures(result: Any, out: str | Path, runner: Any | None = None) -> li
 
     Four always; a fifth, the Bode plot of the linear part after steps b, b' and e' against the
     true plant's, when the run refined it and its data hold the plant's linear part. A
-    ``runner`` with a helper (:class:`identification.runner.StepRunner`) draws the hysteresis
-    and validation figures there meanwhile (about half of the drawing time).
+    ``runner`` whose helper is idle (:class:`identification.runner.StepRunner`) draws the
+    hysteresis and validation figures there meanwhile (about half of the drawing time; with
+    matplotlib's default settings there, not a style set in this process).
     """
     from identification.runner import StepRunner
 
     out = Path(out)
     data = result.data
-    runner = StepRunner() if runner is None else runner
+    runner = runner if runner is not None and runner.idle else StepRunner()
+    where = Path(os.path.abspath(out))  # the helper may have started in another folder
     loops = {k: data[k] for k in ("u_rich", "z_hat")}
     errors = {k: data[k] for k in ("dt", "y_val", "y_lin", "y_sim")}
     beside = {
-        "hysteresis": runner.beside(_hysteresis, loops, result.model, out / "hysteresis.png"),
-        "validation": runner.beside(_validation, errors, result.report, out / "validation.png"),
+        "hysteresis": runner.beside(_hysteresis, loops, result.model, where / "hysteresis.png"),
+        "validation": runner.beside(_validation, errors, result.report, where / "validation.png"),
     }
     paths = [
         _arx_estimates(data, result.report, out / "arx_estimates.png"),
@@ -64,7 +67,9 @@ def write_figures(result: Any, out: str | Path, runner: Any | None = None) -> li
     ]
     if data.get("arx_unrefined") is not None and data.get("plant_linear") is not None:
         paths.append(_bode(data, result.model.arx, out / "linear_part_bode.png"))
-    return [paths[0], beside["hysteresis"].result(), beside["validation"].result(), *paths[1:]]
+    for pending in beside.values():
+        pending.result()
+    return [paths[0], out / "hysteresis.png", out / "validation.png", *paths[1:]]
 
 
 def _bode(data: dict, refined: Any, path: Path) -> Path:

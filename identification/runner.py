@@ -68,6 +68,7 @@ class _Here:
     def __init__(self, call: Callable[[], Any]) -> None:
         self._call: Callable[[], Any] | None = call
         self._value: Any = None
+        self._withdrawn = False
 
     def result(self) -> Any:
         if self._call is not None:
@@ -75,10 +76,10 @@ class _Here:
         return self._value
 
     def withdraw(self) -> None:
-        self._call = None
+        self._call, self._withdrawn = None, True
 
     def take_back(self) -> bool:
-        return True
+        return not self._withdrawn
 
 
 class _There:
@@ -128,7 +129,7 @@ class StepRunner:
         """Whether a helper is there and computes nothing now, so that a computation asked of
         it starts at once (step e' then shares its objective with it,
         :mod:`identification.nls.record_terms`)."""
-        return self._helper is not None and not self._helper.busy
+        return self._helper is not None and self._helper.idle
 
     def beside(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
         """``function(*args, **kwargs)`` (module-level) on the helper, or here when first

@@ -137,6 +137,14 @@ class Helper:
         with self._lock:
             return self._running is not None or bool(self._queue)
 
+    @property
+    def idle(self) -> bool:
+        """Whether a call submitted now would start at once: the worker is alive, the helper
+        open, and nothing runs or waits."""
+        with self._lock:
+            lost_or_closed = self._lost is not None or self._closed
+            return not (lost_or_closed or self._running is not None or self._queue)
+
     def close(self) -> None:
         """Stop the worker (a call still running is terminated) and reap it."""
         with self._lock:

@@ -329,11 +329,13 @@ def _serve(conn: Connection, function: Callable[..., Any], parent: int) -> None:
 def quick_exit(status: int = 0) -> NoReturn:
     """End this process now with ``status``, after its exit handlers (:mod:`atexit`: the
     logging flush, ``weakref.finalize`` clean-ups) and a flush of stdout and stderr, but
-    without the interpreter's finalization: with torch loaded that tears down thousands of
-    modules and runs C++ destructors for about a second (0.7-1.3 s measured on 2 cores), and it
-    does nothing a finished process needs (files are closed by their ``with`` blocks, results
-    are sent or written). Used where a process has done its work: a worker told to stop and the
-    ``piezo`` command line."""
+    without the interpreter's finalization, which with torch loaded tears down thousands of
+    modules and runs C++ destructors, slowly, and does nothing a finished process needs. Used
+    where a process has done its work: a worker told to stop and the ``piezo`` command line.
+    What finalization alone would do is lost: non-daemon threads are ended, not joined, with
+    the hooks ``threading`` runs before joining them (the project starts no thread that outlives
+    its work), and objects' ``__del__`` clean-ups do not run (files are closed by their
+    ``with`` blocks, results are sent or written)."""
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:

@@ -366,17 +366,19 @@ def test_identify_writes_model_report_and_figures(tmp_path):
 
 def test_the_console_script_exits_with_its_status_after_its_output_and_exit_handlers():
     """``piezo`` skips the interpreter's finalization (piezo_parallel.pool.quick_exit), not
-    the exit handlers or the end of its output, even into a pipe."""
+    the exit handlers or the end of its output, even into a pipe. Finalization would join a
+    non-daemon thread that sleeps for ten minutes: the command ends without it."""
     import subprocess
     import sys
 
     code = (
-        "import atexit, sys; atexit.register(print, 'exit handlers ran'); "
+        "import atexit, sys, threading, time; atexit.register(print, 'exit handlers ran'); "
+        "threading.Thread(target=time.sleep, args=(600,)).start(); "
         "sys.argv = ['piezo', 'identify', '--split', '0.5']; "
         "from piezo_cli.main import console_main; print('before', end=''); console_main()"
     )
     done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False
     )
     assert done.returncode == 2
     assert done.stdout == "beforeexit handlers ran\n"

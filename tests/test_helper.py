@@ -123,3 +123,17 @@ def test_a_call_taken_back_before_it_started_never_runs_there(tmp_path):
             helper.result(queued)
         assert not helper.busy
     assert not (tmp_path / "queued").exists()
+
+
+def test_only_an_open_live_worker_with_nothing_to_do_is_idle():
+    import os
+
+    helper = Helper()
+    try:
+        assert helper.idle
+        with pytest.raises(WorkerLost):
+            helper.result(helper.submit(os._exit, 3))
+        assert not helper.idle and not helper.busy  # gone: a call would fail, not wait
+    finally:
+        helper.close()
+    assert not helper.idle

@@ -80,12 +80,16 @@ def test_step_e_candidates_beside_each_other_are_the_networks_of_one_process(bes
 
     assert beside.beside(int, "0").result() == 0  # the helper's warm-up is over
     here, there = (step_e(r) for r in _both(beside))
-    # The helper kept busy: this process takes every candidate back and trains it itself.
+    # A helper kept busy for ten minutes: this process takes every candidate back and trains
+    # it itself (the helper, which runs its calls in order, is still in the first when step e
+    # is over; closing it ends that call).
     import time
 
-    busy = beside.beside(time.sleep, 3.0)
-    taken = step_e(beside)
-    assert not busy.take_back() and busy.result() is None
+    with step_runner(2) as kept_busy:
+        assert kept_busy.beside(int, "1").result() == 1  # started
+        busy = kept_busy.beside(time.sleep, 600.0)
+        taken = step_e(kept_busy)
+        assert not kept_busy.idle and not busy.take_back()
     assert list(here.candidates) == ["play", "past-inputs", "bouc-wen"]
     for other in (there, taken):
         assert here.features == other.features
@@ -284,3 +288,22 @@ def test_a_runner_and_jobs_are_not_both_given(beside):
 
     with pytest.raises(ValueError, match="pass jobs or runner, not both"):
         identify(jobs=2, runner=beside)
+
+
+def test_identify_sharing_step_e2_with_the_helper_gives_the_model_of_one_process(beside):
+    """End to end with a helper that is idle in step e' (one feature set, no play rival or
+    rate variant beside): its objective is split by record, and the model is one process's."""
+    from short_runs import FAST, FAST_SEED
+
+    from identification.nls.record_terms import new_key
+    from identification.pipeline import identify
+
+    settings = {**FAST, "features": "past-inputs"}
+    config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **settings)
+    here = identify(config=config)
+    first = new_key()
+    there = identify(config=config, runner=beside)
+    assert new_key() - first == 3  # the network and joint stages each split their objective
+    _assert_same_model(here.model, there.model)
+    assert _without_times(here.report["nls"]) == _without_times(there.report["nls"])
+

@@ -209,7 +209,8 @@ def refine_nls_output_error(
         beside this process (an object with ``beside(function, *args)`` returning a pending
         result, as :class:`identification.runner.StepRunner` with an idle helper): the same
         numbers to the bit, in about the time of the longer record
-        (:mod:`identification.nls.record_terms`). None, or other than two records: all here.
+        (:mod:`identification.nls.record_terms`). None, other than two records or
+        ``num_threads`` other than 1: all here.
 
     Returns
     -------
@@ -277,14 +278,15 @@ def refine_nls_output_error(
         def stage(parameters: list, linear: bool, iterations: int) -> dict:
             """An L-BFGS stage on ``parameters`` (``linear``: ``a`` and ``b`` among them),
             its objective by record beside this process where it can be, else as one graph."""
-            if beside is None or len(data) != 2:
+            if beside is None or len(data) != 2 or num_threads != 1:
                 evaluate = _autograd(partial(objective, None if linear else held), torch)
                 return _lbfgs(parameters, evaluate, iterations, torch, count)
             stage_data = (TorchNLS.to_params(module), inputs, outputs, a, b, count, linear)
             split = _SplitObjective(parameters, stage_data, beside, torch)
-            record = _lbfgs(parameters, split.evaluate, iterations, torch, count)
-            split.close()
-            return record
+            try:
+                return _lbfgs(parameters, split.evaluate, iterations, torch, count)
+            finally:
+                split.close()
 
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
@@ -610,8 +612,14 @@ class _SplitObjective:
         return total / self._count
 
     def close(self) -> None:
-        """Drop the term held beside."""
-        self._beside.beside(close_term, self._key).result()
+        """Drop the term held beside (after the evaluation still pending there, if any); a
+        helper that is gone holds nothing."""
+        from piezo_parallel.pool import WorkerLost
+
+        try:
+            self._beside.beside(close_term, self._key).result()
+        except (WorkerLost, RuntimeError):  # lost, or closed by an interruption
+            pass
 
 
 def _lbfgs(

@@ -99,10 +99,11 @@ class RecordTerm:
         self._torch, self._count = torch, int(count)
         self._module = TorchNLS.from_params(params)
         self._x, self._y = torch.from_numpy(np.asarray(x)), torch.from_numpy(np.asarray(y))
-        self._grid = _FreeRunGrid(self._y.numel(), len(a), len(b), torch)
         self._a = torch.tensor(np.asarray(a), dtype=torch.float64, requires_grad=linear)
         self._b = torch.tensor(np.asarray(b), dtype=torch.float64, requires_grad=linear)
-        self._held = None if linear else self._grid.response(self._a, self._b)
+        with torch_threads(1):  # as in the one graph: a thread count can change the last bit
+            self._grid = _FreeRunGrid(self._y.numel(), len(a), len(b), torch)
+            self._held = None if linear else self._grid.response(self._a, self._b)
         self._parameters = [*self._module.parameters(), *((self._a, self._b) if linear else ())]
 
     def evaluate(
