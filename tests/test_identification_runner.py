@@ -246,12 +246,9 @@ def test_step_e2_sharing_its_objective_with_the_helper_gives_the_fit_of_one_grap
     one = refine_nls_output_error(start, arx, data, **kwargs)
     for runner in (beside, StepRunner()):
         split = refine_nls_output_error(start, arx, data, beside=runner, **kwargs)
-        for key, value in one.nls.arrays().items():
-            np.testing.assert_array_equal(value, split.nls.arrays()[key], err_msg=key)
-        assert one.nls.feature_map == split.nls.feature_map
-        np.testing.assert_array_equal(one.arx.a, split.arx.a)
-        np.testing.assert_array_equal(one.arx.b, split.arx.b)
-        assert one.arx.noise_bound == split.arx.noise_bound
+        _assert_same_model(
+            HammersteinModel(one.nls, one.arx), HammersteinModel(split.nls, split.arx)
+        )
         assert one.stages == split.stages and one.rms_after == split.rms_after
     assert one.stages[-1]["evaluations"] > 10  # the stages ran, not a start returned
 
@@ -306,4 +303,3 @@ def test_identify_sharing_step_e2_with_the_helper_gives_the_model_of_one_process
     assert new_key() - first == 3  # the network and joint stages each split their objective
     _assert_same_model(here.model, there.model)
     assert _without_times(here.report["nls"]) == _without_times(there.report["nls"])
-

@@ -12,7 +12,7 @@ from identification.config import IdentificationConfig
 from identification.features import PastInputFeatures
 from identification.nls import NLS
 from identification.nls.output_error import (
-    _FreeRunGrid,
+    FreeRunGrid,
     free_run_rms,
     move_gain,
     refine_nls_output_error,
@@ -89,7 +89,7 @@ def test_the_free_run_is_the_arx_recursion_from_rest():
     torch = pytest.importorskip("torch")
     z = np.random.default_rng(4).normal(0.0, 10.0, 5000)
     expected = scipy.signal.lfilter(np.r_[0.0, B_TRUE], np.r_[1.0, -F_TRUE], z)
-    grid = _FreeRunGrid(z.size, F_TRUE.size, B_TRUE.size, torch)
+    grid = FreeRunGrid(z.size, F_TRUE.size, B_TRUE.size, torch)
     response = grid.response(torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE))
     got = grid.free_run(torch.from_numpy(z), response).numpy()
     np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())

@@ -65,8 +65,8 @@ from identification.nls.play_radii import (
     rate_play_runs,
 )
 from identification.nls.record_terms import (
+    FreeRunGrid,
     RecordTerm,
-    _FreeRunGrid,
     close_term,
     evaluate_term,
     new_key,
@@ -241,7 +241,7 @@ def refine_nls_output_error(
     feature_map = nls.feature_map
     with torch_threads(num_threads):
         outputs = [torch.from_numpy(y) for _, y in data]
-        grids = [_FreeRunGrid(y.size, arx.na, arx.nb, torch) for _, y in data]
+        grids = [FreeRunGrid(y.size, arx.na, arx.nb, torch) for _, y in data]
         count = sum(y.size for _, y in data)
         module = TorchNLS.from_params(nls.arrays())
         a = torch.tensor(arx.a, dtype=torch.float64)

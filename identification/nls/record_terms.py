@@ -31,10 +31,10 @@ import numpy as np
 from identification.nls.optimisation import torch_threads
 from identification.nls.torch_module import TorchNLS, load_torch
 
-__all__ = ["RecordTerm", "close_term", "evaluate_term", "new_key", "open_term"]
+__all__ = ["FreeRunGrid", "RecordTerm", "close_term", "evaluate_term", "new_key", "open_term"]
 
 
-class _FreeRunGrid:
+class FreeRunGrid:
     """The ARX part's free run from rest on a record of ``n`` samples, as a product of spectra:
     ``irfft(Z * B / (1 - A))`` on a zero-padded grid of at least twice the record's length
     (linear convolution; the IIR tail wraps around by ``|p|^n`` only). The Fourier bases of the
@@ -102,7 +102,7 @@ class RecordTerm:
         self._a = torch.tensor(np.asarray(a), dtype=torch.float64, requires_grad=linear)
         self._b = torch.tensor(np.asarray(b), dtype=torch.float64, requires_grad=linear)
         with torch_threads(1):  # as in the one graph: a thread count can change the last bit
-            self._grid = _FreeRunGrid(self._y.numel(), len(a), len(b), torch)
+            self._grid = FreeRunGrid(self._y.numel(), len(a), len(b), torch)
             self._held = None if linear else self._grid.response(self._a, self._b)
         self._parameters = [*self._module.parameters(), *((self._a, self._b) if linear else ())]
 
