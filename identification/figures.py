@@ -61,15 +61,14 @@ def write_figures(result: Any, out: str | Path, runner: Any | None = None) -> li
         "hysteresis": runner.beside(_hysteresis, loops, result.model, where / "hysteresis.png"),
         "validation": runner.beside(_validation, errors, result.report, where / "validation.png"),
     }
-    paths = [
-        _arx_estimates(data, result.report, out / "arx_estimates.png"),
-        _residuals(data, result.report, out / "residuals.png"),
-    ]
+    paths = [_arx_estimates(data, result.report, out / "arx_estimates.png")]
+    paths += [out / f"{name}.png" for name in beside]  # drawn beside, in this order
+    paths.append(_residuals(data, result.report, out / "residuals.png"))
     if data.get("arx_unrefined") is not None and data.get("plant_linear") is not None:
         paths.append(_bode(data, result.model.arx, out / "linear_part_bode.png"))
     for pending in beside.values():
         pending.result()
-    return [paths[0], out / "hysteresis.png", out / "validation.png", *paths[1:]]
+    return paths
 
 
 def _bode(data: dict, refined: Any, path: Path) -> Path:

@@ -193,8 +193,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def console_main() -> NoReturn:
     """The ``piezo`` console script: :func:`main`, then exit with its status without the
-    interpreter's finalization (:func:`piezo_parallel.pool.quick_exit`: about a second with
-    torch loaded, after the command's work and output are done)."""
+    interpreter's finalization (:func:`piezo_parallel.pool.quick_exit`: slow with torch
+    loaded, and nothing is left for it once the command's work and output are done)."""
     from piezo_parallel.pool import quick_exit
 
     quick_exit(main())

@@ -107,9 +107,7 @@ class Helper:
         """The call ``ticket`` is no longer wanted: dropped if not started; otherwise it runs
         on, and its outcome is discarded."""
         with self._lock:
-            queued = [t for t, _ in self._queue]
-            if ticket in queued:
-                del self._queue[queued.index(ticket)]
+            self._unqueue(ticket)
             self._waiting.discard(ticket)
             self._answers.pop(ticket, None)
 
@@ -117,10 +115,8 @@ class Helper:
         """Drop the call ``ticket`` if the worker has not started it (the caller computes it
         itself then); True when it was dropped, False when it has started or been answered."""
         with self._lock:
-            queued = [t for t, _ in self._queue]
-            if ticket not in queued:
+            if not self._unqueue(ticket):
                 return False
-            del self._queue[queued.index(ticket)]
             self._waiting.discard(ticket)
             return True
 
@@ -131,19 +127,20 @@ class Helper:
             self._answers.pop(ticket, None)
 
     @property
-    def busy(self) -> bool:
-        """Whether the worker is running a call or has calls queued (a call submitted now
-        would wait for them)."""
-        with self._lock:
-            return self._running is not None or bool(self._queue)
-
-    @property
     def idle(self) -> bool:
         """Whether a call submitted now would start at once: the worker is alive, the helper
         open, and nothing runs or waits."""
         with self._lock:
             lost_or_closed = self._lost is not None or self._closed
             return not (lost_or_closed or self._running is not None or self._queue)
+
+    def _unqueue(self, ticket: int) -> bool:
+        """Drop the call ``ticket`` from the queue (under the lock); whether it was there."""
+        queued = [t for t, _ in self._queue]
+        if ticket not in queued:
+            return False
+        del self._queue[queued.index(ticket)]
+        return True
 
     def close(self) -> None:
         """Stop the worker (a call still running is terminated) and reap it."""

@@ -307,9 +307,9 @@ def _serve(conn: Connection, function: Callable[..., Any], parent: int) -> None:
         try:
             task = conn.recv()
         except (EOFError, OSError):
-            _leave()
+            quick_exit(0)
         if task is None:
-            _leave()
+            quick_exit(0)
         try:
             if isinstance(task, _Call):
                 answer: tuple[str, Any, str] = ("ok", task.function(*task.args), "")
@@ -320,7 +320,7 @@ def _serve(conn: Connection, function: Callable[..., Any], parent: int) -> None:
         try:
             conn.send(answer)
         except (BrokenPipeError, ConnectionResetError):
-            _leave()
+            quick_exit(0)
         except Exception as error:  # an unpicklable result or exception
             failure = RuntimeError(f"cannot send the task's outcome back: {error}")
             conn.send(("error", failure, traceback.format_exc()))
@@ -343,11 +343,6 @@ def quick_exit(status: int = 0) -> NoReturn:
         except (OSError, ValueError):  # a closed pipe or stream: nothing left to say
             pass
     os._exit(status)
-
-
-def _leave() -> NoReturn:
-    """A worker's end once its parent has stopped it or gone (:func:`quick_exit`)."""
-    quick_exit(0)
 
 
 def _exit_with_parent(parent: int) -> None:
