@@ -298,6 +298,9 @@ def test_identify_sharing_step_e2_with_the_helper_gives_the_model_of_one_process
     settings = {**FAST, "features": "past-inputs"}
     config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **settings)
     here = identify(config=config)
+    # Calls run in order: this one returns once whatever an earlier test left on the helper
+    # (a withdrawn refinement runs to its end) is over, so the helper is idle at step e'.
+    assert beside.beside(int, "0").result() == 0
     first = new_key()
     there = identify(config=config, runner=beside)
     assert new_key() - first == 3  # the network and joint stages each split their objective
