@@ -27,6 +27,14 @@ def beside():
         yield runner
 
 
+def _idle(beside: StepRunner) -> StepRunner:
+    """``beside`` once whatever was asked of its helper before (its warm-up, a withdrawn
+    refinement an earlier test left running to its end) is over: calls run in order."""
+    assert beside.beside(int, "0").result() == 0
+    assert beside.idle
+    return beside
+
+
 def _both(beside: StepRunner) -> tuple[StepRunner, StepRunner]:
     """A runner that computes everything here, and ``beside``."""
     return StepRunner(), beside
@@ -78,7 +86,7 @@ def test_step_e_candidates_beside_each_other_are_the_networks_of_one_process(bes
             runner=runner,
         )
 
-    assert beside.beside(int, "0").result() == 0  # the helper's warm-up is over
+    _idle(beside)
     here, there = (step_e(r) for r in _both(beside))
     # A helper kept busy for ten minutes: this process takes every candidate back and trains
     # it itself (the helper, which runs its calls in order, is still in the first when step e
@@ -257,7 +265,7 @@ def test_the_runner_is_idle_only_when_its_helper_computes_nothing(beside):
     """Step e' shares its objective only with a helper that would start at once."""
     import time
 
-    assert beside.idle and not StepRunner().idle
+    assert _idle(beside).idle and not StepRunner().idle
     pending = beside.beside(time.sleep, 0.5)
     assert not beside.idle
     pending.result()
@@ -272,6 +280,7 @@ def test_figures_drawn_beside_are_the_figures_drawn_here(
     (tmp_path / "here").mkdir()
     (tmp_path / "there").mkdir()
     here = write_figures(fast_pl140_identification, tmp_path / "here")
+    _idle(beside)  # so that the figures below are drawn there, not here
     there = write_figures(fast_pl140_identification, tmp_path / "there", runner=beside)
     assert [p.name for p in here] == [p.name for p in there]
     assert len(here) == 5
@@ -298,9 +307,7 @@ def test_identify_sharing_step_e2_with_the_helper_gives_the_model_of_one_process
     settings = {**FAST, "features": "past-inputs"}
     config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **settings)
     here = identify(config=config)
-    # Calls run in order: this one returns once whatever an earlier test left on the helper
-    # (a withdrawn refinement runs to its end) is over, so the helper is idle at step e'.
-    assert beside.beside(int, "0").result() == 0
+    _idle(beside)  # so that step e' shares its objective with it
     first = new_key()
     there = identify(config=config, runner=beside)
     assert new_key() - first == 3  # the network and joint stages each split their objective
