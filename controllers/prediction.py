@@ -258,7 +258,10 @@ class PredictionModel:
     source : str
         ``"identified"`` or ``"plant"`` (oracle).
     z_bounds : (float, float)
-        Range of z over the drive range from any state reached from rest (equivalent V).
+        Range of z over the drive range on slow full-stroke triangles from rest: both first
+        branches and the major loop (equivalent V). The linear MPC plans within it; a jump
+        of the voltage can take an identified model's z beyond it, which the plan does not
+        count on.
     tracked : numpy.ndarray or None
         (1, n): the output the controller steers to the reference, where it differs from the
         measured ``c x``: the true deflection of a plant seen through a sensor
@@ -416,9 +419,11 @@ _z_bounds_kept = ContentCache(Z_BOUNDS_KEPT)
 
 
 def _z_bounds(nonlinearity: Any) -> tuple[float, float]:
-    """Extremes of z on full-stroke triangles from rest (the major loop and its first branch).
+    """Extremes of z on full-stroke triangles from rest: the major loop and both first
+    branches (a first rise to the top of the drive range and a first descent to its bottom,
+    which a hysteresis whose first branches overshoot its major loop reaches beyond it).
 
-    600 steps of the nonlinearity: kept by content (:data:`Z_BOUNDS_KEPT`) where the
+    1200 steps of the nonlinearity: kept by content (:data:`Z_BOUNDS_KEPT`) where the
     nonlinearity says what its steps compute from (its ``content()``), so a model built
     again simulates none."""
     content = getattr(nonlinearity, "content", None)
@@ -432,10 +437,11 @@ def _triangle_extremes(nonlinearity: Any) -> tuple[float, float]:
     """:func:`_z_bounds`, computed."""
     low, high = nonlinearity.u_range
     ramp = np.linspace(0.0, 1.0, 121)[1:]
-    path = np.concatenate([high * ramp, high + (low - high) * ramp, low + (high - low) * ramp])
-    state = nonlinearity.initial_state()
     zs = []
-    for v in np.concatenate([path, path[120:]]):
-        z, state = nonlinearity.step(float(v), state)
-        zs.append(z)
+    for first, other in ((high, low), (low, high)):  # from rest: up first, then down first
+        away, back = first + (other - first) * ramp, other + (first - other) * ramp
+        state = nonlinearity.initial_state()
+        for v in np.concatenate([first * ramp, away, back, away, back]):
+            z, state = nonlinearity.step(float(v), state)
+            zs.append(z)
     return float(min(zs)), float(max(zs))
