@@ -14,7 +14,8 @@ QP over z = (z_t .. z_t+N-1), condensed (N variables, no equality constraints)::
     s.t. z_lo(s_t) <= z_t <= z_hi(s_t),   z_min <= z_t+k <= z_max  (k >= 1)
 
 The first move's bounds are exact: the z reachable in one sample from the current memory state
-s_t over the drive range; later moves use the range of z over the drive range (the major loop).
+s_t over the drive range; later moves use the range of z over the drive range on slow triangles
+from rest (the major loop and both first branches, :attr:`PredictionModel.z_bounds`).
 The targets r_t+1 .. r_t+N come from the reference preview (the last previewed sample holds).
 
 **Amplifier slew limit** (``task.slew_limit`` = S, V/s, a datasheet value read from the env,
