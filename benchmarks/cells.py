@@ -56,6 +56,9 @@ def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
             if key == "observer_fallback_step":  # a step per episode: count the episodes
                 cell["observer_fallbacks"] = sum(m.get(key) is not None for m in members)
                 continue
+            if key == "set_invalidated_step":
+                cell["set_invalidations"] = sum(m.get(key) is not None for m in members)
+                continue
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
             values = [m[key] for m in members if m.get(key) is not None] if numeric else []
             if len(values) == 1:  # the mean of one number is that number, to the bit

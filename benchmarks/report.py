@@ -366,6 +366,46 @@ def observer_fallback_section(result: BenchmarkResult) -> str:
     return "\n".join(lines) + "\n"
 
 
+def set_invalidation_section(result: BenchmarkResult) -> str:
+    """In how many episodes, and at which step (median), the data invalidated each MPC's model
+    at the sensor's noise bound: no gain in the datasheet's interval, with the model or any
+    member of its set, explained every measurement to within the bound
+    (:attr:`controllers.mpc.LinearMPC.set_invalidated_step`); empty when no row learns a gain."""
+    episodes: dict[tuple[str, str], list[int | None]] = {}
+    for e in result.episodes:
+        if "set_invalidated_step" in e and not e["controller"].endswith("-oracle"):
+            episodes.setdefault((e["plant"], e["controller"]), []).append(
+                e["set_invalidated_step"]
+            )
+    learned = {key for key, steps in episodes.items() if any(s is not None for s in steps)}
+    rows = [c for c in result.config.rows if any(key[1] == c for key in learned)]
+    if not rows:
+        return ""
+    plants = list(dict.fromkeys(key[0] for key in episodes))
+
+    def cell(plant: str, row: str) -> str:
+        steps = episodes.get((plant, row))
+        if not steps:
+            return "-"
+        hit = [s for s in steps if s is not None]
+        median = f", step {np.median(hit):.0f}" if hit else ""
+        return f"{len(hit)} of {len(steps)}{median}"
+
+    return (
+        "### Is the plant in the model class? The exact set at the sensor's noise bound\n\n"
+        "Besides the credible set the MPCs act on, each learns the exact set of the gains that "
+        "explain every measurement to within the sensor's noise bound "
+        "(`controllers.gain.GainEstimate`): in the model class (the linear part right up to "
+        "the gain) it holds the plant's gain for any noise within the bound. Once it is "
+        "empty, for the model and every member of the set, the data have invalidated the "
+        "model class: the model's own error exceeds the noise bound, and only a set that "
+        "counts model error, as the credible set does through the residual's variance, can "
+        "be acted on. Episodes in which that happened, and the median step:\n\n"
+        + _table(plants, rows, cell, "plant")
+        + "\n"
+    )
+
+
 def bench_gap_table(result: BenchmarkResult) -> str:
     """What each controller loses from the nominal plant to the ``bench`` plant (RMSE, % of
     the full stroke, and the factor), on the references both ran; empty without it."""
@@ -685,6 +725,7 @@ def _markdown(
         monte_carlo_table(result, BOX_CORNERS),
         monte_carlo_table(result),
         observer_fallback_section(result),
+        set_invalidation_section(result),
     ]
     steps = _step_table(result, meta["dt"], plant)
     if steps:

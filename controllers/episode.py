@@ -36,7 +36,10 @@ class Episode:
     metrics : dict
         :func:`controllers.metrics.tracking_metrics` of the episode, and
         ``observer_fallback_step``: the step at which the controller's observer bank fell back
-        to its most robust filter (None if it did not, or has no bank).
+        to its most robust filter (None if it did not, or has no bank), and
+        ``set_invalidated_step``: the step at which the data invalidated the controller's
+        model at the sensor's noise bound (None if they did not, or it learns no gain;
+        :attr:`controllers.mpc.LinearMPC.set_invalidated_step`).
     controller : dict
         The controller's :meth:`~controllers.base.Controller.describe` and stats summary.
     """
@@ -111,6 +114,8 @@ def run_episode(
     )
     # A model-based controller's observer that fell back to its most robust filter: when.
     metrics["observer_fallback_step"] = getattr(stats, "observer_fallback_step", None)
+    # A controller with exact sets of its model's gain: when the data invalidated the model.
+    metrics["set_invalidated_step"] = getattr(controller, "set_invalidated_step", None)
     # The worst step's solver iterations (None without a solver): what sizes a real-time
     # target's worst case (a DAQP iteration adds or removes one active constraint).
     iterations = getattr(stats, "iterations", None)

@@ -30,6 +30,27 @@ nominal bender is controlled exactly as with the nominal gain; when they do, the
 by no more than the data demand, and as the set shrinks it converges to ``g_hat``. That is
 what a credible set is for: acting on what the data establish, not on the noise of an estimate.
 
+Beside it, the exact set. With the sensor noise bounded, ``|e_t| <= r`` (the env's sensor noise
+is uniform on ``[-r, r]``), the gains that explain every sample so far are an interval, the
+support of the paper's uniform-noise posterior for this one parameter (uniform prior over the
+datasheet interval)::
+
+    G_t = [1 - w, 1 + w]  intersected with  {g : |y_tau - g s_tau| <= r, tau <= t}
+
+kept by two running extremes (a maximum of lower ends, a minimum of upper ends): O(1) per
+sample, each end widened by a relative :data:`EXACT_WIDENING` so that rounding never makes it
+inner. Whenever the plant is in the model class (the linear part right up to the gain, the
+noise within r), ``G_t`` contains its gain, for every noise realisation, and it shrinks as
+``2 r / max |s|``. It is a model-invalidation test, not the set the controller acts on: an
+identified model leaves errors beside the gain (its nonlinearity's, a resonance of the box
+that is not the model's), and an exact set with the sensor's bound then becomes empty, the
+data having proven that no gain explains them to within the noise
+(``benchmarks/results/design_measurements.md`` measures when on the benchmark's plants). A
+sound set for such a plant needs a bound of the model's error, which nothing measures; the
+credible set above estimates the residual's variance instead, model error included.
+:attr:`GainEstimate.emptied_at` records the sample at which each part's exact set became
+empty, so the invalidation is reported, not hidden.
+
 How it acts on the controller (:class:`controllers.mpc.LinearMPC`): the model predicts with
 ``g`` times the nominal linear part. Because the linear part is linear, this is the nominal
 model driven by ``g z``: the QP plans ``z' = g z`` with bounds ``g [z_lo, z_hi]`` and the
@@ -47,10 +68,17 @@ import numpy as np
 
 from controllers.native.step_kernels import kernels_for
 
-__all__ = ["CREDIBLE_Z", "GainEstimate"]
+__all__ = ["CREDIBLE_Z", "EXACT_WIDENING", "GainEstimate"]
 
 CREDIBLE_Z = 1.959963984540054
 """The 97.5 % quantile of the standard normal distribution: a two-sided 95 % credible set."""
+
+EXACT_WIDENING = 1e-9
+"""Relative widening of each end of the exact set per sample (-): the rounding of
+``(y -+ r) / s`` is a few units of float64's 1.1e-16, and of a linear part run by other code
+(another summation order) about 1e-13 of the gain; 1e-9 covers both with room, as the outer
+bounds of :mod:`identification.bayes_uniform` are widened, and moves the set by less than
+1e-9 of the gain after any number of samples that take its extremes."""
 
 
 class GainEstimate:
@@ -71,6 +99,10 @@ class GainEstimate:
         Relative half-width w of the datasheet's gain interval (-), in (0, 1).
     noise_std : float
         Standard deviation of the sensor noise (um), > 0: the floor of the residual's.
+    noise_bound : float, optional
+        Bound r of the sensor noise (um), >= 0, for the exact set (module docstring). Default
+        ``sqrt(3) noise_std``: the bound of a uniform noise of that standard deviation, as the
+        env's sensor noise is.
 
     Attributes
     ----------
@@ -83,6 +115,13 @@ class GainEstimate:
     misfit : numpy.ndarray
         (K,) mean squared residual ``y - mean s`` over the samples so far (um^2): how well
         each linear part, at its estimated gain, explains the measurements.
+    exact_low, exact_high : numpy.ndarray
+        (K,) each gain's exact set with the noise bound (module docstring), within the
+        datasheet interval; empty (``exact_low > exact_high``) once the data invalidate the
+        part at that bound (-).
+    emptied_at : numpy.ndarray
+        (K,) the sample (1 = the first) at which each exact set became empty; 0 while it is
+        not.
     count : int
         Samples taken.
     native : list of NativeBuild
@@ -94,12 +133,24 @@ class GainEstimate:
     """
 
     def __init__(
-        self, a: np.ndarray, b: np.ndarray, c: np.ndarray, *, tolerance: float, noise_std: float
+        self,
+        a: np.ndarray,
+        b: np.ndarray,
+        c: np.ndarray,
+        *,
+        tolerance: float,
+        noise_std: float,
+        noise_bound: float | None = None,
     ) -> None:
         if not 0.0 < tolerance < 1.0:
             raise ValueError(f"tolerance must lie in (0, 1) (relative), got {tolerance!r}")
         if not noise_std > 0.0:
             raise ValueError(f"noise_std must be > 0 um, got {noise_std!r}")
+        if noise_bound is None:
+            noise_bound = math.sqrt(3.0) * noise_std
+        if not (noise_bound >= 0.0 and math.isfinite(noise_bound)):
+            raise ValueError(f"noise_bound must be a finite number >= 0 um, got {noise_bound!r}")
+        self.noise_bound = float(noise_bound)
         a = np.asarray(a, dtype=float)
         batch = a.ndim == 3
         self._a = a if batch else a[None]
@@ -112,7 +163,7 @@ class GainEstimate:
         self._floor = noise_std**2
         # Every running quantity lives in one block, updated in place (by numpy or by the
         # compiled kernel, controllers.native.step_kernels): the attributes are views of it.
-        self._state = np.zeros(11 * k + 2)
+        self._state = np.zeros(14 * k + 2)
         (
             self._s_ss,  # sum s^2
             self._s_sy,  # sum s y
@@ -126,7 +177,8 @@ class GainEstimate:
             self.value,
             self.misfit,
         ) = self._state[: 11 * k].reshape(11, k)
-        self._sums = self._state[11 * k :]  # s_yy, count
+        self._sums = self._state[11 * k : 11 * k + 2]  # s_yy, count
+        self.exact_low, self.exact_high, self.emptied_at = self._state[11 * k + 2 :].reshape(3, k)
         self._x = np.zeros((k, n))
         self._a = np.ascontiguousarray(self._a)
         self._update_native = self._advance_native = None
@@ -135,7 +187,15 @@ class GainEstimate:
         if library is not None:
             dims = np.array([k, n], dtype=np.int64)
             par = np.array(
-                [self._prior_precision, self._floor, *self.bounds, CREDIBLE_Z], dtype=float
+                [
+                    self._prior_precision,
+                    self._floor,
+                    *self.bounds,
+                    CREDIBLE_Z,
+                    self.noise_bound,
+                    EXACT_WIDENING,
+                ],
+                dtype=float,
             )
             self._kernel_data = (dims, par)  # kept alive: the kernels hold their pointers
             self._update_native = functools.partial(
@@ -172,6 +232,7 @@ class GainEstimate:
         self.mean[:] = 1.0
         self.std[:] = 1.0 / math.sqrt(self._prior_precision)
         self.low[:], self.high[:] = self.bounds
+        self.exact_low[:], self.exact_high[:] = self.bounds
         self.value[:] = 1.0
 
     def update(self, y: float) -> np.ndarray:
@@ -203,7 +264,26 @@ class GainEstimate:
         np.minimum(np.maximum(mean + half, low), high, out=self.high)
         np.minimum(np.maximum(1.0, self.low), self.high, out=self.value)
         self.misfit[:] = (sums[0] - 2.0 * mean * self._s_sy + mean * mean * self._s_ss) / count
+        self._narrow_exact(s, y)
         return self.value.copy()
+
+    def _narrow_exact(self, s: np.ndarray, y: float) -> None:
+        """Intersect the exact sets with ``{g : |y - g s| <= r}`` (numpy's path; the compiled
+        kernel computes the same numbers)."""
+        r = self.noise_bound
+        with np.errstate(divide="ignore", invalid="ignore"):  # s = 0: replaced below
+            low = np.where(s > 0.0, y - r, y + r) / s
+            high = np.where(s > 0.0, y + r, y - r) / s
+            low -= EXACT_WIDENING * np.abs(low)
+            high += EXACT_WIDENING * np.abs(high)
+        zero = s == 0.0
+        if zero.any():  # the sample says nothing of g, or that none fits
+            low[zero] = -np.inf if abs(y) <= r else np.inf
+            high[zero] = -low[zero]
+        np.maximum(self.exact_low, low, out=self.exact_low)
+        np.minimum(self.exact_high, high, out=self.exact_high)
+        emptied = (self.emptied_at == 0.0) & (self.exact_low > self.exact_high)
+        self.emptied_at[emptied] = self._sums[1]
 
     @property
     def independent_fraction(self) -> np.ndarray:

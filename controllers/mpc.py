@@ -343,6 +343,7 @@ class LinearMPC(PredictiveController):
             self.model.c,
             tolerance=settings.gain_tolerance,
             noise_std=measurement_std(settings.measurement_std, self.task),
+            noise_bound=self.task.noise_bound_um,
         )
 
     def _restart_gain(self, x0: np.ndarray) -> None:
@@ -363,6 +364,17 @@ class LinearMPC(PredictiveController):
         if self._gain is None:
             return (1.0, 1.0)
         return float(self._gain.low[self._member]), float(self._gain.high[self._member])
+
+    @property
+    def set_invalidated_step(self) -> int | None:
+        """The step (from 0) of this episode at which the data invalidated the model at the
+        sensor's noise bound: no gain in the datasheet's interval, with the model (or any
+        member of the set the MPC predicts from), explains every measurement to within the
+        bound (the exact sets of :class:`controllers.gain.GainEstimate`). None while some
+        does, and without a gain estimate."""
+        if self._gain is None or not np.all(self._gain.emptied_at > 0.0):
+            return None
+        return int(self._gain.emptied_at.max()) - 1
 
     def _update_gain(self, y: float) -> None:
         """Learn the gain from the measurement y (um) and predict with its new value."""

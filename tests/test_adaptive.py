@@ -9,6 +9,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import scipy.signal
 import scipy.stats
 
 import controllers
@@ -141,6 +142,36 @@ def test_the_set_holds_a_plant_in_the_model_class_and_shrinks(controller, member
         gain.advance(z)
         x = truth.a @ x + truth.b[:, 0] * z
     assert len(controller.plausible()) <= len(controller._members) // 4
+
+
+@pytest.mark.parametrize("noise", ["uniform", "at the lower ends", "at the upper ends"])
+def test_every_members_exact_set_holds_its_gain_for_noise_within_the_bound(controller, noise):
+    """Soundness over the whole set: data from each member (the box's corners, its grid and the
+    identified model) at the datasheet's extreme gains and at drawn ones, the sensor's noise
+    within its 1 um bound (drawn, or on the constraints' ends): that member's exact set holds
+    the gain at every sample, with the set's own noise bound and widening."""
+    gain = controller._gain
+    assert gain.noise_bound == controller.task.noise_bound_um == 1.0
+    rng = np.random.default_rng(11)
+    samples = 300
+    for member, truth in enumerate(controller._member_models):
+        n = truth.a.shape[0]
+        system = (truth.a, truth.b, truth.c, np.zeros((1, 1)), 1.0)
+        z = 8.0 * np.sin(2 * np.pi * 40.0 * np.arange(samples) * 1e-3)
+        z += rng.uniform(-2.0, 2.0, samples)
+        _, s, _ = scipy.signal.dlsim(system, z)  # not the estimate's own recursion
+        s = s[:, 0]
+        for g in (0.8, 1.2, rng.uniform(0.8, 1.2)):
+            if noise == "uniform":
+                e = rng.uniform(-1.0, 1.0, samples)
+            else:
+                e = np.sign(s) * (1.0 if noise == "at the lower ends" else -1.0)
+            gain.reset(np.zeros(n))
+            for t in range(samples):
+                gain.update(g * s[t] + e[t])
+                assert gain.exact_low[member] <= g <= gain.exact_high[member], (member, g, t)
+                gain.advance(z[t])
+            assert gain.emptied_at[member] == 0
 
 
 def test_the_identified_models_loop_is_stable_on_every_member_and_neighbours_on_each_other(

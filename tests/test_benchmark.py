@@ -94,6 +94,10 @@ def test_small_benchmark_is_bitwise_equal_for_one_and_two_jobs(tmp_path):
     text = (tmp_path / "benchmark.md").read_text()
     assert "| mpc |" in text and "damping-0.04" in text and "## Reference checks" in text
     assert text.index("## Verdict") < text.index("## Tracking")
+    # The identified model is outside the damping-0.04 plant's class within a few steps, on
+    # both references; pid-ff learns no gain and has no column.
+    section = text.split("### Is the plant in the model class?")[1].split("##")[0]
+    assert "| plant | mpc |" in section and "| damping-0.04 | 2 of 2, step " in section
     data = json.loads((tmp_path / "benchmark.json").read_text())
     assert data["meta"]["machine"]["cores"] >= 1
     assert data["schema"] == "piezo-testbed/benchmark" and data["schema_version"] == 2

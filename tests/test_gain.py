@@ -1,17 +1,24 @@
 """The learned gain (controllers/gain.py): the estimate against the batch Bayesian formula, its
-credible set's coverage, and the MPC that uses it on the corners of the datasheet box."""
+credible set's coverage, the exact set against a linear program and for any noise within the
+bound, and the MPC that uses it on the corners of the datasheet box."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import scipy.optimize
+import scipy.signal
 
 import controllers as ctl
 from benchmarks.studies.corners import VERTICES, vertex_env
 from controllers.gain import CREDIBLE_Z, GainEstimate
 from controllers.loop import closed_loop_matrix, output_feedback
 from controllers.mpc import MPCSettings
+
+MODEL_DIR = str(Path(__file__).resolve().parents[1] / "docs" / "benchmark" / "model")
 
 FIRST_ORDER = (np.array([[0.9]]), np.array([[1.0]]), np.array([[1.0]]))
 """A first-order lag, DC gain 10 um per equivalent V: a simple linear part."""
@@ -67,6 +74,97 @@ def test_the_credible_set_holds_the_plants_gain_and_shrinks(gain, seed):
     assert low <= estimate.value[0] <= high
 
 
+NOISES = {
+    "uniform": lambda rng, s, r: rng.uniform(-r, r, s.size),
+    "at +r": lambda rng, s, r: np.full(s.size, r),
+    "at -r": lambda rng, s, r: np.full(s.size, -r),
+    "alternating": lambda rng, s, r: r * (-1.0) ** np.arange(s.size),
+    "on the lower end": lambda rng, s, r: r * np.sign(s),  # (y - r) / s = g at every sample
+    "on the upper end": lambda rng, s, r: -r * np.sign(s),
+    "none": lambda rng, s, r: np.zeros(s.size),
+}
+"""Noise realisations within the bound r: random, constant at either end, and the two that put
+every sample's constraint exactly through the true gain."""
+
+
+def _in_class(part: tuple, gain: float, noise: str, r: float, n: int, seed: int) -> tuple:
+    """z, and the measurements ``gain`` times the linear part ``part`` (simulated by
+    scipy.signal.dlsim, not by the estimate's own recursion) plus the noise ``noise``."""
+    rng = np.random.default_rng(seed)
+    a, b, c = part
+    t = np.arange(n)
+    z = 8.0 * np.sin(2 * np.pi * t / 25.0) + rng.uniform(-2.0, 2.0, n)
+    system = (a, np.reshape(b, (-1, 1)), np.reshape(c, (1, -1)), np.zeros((1, 1)), 1.0)
+    # dlsim's output at t is c x_t with x_t driven by z up to t - 1, as the estimate's s_t.
+    _, s, _ = scipy.signal.dlsim(system, z)
+    s = s[:, 0]
+    return z, gain * s + NOISES[noise](rng, s, r), s
+
+
+def _run(estimate: GainEstimate, z: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Feed the estimate; each sample's exact set (n, 2)."""
+    sets = np.empty((z.size, 2))
+    for t in range(z.size):
+        estimate.update(float(y[t]))
+        sets[t] = estimate.exact_low[0], estimate.exact_high[0]
+        estimate.advance(float(z[t]))
+    return sets
+
+
+@pytest.mark.parametrize("noise", ["uniform", "on the lower end", "alternating"])
+@pytest.mark.parametrize("seed", range(3))
+def test_the_exact_set_is_the_linear_programs_interval(noise, seed):
+    """The recursion against an independent method: the smallest and largest g with
+    ``|y_tau - g s_tau| <= r`` for every sample so far, within the datasheet interval, each a
+    linear program (HiGHS, feasibility tolerance 1e-7 um)."""
+    w, r = 0.2, 0.5
+    gain = np.random.default_rng(100 + seed).uniform(1 - w, 1 + w)
+    z, y, s = _in_class(FIRST_ORDER, gain, noise, r, 300, seed)
+    sets = _run(GainEstimate(*FIRST_ORDER, tolerance=w, noise_std=r / np.sqrt(3.0)), z, y)
+    for t in (3, 10, 50, 299):
+        rows = np.r_[s[: t + 1], -s[: t + 1]][:, None]
+        limits = np.r_[y[: t + 1] + r, r - y[: t + 1]]
+        ends = []
+        for sign in (1.0, -1.0):
+            lp = scipy.optimize.linprog([sign], A_ub=rows, b_ub=limits, bounds=[(1 - w, 1 + w)])
+            assert lp.status == 0, lp.message
+            ends.append(lp.x[0])
+        np.testing.assert_allclose(sets[t], ends, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("noise", list(NOISES))
+@pytest.mark.parametrize("gain", [0.8, 1.2, "drawn"])
+def test_the_exact_set_holds_the_gain_for_any_noise_within_the_bound(noise, gain):
+    """Soundness: in the model class (the linear part right up to the gain, the noise within
+    r), the exact set contains the gain at every sample, for the datasheet's extreme gains and
+    drawn ones, and for noise at the bound's ends; and it shrinks to within ``2 r / max |s|``."""
+    w, r = 0.2, 0.5
+    gains = np.random.default_rng(7).uniform(1 - w, 1 + w, 4) if gain == "drawn" else [gain]
+    for seed, g in enumerate(gains):
+        z, y, s = _in_class(FIRST_ORDER, float(g), noise, r, 400, seed)
+        estimate = GainEstimate(*FIRST_ORDER, tolerance=w, noise_std=r / np.sqrt(3.0))
+        sets = _run(estimate, z, y)
+        assert np.all(sets[:, 0] <= g) and np.all(g <= sets[:, 1])
+        assert estimate.emptied_at[0] == 0
+        assert sets[-1, 1] - sets[-1, 0] <= 2 * r / np.abs(s).max() * (1 + 1e-6)
+        assert sets[-1, 1] - sets[-1, 0] < 0.1 * 2 * w  # under a tenth of the datasheet's
+
+
+def test_data_beyond_the_bound_empty_the_exact_set_and_say_when():
+    """A measurement the noise bound cannot explain at any gain (a 1.5 r offset against the
+    lower end's constraints) leaves the exact set empty from that sample on, and the estimate
+    says at which; the credible set goes on."""
+    w, r = 0.2, 0.5
+    z, y, s = _in_class(FIRST_ORDER, 1.1, "on the lower end", r, 200, 0)
+    y[120:] += 1.5 * r * np.sign(s[120:])
+    estimate = GainEstimate(*FIRST_ORDER, tolerance=w, noise_std=r / np.sqrt(3.0))
+    sets = _run(estimate, z, y)
+    empty = np.flatnonzero(sets[:, 0] > sets[:, 1])
+    assert empty.size and np.all(np.diff(empty) == 1) and empty[-1] == z.size - 1
+    assert empty[0] >= 120 and estimate.emptied_at[0] == empty[0] + 1
+    assert estimate.low[0] <= estimate.value[0] <= estimate.high[0]
+
+
 def test_the_nominal_model_stands_while_the_data_allow_it():
     """A plant equal to the model: the controller's gain stays exactly 1 (the point of the set
     nearest the model's) on nearly every sample (a 95 % set misses 1 now and then)."""
@@ -90,6 +188,8 @@ def test_a_bad_tolerance_or_noise_is_refused():
         GainEstimate(*FIRST_ORDER, tolerance=1.0, noise_std=1.0)
     with pytest.raises(ValueError, match="noise_std"):
         GainEstimate(*FIRST_ORDER, tolerance=0.2, noise_std=0.0)
+    with pytest.raises(ValueError, match="noise_bound"):
+        GainEstimate(*FIRST_ORDER, tolerance=0.2, noise_std=1.0, noise_bound=float("nan"))
     with pytest.raises(ValueError, match="gain_tolerance"):
         MPCSettings(gain_tolerance=1.5)
 
@@ -139,6 +239,33 @@ def test_the_mpc_learns_a_softer_benders_gain(tolerance, limit):
         low, high = controller.gain_set
         assert low <= 1.2 <= high + 1e-12
         assert high - low < 0.05
+
+
+@pytest.mark.parametrize("vertex", [None, (1.2, 0.8, 0.04), (0.8, 1.2, 0.01)])
+def test_through_the_env_the_plants_own_model_is_never_invalidated(vertex):
+    """End to end, the env's sensor noise and hysteresis included: an MPC that predicts with the
+    plant's own model (in the model class, gain 1) keeps 1 in its exact set over the whole
+    episode, on the nominal bender and on corners of the box, and the set shrinks to a few
+    millionths; the identified model is invalidated within the episode (its error exceeds the
+    noise bound), and the episode says at which step."""
+    from benchmarks.references import make_reference
+
+    env = gym.make("piezo_env:PiezoBender-v0", preview=20, max_episode_steps=2000)
+    nominal = env
+    if vertex is not None:
+        env = vertex_env(vertex)
+    reference = make_reference("sine-50Hz", 2021, dt=1e-3, seed=0)
+    own = ctl.make("mpc", ctl.prediction_model("plant", env), nominal)
+    episode = ctl.run_episode(env, own, seed=0, reference=reference)
+    assert episode.metrics["set_invalidated_step"] is None and own.set_invalidated_step is None
+    low, high = own._gain.exact_low[0], own._gain.exact_high[0]
+    assert low <= 1.0 <= high and high - low < 1e-5
+    identified = ctl.make("mpc", MODEL_DIR, nominal)
+    episode = ctl.run_episode(env, identified, seed=0, reference=reference)
+    step = episode.metrics["set_invalidated_step"]
+    assert isinstance(step, int) and 0 <= step < 2000
+    assert step == identified._gain.emptied_at[0] - 1
+    assert identified._gain.exact_low[0] > identified._gain.exact_high[0]
 
 
 def test_side_by_side_estimates_are_each_ones_own():

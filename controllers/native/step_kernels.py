@@ -49,9 +49,10 @@ static double np_max(double a, double b) { return (a != a || b != b) ? a + b : (
 static double np_min(double a, double b) { return (a != a || b != b) ? a + b : (a > b ? b : a); }
 
 /* controllers.gain.GainEstimate.update: K parts of order n.
-   dims = {K, n}; par = {prior precision, variance floor, low bound, high bound, z_975};
+   dims = {K, n}; par = {prior precision, variance floor, low bound, high bound, z_975,
+   noise bound, relative widening};
    st = {s_ss, s_sy, s_ee, s_lag, residual, mean, std, low, high, value, misfit} (K each),
-   then s_yy, count. */
+   then s_yy, count, then {exact low, exact high, emptied at} (K each). */
 void gain_update(const int64_t *dims, const double *par, const double *c, const double *x,
                  double *st, double y)
 {
@@ -61,6 +62,8 @@ void gain_update(const int64_t *dims, const double *par, const double *c, const 
     double *res = st + 4 * K, *mean = st + 5 * K, *sd = st + 6 * K, *low = st + 7 * K;
     double *high = st + 8 * K, *value = st + 9 * K, *misfit = st + 10 * K;
     double *s_yy = st + 11 * K, *count = st + 11 * K + 1;
+    double *ex_lo = st + 11 * K + 2, *ex_hi = st + 12 * K + 2, *emptied = st + 13 * K + 2;
+    const double eb = par[5], widen = par[6];
     *count += 1.0;
     *s_yy += y * y;
     for (int64_t k = 0; k < K; ++k) {
@@ -83,6 +86,19 @@ void gain_update(const int64_t *dims, const double *par, const double *c, const 
         high[k] = h;
         value[k] = np_min(np_max(1.0, l), h);
         misfit[k] = (*s_yy - 2.0 * m * s_sy[k] + m * m * s_ss[k]) / *count;
+        double el, eh;
+        if (s != 0.0) {
+            el = (s > 0.0 ? y - eb : y + eb) / s;
+            eh = (s > 0.0 ? y + eb : y - eb) / s;
+            el = el - widen * fabs(el);
+            eh = eh + widen * fabs(eh);
+        } else {
+            el = fabs(y) <= eb ? -INFINITY : INFINITY;
+            eh = -el;
+        }
+        ex_lo[k] = np_max(ex_lo[k], el);
+        ex_hi[k] = np_min(ex_hi[k], eh);
+        if (emptied[k] == 0.0 && ex_lo[k] > ex_hi[k]) emptied[k] = *count;
     }
 }
 
