@@ -604,6 +604,13 @@ CHOSEN_ON_THE_BENCHMARK: tuple[tuple[str, str], ...] = (
         "the nominal references",
     ),
     (
+        '`mpc-adaptive`: its members made by moving the identified model\'s modes '
+        '(`member_set="modes"`), not the datasheet\'s physics (`"datasheet"`, which matches '
+        "the box's corners better: `benchmarks/results/corners.md`)",
+        "the Prandtl-Ishlinskii plant, where at 50 Hz the datasheet's members do worse than "
+        "the fixed `mpc` (`benchmarks/results/design_measurements.md`)",
+    ),
+    (
         "`pid-notch`: Ms <= 1.8",
         "the textbook range, as the other PIDs; the fair-tuning procedure over the tolerance "
         "box would choose 2.0 (`benchmarks/results/tuning.md`), at which the loop's "

@@ -49,7 +49,7 @@ import numpy as np
 import scipy.linalg
 
 from controllers.native.step_kernels import kernels_for
-from controllers.riccati import filter_riccati
+from controllers.riccati import filter_riccati, scipy_filter
 from controllers.settings import measurement_std
 from piezo_env.memo import ContentCache
 
@@ -133,7 +133,7 @@ class DisturbanceObserver:
         if covariance is None:
             scale = state_scale_of(a, b[:, 0]) if state_scale is None else state_scale
             q = noise_covariance(b, scale, process_std, disturbance_std, slope_std)
-            covariance = scipy.linalg.solve_discrete_are(aa.T, ca.T, q, r)
+            covariance = scipy_filter(aa, ca, q, float(r[0, 0]), "the fixed observer")
         p = covariance
         # Filter (current-estimate) gain: L = P C^T (C P C^T + R)^-1 on the predicted P.
         self.innovation_var = float((ca @ p @ ca.T + r).item())

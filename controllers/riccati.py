@@ -25,7 +25,10 @@ equation", Int. J. Control 28(2), 1978) iterates, from ``A_0 = A'``, ``G_0 = C' 
 and ``H_k`` converges to P when ``(A, C)`` is detectable and ``(A, Q^1/2)`` stabilisable. Each
 solution is checked against the equation itself; one that does not satisfy it to
 :data:`RESIDUAL_TOLERANCE` is solved again by scipy, and the count of those is returned, so
-that nothing falls back silently.
+that nothing falls back silently. An equation neither solves (a model with a pole within about
+1e-6 of the unit circle, where scipy's reordering of the Schur form fails with "Reordering of
+(A, B) failed") is refused by :func:`scipy_filter` with what was wrong and what to do, not
+with the LAPACK wrapper's words.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-__all__ = ["MAX_ITERATIONS", "RESIDUAL_TOLERANCE", "filter_riccati"]
+__all__ = ["MAX_ITERATIONS", "RESIDUAL_TOLERANCE", "filter_riccati", "scipy_filter"]
 
 MAX_ITERATIONS = 60
 """Doubling steps at most: 2^60 steps of the Riccati recursion, far beyond any stable loop."""
@@ -87,10 +90,38 @@ def filter_riccati(
         if np.all(change <= 1e-15 * np.max(np.abs(h_k), axis=(1, 2))):
             break
     fallbacks = 0
-    for i in np.flatnonzero(_residual(a, c, q, r, h_k) > RESIDUAL_TOLERANCE):
-        h_k[i] = scipy.linalg.solve_discrete_are(a.T, c.T, q[i], np.array([[r[i]]]))
+    residuals = _residual(a, c, q, r, h_k)
+    for i in np.flatnonzero(residuals > RESIDUAL_TOLERANCE):
+        which = f"filter {i + 1} of {f} (doubling's residual {residuals[i]:.1e})"
+        h_k[i] = scipy_filter(a, c, q[i], r[i], which)
         fallbacks += 1
     return h_k, fallbacks
+
+
+def scipy_filter(a: np.ndarray, c: np.ndarray, q: np.ndarray, r: float, which: str) -> np.ndarray:
+    """``scipy.linalg.solve_discrete_are`` for one filter ``(a, c, q, r)`` (shapes (m, m),
+    (1, m), (m, m), scalar), or a ValueError that says what was wrong and what to do.
+
+    ``which`` names the filter in the message (e.g. "filter 3 of 12").
+
+    Raises
+    ------
+    ValueError
+        If scipy finds no stabilising solution: the message gives the largest pole moduli,
+        and the fix.
+    """
+    try:
+        return scipy.linalg.solve_discrete_are(a.T, c.T, q, np.array([[r]]))
+    except (ValueError, np.linalg.LinAlgError) as error:
+        moduli = np.sort(np.abs(np.linalg.eigvals(a)))[::-1][:4]
+        raise ValueError(
+            f"the observer's steady-state filter has no solution that the solvers find, "
+            f"{which}: scipy.linalg.solve_discrete_are says {str(error)!r}. The largest pole "
+            f"moduli of the model with its output disturbance (whose integrator is at 1) are "
+            f"{', '.join(f'{m:.12f}' for m in moduli)}: a pole of the model that near the "
+            "unit circle makes the filter equation ill-posed. Identify the model again (a "
+            "longer record, or a lower order), or move the pole inside the circle."
+        ) from error
 
 
 def _residual(

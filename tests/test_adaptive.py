@@ -209,6 +209,8 @@ def test_a_swap_needs_no_riccati_equation_and_no_factorisation(nominal, controll
 
     import controllers.box_qp as box_qp
     import controllers.gain as gain_module
+    import controllers.observer as observer_module
+    import controllers.riccati as riccati_module
 
     calls = {"riccati": 0, "qp_setup": 0, "updates": 0}
     env = vertex_env((1.2, 0.8, 0.04))
@@ -226,6 +228,9 @@ def test_a_swap_needs_no_riccati_equation_and_no_factorisation(nominal, controll
     monkeypatch.setattr(
         scipy.linalg, "solve_discrete_are", counted("riccati", scipy.linalg.solve_discrete_are)
     )
+    doubling = counted("riccati", riccati_module.filter_riccati)
+    monkeypatch.setattr(riccati_module, "filter_riccati", doubling)
+    monkeypatch.setattr(observer_module, "filter_riccati", doubling)
     for solver in (box_qp.DAQPBoxQP, box_qp.OSQPBoxQP):
         monkeypatch.setattr(solver, "__init__", counted("qp_setup", solver.__init__))
     fused = controller._fused
