@@ -450,6 +450,11 @@ def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
         )
         bottom.plot(times, true_gain, "--", color="C0", lw=1, label="plant DC gain")
         bottom.plot(times, true_resonance, "--", color="C3", lw=1, label="plant resonance")
+        step = adaptive.get("invalidated_step")
+        if step is not None:  # from here no member explains the data within the noise bound
+            bottom.axvline(
+                step * dt, color="0.4", ls=":", lw=1, label="model class invalidated (noise bound)"
+            )
         bottom.set_xlabel("time (s)")
         bottom.set_ylabel("relative to the nominal")
         bottom.legend(fontsize=7)

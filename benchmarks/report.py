@@ -107,8 +107,9 @@ def monte_carlo_table(result: BenchmarkResult, plant: str = MONTE_CARLO) -> str:
             values = sorted(per_draw(row, ref).values())
         return " / ".join(f"{v:.3f}" for v in _order_statistics(values))
 
+    settling = _settling_table(draws, rows, refs, cfg.steps * cfg.dt * 1e3)
     rows = rows + [f"{name} (seeds)" for name in groups]
-    ratios = _oracle_ratio_table(draws, rows, refs, per_draw)
+    ratios = _oracle_ratio_table(draws, rows, refs, per_draw) + settling
     if plant == BOX_CORNERS:
         head = (
             f"### Corners of the datasheet's tolerance box: the {n} vertices of free deflection "
@@ -149,6 +150,36 @@ def _oracle_ratio_table(draws: list[dict[str, Any]], rows: list[str], refs: list
     return (
         f"\nRatio to `{ORACLE}` on the same plant (1 = as good as knowing the plant), "
         "same order statistics:\n\n" + _table(plain, refs, cell, "controller") + "\n"
+    )
+
+
+def _settling_table(
+    draws: list[dict[str, Any]], rows: list[str], refs: list[str], episode_ms: float
+) -> str:
+    """When each of the project's rows settled on each draw (the 50 ms-window RMS error back
+    within twice the episode's own second half, :func:`controllers.metrics.window_settling_ms`),
+    as order statistics of the draws in ms; empty for a run without the figure."""
+    shown = [r for r in rows if r.removesuffix("-oracle") in _BUILT_IN]
+    if not shown or not any("window_settling_ms" in e for e in draws):
+        return ""
+
+    def cell(row: str, ref: str) -> str:
+        values = sorted(
+            e["window_settling_ms"]
+            for e in draws
+            if (e["controller"], e["reference"]) == (row, ref) and "window_settling_ms" in e
+        )
+        return " / ".join(
+            f"> {episode_ms / 1e3:g} s" if v > episode_ms else f"{v:.0f}"
+            for v in _order_statistics(values)
+        )
+
+    return (
+        "\nSettling (ms): when the RMS error over 50 ms windows last came within twice the "
+        "episode's own second half (how soon a controller reaches the error it keeps; a "
+        "lower floor is a higher bar), same order statistics:\n\n"
+        + _table(shown, refs, cell, "controller")
+        + "\n"
     )
 
 

@@ -489,10 +489,12 @@ def _run_group(
 
 
 def _adaptation_trace(episode: Any, controller: Any) -> dict[str, Any]:
-    """Tracking error (um) of an episode and, for an adaptive controller, the model in use at
-    each review ((step, DC gain, first resonance) and the offline values)."""
+    """Tracking error (um) of an episode, the step at which the data invalidated the model at
+    the noise bound (None: not, or no gain learned) and, for an adaptive controller, the model
+    in use at each review ((step, DC gain, first resonance) and the offline values)."""
     out: dict[str, Any] = {
         "error_um": (episode.deflection_um - episode.reference_um).tolist(),
+        "invalidated_step": episode.metrics.get("set_invalidated_step"),
     }
     trace = getattr(getattr(controller, "stats", None), "trace", None)
     if trace is not None:

@@ -7,7 +7,36 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["step_metrics", "tracking_metrics"]
+__all__ = ["SETTLING_WINDOW_S", "step_metrics", "tracking_metrics", "window_settling_ms"]
+
+
+SETTLING_WINDOW_S = 0.05
+"""Window of :func:`window_settling_ms` (s): 50 ms, five periods of a 100 Hz reference and
+half a period of a 10 Hz one, short enough to see a start, long enough to average the
+sensor noise over 50 samples at 1 kHz."""
+
+
+def window_settling_ms(
+    error: np.ndarray, dt: float, window_s: float = SETTLING_WINDOW_S, floor: float | None = None
+) -> float:
+    """When (ms) the RMS error over consecutive ``window_s`` windows last came within twice
+    ``floor`` (default: the error's own second-half RMS; the unit of ``error``): the end of the
+    first window from which every later window stays there; one window past the episode's
+    end when the last window is still above (never settled). A trailing part shorter than a
+    window is not judged.
+
+    This is how soon an adaptive controller reaches the error it keeps: twice its own
+    second half, so a controller that settles to a lower floor is held to a lower bar.
+    """
+    width = max(1, round(window_s / dt))
+    error = np.asarray(error, float)
+    if floor is None:
+        floor = float(np.sqrt(np.mean(error[error.size // 2 :] ** 2)))
+    whole = error[: error.size // width * width].reshape(-1, width)
+    windows = np.sqrt(np.mean(whole**2, axis=1))
+    above = np.flatnonzero(windows > 2.0 * floor)
+    windows_ms = (above[-1] + 2 if above.size else 1) * width * dt * 1e3
+    return round(float(windows_ms), 6)  # whole windows: no 950.0000000000001 ms
 
 
 def tracking_metrics(
@@ -51,7 +80,8 @@ def tracking_metrics(
         ``max_error_percent``, ``rms_voltage_v``, ``voltage_tv_v`` (total variation,
         sum |u_t - u_t-1|),
         ``saturated_fraction``, ``compute_median_us``, ``compute_p99_us``, ``compute_max_us``,
-        ``fallbacks``, ``steps``; with ``dt`` also ``deadline_misses`` and
+        ``fallbacks``, ``steps``; with ``dt`` also ``deadline_misses``,
+        ``window_settling_ms`` (:func:`window_settling_ms`) and
         ``rise_time_ms``, ``overshoot_percent``, ``settling_time_ms``, ``steps_settled``
         (None on a reference without steps).
     """
@@ -68,6 +98,7 @@ def tracking_metrics(
     extra: dict[str, Any] = {}
     if dt is not None:
         extra["deadline_misses"] = int(np.sum(times > dt * 1e6))
+        extra["window_settling_ms"] = window_settling_ms(error, dt)
         extra.update(step_metrics(arrays["deflection_um"], arrays["reference_um"], dt, stroke_um))
     return {
         "steps": int(error.size),

@@ -287,16 +287,20 @@ def test_several_noise_seeds_give_means_with_intervals_and_honest_ties(tmp_path)
 
 
 def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_the_floor():
-    from benchmarks.studies.corners import settling_ms
+    from controllers.metrics import window_settling_ms
 
     floor = np.ones(2000)
-    assert settling_ms(floor) == 50.0
+    assert window_settling_ms(floor, 1e-3) == 50.0
     late = floor.copy()
     late[120:130] = 30.0  # the window 100-150 ms is the last one above twice the floor
-    assert settling_ms(late) == 200.0  # the next one (150-200 ms) and all after stay within
+    assert window_settling_ms(late, 1e-3) == 200.0  # the next one (150-200 ms) and all after
     # Against another floor: a higher one is reached sooner; one below every window, never.
-    assert settling_ms(late, floor=10.0) == 50.0  # that window's RMS, 13.4, is within 2 x 10
-    assert settling_ms(floor, floor=0.25) == 2050.0  # every window above 0.5: never
+    assert window_settling_ms(late, 1e-3, floor=10.0) == 50.0  # that window's RMS, 13.4
+    assert window_settling_ms(floor, 1e-3, floor=0.25) == 2050.0  # every window above 0.5
+    # At another sample time the window is still 50 ms: 200 samples at 0.25 ms.
+    quarter = np.ones(8000)
+    quarter[480:520] = 30.0
+    assert window_settling_ms(quarter, 0.25e-3) == 200.0
 
 
 def test_the_committed_policies_run_when_asked_for_from_any_folder(tmp_path, monkeypatch):

@@ -15,7 +15,8 @@ adaptive MPC whose set moves the identified model by the datasheet's physics
 mode by mode. Whole 2 s episodes, seed 0, noise on, preview 20; RMSE in % of the full
 stroke, and for the adaptive rows the RMSE over the
 second half and two settling times in parentheses: when the RMS error over 50 ms windows last
-came within twice the episode's own second half (:func:`settling_ms`), and within twice the
+came within twice the episode's own second half
+(:func:`controllers.metrics.window_settling_ms`), and within twice the
 second half of ``mpc-oracle`` on the same vertex and reference ("> 2 s" where the last window
 is still above). The first is relative: a controller that settles to a lower floor takes
 longer to come within twice it, so the second, against one floor for every controller, says
@@ -37,6 +38,7 @@ import numpy as np
 
 from benchmarks._common import header, markdown_table, write_result
 from benchmarks.plants import EPISODE_S, VERTICES, sample_time, stroke_um, vertex_options
+from controllers.metrics import window_settling_ms
 
 MODEL_DIR = "docs/benchmark/model"
 BENDER = "PL140"
@@ -82,21 +84,6 @@ def vertex_reference(name: str, bender: str = BENDER) -> np.ndarray:
     return make_reference(name, steps + PREVIEW + 1, dt=dt, seed=0, stroke_um=stroke_um(bender))
 
 
-def settling_ms(
-    error: np.ndarray, dt: float = 1e-3, window_s: float = 0.05, floor: float | None = None
-) -> float:
-    """When (ms) the RMS error over consecutive ``window_s`` windows last came within twice
-    ``floor`` (default: the error's own second-half RMS; same unit as ``error``): the end of
-    the first window from which every later window stays there. Past the episode's length
-    when the last window is still above."""
-    width = round(window_s / dt)
-    if floor is None:
-        floor = np.sqrt(np.mean(error[error.size // 2 :] ** 2))
-    windows = np.sqrt(np.mean(error[: error.size // width * width].reshape(-1, width) ** 2, axis=1))
-    above = np.flatnonzero(windows > 2.0 * floor)
-    return float((above[-1] + 2 if above.size else 1) * width * dt * 1e3)
-
-
 def run_vertex(
     vertex: tuple[float, float, float], bender: str = BENDER, model_dir: str = MODEL_DIR
 ) -> dict[tuple[str, str], tuple[float, ...]]:
@@ -135,8 +122,8 @@ def run_vertex(
                 out[row, ref_name] = (
                     episode.metrics["rmse_percent"],
                     half_um / (2 * stroke) * 100,
-                    settling_ms(error, dt),
-                    settling_ms(error, dt, floor=floors[ref_name]),
+                    window_settling_ms(error, dt),
+                    window_settling_ms(error, dt, floor=floors[ref_name]),
                 )
     return out
 
