@@ -20,6 +20,7 @@ from benchmarks.cells import aggregate
 from benchmarks.references import REFERENCES
 from benchmarks.rows import row_colors, seed_groups
 from benchmarks.runner import DRAWN_PLANTS, BenchmarkResult
+from controllers.metrics import SETTLING_WINDOW_S
 
 __all__ = ["FIGURES", "draw_figures"]
 
@@ -405,7 +406,7 @@ def _adaptation(result: BenchmarkResult, path: Path) -> str | None:
     full_stroke = 2.0 * float(result.config.stroke_um)
     fig, axes = plt.subplots(2, len(plants), figsize=(5.2 * len(plants), 6.4), squeeze=False)
     dt = result.config.dt
-    window_s = 0.05
+    window_s = SETTLING_WINDOW_S
     width = max(1, round(window_s / dt))  # samples of the rolling RMS
     for j, plant in enumerate(plants):
         rows = result.traces[f"adaptation:{plant}"]

@@ -35,12 +35,16 @@ is uniform on ``[-r, r]``), the gains that explain every sample so far are an in
 support of the paper's uniform-noise posterior for this one parameter (uniform prior over the
 datasheet interval)::
 
-    G_t = [1 - w, 1 + w]  intersected with  {g : |y_tau - g s_tau| <= r, tau <= t}
+    G_t = [1 - w, 1 + w]  intersected with  {g : |y_tau - g s_tau| <= r_tau, tau <= t}
 
 kept by two running extremes (a maximum of lower ends, a minimum of upper ends): O(1) per
-sample, each end widened by a relative :data:`EXACT_WIDENING` so that rounding never makes it
-inner. Whenever the plant is in the model class (the linear part right up to the gain, the
-noise within r), ``G_t`` contains its gain, for every noise realisation, and it shrinks as
+sample. ``r_t`` is the sensor's bound plus a proven bound of the model's own error where one
+is known (:attr:`controllers.prediction.PredictionModel.error_bound_um`: the modes a plant's
+model leaves out) plus one float32 unit in the last place of ``|y_t|`` (the env's
+observations are float32, :data:`OBSERVATION_ROUNDING`), and each finite end is widened by a
+relative :data:`EXACT_WIDENING`, so that rounding never makes the set inner. Whenever the
+plant is in the model class (the linear part right up to the gain and that error, the noise
+within its bound), ``G_t`` contains its gain, for every noise realisation, and it shrinks as
 ``2 r / max |s|``. It is a model-invalidation test, not the set the controller acts on: an
 identified model leaves errors beside the gain (its nonlinearity's, a resonance of the box
 that is not the model's), and an exact set with the sensor's bound then becomes empty, the
@@ -68,10 +72,15 @@ import numpy as np
 
 from controllers.native.step_kernels import kernels_for
 
-__all__ = ["CREDIBLE_Z", "EXACT_WIDENING", "GainEstimate"]
+__all__ = ["CREDIBLE_Z", "EXACT_WIDENING", "OBSERVATION_ROUNDING", "GainEstimate"]
 
 CREDIBLE_Z = 1.959963984540054
 """The 97.5 % quantile of the standard normal distribution: a two-sided 95 % credible set."""
+
+OBSERVATION_ROUNDING = 2.0**-23
+"""Relative rounding of a float32 observation (-): one unit in the last place, twice the
+half-unit that rounding to nearest makes, so that the bound holds relative to the rounded value
+too."""
 
 EXACT_WIDENING = 1e-9
 """Relative widening of each end of the exact set per sample (-): the rounding of
@@ -100,9 +109,10 @@ class GainEstimate:
     noise_std : float
         Standard deviation of the sensor noise (um), > 0: the floor of the residual's.
     noise_bound : float, optional
-        Bound r of the sensor noise (um), >= 0, for the exact set (module docstring). Default
-        ``sqrt(3) noise_std``: the bound of a uniform noise of that standard deviation, as the
-        env's sensor noise is.
+        Bound r of the measurement's error beside the gain (um), >= 0, for the exact set
+        (module docstring): the sensor noise's, plus a proven bound of the model's error where
+        one is known. Default ``sqrt(3) noise_std``: the bound of a uniform noise of that
+        standard deviation, as the env's sensor noise is.
 
     Attributes
     ----------
@@ -194,6 +204,7 @@ class GainEstimate:
                     CREDIBLE_Z,
                     self.noise_bound,
                     EXACT_WIDENING,
+                    OBSERVATION_ROUNDING,
                 ],
                 dtype=float,
             )
@@ -270,16 +281,18 @@ class GainEstimate:
     def _narrow_exact(self, s: np.ndarray, y: float) -> None:
         """Intersect the exact sets with ``{g : |y - g s| <= r}`` (numpy's path; the compiled
         kernel computes the same numbers)."""
-        r = self.noise_bound
-        with np.errstate(divide="ignore", invalid="ignore"):  # s = 0: replaced below
+        r = self.noise_bound + OBSERVATION_ROUNDING * abs(y)
+        # s = 0 is replaced below; a subnormal s overflows to an infinite end, which is not
+        # widened (inf - inf would be NaN).
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
             low = np.where(s > 0.0, y - r, y + r) / s
             high = np.where(s > 0.0, y + r, y - r) / s
-            low -= EXACT_WIDENING * np.abs(low)
-            high += EXACT_WIDENING * np.abs(high)
+            low = np.where(np.isfinite(low), low - EXACT_WIDENING * np.abs(low), low)
+            high = np.where(np.isfinite(high), high + EXACT_WIDENING * np.abs(high), high)
         zero = s == 0.0
-        if zero.any():  # the sample says nothing of g, or that none fits
-            low[zero] = -np.inf if abs(y) <= r else np.inf
-            high[zero] = -low[zero]
+        if zero.any():  # the sample says nothing of g, or that none fits (NaN: NaN)
+            low[zero] = y if y != y else -np.inf if abs(y) <= r else np.inf
+            high[zero] = y if y != y else -low[zero]
         np.maximum(self.exact_low, low, out=self.exact_low)
         np.minimum(self.exact_high, high, out=self.exact_high)
         emptied = (self.emptied_at == 0.0) & (self.exact_low > self.exact_high)

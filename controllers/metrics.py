@@ -18,18 +18,21 @@ sensor noise over 50 samples at 1 kHz."""
 
 def window_settling_ms(
     error: np.ndarray, dt: float, window_s: float = SETTLING_WINDOW_S, floor: float | None = None
-) -> float:
+) -> float | None:
     """When (ms) the RMS error over consecutive ``window_s`` windows last came within twice
     ``floor`` (default: the error's own second-half RMS; the unit of ``error``): the end of the
     first window from which every later window stays there; one window past the episode's
     end when the last window is still above (never settled). A trailing part shorter than a
-    window is not judged.
+    window is not judged; None for an episode shorter than one window or an error that is
+    not finite (nothing to judge).
 
     This is how soon an adaptive controller reaches the error it keeps: twice its own
     second half, so a controller that settles to a lower floor is held to a lower bar.
     """
     width = max(1, round(window_s / dt))
     error = np.asarray(error, float)
+    if error.size < width or not np.all(np.isfinite(error)):
+        return None
     if floor is None:
         floor = float(np.sqrt(np.mean(error[error.size // 2 :] ** 2)))
     whole = error[: error.size // width * width].reshape(-1, width)

@@ -343,7 +343,7 @@ class LinearMPC(PredictiveController):
             self.model.c,
             tolerance=settings.gain_tolerance,
             noise_std=measurement_std(settings.measurement_std, self.task),
-            noise_bound=self.task.noise_bound_um,
+            noise_bound=self.task.noise_bound_um + self.model.error_bound_um,
         )
 
     def _restart_gain(self, x0: np.ndarray) -> None:

@@ -267,6 +267,11 @@ class PredictionModel:
         measured ``c x``: the true deflection of a plant seen through a sensor
         (:meth:`from_plant`), which the reward scores. None: the measured output itself (an
         identified model knows only what was measured).
+    error_bound_um : float
+        A proven bound of the model's output error against the plant it stands for, for any
+        drive within the rails (um): the modes the plant's model leaves out
+        (:meth:`from_plant`); 0 where none is known (an identified model), whose error the
+        data alone can show (:class:`controllers.gain.GainEstimate`'s exact set).
     """
 
     a: np.ndarray
@@ -277,6 +282,7 @@ class PredictionModel:
     source: str
     z_bounds: tuple[float, float] = field(default=(-math.inf, math.inf))
     tracked: np.ndarray | None = None
+    error_bound_um: float = 0.0
 
     def __post_init__(self) -> None:
         if self.tracked is not None and np.shape(self.tracked) != np.shape(self.c):
@@ -353,16 +359,24 @@ class PredictionModel:
         nonlinearity = PlantHysteresis(plant.hysteresis, (-u_max, u_max))
         z_bounds = _z_bounds(nonlinearity)
         discrete = plant.discrete
+        error_bound_um = 0.0
         if reduce:
             budget_m = PLANT_REDUCTION_ERROR * 2.0 * plant.stroke_um * 1e-6
             z_max = max(abs(z_bounds[0]), abs(z_bounds[1]))
-            per_mode = discrete.mode_error_bounds(limit=budget_m / z_max) * z_max
+            per_volt = discrete.mode_error_bounds(limit=budget_m / z_max)
+            per_mode = per_volt * z_max
             order = np.argsort(per_mode, kind="stable")
             affordable = int(np.searchsorted(np.cumsum(per_mode[order]), budget_m, "right"))
             discrete = discrete.without_modes(order[:affordable])
+            # The proven bound for any drive: the hysteresis' largest |u_eff| within the rails
+            # (a jump of the voltage reaches beyond the triangles' z bounds).
+            u_eff = plant.hysteresis.max_effective_voltage(u_max)
+            error_bound_um = float(np.sum(per_volt[order[:affordable]])) * u_eff * 1e6
         a, b, c, _ = discrete.state_space_matrices()
         if sensor is None:
-            return cls(a, b, c, plant.dt, nonlinearity, "plant", z_bounds)
+            return cls(
+                a, b, c, plant.dt, nonlinearity, "plant", z_bounds, error_bound_um=error_bound_um
+            )
         a_s, b_s, c_s, d_s = sensor.state_space(plant.dt)
         n, k = a.shape[0], a_s.shape[0]
         series = np.zeros((n + k, n + k))  # [x; q]: the sensor's input is y = c x
@@ -370,7 +384,11 @@ class PredictionModel:
         measured = np.hstack([d_s * c, c_s[None, :]])
         tip = np.hstack([c, np.zeros((1, k))])
         b = np.vstack([b, np.zeros((k, 1))])
-        return cls(series, b, measured, plant.dt, nonlinearity, "plant", z_bounds, tip)
+        # The sensor's filter passes a convex combination of the deflections (its weights are
+        # >= 0 and sum to 1): the bound holds for the measured output too.
+        return cls(
+            series, b, measured, plant.dt, nonlinearity, "plant", z_bounds, tip, error_bound_um
+        )
 
     def steady_start(self, y0: float, noise_bound_um: float) -> SteadyStart:
         """The model at rest holding the first measured deflection ``y0`` (um).

@@ -301,6 +301,9 @@ def test_settling_time_is_the_end_of_the_first_window_that_stays_within_twice_th
     quarter = np.ones(8000)
     quarter[480:520] = 30.0
     assert window_settling_ms(quarter, 0.25e-3) == 200.0
+    # Nothing to judge: shorter than one window, or not finite.
+    assert window_settling_ms(floor[:49], 1e-3) is None
+    assert window_settling_ms(np.r_[floor, np.nan], 1e-3) is None
 
 
 def test_the_committed_policies_run_when_asked_for_from_any_folder(tmp_path, monkeypatch):

@@ -137,3 +137,22 @@ def test_gain_kernel_propagates_nan_as_numpy(monkeypatch):
         estimate.update(float("nan"))
     np.testing.assert_array_equal(compiled._state, reference._state)  # NaN == NaN here
     assert np.isnan(compiled.value).all()
+
+
+def test_the_exact_set_of_a_vanishing_model_output_stays_a_number(monkeypatch):
+    """A model output so small (subnormal) that a constraint's ends overflow to infinity: the
+    infinite end is not widened (inf - inf would be NaN), so the set stays an interval, and
+    both paths agree; a sample the bound cannot explain with s = 0 empties it, in both."""
+    a, b, c = np.array([[0.0]]), np.array([1.0]), np.array([1.0])
+    compiled = GainEstimate(a, b, c, tolerance=0.2, noise_std=0.5)
+    numpy_only(monkeypatch)
+    reference = GainEstimate(a, b, c, tolerance=0.2, noise_std=0.5)
+    for estimate in (compiled, reference):
+        estimate.advance(5e-324)  # s = 5e-324 at the next update
+        estimate.update(0.3)
+        assert np.isfinite(estimate.exact_low).all() and np.isfinite(estimate.exact_high).all()
+        assert estimate.emptied_at[0] == 0
+        estimate.advance(0.0)  # s = 0
+        estimate.update(5.0)  # beyond the bound sqrt(3) 0.5: no gain explains it
+        assert estimate.exact_low[0] > estimate.exact_high[0] and estimate.emptied_at[0] == 2
+    np.testing.assert_array_equal(compiled._state, reference._state)

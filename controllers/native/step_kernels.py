@@ -50,7 +50,7 @@ static double np_min(double a, double b) { return (a != a || b != b) ? a + b : (
 
 /* controllers.gain.GainEstimate.update: K parts of order n.
    dims = {K, n}; par = {prior precision, variance floor, low bound, high bound, z_975,
-   noise bound, relative widening};
+   noise bound, relative widening, relative observation rounding};
    st = {s_ss, s_sy, s_ee, s_lag, residual, mean, std, low, high, value, misfit} (K each),
    then s_yy, count, then {exact low, exact high, emptied at} (K each). */
 void gain_update(const int64_t *dims, const double *par, const double *c, const double *x,
@@ -63,7 +63,7 @@ void gain_update(const int64_t *dims, const double *par, const double *c, const 
     double *high = st + 8 * K, *value = st + 9 * K, *misfit = st + 10 * K;
     double *s_yy = st + 11 * K, *count = st + 11 * K + 1;
     double *ex_lo = st + 11 * K + 2, *ex_hi = st + 12 * K + 2, *emptied = st + 13 * K + 2;
-    const double eb = par[5], widen = par[6];
+    const double eb = par[5] + par[7] * fabs(y), widen = par[6];
     *count += 1.0;
     *s_yy += y * y;
     for (int64_t k = 0; k < K; ++k) {
@@ -90,8 +90,10 @@ void gain_update(const int64_t *dims, const double *par, const double *c, const 
         if (s != 0.0) {
             el = (s > 0.0 ? y - eb : y + eb) / s;
             eh = (s > 0.0 ? y + eb : y - eb) / s;
-            el = el - widen * fabs(el);
-            eh = eh + widen * fabs(eh);
+            if (isfinite(el)) el = el - widen * fabs(el);
+            if (isfinite(eh)) eh = eh + widen * fabs(eh);
+        } else if (y != y) {
+            el = eh = y;
         } else {
             el = fabs(y) <= eb ? -INFINITY : INFINITY;
             eh = -el;
