@@ -181,7 +181,9 @@ def _settling_table(
     return (
         "\nSettling (ms): when the RMS error over 50 ms windows last came within twice the "
         "episode's own second half (how soon a controller reaches the error it keeps; a "
-        "lower floor is a higher bar), same order statistics:\n\n"
+        "lower floor is a higher bar: at the sensor noise's floor, as the oracle's, the "
+        "windows' own scatter can cross twice it late in an episode), same order "
+        "statistics:\n\n"
         + _table(shown, refs, cell, "controller")
         + "\n"
     )
@@ -417,7 +419,8 @@ def set_invalidation_section(result: BenchmarkResult) -> str:
     learned = {key for key, steps in episodes.items() if any(s is not None for s in steps)}
     rows = [c for c in result.config.rows if any(key[1] == c for key in learned)]
     # Each such row's oracle too: the same MPC on the plant's own model, in the model class.
-    rows = [r for c in rows for r in (c, f"{c}-oracle") if r in result.config.rows]
+    paired = (r for c in rows for r in (c, f"{c}-oracle") if r in result.config.rows)
+    rows = list(dict.fromkeys(paired))  # an oracle row of its own is listed once
     if not rows:
         return ""
     plants = list(dict.fromkeys(key[0] for key in episodes))
