@@ -42,6 +42,14 @@ def ci95_half_width(values: Any) -> float | None:
     return t_975 * float(np.std(values, ddof=1)) / math.sqrt(n)
 
 
+COUNTED = {
+    "observer_fallback_step": "observer_fallbacks",
+    "set_invalidated_step": "set_invalidations",
+}
+"""Episode keys that hold the step at which something happened (None: it did not): a cell
+counts its episodes in which it did, under the second name."""
+
+
 def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """One cell per (plant, controller, reference, draw), in the order first seen."""
     groups: dict[tuple, list[dict[str, Any]]] = {}
@@ -53,11 +61,8 @@ def aggregate(episodes: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for key, value in members[0].items():
             if key in KEYS or key in ("seed_index", "identification_seed"):
                 continue
-            if key == "observer_fallback_step":  # a step per episode: count the episodes
-                cell["observer_fallbacks"] = sum(m.get(key) is not None for m in members)
-                continue
-            if key == "set_invalidated_step":
-                cell["set_invalidations"] = sum(m.get(key) is not None for m in members)
+            if key in COUNTED:  # a step per episode, or None: count the episodes with one
+                cell[COUNTED[key]] = sum(m.get(key) is not None for m in members)
                 continue
             numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
             values = [m[key] for m in members if m.get(key) is not None] if numeric else []

@@ -560,8 +560,7 @@ class AdaptiveMPC(LinearMPC):
             np.array([m.b[:, 0] for m in models]),
             np.array([m.c[0] for m in models]),
             tolerance=self.settings.gain_tolerance,
-            noise_std=measurement_std(self.settings.measurement_std, self.task),
-            noise_bound=self.task.noise_bound_um + self.model.error_bound_um,
+            **self._gain_noise(),
         )
 
     def _use(self, index: int) -> None:

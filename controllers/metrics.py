@@ -101,7 +101,7 @@ def tracking_metrics(
     extra: dict[str, Any] = {}
     if dt is not None:
         extra["deadline_misses"] = int(np.sum(times > dt * 1e6))
-        extra["window_settling_ms"] = window_settling_ms(error, dt)
+        extra["window_settling_ms"] = window_settling_ms(error, dt, floor=second_half)
         extra.update(step_metrics(arrays["deflection_um"], arrays["reference_um"], dt, stroke_um))
     return {
         "steps": int(error.size),

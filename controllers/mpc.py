@@ -342,9 +342,17 @@ class LinearMPC(PredictiveController):
             self.model.b,
             self.model.c,
             tolerance=settings.gain_tolerance,
-            noise_std=measurement_std(settings.measurement_std, self.task),
-            noise_bound=self.task.noise_bound_um + self.model.error_bound_um,
+            **self._gain_noise(),
         )
+
+    def _gain_noise(self) -> dict[str, float]:
+        """The gain estimate's noise: the sensor's standard deviation (the floor of the
+        residual's), and the bound of the exact set, the sensor's plus the model's proven
+        error bound."""
+        return {
+            "noise_std": measurement_std(self.settings.measurement_std, self.task),
+            "noise_bound": self.task.noise_bound_um + self.model.error_bound_um,
+        }
 
     def _restart_gain(self, x0: np.ndarray) -> None:
         """The gain back at the model's (1), learned afresh from the model's state ``x0``."""
