@@ -450,6 +450,74 @@ def set_invalidation_section(result: BenchmarkResult) -> str:
     )
 
 
+def solver_iterations_section(result: BenchmarkResult) -> str:
+    """The worst step's solver iterations of every row with a solver, per plant, over every
+    episode of the run, beside the cap that bounds them; empty without such a row.
+
+    The nominal column of the effort table sizes the nominal task; a real-time target is sized
+    by the worst case over every plant the controller may meet. The cell is measured, not
+    certified: DAQP's Python interface has no offline certificate of its iteration count (the
+    parametric certification of its authors is a separate Julia package, ASCertain.jl), so the
+    bound a target can rely on is the solver's iteration cap, past which a step applies the
+    shifted plan and counts a fallback (:mod:`controllers.box_qp`)."""
+    worst: dict[tuple[str, str], tuple[int, str]] = {}
+    for e in result.episodes:
+        value = e.get("solver_iterations_max")
+        if value is None:
+            continue
+        key = (e["plant"], e["controller"])
+        if key not in worst or int(value) > worst[key][0]:
+            worst[key] = (int(value), e["reference"])
+    rows = [c for c in result.config.rows if any(key[1] == c for key in worst)]
+    if not rows:
+        return ""
+    plants = list(dict.fromkeys(key[0] for key in worst))
+
+    def cell(plant: str, row: str) -> str:
+        value = worst.get((plant, row))
+        return "-" if value is None else str(value[0])
+
+    overall = {
+        row: max((v, plant, ref) for (plant, c), (v, ref) in worst.items() if c == row)
+        for row in rows
+    }
+    where = "; ".join(
+        f"`{row}` {v} ({plant}, {ref})" if v else f"`{row}` 0"
+        for row, (v, plant, ref) in overall.items()
+    )
+
+    def cap(row: str) -> str:
+        settings = result.controllers.get(row, {}).get("settings", {})
+        if settings.get("solver") == "ipopt":
+            return f"`{row}`: IPOPT's {settings.get('ipopt_max_iter', '-')}"
+        if "max_qp_iterations" in settings:
+            return (
+                f"`{row}`: {settings['max_qp_iterations']} per QP, "
+                f"{settings.get('sqp_iterations', 1)} QPs a step"
+            )
+        if "max_iter" in settings:
+            return f"`{row}`: {settings['max_iter']}"
+        return f"`{row}`: -"
+
+    return (
+        "### Solver iterations over every plant\n\n"
+        "The worst step's solver iterations per plant, over every episode of the run (the "
+        "effort table above gives the nominal plant's): for the linear MPCs DAQP's (one "
+        "iteration adds or removes one active constraint, a few rank-one updates of a 20 x 20 "
+        "factor), for `nmpc` the sum over its SQP iterations' QPs. Worst over the run: "
+        f"{where}.\n\n"
+        + _table(plants, rows, cell, "plant")
+        + "\n\nThese are measured, not certified: DAQP's Python interface offers no offline "
+        "certificate of its iteration count (its authors' parametric certification is a "
+        "separate Julia package, ASCertain.jl), so what bounds a step on a real-time target is "
+        "the iteration cap ("
+        + "; ".join(cap(row) for row in rows)
+        + "): a solve that reaches it is not used, and the step applies the shifted plan (after "
+        "a good first SQP iteration, its iterate) and counts a fallback (the effort table's "
+        "last column).\n"
+    )
+
+
 def bench_gap_table(result: BenchmarkResult) -> str:
     """What each controller loses from the nominal plant to the ``bench`` plant (RMSE, % of
     the full stroke, and the factor), on the references both ran; empty without it."""
@@ -802,6 +870,7 @@ def _markdown(
         "real-time target), for `nmpc` the sum over its SQP iterations' QPs, for IPOPT its "
         "iterations; 0 for a controller without a solver.",
         "",
+        solver_iterations_section(result),
     ]
     if figures:
         lines += ["## Figures", ""]

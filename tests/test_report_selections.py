@@ -424,6 +424,31 @@ def test_the_monte_carlo_table_gives_order_statistics_not_quantiles(tmp_path):
     assert "percentile |" not in table
 
 
+def test_the_iteration_section_takes_the_worst_step_of_every_plant_beside_the_cap():
+    """Each cell is the plant's worst episode, the headline names the run's worst and where,
+    rows without a solver are left out, and each row's cap is its own setting."""
+    from benchmarks.report import solver_iterations_section
+
+    result = _result(("pid", "mpc", "nmpc"), ("sine-10Hz", "steps"), ("nominal", "bench"))
+    worst = {("nominal", "mpc"): 4, ("bench", "mpc"): 17, ("nominal", "nmpc"): 6}
+    for e in result.episodes:
+        key = (e["plant"], e["controller"])
+        if e["controller"] == "pid":
+            e["solver_iterations_max"] = None
+        elif key in worst:
+            e["solver_iterations_max"] = worst[key] - (e["reference"] == "sine-10Hz")
+    result.controllers["mpc"]["settings"]["max_iter"] = 50
+    result.controllers["nmpc"]["settings"].update(max_qp_iterations=70, sqp_iterations=2)
+    text = solver_iterations_section(result)
+    assert "| plant | mpc | nmpc |" in text and "pid" not in text
+    assert "| nominal | 4 | 6 |" in text and "| bench | 17 | - |" in text
+    assert "`mpc` 17 (bench, steps); `nmpc` 6 (nominal, steps)" in text
+    assert "`mpc`: 50;" in text and "`nmpc`: 70 per QP, 2 QPs a step" in text
+    for e in result.episodes:
+        e["solver_iterations_max"] = None
+    assert solver_iterations_section(result) == ""
+
+
 def test_controller_tables_are_readable():
     from benchmarks.descriptions import controller_tables, loop_table
 
