@@ -653,8 +653,8 @@ def _disclosure_lines(result: BenchmarkResult) -> list[str]:
     return [
         "Who gets what: `pid` and `pid-notch` use only the error r_t+1 - y_t (no preview, no "
         "model inverse); `pid-ff` adds the model-inverse feedforward of r_t+1 (one sample of "
-        "preview); `mpc` and `nmpc` predict over the whole preview with the model, `mpc` with "
-        "the static gain it learns from the first sample within the datasheet's +-20 %; "
+        "preview); `mpc` and `nmpc` predict over the whole preview with the model and the "
+        "static gain they learn from the first sample within the datasheet's +-20 %; "
         "`mpc-adaptive` is `mpc` that also learns which first resonance and damping of the "
         "datasheet's tolerance box the bender has, from a set of models built beforehand, each "
         "episode starting from the identified model (`adaptation.png`); the PIDs are tuned "

@@ -52,7 +52,6 @@ from typing import Any
 import numpy as np
 
 from controllers.box_qp import DAQP_STATUS, BoxQP, box_qp, solver_version, within
-from controllers.gain import GainEstimate
 from controllers.native import daqp_box, fused_step
 from controllers.native.codegen import NativeBuild
 from controllers.native.compiled_inverse import STATUS_NAMES
@@ -64,7 +63,6 @@ from controllers.settings import (
     GAIN_TOLERANCE,
     PROCESS_STD,
     check_settings,
-    measurement_std,
 )
 from controllers.tolerance_box import RESONANCE_TOLERANCE
 from identification.correction import first_mode_pole
@@ -331,58 +329,6 @@ class LinearMPC(PredictiveController):
         self._u_prev = float(np.float32(start.u))
         self._restart_gain(start.x)
         self._bind_fused()
-
-    def _gain_estimate(self) -> GainEstimate | None:
-        """The gain estimate of the model (None with ``gain_tolerance`` 0)."""
-        settings = self.settings
-        if settings.gain_tolerance == 0:
-            return None
-        return GainEstimate(
-            self.model.a,
-            self.model.b,
-            self.model.c,
-            tolerance=settings.gain_tolerance,
-            **self._gain_noise(),
-        )
-
-    def _gain_noise(self) -> dict[str, float]:
-        """The gain estimate's noise: the sensor's standard deviation (the floor of the
-        residual's), and the bound of the exact set, the sensor's plus the model's proven
-        error bound."""
-        return {
-            "noise_std": measurement_std(self.settings.measurement_std, self.task),
-            "noise_bound": self.task.noise_bound_um + self.model.error_bound_um,
-        }
-
-    def _restart_gain(self, x0: np.ndarray) -> None:
-        """The gain back at the model's (1), learned afresh from the model's state ``x0``."""
-        self._g = 1.0
-        self._member = 0  # which linear part of the gain estimate the MPC predicts with
-        if self._gain is not None:
-            self._gain.reset(x0)
-
-    @property
-    def gain(self) -> float:
-        """The plant's gain relative to the model the MPC predicts with now (-)."""
-        return self._g
-
-    @property
-    def gain_set(self) -> tuple[float, float]:
-        """The gain's 95 % credible set within the datasheet's (-, relative to the model)."""
-        if self._gain is None:
-            return (1.0, 1.0)
-        return float(self._gain.low[self._member]), float(self._gain.high[self._member])
-
-    @property
-    def set_invalidated_step(self) -> int | None:
-        """The step (from 0) of this episode at which the data invalidated the model at the
-        sensor's noise bound: no gain in the datasheet's interval, with the model (or any
-        member of the set the MPC predicts from), explains every measurement to within the
-        bound (the exact sets of :class:`controllers.gain.GainEstimate`). None while some
-        does, and without a gain estimate."""
-        if self._gain is None or not np.all(self._gain.emptied_at > 0.0):
-            return None
-        return int(self._gain.emptied_at.max()) - 1
 
     def _update_gain(self, y: float) -> None:
         """Learn the gain from the measurement y (um) and predict with its new value."""

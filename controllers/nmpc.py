@@ -11,6 +11,14 @@ Cost and constraints over ``u = (u_t .. u_t+N-1)`` (V), targets r_t+1 .. r_t+N (
     min  w sum_k (y_t+k - r_t+k)^2 + lambda sum_k (u_t+k - u_t+k-1)^2,   |u_t+k| <= u_max
                                                       (|u_t+k - u_t+k-1| <= S dt, slew limit)
 
+**The bender's static gain** (``gain_tolerance``, :mod:`controllers.gain`): a bender bought to
+the datasheet answers ``g`` times the model's deflection, g within +-20 %. The NMPC learns g from
+the first sample, as the linear MPC does, and tracks the reference over g (it reads the
+measurement and the preview over g: :meth:`NonlinearMPC._learn_gain`); nothing else changes.
+Without it, the model's gain error is left to the output-disturbance observer, which follows a
+reference-shaped error only as fast as it dares near the resonance
+(``benchmarks/results/design_measurements.md`` measures both on the box's corners).
+
 **Amplifier slew limit** (``task.slew_limit`` = S, V/s; :class:`controllers.task.ControlTask`).
 The voltage is the decision variable here, so the limit is linear and exact on every move: the
 first move's bounds are the window u_t-1 +- S dt within the drive range, and the later moves
@@ -70,7 +78,7 @@ from controllers.native.codegen import NativeBuild
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
-from controllers.settings import DISTURBANCE_STD, PROCESS_STD, check_settings
+from controllers.settings import DISTURBANCE_STD, GAIN_TOLERANCE, PROCESS_STD, check_settings
 
 __all__ = ["KEPT", "NMPCSettings", "NonlinearMPC"]
 
@@ -138,6 +146,11 @@ class NMPCSettings:
         IPOPT iteration cap; reaching it is a fallback.
     ipopt_max_cpu_time : float
         IPOPT CPU-time cap per step (s); reaching it is a fallback.
+    gain_tolerance : float
+        Relative half-width w (-) of the plant's static gain around the model's, as
+        :class:`controllers.mpc.MPCSettings`': the NMPC learns the gain inside [1 - w, 1 + w]
+        from the first sample and tracks the reference over it (:meth:`NonlinearMPC._learn_gain`).
+        0: predict with the model's gain.
     """
 
     horizon: int = 20
@@ -160,6 +173,7 @@ class NMPCSettings:
     shortcut: bool = True
     ipopt_max_iter: int = 100
     ipopt_max_cpu_time: float = 1.0
+    gain_tolerance: float = GAIN_TOLERANCE
 
     def __post_init__(self) -> None:
         if self.solver not in _SOLVERS:
@@ -169,7 +183,7 @@ class NMPCSettings:
         check_settings(
             self,
             integers=("horizon", "sqp_iterations", "max_qp_iterations", "ipopt_max_iter"),
-            non_negative=("rate_weight", "process_std", "step_tolerance"),
+            non_negative=("rate_weight", "process_std", "step_tolerance", "gain_tolerance"),
             positive=(
                 "tracking_weight",
                 "disturbance_std",
@@ -178,6 +192,10 @@ class NMPCSettings:
                 "ipopt_max_cpu_time",
             ),
         )
+        if not self.gain_tolerance < 1.0:
+            raise ValueError(
+                f"gain_tolerance must be < 1 (a relative half-width), got {self.gain_tolerance!r}"
+            )
 
 
 def make_horizon(
@@ -220,6 +238,7 @@ class NonlinearMPC(PredictiveController):
         self._lower = np.full(settings.horizon, -self._u_max)
         self._upper = np.full(settings.horizon, self._u_max)
         self._kernel, self._kernel_build = self._iteration_kernel()
+        self._gain = self._gain_estimate()
         if self._kernel is None and settings.solver == "rti":
             # The numpy path's iterations run the horizon: built here, not inside a step.
             # (ipopt builds its own NLP; the horizon then serves only predict_deflection().)
@@ -280,8 +299,11 @@ class NonlinearMPC(PredictiveController):
             )
         self._plan = np.full(s.horizon, start.u)
         self._u_prev = float(np.float32(start.u))
+        self._restart_gain(start.x)
 
     def _act(self, observation: np.ndarray) -> float:
+        if self._gain is not None:
+            observation = self._learn_gain(observation)
         estimate = self.observer.correct(float(observation[0]))
         if self._kernel is not None:
             low, high = self._slew_window()
@@ -314,8 +336,29 @@ class NonlinearMPC(PredictiveController):
             self._kernel.plan[:] = plan
             z = self._kernel.apply(u)
         self.observer.predict(z)
+        if self._gain is not None:
+            self._gain.advance(z)
         self._u_prev = u
         return u
+
+    def _learn_gain(self, observation: np.ndarray) -> np.ndarray:
+        """Learn the gain g from the measurement and return the observation over g.
+
+        The plant answers ``g G(z)`` where the model says ``G(z)`` (:mod:`controllers.gain`),
+        so tracking r on it is tracking r / g on the model: the NMPC reads the measurement and
+        the preview over g, and its horizon, its voltage bounds and slew limit, its memory and
+        its plan stay as they are (the linear MPC folds g into its input z instead, which its
+        QP plans in). When g changes, the observer's output estimate is carried to the new
+        scale (:meth:`controllers.observer.ObserverBank.rescale_output`). While the credible
+        set holds the model's gain, g is exactly 1 and the step is the one without learning,
+        to the bit."""
+        gain = self._gain
+        gain.update(float(observation[0]))
+        g = float(gain.value[0])
+        if g != self._g:
+            self.observer.rescale_output(self._g / g)
+            self._g = g
+        return observation if g == 1.0 else observation / g
 
     def predict_deflection(
         self,

@@ -64,6 +64,7 @@ __all__ = [
     "DisturbanceObserver",
     "ObserverBank",
     "make_observer",
+    "rescale_output_states",
     "rescale_states",
     "state_scale_of",
 ]
@@ -186,6 +187,12 @@ class DisturbanceObserver:
         :mod:`controllers.gain`): x scales with it, and d takes the difference so that the
         output estimate C x + d, which the measurements set, stays where it is."""
         rescale_states(self.estimate[None, :], self.c_aug, self.n, ratio)
+
+    def rescale_output(self, ratio: float) -> None:
+        """The measurements are now ``ratio`` times the old ones (read over a new gain
+        estimate, :class:`controllers.nmpc.NonlinearMPC`): x, driven by the same input, stays,
+        and d takes the change of the output estimate C x + d."""
+        rescale_output_states(self.estimate[None, :], self.c_aug, self.n, ratio)
 
     def slowest_pole_hz(self, dt: float) -> float:
         """Decay rate of the slowest observer pole, -ln|p| / (2 pi dt) (Hz), for reports.
@@ -710,6 +717,10 @@ class ObserverBank:
         """Every filter's :meth:`DisturbanceObserver.rescale_input`."""
         rescale_states(self._estimates, self.c_aug, self.n, ratio)
 
+    def rescale_output(self, ratio: float) -> None:
+        """Every filter's :meth:`DisturbanceObserver.rescale_output`."""
+        rescale_output_states(self._estimates, self.c_aug, self.n, ratio)
+
     def slowest_pole_hz(self, dt: float) -> float:
         """The prior filter's slowest-pole decay rate (Hz), for reports; see
         :meth:`DisturbanceObserver.slowest_pole_hz`."""
@@ -743,6 +754,14 @@ def rescale_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: floa
     output = estimates[:, :n] @ c_aug[:n]
     estimates[:, :n] *= ratio
     estimates[:, n] -= (ratio - 1.0) * output
+
+
+def rescale_output_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: float) -> None:
+    """In place, on rows ``[x; d (; s)]``: the output estimate C x + d times ``ratio`` with x
+    kept (d takes the change; a slope s of d scales with it)."""
+    output = estimates[:, :n] @ c_aug[:n]
+    estimates[:, n] = ratio * (output + estimates[:, n]) - output
+    estimates[:, n + 1 :] *= ratio
 
 
 def make_observer(model: Any, task: Any, settings: Any) -> DisturbanceObserver | ObserverBank:

@@ -3,8 +3,9 @@
 Both predict the deflection over the horizon with the condensed linear part
 (:mod:`controllers.condensed`), estimate ``[x; d]`` with the offset-free observer
 (:mod:`controllers.observer`), penalise the rate of their plan (z for
-:class:`controllers.mpc.LinearMPC`, volts for :class:`controllers.nmpc.NonlinearMPC`), and
-start each episode from the model's steady state that holds the first measurement:
+:class:`controllers.mpc.LinearMPC`, volts for :class:`controllers.nmpc.NonlinearMPC`), learn the
+bender's static gain from the first sample (:mod:`controllers.gain`), and start each episode
+from the model's steady state that holds the first measurement:
 
 - within the sensor noise bound, rest at 0 V (the measurement is noise);
 - beyond it (an env reset with ``initial_voltage``), the linear state holding y_0 and the
@@ -31,10 +32,11 @@ from controllers.condensed import (
     qp_matrices,
     rate_hessian,
 )
+from controllers.gain import GainEstimate
 from controllers.loop import feedback_law, modulus_margins, radii_matrix
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
-from controllers.settings import MS_MAX
+from controllers.settings import MS_MAX, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import ToleranceBox, vertex_models
 from piezo_env.memo import ContentCache
@@ -170,6 +172,9 @@ class PredictiveController(Controller):
     """
 
     Settings: ClassVar[type]
+    _gain: GainEstimate | None = None  # set by a subclass's _set_up where it learns the gain
+    _g = 1.0  # the gain it predicts with, relative to its model's
+    _member = 0  # which linear part of the gain estimate it predicts with
 
     def __init__(
         self,
@@ -332,3 +337,55 @@ class PredictiveController(Controller):
     def _start(self, start: SteadyStart) -> None:
         """Set the plan and the solver for an episode that starts at ``start``."""
         raise NotImplementedError
+
+    def _gain_estimate(self) -> GainEstimate | None:
+        """The gain estimate of the model (None with ``gain_tolerance`` 0)."""
+        settings = self.settings
+        if settings.gain_tolerance == 0:
+            return None
+        return GainEstimate(
+            self.model.a,
+            self.model.b,
+            self.model.c,
+            tolerance=settings.gain_tolerance,
+            **self._gain_noise(),
+        )
+
+    def _gain_noise(self) -> dict[str, float]:
+        """The gain estimate's noise: the sensor's standard deviation (the floor of the
+        residual's), and the bound of the exact set, the sensor's plus the model's proven
+        error bound."""
+        return {
+            "noise_std": measurement_std(self.settings.measurement_std, self.task),
+            "noise_bound": self.task.noise_bound_um + self.model.error_bound_um,
+        }
+
+    def _restart_gain(self, x0: np.ndarray) -> None:
+        """The gain back at the model's (1), learned afresh from the model's state ``x0``."""
+        self._g = 1.0
+        self._member = 0  # which linear part of the gain estimate the MPC predicts with
+        if self._gain is not None:
+            self._gain.reset(x0)
+
+    @property
+    def gain(self) -> float:
+        """The plant's gain relative to the model the MPC predicts with now (-)."""
+        return self._g
+
+    @property
+    def gain_set(self) -> tuple[float, float]:
+        """The gain's 95 % credible set within the datasheet's (-, relative to the model)."""
+        if self._gain is None:
+            return (1.0, 1.0)
+        return float(self._gain.low[self._member]), float(self._gain.high[self._member])
+
+    @property
+    def set_invalidated_step(self) -> int | None:
+        """The step (from 0) of this episode at which the data invalidated the model at the
+        sensor's noise bound: no gain in the datasheet's interval, with the model (or any
+        member of the set the MPC predicts from), explains every measurement to within the
+        bound (the exact sets of :class:`controllers.gain.GainEstimate`). None while some
+        does, and without a gain estimate."""
+        if self._gain is None or not np.all(self._gain.emptied_at > 0.0):
+            return None
+        return int(self._gain.emptied_at.max()) - 1
