@@ -12,7 +12,8 @@ floor) and ``mpc, model's gain`` the MPC that predicts with the identified gain
 (``gain_tolerance=0``), without learning the plant's gain; ``mpc-adaptive, datasheet set`` the
 adaptive MPC whose set moves the identified model by the datasheet's physics
 (``member_set="datasheet"``, :func:`controllers.tolerance_box.datasheet_model`) instead of
-mode by mode. Whole 2 s episodes, seed 0, noise on, preview 20; RMSE in % of the full
+mode by mode; ``nmpc`` the nonlinear MPC, which learns the gain as ``mpc`` does. Whole 2 s
+episodes, seed 0, noise on, preview 20; RMSE in % of the full
 stroke, and for the adaptive rows the RMSE over the
 second half and two settling times in parentheses: when the RMS error over 50 ms windows last
 came within twice the episode's own second half
@@ -51,6 +52,7 @@ ROWS = {
     "mpc": ("mpc", {}),
     "mpc-adaptive": ("mpc-adaptive", {}),
     "mpc-adaptive, datasheet set": ("mpc-adaptive", {"member_set": "datasheet"}),
+    "nmpc": ("nmpc", {}),
     "pid-notch": ("pid-notch", {}),
     "pid-ff": ("pid-ff", {}),
 }
