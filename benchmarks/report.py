@@ -407,9 +407,9 @@ def set_invalidation_section(result: BenchmarkResult) -> str:
     """In how many episodes, and at which step (median), the data invalidated each MPC's model
     at the sensor's noise bound: no gain in the datasheet's interval, with the model or any
     member of its set, explained every measurement to within the bound
-    (:attr:`controllers.mpc.LinearMPC.set_invalidated_step`). A row appears once the data
-    invalidated its model in some episode (then "0 of n" where they did not); empty when
-    they never did (or no row learns a gain)."""
+    (:attr:`controllers.predictive.PredictiveController.set_invalidated_step`). A row appears
+    once the data invalidated its model in some episode (then "0 of n" where they did not);
+    empty when they never did (or no row learns a gain)."""
     episodes: dict[tuple[str, str], list[int | None]] = {}
     for e in result.episodes:
         if "set_invalidated_step" in e:
@@ -487,7 +487,7 @@ def solver_iterations_section(result: BenchmarkResult) -> str:
     )
 
     def cap(row: str) -> str:
-        settings = result.controllers.get(row, {}).get("settings", {})
+        settings = (result.controllers.get(row) or {}).get("settings") or {}
         if settings.get("solver") == "ipopt":
             return f"`{row}`: IPOPT's {settings.get('ipopt_max_iter', '-')}"
         if "max_qp_iterations" in settings:
@@ -502,9 +502,10 @@ def solver_iterations_section(result: BenchmarkResult) -> str:
     return (
         "### Solver iterations over every plant\n\n"
         "The worst step's solver iterations per plant, over every episode of the run (the "
-        "effort table above gives the nominal plant's): for the linear MPCs DAQP's (one "
-        "iteration adds or removes one active constraint, a few rank-one updates of a 20 x 20 "
-        "factor), for `nmpc` the sum over its SQP iterations' QPs. Worst over the run: "
+        "effort table above gives one plant's), each row's solver as its description below "
+        "names it: a QP solver's summed over a step's QPs (one for the linear MPCs, up to "
+        "`sqp_iterations` for `nmpc`; a DAQP iteration adds or removes one active constraint, "
+        "a few rank-one updates of a 20 x 20 factor), IPOPT's its own. Worst over the run: "
         f"{where}.\n\n"
         + _table(plants, rows, cell, "plant")
         + "\n\nThese are measured, not certified: DAQP's Python interface offers no offline "

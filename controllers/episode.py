@@ -39,7 +39,7 @@ class Episode:
         to its most robust filter (None if it did not, or has no bank), and
         ``set_invalidated_step``: the step at which the data invalidated the controller's
         model at the sensor's noise bound (None if they did not, or it learns no gain;
-        :attr:`controllers.mpc.LinearMPC.set_invalidated_step`).
+        :attr:`controllers.predictive.PredictiveController.set_invalidated_step`).
     controller : dict
         The controller's :meth:`~controllers.base.Controller.describe` and stats summary.
     """

@@ -60,7 +60,10 @@ How it acts on the controller (:class:`controllers.mpc.LinearMPC`): the model pr
 model driven by ``g z``: the QP plans ``z' = g z`` with bounds ``g [z_lo, z_hi]`` and the
 nonlinearity inverts ``z' / g``. When g changes, the observer's state (in units of z') is
 rescaled so that its output estimate stays where the measurements put it
-(:meth:`controllers.observer.DisturbanceObserver.rescale_input`).
+(:meth:`controllers.observer.DisturbanceObserver.rescale_input`). The nonlinear MPC
+(:class:`controllers.nmpc.NonlinearMPC`), which plans in volts through the whole model, reads
+the measurement and the preview over ``g`` instead, and carries its observer's output estimate
+to each new scale (:meth:`controllers.observer.DisturbanceObserver.rescale_output`).
 """
 
 from __future__ import annotations

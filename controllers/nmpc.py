@@ -351,7 +351,9 @@ class NonlinearMPC(PredictiveController):
         QP plans in). When g changes, the observer's output estimate is carried to the new
         scale (:meth:`controllers.observer.ObserverBank.rescale_output`). While the credible
         set holds the model's gain, g is exactly 1 and the step is the one without learning,
-        to the bit."""
+        to the bit. The observer keeps the sensor's noise level in um, so over g its noise model
+        is off by the factor g (within the datasheet's +-20 %), which the bank's noise levels,
+        a grid of factors of 3, do not resolve."""
         gain = self._gain
         gain.update(float(observation[0]))
         g = float(gain.value[0])
@@ -367,7 +369,8 @@ class NonlinearMPC(PredictiveController):
         disturbance: float = 0.0,
         state: np.ndarray | None = None,
     ) -> np.ndarray:
-        """The controller's prediction y_t+1 .. y_t+N (um) for the plan ``u`` (N,) (V).
+        """The model's prediction y_t+1 .. y_t+N (um) for the plan ``u`` (N,) (V), at the model's
+        gain (the controller tracks the reference over its learned :attr:`gain`).
 
         Parameters
         ----------

@@ -758,7 +758,9 @@ def rescale_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: floa
 
 def rescale_output_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: float) -> None:
     """In place, on rows ``[x; d (; s)]``: the output estimate C x + d times ``ratio`` with x
-    kept (d takes the change; a slope s of d scales with it)."""
+    kept (d takes the change). A slope s of d is scaled with it, which leaves out the change of
+    C x between samples that d' now also carries: exact without a slope state (the nonlinear
+    MPC's observer, the one caller, has none)."""
     output = estimates[:, :n] @ c_aug[:n]
     estimates[:, n] = ratio * (output + estimates[:, n]) - output
     estimates[:, n + 1 :] *= ratio
