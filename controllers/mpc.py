@@ -184,10 +184,6 @@ class MPCSettings:
                     f"{value}; or None (= horizon) or 'resonance' (one period of the first "
                     "resonance)"
                 )
-        if not self.gain_tolerance < 1.0:
-            raise ValueError(
-                f"gain_tolerance must be < 1 (a relative half-width), got {self.gain_tolerance!r}"
-            )
 
 
 class LinearMPC(PredictiveController):

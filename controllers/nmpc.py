@@ -192,10 +192,6 @@ class NMPCSettings:
                 "ipopt_max_cpu_time",
             ),
         )
-        if not self.gain_tolerance < 1.0:
-            raise ValueError(
-                f"gain_tolerance must be < 1 (a relative half-width), got {self.gain_tolerance!r}"
-            )
 
 
 def make_horizon(

@@ -84,7 +84,8 @@ def check_settings(
 
     ``integers`` must be integers >= 1, ``non_negative`` finite numbers >= 0, ``positive``
     finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um),
-    an ``observer`` field ``"bank"`` or ``"fixed"``, a ``bank_memory`` field an integer >= 1.
+    an ``observer`` field ``"bank"`` or ``"fixed"``, a ``bank_memory`` field an integer >= 1,
+    a ``gain_tolerance`` field (in ``non_negative``) below 1 (a relative half-width).
     """
     for name in integers:
         require_int(name, getattr(settings, name))
@@ -107,6 +108,10 @@ def check_settings(
         raise ValueError(f"observer must be 'bank' or 'fixed', got {observer!r}")
     if hasattr(settings, "bank_memory"):
         require_int("bank_memory", settings.bank_memory)
+    if not getattr(settings, "gain_tolerance", 0.0) < 1.0:
+        raise ValueError(
+            f"gain_tolerance must be < 1 (a relative half-width), got {settings.gain_tolerance!r}"
+        )
     value = getattr(settings, "measurement_std", None)
     if value is not None and not (number_at_least(value, 0.0) and value > 0):
         raise ValueError(f"measurement_std must be > 0 um or None, got {value!r}")
