@@ -214,6 +214,13 @@ class BenchmarkConfig:
                     f"{entry!r}: label=... names a row of your own controller, as "
                     "label=package.module:Factory"
                 )
+            if entry.removesuffix("-oracle") == "policy":
+                raise ValueError(
+                    f"{entry!r} is not a row of its own: a policy row is a trained policy's "
+                    "folder (piezo train-rl), given in policies (--policies DIR), one row per "
+                    "folder (on the command line the committed ones are also --controllers "
+                    "ppo,ppo-dr)"
+                )
             if entry.removesuffix("-oracle") not in CONTROLLERS:
                 raise ValueError(
                     f"unknown controller {entry!r}; valid: {', '.join(CONTROLLERS)} (each also "

@@ -87,7 +87,7 @@ from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer, rescale_states
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.predictive import filter_margins
-from controllers.settings import MS_MAX, check_settings, measurement_std
+from controllers.settings import MS_MAX, check_settings, damping_pair, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
     DAMPING_RANGE,
@@ -178,9 +178,7 @@ class AdaptiveMPCSettings(MPCSettings):
             raise ValueError(
                 f"resonance_tolerance must be < 1 (relative), got {self.resonance_tolerance!r}"
             )
-        low, high = self.damping_range
-        if not 0.0 < low <= high < 1.0:
-            raise ValueError(f"damping_range must satisfy 0 < low <= high < 1, got {(low, high)}")
+        object.__setattr__(self, "damping_range", damping_pair("damping_range", self.damping_range))
         if self.gain_tolerance == 0:
             raise ValueError(
                 "the adaptive MPC tells its models apart by their misfit at their learned gain: "

@@ -99,7 +99,7 @@ from controllers.pid_tuning import (
     tune_pid,
 )
 from controllers.prediction import PredictionModel
-from controllers.settings import GAIN_TOLERANCE
+from controllers.settings import GAIN_TOLERANCE, damping_pair
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
     DAMPING_RANGE,
@@ -241,18 +241,8 @@ class PIDController(Controller):
                 "resonance_tolerance", self.resonance_tolerance, low=0, high=1, high_open=True
             )
             if self.damping_range is not None:
-                pair = self.damping_range
-                if not (
-                    isinstance(pair, (tuple, list))
-                    and len(pair) == 2
-                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in pair)
-                    and 0.0 < pair[0] <= pair[1] < 1.0
-                ):
-                    raise ValueError(
-                        "damping_range must be None or (low, high) with 0 < low <= high < 1, "
-                        f"got {pair!r}"
-                    )
-                object.__setattr__(self, "damping_range", (float(pair[0]), float(pair[1])))
+                pair = damping_pair("damping_range (or None)", self.damping_range)
+                object.__setattr__(self, "damping_range", pair)
             require_number("derivative_filter_s", self.derivative_filter_s, low=0, low_open=True)
             require_number("antiwindup_gain", self.antiwindup_gain, low=0, high=1, low_open=True)
             require_number("inverse_regularization", self.inverse_regularization, low=0)

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from controllers.base import Controller
+from controllers.settings import number_at_least
 from controllers.task import ControlTask
 from piezo_env.wrappers import ObservationConfig
 
@@ -406,10 +407,10 @@ class PolicyController(Controller):
     ) -> None:
         super().__init__(task)
         self.settings = settings or self.Settings()
-        if abs(self.settings.initial_voltage) > task.u_max:
+        voltage = self.settings.initial_voltage
+        if not (number_at_least(voltage, -math.inf) and abs(voltage) <= task.u_max):
             raise ValueError(
-                f"initial_voltage must be within +-{task.u_max} V, got "
-                f"{self.settings.initial_voltage}"
+                f"initial_voltage must be a number within +-{task.u_max} V, got {voltage!r}"
             )
         self.policy = load_policy(model)
         self.name = name

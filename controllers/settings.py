@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 
 from controllers.task import ControlTask
 from piezo_env.checks import require_int
@@ -17,6 +18,7 @@ __all__ = [
     "QP_SOLVERS",
     "USABLE_OSQP_STATUS",
     "check_settings",
+    "damping_pair",
     "measurement_std",
     "number_at_least",
 ]
@@ -64,13 +66,30 @@ Prandtl-Ishlinskii plant's (``benchmarks/results/design_measurements.md``);
 
 
 def number_at_least(value: object, low: float) -> bool:
-    """True for a finite real number (not a bool) >= ``low``."""
+    """True for a finite real number (not a bool) >= ``low``: a Python or numpy int or float
+    (``numpy.float32(0.3)`` as ``0.3``)."""
     return (
-        isinstance(value, (int, float))
+        isinstance(value, numbers.Real)
         and not isinstance(value, bool)
         and math.isfinite(value)
         and value >= low
     )
+
+
+def damping_pair(name: str, value: object) -> tuple[float, float]:
+    """``value`` as a (low, high) pair of damping ratios with ``0 < low <= high < 1``, as
+    floats; a ValueError naming ``name`` otherwise (a tuple or list of two real numbers)."""
+    if not (
+        isinstance(value, (tuple, list))
+        and len(value) == 2
+        and all(number_at_least(v, 0.0) for v in value)
+        and 0.0 < value[0] <= value[1] < 1.0
+    ):
+        raise ValueError(
+            f"{name} must be a pair (low, high) of damping ratios with 0 < low <= high < 1, "
+            f"such as (0.01, 0.04), got {value!r}"
+        )
+    return float(value[0]), float(value[1])
 
 
 def check_settings(
@@ -84,7 +103,8 @@ def check_settings(
 
     ``integers`` must be integers >= 1, ``non_negative`` finite numbers >= 0, ``positive``
     finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um),
-    an ``observer`` field ``"bank"`` or ``"fixed"``, a ``bank_memory`` field an integer >= 1,
+    ``robust_bank`` and ``shortcut`` fields True or False, an ``observer`` field ``"bank"`` or
+    ``"fixed"``, a ``bank_memory`` field an integer >= 1,
     a ``gain_tolerance`` field (in ``non_negative``) below 1 (a relative half-width).
     """
     for name in integers:
@@ -97,9 +117,14 @@ def check_settings(
         value = getattr(settings, name)
         if not number_at_least(value, 0.0) or value == 0:
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    robust = getattr(settings, "robust_bank", True)
-    if not isinstance(robust, bool):
-        raise ValueError(f"robust_bank must be True or False, got {robust!r}")
+    for name in (*integers, *non_negative, *positive):  # numpy scalars as Python numbers
+        value = getattr(settings, name)
+        if hasattr(value, "item") and not isinstance(value, (int, float)):
+            object.__setattr__(settings, name, value.item())
+    for name in ("robust_bank", "shortcut"):
+        flag = getattr(settings, name, True)
+        if not isinstance(flag, bool):
+            raise ValueError(f"{name} must be True or False, got {flag!r}")
     solver = getattr(settings, "qp_solver", "daqp")
     if solver not in QP_SOLVERS:
         raise ValueError(f"qp_solver must be one of {QP_SOLVERS}, got {solver!r}")

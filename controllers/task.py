@@ -120,8 +120,15 @@ class ControlTask:
         ------
         ValueError
             If the env has no reference in its observation (a tracking controller needs one),
-            or a wrapper changes its observation or action space.
+            a wrapper changes its observation or action space, or it is a vector env.
         """
+        if hasattr(env, "num_envs") and hasattr(env, "single_observation_space"):
+            raise ValueError(
+                f"{type(env).__name__} is a vector env of {env.num_envs} benders; a controller "
+                "acts on one: build it from a single env, e.g. "
+                "gym.make('piezo_env:PiezoBender-v0', preview=20) with the same keywords, and "
+                "run one controller per bender"
+            )
         base = env.unwrapped
         if env.observation_space != base.observation_space or env.action_space != base.action_space:
             raise ValueError(

@@ -242,6 +242,11 @@ class IdentificationConfig:
             raise ValueError(f"play_radii must be one of {PLAY_RADII}, got {self.play_radii!r}")
         if self.rate not in RATES:
             raise ValueError(f"rate must be one of {RATES}, got {self.rate!r}")
+        if self.rate == "on" and self.features in ("past-inputs", "bouc-wen"):
+            raise ValueError(
+                f"rate='on' makes the play operators rate-dependent, and features="
+                f"{self.features!r} has none: set features='play' (or 'auto'), or rate='off'"
+            )
         if self.rate == "on" and self.play_radii != "learned":
             raise ValueError(
                 "rate='on' learns its rate constant with the play radii: set "

@@ -46,12 +46,24 @@ def _option(text: str) -> tuple[str, str, object]:
     words = {"true": True, "false": False, "none": None}
     if raw.strip().lower() in words:
         return row, key, words[raw.strip().lower()]
+    number = _number(raw)
+    if number is not None:
+        return row, key, number
+    if "," in raw:  # a pair or list of numbers, such as damping_range=0.01,0.04
+        numbers = [_number(part) for part in raw.split(",")]
+        if all(n is not None for n in numbers):
+            return row, key, tuple(numbers)
+    return row, key, raw
+
+
+def _number(text: str) -> int | float | None:
+    """``text`` as an int, else as a float; None if it is neither."""
     for kind in (int, float):
         try:
-            return row, key, kind(raw)
+            return kind(text)
         except ValueError:
             pass
-    return row, key, raw
+    return None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -182,7 +194,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=_option,
         metavar="ROW.KEY=VALUE",
         help="an option of one controller row, e.g. mpc.horizon=10 or MyController.gain=2 "
-        "(repeatable; numbers, true/false and none are read as such, anything else as text)",
+        "(repeatable; numbers, true/false and none are read as such, numbers separated by "
+        "commas as a tuple, e.g. mpc-adaptive.damping_range=0.01,0.04, anything else as text)",
     )
     parser.add_argument(
         "--retries",

@@ -83,8 +83,9 @@ class TaskConfig:
     reference_band : (float, float)
         Frequency band ``(low, high)`` (Hz) of the named references' sines and triangles (drawn
         log-uniform in it) and multisines (tones spread over it); steps and arrays ignore it.
-        0 < low <= high <= 0.25 / dt; the default (0.5, 20) is always accepted (its top is cut
-        to 0.25 / dt at a coarser dt). Stored as a tuple of two floats.
+        0 < low <= high <= 0.25 / dt; the default (0.5, 20) is accepted at any dt (its top is
+        cut to 0.25 / dt at a coarser dt), but a named random reference is refused at a dt so
+        coarse that the cut band is empty (dt > 0.5 s). Stored as a tuple of two floats.
     preview : int or None
         Future reference samples in the observation, integer >= 0. None (the default) becomes
         1 with a reference and 0 without. With ``preview >= 1`` the observation holds r_{t+1},

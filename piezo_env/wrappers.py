@@ -394,7 +394,13 @@ class TrackingObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return self._history.observe(raw[None])[0], info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        voltage = action_to_voltage(action, self.config.u_max).reshape(1)
+        voltage = action_to_voltage(action, self.config.u_max)
+        if voltage.size != 1:
+            raise ValueError(
+                f"the action is one number in [-1, 1] (shape (1,) or a scalar), got shape "
+                f"{voltage.shape}"
+            )
+        voltage = voltage.reshape(1)
         raw, reward, terminated, truncated, info = self.env.step(voltage)
         self._history.push(slice(None), raw, info.get("voltage_V", float(voltage[0])))
         return self._history.observe(raw[None])[0], reward, terminated, truncated, info

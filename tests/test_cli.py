@@ -239,6 +239,20 @@ def no_output_folder(monkeypatch: pytest.MonkeyPatch) -> None:
         (["benchmark", "--model", MODEL, "--bender", "PL122"], ["identified on PL140.10"]),
         (["benchmark", "--model", MODEL, "--dt", "1e-4"], ["identified at dt = 0.001 s"]),
         (["benchmark", "--address", "auto"], ["--address is for --backend ray"]),
+        (
+            ["benchmark", "--model", MODEL, "--controllers", "mpc-adaptive",
+             "--option", "mpc-adaptive.damping_range=0.02"],
+            ["damping_range must be a pair (low, high)", "got 0.02"],
+        ),
+        (
+            ["benchmark", "--model", MODEL, "--controllers", "mpc-adaptive",
+             "--option", "mpc-adaptive.damping_range=0.04,0.01"],
+            ["damping_range must be a pair (low, high)", "got (0.04, 0.01)"],
+        ),
+        (["benchmark", "--model", MODEL, "--option", "mpc.shortcut=no"], ["shortcut", "'no'"]),
+        (["benchmark", "--model", MODEL, "--option", "nmpc.shortcut=none"], ["shortcut"]),
+        (["benchmark", "--model", MODEL, "--controllers", "policy"], ["--policies DIR"]),
+        (["identify", "--features", "bouc-wen", "--rate", "on"], ["features='play'"]),
         (["identify", "--records", "/nonexistent/records"], ["records.json: missing"]),
         (["identify", "--split", "0.5"], ["--split applies to --records"]),
         (["simulate", "--records", "/nonexistent/records"], ["records.json: missing"]),
@@ -256,6 +270,16 @@ def test_bad_calls_are_refused_before_the_output_folder_is_made(
     status, stdout, err = run_cli([*argv, "--out", str(out)], capsys)
     assert_refused(status, stdout, err, argv[0], *fragments)
     assert not (tmp_path / "new").exists()
+
+
+def test_an_option_of_comma_separated_numbers_is_a_tuple():
+    from piezo_cli.benchmark import _option
+
+    assert _option("mpc-adaptive.damping_range=0.01,0.04") == (
+        "mpc-adaptive", "damping_range", (0.01, 0.04)
+    )
+    assert _option("pid.damping_range=1,2") == ("pid", "damping_range", (1, 2))
+    assert _option("mine.label=a,b") == ("mine", "label", "a,b")  # not all numbers: text
 
 
 @pytest.mark.parametrize("name", ["PL140", "PL140.10", "pl140", "PL112.10"])

@@ -189,6 +189,27 @@ def test_bad_observations_and_options_are_refused(env):
         controllers.make("mcp", MODEL_DIR, env)
     with pytest.raises(ValueError, match="horizon"):
         controllers.make("mpc", MODEL_DIR, env, horizon=0)
+    for name in ("mpc", "mpc-adaptive", "nmpc"):  # a flag is a bool, not a truthy value
+        with pytest.raises(ValueError, match="shortcut must be True or False, got 'no'"):
+            controllers.make(name, MODEL_DIR, env, shortcut="no")
+    with pytest.raises(ValueError, match=r"damping_range must be a pair \(low, high\)"):
+        controllers.make("mpc-adaptive", MODEL_DIR, env, damping_range=0.02)
+    with pytest.raises(ValueError, match="a vector env of 2 benders"):
+        controllers.make(
+            "mpc", MODEL_DIR, gym.make_vec("piezo_env:PiezoBender-v0", num_envs=2, preview=20)
+        )
+
+
+def test_numpy_numbers_are_settings_as_python_numbers():
+    """A numpy scalar is the number it holds (a setting read from an array, a sweep's grid),
+    and the settings keep it as a Python number, so that describe() stays JSON."""
+    settings = MPCSettings(rate_weight=np.float32(0.25), horizon=np.int64(12))
+    assert settings.rate_weight == 0.25 and type(settings.rate_weight) is float
+    assert settings.horizon == 12 and type(settings.horizon) is int
+    with pytest.raises(ValueError, match="rate_weight"):
+        MPCSettings(rate_weight=np.float64(np.nan))
+    with pytest.raises(ValueError, match="rate_weight"):
+        MPCSettings(rate_weight=np.bool_(True))
 
 
 @pytest.mark.parametrize(

@@ -146,6 +146,9 @@ def test_registry_style_construction(trained):
         PolicyController(trained, ControlTask(dt=1e-3, u_max=30.0, stroke_um=1000.0, preview=2))
     with pytest.raises(ValueError, match="unknown option"):
         make_policy_controller(trained, gym.make(ENV_ID, preview=3), gain=2.0)
+    for voltage in (float("nan"), "5", 31.0):  # refused when built, not at the first act
+        with pytest.raises(ValueError, match="initial_voltage must be a number within"):
+            PolicyController(trained, task, PolicyController.Settings(initial_voltage=voltage))
 
 
 def _copy(src, dst):

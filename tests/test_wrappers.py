@@ -181,6 +181,8 @@ def test_bad_actions_and_envs_raise():
     env.reset(seed=0)
     with pytest.raises(ValueError, match="finite"):
         env.step(np.array([np.nan], np.float32))
+    with pytest.raises(ValueError, match=r"one number in \[-1, 1\].*shape \(2,\)"):
+        env.step(np.array([0.1, 0.2], np.float32))
     with pytest.raises(ValueError, match="no reference"):
         TrackingObservation(gym.make(ENV_ID, reference=None))
     with pytest.raises(ValueError, match="n_inputs"):
