@@ -22,6 +22,7 @@ seed sets differ. Cells only one run has are listed as added or removed.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +34,36 @@ __all__ = ["SAME_TASK", "compare_files", "compare_runs", "load_run"]
 
 
 def load_run(path: str | Path) -> dict[str, Any]:
-    """A benchmark.json, checked enough to compare (ValueError names what is wrong)."""
+    """A benchmark.json, checked enough to compare: its episodes, each with its cell's names,
+    a finite RMSE and integer seeds (ValueError names the file and what is wrong)."""
     try:
         data = json.loads(Path(path).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise ValueError(f"{path}: not a readable benchmark.json ({error})") from None
-    if not isinstance(data, dict) or "episodes" not in data.get("results", {}):
+    results = data.get("results") if isinstance(data, dict) else None
+    if not isinstance(results, dict) or not isinstance(results.get("episodes"), list):
         raise ValueError(f"{path}: no results.episodes: not a benchmark.json of piezo benchmark")
+    if not isinstance(results.get("config", {}), dict):
+        raise ValueError(f"{path}: results.config is not an object")
+    for i, episode in enumerate(results["episodes"]):
+        where = f"{path}: results.episodes[{i}]"
+        if not isinstance(episode, dict):
+            raise ValueError(f"{where} is not an object")
+        missing = [key for key in ("plant", "controller", "reference") if key not in episode]
+        if missing:
+            raise ValueError(f"{where} has no {', '.join(missing)}")
+        rmse = episode.get("rmse_percent")
+        if not (
+            isinstance(rmse, (int, float)) and not isinstance(rmse, bool) and math.isfinite(rmse)
+        ):
+            raise ValueError(f"{where}.rmse_percent is not a finite number: {rmse!r}")
+        for key in ("seed_index", "identification_seed"):
+            value = episode.get(key, 0)
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise ValueError(f"{where}.{key} is not an integer: {value!r}")
+    seed = results.get("config", {}).get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        raise ValueError(f"{path}: results.config.seed is not an integer: {seed!r}")
     return data
 
 

@@ -245,6 +245,8 @@ class ARXModel:
             raise ValueError(f"u must be one-dimensional, got shape {u.shape}")
         if not np.all(np.isfinite(u)):
             raise ValueError("u contains non-finite values")
+        if u.size == 0:  # no input, no output (scipy's filter refuses an empty one)
+            return np.empty(0)
         num, den = self._filter
         x = scipy.signal.lfilter(num, 1.0, u)
         if rng is not None:

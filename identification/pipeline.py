@@ -59,6 +59,7 @@ import os
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -85,7 +86,9 @@ from identification.outputs import (
 )
 from identification.records import (
     EXCITATION_FIELDS,
+    MANIFEST,
     Records,
+    RecordsError,
     read_manifest,
     read_records,
     records_from_arrays,
@@ -94,6 +97,7 @@ from identification.records import (
 from identification.report import format_free_run
 from identification.runner import StepRunner, step_runner
 from identification.steps import (
+    PAST_INPUTS_HOLD,
     ArxEstimate,
     HiddenSignal,
     LinearRefinement,
@@ -108,6 +112,7 @@ from identification.steps import (
     validate,
     warm_up,
 )
+from piezo_env.checks import require_int
 
 # collect, IdentificationConfig and write_outputs: the public names of their own modules,
 # importable from here as well (the command line and the benchmarks do)
@@ -236,6 +241,8 @@ def identify_records(
     """
     config = _settings(config, overrides)
     log = _StepLog(progress)
+    if seed is not None:
+        require_int("seed", seed, minimum=0)
     if isinstance(records, (str, os.PathLike)):
         records, config = read_records_folder(records, config, split=split)
     elif not isinstance(records, Records):
@@ -295,10 +302,19 @@ def read_records_folder(
     identification.records.RecordsError
         A malformed record (one line naming the file and the line or field).
     """
+    manifest = Path(folder) / MANIFEST
     excitation = read_manifest(folder).get("excitation")
-    if isinstance(excitation, dict):  # the signals the bench was driven with
+    if excitation is not None and not isinstance(excitation, dict):
+        raise RecordsError(
+            f"{manifest}: field 'excitation' must be an object (the settings piezo excite "
+            f"drew the inputs with) or null; got {excitation!r}"
+        )
+    if excitation:  # the signals the bench was driven with
         known = {k: v for k, v in excitation.items() if k in EXCITATION_FIELDS}
-        config = dataclasses.replace(config, **known)
+        try:
+            config = dataclasses.replace(config, **known)
+        except ValueError as error:
+            raise RecordsError(f"{manifest}: field 'excitation': {error}") from None
     return read_records(folder, config, split=split), config
 
 
@@ -487,8 +503,11 @@ def _nls_refinement_line(refinement: NlsRefinement) -> str:
             f"; play refined beside {choice['step_e']} "
             f"({choice['held_out_rms_um']['play']:.3f} um held out): {choice['kept']} kept"
         )
+    stages = "of the network, then of network and linear part"
+    if refinement.note == PAST_INPUTS_HOLD:
+        stages = "of the network, the linear part held"
     return (
-        f"e') output-error refinement of the network, then of network and linear part "
+        f"e') output-error refinement {stages} "
         f"({' + '.join(str(stage['iterations']) for stage in refinement.stages)} L-BFGS "
         f"iterations, {refinement.wall_time_s:.1f} s): free-run RMS on the training records "
         f"{training['before']:.3f} -> {training['after']:.3f} um, on the held-out selection "

@@ -43,6 +43,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -255,6 +256,10 @@ def records_from_arrays(
     where = dict(where or {})
     if isinstance(records, tuple):
         records = {"record": records}
+    if not (_is_number(dt) and dt > 0):
+        raise RecordsError(f"dt must be a positive number (s); got {dt!r}")
+    if not (isinstance(bender, str) and bender.strip()):
+        raise RecordsError(f"bender must name the bender, e.g. 'PL140'; got {bender!r}")
     low, high = _drive_range(drive_range_V, "drive_range_V")
     arrays = {}
     for name, (u, y) in records.items():
@@ -551,19 +556,24 @@ def read_records(
     }
     if split is not None:
         source["split"] = split
-    records = records_from_arrays(
-        arrays,
-        dt=dt,
-        drive_range_V=(low, high),
-        bender=str(manifest["bender"]),
-        config=config,
-        split=split,
-        datasheet=manifest.get("datasheet"),
-        noise_bound_um=None if noise is None else float(noise),
-        seed=int(manifest.get("seed", 0)),
-        source=source,
-        where=where,
-    )
+    try:
+        records = records_from_arrays(
+            arrays,
+            dt=dt,
+            drive_range_V=(low, high),
+            bender=manifest["bender"],
+            config=config,
+            split=split,
+            datasheet=manifest.get("datasheet"),
+            noise_bound_um=None if noise is None else float(noise),
+            seed=int(manifest.get("seed", 0)),
+            source=source,
+            where=where,
+        )
+    except RecordsError as error:  # what the listed records hold together: the manifest's
+        if str(error).startswith(str(folder)):
+            raise
+        raise RecordsError(f"{path}: {error}") from None
     plant = manifest.get("plant") or {}
     return dataclasses.replace(records, plant=dict(plant))
 
@@ -630,12 +640,28 @@ def _read_manifest(path: Path) -> dict[str, Any]:
             raise RecordsError(f"{path}: missing field {key!r}")
     if not isinstance(manifest["records"], dict) or not manifest["records"]:
         raise RecordsError(f"{path}: field 'records' must map record names to files")
+    bender = manifest["bender"]
+    if not (isinstance(bender, str) and bender.strip()):
+        raise RecordsError(
+            f"{path}: field 'bender' must name the bender, e.g. \"PL140\"; got {bender!r}"
+        )
     seed = manifest.get("seed", 0)
     if type(seed) is not int or seed < 0:
         raise RecordsError(f"{path}: field 'seed' must be a whole number >= 0; got {seed!r}")
     datasheet = manifest.get("datasheet")
-    if datasheet is not None and not _is_number(datasheet.get("free_deflection")):
-        raise RecordsError(f"{path}: field 'datasheet.free_deflection' must be a number (m)")
+    if datasheet is not None and not (
+        isinstance(datasheet, dict) and _is_number(datasheet.get("free_deflection"))
+    ):
+        raise RecordsError(
+            f"{path}: field 'datasheet' must be an object with 'free_deflection', a number (m), "
+            f"or null; got {datasheet!r}"
+        )
+    plant = manifest.get("plant")
+    if plant is not None and not isinstance(plant, dict):
+        raise RecordsError(
+            f"{path}: field 'plant' must be an object (what the records' plant was) or null; "
+            f"got {plant!r}"
+        )
     return manifest
 
 
@@ -667,18 +693,38 @@ def _read_columns(
     """The columns ``names`` of a record, and the offset from array index to the line number
     (2 for a CSV: the header is line 1; 0 for an NPZ, whose messages name the index)."""
     if path.suffix.lower() == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            missing = [c for c in names if c not in data.files]
-            if missing:
-                raise RecordsError(f"{path}: missing array(s) {', '.join(missing)}")
-            columns = {c: np.asarray(data[c], dtype=float) for c in names}
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                missing = [c for c in names if c not in data.files]
+                if missing:
+                    raise RecordsError(f"{path}: missing array(s) {', '.join(missing)}")
+                columns = {c: np.asarray(data[c], dtype=float) for c in names}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+            if isinstance(error, RecordsError):
+                raise
+            raise RecordsError(
+                f"{path}: not an NPZ of numeric arrays {', '.join(names)} ({error})"
+            ) from None
         for column, values in columns.items():
             if values.shape != columns["time_s"].shape or values.ndim != 1:
                 raise RecordsError(f"{path}: array {column} must be 1-D, as long as time_s")
             _check_finite(values, str(path), column, offset=0)
         return columns, 0
-    with path.open(encoding="utf-8-sig", newline="") as handle:
-        rows = list(csv.reader(handle))
+    try:
+        with path.open(encoding="utf-8-sig", newline="") as handle:
+            rows = list(csv.reader(handle))
+    except UnicodeDecodeError:
+        data = path.read_bytes()
+        try:  # the whole file at once, for the offset of the first bad byte in it
+            data.decode("utf-8")
+            start = 0
+        except UnicodeDecodeError as error:
+            start = error.start
+        line = data[:start].count(b"\n") + 1
+        raise RecordsError(
+            f"{path}, line {line}: not UTF-8 text (byte {data[start]:#04x}); save the record as "
+            "UTF-8 CSV"
+        ) from None
     if not rows:
         raise RecordsError(f"{path}: empty; expected the header {','.join(names)}")
     header = [cell.strip() for cell in rows[0]]

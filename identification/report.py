@@ -78,7 +78,10 @@ def _final_linear_part(report: dict[str, Any]) -> dict[str, Any] | None:
     if refined is not None and report["nls"]["output_error"].get("accepted"):
         return refined
     refinement = report.get("refinement")
-    return None if refinement is None else refinement["after"]
+    if refinement is None:
+        return None
+    # step b''s section holds the check frequencies once, beside its before and after
+    return {"frequencies_hz": refinement.get("frequencies_hz"), **refinement["after"]}
 
 
 def _rate_dependent(report: dict[str, Any]) -> bool:

@@ -26,7 +26,7 @@ from identification.experiment import (
     sample_time,
     step_seeds,
 )
-from identification.features import FEATURE_SETS, PlayFeatures
+from identification.features import FEATURE_SETS, PastInputFeatures, PlayFeatures
 from identification.hammerstein import HammersteinModel
 from identification.inversion import inverse_arx, inverse_error_bounds
 from identification.metrics import fit_metrics
@@ -691,6 +691,17 @@ def refine_nonlinearity(
     return result
 
 
+PAST_INPUTS_HOLD = (
+    "past-input features make the network a filter of the input: refined together, it and the "
+    "linear part trade dynamics (their split is not identifiable, the static gain included), "
+    "so the linear part is held"
+)
+"""Why step e' holds the linear part under past-input features (its ``note``): a Hammerstein
+model's static nonlinearity fixes the split of the gain and of the dynamics between its blocks;
+a network of past inputs does not, and a z no longer in equivalent volts gives the controllers
+wrong bounds on it (the case that showed it: ``benchmarks/results/design_measurements.md``)."""
+
+
 def _refine(
     start: HammersteinModel,
     records: list[tuple[np.ndarray, np.ndarray]],
@@ -703,15 +714,19 @@ def _refine(
     gain moved to the linear part (None when its small-signal gain is not positive) and that
     gain. A ``runner`` whose helper is idle evaluates one record's share of the objective
     (the same model to the bit, :mod:`identification.nls.record_terms`)."""
+    hold = isinstance(start.nls.feature_map, PastInputFeatures)
     fit = refine_nls_output_error(
         start.nls,
         start.arx,
         records,
         max_iterations=config.nls_refinement_iterations,
+        refine_linear=not hold,
         radius_iterations=RADIUS_ITERATIONS if config.play_radii == "learned" else 0,
         learn_rate=learn_rate,
         beside=runner if runner is not None and runner.idle else None,
     )
+    if hold:
+        fit = replace(fit, linear_note=PAST_INPUTS_HOLD)
     gain = _small_signal_gain(HammersteinModel(fit.nls, fit.arx), records[0][0])
     if not (np.isfinite(gain) and gain > 0):
         return fit, None, gain

@@ -36,6 +36,11 @@ def test_simulate_matches_the_difference_equation():
     )
 
 
+def test_simulate_of_no_input_is_no_output():
+    model = ARXModel([0.5, -0.2, 0.1], [1.0, -0.4], noise_bound=0.1)
+    assert model.simulate(np.array([])).shape == (0,)
+
+
 def test_simulate_continues_from_given_initial_outputs():
     model = beam_like()
     u = np.random.default_rng(1).standard_normal(100)

@@ -305,7 +305,7 @@ def test_identify_sharing_step_e2_with_the_helper_gives_the_model_of_one_process
     from identification.nls.record_terms import new_key
     from identification.pipeline import identify
 
-    settings = {**FAST, "features": "past-inputs"}
+    settings = {**FAST, "features": "bouc-wen"}
     config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **settings)
     here = identify(config=config)
     _idle(beside)  # so that step e' shares its objective with it

@@ -92,6 +92,52 @@ def test_nls_refinement_lowers_the_held_out_error_and_is_reported(short_default_
     assert "step e'" in text and "Hammerstein before step e' (free run)" in text
 
 
+def test_the_report_of_a_run_whose_step_e_prime_was_not_kept(short_default_run):
+    """Refused, step e' leaves the model on step b''s linear part, and the report's scope
+    reads that part's response check (its frequencies are kept beside it, once for before and
+    after): the markdown is written, with that part's order and figures."""
+    import copy
+
+    from identification.report import markdown_report
+
+    report = copy.deepcopy(short_default_run.report)
+    report["nls"]["output_error"]["accepted"] = False
+    after = report["refinement"]["after"]
+    text = markdown_report(report, [])
+    line = next(line for line in text.splitlines() if "Its linear part (order" in line)
+    assert f"order {after['order']})" in line
+    pairs = zip(
+        report["refinement"]["frequencies_hz"], after["response_error_vs_plant"], strict=True
+    )
+    worst = max(e for f, e in pairs if f <= 100.0)
+    assert f"{100 * worst:.3f} % up to 100 Hz" in line
+
+
+def test_past_input_features_hold_the_linear_part_in_step_e_prime():
+    """A network of past inputs is a filter of the input, so step e' refining it together
+    with the linear part could trade dynamics and the static gain between the blocks (z would
+    leave equivalent volts): the linear part stays step b''s, the note and the progress line say
+    why, and the refined network keeps unit small-signal gain."""
+    from short_runs import FAST
+
+    from identification.steps import PAST_INPUTS_HOLD
+
+    lines: list[str] = []
+    config = IdentificationConfig(seed=2, **{**FAST, "features": "past-inputs"})
+    result = identify(config=config, progress=lines.append)
+    refinement = result.report["nls"]["output_error"]
+    assert refinement["note"] == PAST_INPUTS_HOLD
+    linear, held = result.data["arx_step_b2"], result.model.arx
+    np.testing.assert_array_equal(held.a, linear.a)  # the poles held; B only rescaled by the
+    ratio = held.b / linear.b  # gain moved back to the network's unit small-signal gain
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-12)
+    assert abs(ratio[0] - 1.0) < 0.1
+    assert "of the network, the linear part held" in next(
+        line for line in lines if line.startswith("e')")
+    )
+    assert refinement["small_signal_gain"] == pytest.approx(1.0, abs=1e-9)
+
+
 def test_without_nls_refinement_the_step_e_network_is_the_model():
     from short_runs import FAST
 

@@ -204,6 +204,43 @@ def test_a_missing_record_is_refused(measured, tmp_path, capsys):
     assert "missing record(s) rich" in err
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "fragment"),
+    [
+        ("datasheet", "PL140", "field 'datasheet' must be an object"),
+        ("plant", ["x"], "field 'plant' must be an object"),
+        ("bender", None, "field 'bender' must name the bender"),
+        ("excitation", "x", "field 'excitation' must be an object"),
+        ("excitation", {"validation_hold": "x"}, "field 'excitation': validation_hold"),
+    ],
+)
+def test_a_malformed_manifest_field_is_refused_naming_the_manifest(
+    field, value, fragment, measured, tmp_path, capsys
+):
+    folder = _copy(measured, tmp_path)
+    manifest = json.loads((folder / "records.json").read_text(encoding="utf-8"))
+    manifest[field] = value
+    (folder / "records.json").write_text(json.dumps(manifest), encoding="utf-8")
+    err = _refused(folder, tmp_path, capsys)
+    assert "records.json: " in err and fragment in err
+
+
+def test_a_record_that_is_not_utf8_or_not_an_npz_is_refused_naming_it(measured, tmp_path, capsys):
+    folder = _copy(measured, tmp_path)
+    data = (folder / "prbs.csv").read_bytes().splitlines(keepends=True)
+    data[4] = data[4].replace(b"\n", b" \xe9\n")
+    (folder / "prbs.csv").write_bytes(b"".join(data))
+    err = _refused(folder, tmp_path, capsys)
+    assert "prbs.csv, line 5: not UTF-8 text (byte 0xe9)" in err
+    folder = _copy(measured, tmp_path / "npz")
+    (folder / "prbs.npz").write_bytes(b"not a zip file")
+    manifest = json.loads((folder / "records.json").read_text(encoding="utf-8"))
+    manifest["records"]["prbs"] = "prbs.npz"
+    (folder / "records.json").write_text(json.dumps(manifest), encoding="utf-8")
+    err = _refused(folder, tmp_path, capsys)
+    assert "prbs.npz: not an NPZ of numeric arrays" in err
+
+
 def test_a_dt_that_disagrees_with_the_manifest_is_refused(measured, tmp_path, capsys):
     folder = _copy(measured, tmp_path)
     manifest = json.loads((folder / "records.json").read_text(encoding="utf-8"))
@@ -366,3 +403,15 @@ def test_arrays_identify_as_the_folder_they_were_read_from(measured, identified_
         np.testing.assert_array_equal(_model_arrays(from_arrays.model)[name], value)
     assert from_arrays.model.metadata["records"] == {"kind": "arrays"}
     assert from_arrays.model.metadata["datasheet"] == from_folder.model.metadata["datasheet"]
+
+
+def test_identify_records_refuses_bad_arguments_before_any_work():
+    """The Python API refuses what the command line refuses, before any step runs."""
+    u, y = np.zeros(1000), np.zeros(1000)
+    good = {"dt": 1e-3, "drive_range_V": (-30.0, 30.0), "bender": "PL140"}
+    with pytest.raises(ValueError, match="seed must be an integer >= 0, got -3"):
+        identify_records((u, y), split=0.7, seed=-3, **good)
+    with pytest.raises(RecordsError, match="dt must be a positive number"):
+        identify_records((u, y), split=0.7, **{**good, "dt": "0.001"})
+    with pytest.raises(RecordsError, match="bender must name the bender"):
+        identify_records((u, y), split=0.7, **{**good, "bender": 140})

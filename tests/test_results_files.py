@@ -64,3 +64,32 @@ def test_compare_flags_a_change_made_on_purpose_and_nothing_else(fresh, tmp_path
     status = main(["compare", str(fresh / "benchmark.json"),
                    str(tmp_path / "slower" / "benchmark.json"), "--strict"])
     assert status == 1 and "beyond the run-to-run noise" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("results", "fragment"),
+    [
+        (None, "no results.episodes"),
+        ("episodes", "no results.episodes"),
+        ({"episodes": [1]}, "results.episodes[0] is not an object"),
+        ({"episodes": [{"plant": "a", "controller": "b"}]}, "has no reference"),
+        ({"config": None, "episodes": []}, "results.config is not an object"),
+        ({"config": {"seed": "0"}, "episodes": []}, "results.config.seed is not an integer"),
+    ],
+)
+def test_compare_refuses_a_malformed_file_in_one_line(results, fragment, tmp_path, capsys):
+    good = ROOT / "docs" / "benchmark" / "benchmark.json"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"results": results}))
+    assert main(["compare", str(good), str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "bad.json" in err and fragment in err
+
+
+def test_compare_refuses_an_episode_without_a_finite_rmse(tmp_path, capsys):
+    data = json.loads((ROOT / "docs" / "benchmark" / "benchmark.json").read_text())
+    data["results"]["episodes"][3]["rmse_percent"] = None
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(data))
+    assert main(["compare", str(bad), str(ROOT / "docs" / "benchmark" / "benchmark.json")]) == 2
+    assert "results.episodes[3].rmse_percent is not a finite number" in capsys.readouterr().err
