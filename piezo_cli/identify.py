@@ -144,8 +144,15 @@ def summary(report: dict) -> str:
             + (", then with the network (step e')" if again else "")
             + ": the one the controllers use"
         )
+    rate = ""
+    stages = (report["nls"].get("output_error") or {}).get("stages") or []
+    if again and stages and "rate_time_s" in stages[0]:  # the plays' rate constant, learned
+        c = stages[0]["rate_time_s"]
+        rate = f", rate-dependent (c = {c:.3g} s)" if c > 0 else ", rate-independent"
+        if stages[0].get("rate_note"):
+            rate += f": {stages[0]['rate_note']}"
     lines += [
-        f"NLS memory features: {nls['features']} ({how})",
+        f"NLS memory features: {nls['features']} ({how}){rate}",
         f"validation on {validation['signal']}, free run:",
     ]
     for name, label in (("hammerstein", "Hammerstein model"), ("linear_arx", "linear ARX alone")):

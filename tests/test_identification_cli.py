@@ -47,3 +47,18 @@ def test_summary_says_whether_the_features_were_chosen(report):
     assert "(chosen on a selection record)" in summary(report)
     asked = {**report, "config": {**report["config"], "features": "play"}}
     assert "(as asked)" in summary(asked)
+
+
+def test_summary_says_what_became_of_a_rate_constant(report):
+    """A learned rate constant is in the summary: set to 0 when the records cannot determine
+    it (so that --rate on never ends silently rate-independent), else its value."""
+    import copy
+
+    assert "rate-" not in summary(report)  # no rate learned: nothing said
+    learned = copy.deepcopy(report)
+    first = learned["nls"]["output_error"]["stages"][0]
+    first.update(rate_time_s=0.0, rate_note="the records do not determine the rate constant")
+    line = next(x for x in summary(learned).splitlines() if "NLS memory features" in x)
+    assert line.endswith("rate-independent: the records do not determine the rate constant")
+    first.update(rate_time_s=2.5e-4, rate_note=None)
+    assert "rate-dependent (c = 0.00025 s)" in summary(learned)
