@@ -40,11 +40,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 __all__ = [
     "CHECKPOINT",
     "SCHEMA",
     "Checkpoint",
     "CheckpointMismatch",
+    "plain_json",
     "run_identity",
     "write_text_atomic",
 ]
@@ -342,7 +345,7 @@ class Checkpoint:
             ``output`` as it reads back from the checkpoint: what a resumed run gets too.
         """
         record = {"digest": self.digest, "group": list(group), "output": output}
-        line = (json.dumps(record, separators=(",", ":")) + "\n").encode()
+        line = (json.dumps(record, separators=(",", ":"), default=plain_json) + "\n").encode()
         descriptor = os.open(self.path, os.O_WRONLY | os.O_APPEND)
         try:
             written = os.write(descriptor, line)
@@ -379,3 +382,17 @@ def _parse(line: str, path: Path, number: int) -> dict[str, Any]:
             "choose another --out"
         )
     return value
+
+
+def plain_json(value: Any) -> Any:
+    """A numpy value as the Python one it holds (a user's ``describe()`` may return
+    ``numpy.float32(1.5)`` or an array); anything else that JSON has no type for is refused,
+    naming the type."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(
+        f"{type(value).__name__} {value!r} is not JSON: a controller's describe() returns "
+        "numbers, strings, booleans, None, lists and dicts (numpy values are converted)"
+    )

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from benchmarks.plants import sample_time
+from benchmarks.plants import EPISODE_S, sample_time
 from benchmarks.references import REFERENCES
-from benchmarks.runner import BenchmarkResult
+from benchmarks.runner import BenchmarkConfig, BenchmarkResult
 from benchmarks.verdict import cell_index
 
 __all__ = [
@@ -117,12 +117,39 @@ CHECKED_BENDER = "PL140"
 """The bender the checks were set on, at its default sample time (benchmarks.plants.sample_time)."""
 
 
-def checks_apply(result: BenchmarkResult) -> bool:
-    """Whether the run is on the checks' bender at its default sample time."""
+DEFAULT_PREVIEW = BenchmarkConfig.preview
+"""The preview (samples) of the default run the checks were set on."""
+
+
+def _settings_departures(result: BenchmarkResult) -> list[str]:
+    """How the run's settings depart from the default run the checks were set on, bender and
+    sample time aside (empty: they do not)."""
+    config = result.config
+    bender = str(getattr(config, "bender", CHECKED_BENDER)).split(".")[0]
+    dt = float(getattr(config, "dt", None) or sample_time(bender))
+    out = []
+    steps = getattr(config, "steps", None)
+    if steps is not None and steps != round(EPISODE_S / dt):
+        out.append(f"its episodes are {steps} steps, not {EPISODE_S:g} s")
+    if getattr(config, "preview", DEFAULT_PREVIEW) != DEFAULT_PREVIEW:
+        out.append(f"its preview is {config.preview} samples, not {DEFAULT_PREVIEW}")
+    options = sorted(getattr(config, "controller_options", None) or {})
+    if options:
+        out.append(f"it sets options of {', '.join(options)}")
+    return out
+
+
+def _on_checked_bender(result: BenchmarkResult) -> bool:
     bender = str(getattr(result.config, "bender", CHECKED_BENDER))
     dt = getattr(result.config, "dt", None)
     same_dt = dt is None or abs(dt - sample_time(CHECKED_BENDER)) <= 1e-12
     return bender.split(".")[0] == CHECKED_BENDER and same_dt
+
+
+def checks_apply(result: BenchmarkResult) -> bool:
+    """Whether the run is the default run the checks judge: the checks' bender at its default
+    sample time, whole episodes, the default preview and every row at its defaults."""
+    return _on_checked_bender(result) and not _settings_departures(result)
 
 
 def condition_line(result: BenchmarkResult) -> str:
@@ -132,9 +159,13 @@ def condition_line(result: BenchmarkResult) -> str:
     condition = (
         f"The checks apply to a run on the {CHECKED_BENDER} at dt = "
         f"{sample_time(CHECKED_BENDER) * 1e3:g} ms (its default), to the rows and plants each "
-        "names that the run has"
+        "names that the run has, with whole episodes, the default preview and the rows' default "
+        "settings"
     )
     this = f"this run is on the {bender} at dt = {dt * 1e3:g} ms"
+    departures = _settings_departures(result)
+    if departures:
+        this += ", but " + "; ".join(departures)
     if checks_apply(result):
         return f"{condition}; {this}, so they apply."
     return f"{condition}; {this}, so they do not apply."

@@ -585,7 +585,13 @@ def _effort_table(result: BenchmarkResult, plant: str) -> str:
         v = values[col]
         return f"{v:d}" if isinstance(v, (int, np.integer)) else f"{v:.1f}"
 
-    return _table(rows, columns, cell, f"controller ({plant}, mean over references)")
+    return _table(
+        rows,
+        columns,
+        cell,
+        f"controller ({plant}, over its episodes: means; median of medians; worst p99, max and "
+        "iterations; total misses and fallbacks)",
+    )
 
 
 def _step_table(result: BenchmarkResult, dt: float, plant: str = "nominal") -> str:

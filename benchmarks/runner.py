@@ -27,6 +27,7 @@ interrupted run (:mod:`benchmarks.checkpoint`) gives the same bits.
 from __future__ import annotations
 
 import gc
+import json
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -36,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.checkpoint import Checkpoint
+from benchmarks.checkpoint import Checkpoint, plain_json
 from benchmarks.plants import (
     BOX_CORNERS,
     DEFAULT_BENDER,
@@ -181,6 +182,13 @@ class BenchmarkConfig:
         if not self.references or not self.plants:
             raise ValueError("name at least one reference and one plant")
         self._check_controllers()
+        for kind, names in (("references", self.references), ("plants", self.plants)):
+            twice = sorted({name for name in names if names.count(name) > 1})
+            if twice:
+                raise ValueError(
+                    f"{kind} must be distinct, got {', '.join(twice)} more than once (a repeat "
+                    "would be averaged as if it were another seed)"
+                )
         for name in self.references:
             if name not in REFERENCES:
                 raise ValueError(f"unknown reference {name!r}; valid: {', '.join(REFERENCES)}")
@@ -444,7 +452,7 @@ def _run_group(
         envs = {
             d: _make_env(config, plant, **vertex_options(config.bender, VERTICES[d])) for d in draws
         }
-    with threadpool_limits(1):
+    with threadpool_limits(1), _user_faults(controller, plant, config):
         built = _build(controller, model_dir, env, config)
         _warm_up(env, built, next(iter(references.values())), config.seed)
         oracles = {}
@@ -509,6 +517,27 @@ def _adaptation_trace(episode: Any, controller: Any) -> dict[str, Any]:
         out["models"] = [list(row) for row in trace]
         out["offline"] = [described["offline_dc_gain"], described["offline_resonance_hz"]]
     return out
+
+
+class RowFailed(ValueError):
+    """A user's controller raised while its row ran: one line naming the row, the plant and
+    the error (the other rows' finished groups stay in the checkpoint)."""
+
+
+@contextmanager
+def _user_faults(controller: str, plant: str, config: BenchmarkConfig) -> Iterator[None]:
+    """Turn an exception of a user's row (an entry point) into :class:`RowFailed`; the
+    package's own rows raise as they are, their traceback being the report of a bug."""
+    if controller not in config.entry_points:
+        yield
+        return
+    try:
+        yield
+    except Exception as error:
+        raise RowFailed(
+            f"the row {controller!r} failed on the {plant} plant: {type(error).__name__}: "
+            f"{error}"
+        ) from error
 
 
 def _warm_up(env: Any, controller: Any, reference: np.ndarray, seed: int, steps: int = 25) -> None:
@@ -656,8 +685,16 @@ def run_benchmark(
     def check_entry_points() -> None:  # built once here: a broken one stops before its episodes
         for label in config.entry_points:
             nominal = _make_env(config, "nominal")
-            _build(label, default[0], nominal, config)
+            with _user_faults(label, "nominal", config):
+                built = _build(label, default[0], nominal, config)
             nominal.close()
+            if hasattr(built, "describe"):  # what the checkpoint and benchmark.json will hold
+                try:
+                    json.dumps(built.describe(), default=plain_json)
+                except (TypeError, ValueError) as error:
+                    raise ValueError(
+                        f"{label}: describe() cannot be written as JSON: {error}"
+                    ) from None
 
     finished = checkpoint.finished if checkpoint is not None else {}
     outputs = [finished.get(key) for key in keys]

@@ -185,7 +185,7 @@ def _loop(env: Any, controller: Any, obs: np.ndarray, max_steps: int | None) -> 
         except ValueError as error:  # the env's own message says what is wrong with it
             name = getattr(controller, "name", type(controller).__name__)
             raise ValueError(
-                f"the env refused {name!r}'s action at step {steps}: {error}"
+                f"the env refused the action of {name!r} at step {steps}: {error}"
             ) from error
         voltage = info["voltage_V"]
         add_y(info["deflection_um"])

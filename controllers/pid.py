@@ -99,7 +99,7 @@ from controllers.pid_tuning import (
     tune_pid,
 )
 from controllers.prediction import PredictionModel
-from controllers.settings import GAIN_TOLERANCE, damping_pair
+from controllers.settings import GAIN_TOLERANCE, damping_pair, python_numbers
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
     DAMPING_RANGE,
@@ -229,6 +229,7 @@ class PIDController(Controller):
         edges of the datasheet's tolerances)."""
 
         def __post_init__(self) -> None:
+            python_numbers(self)
             for name in ("notch", "feedforward", "derivative"):
                 if not isinstance(getattr(self, name), bool):
                     raise ValueError(f"{name} must be a bool, got {getattr(self, name)!r}")

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
+
+import numpy as np
 
 from controllers.task import ControlTask
 from piezo_env.checks import require_int
@@ -21,6 +24,7 @@ __all__ = [
     "damping_pair",
     "measurement_std",
     "number_at_least",
+    "python_numbers",
 ]
 
 QP_SOLVERS = ("daqp", "osqp")
@@ -76,6 +80,17 @@ def number_at_least(value: object, low: float) -> bool:
     )
 
 
+def python_numbers(settings: object) -> None:
+    """Replace every numpy scalar field of the (frozen) dataclass ``settings`` by the Python
+    number it holds (``numpy.float32(0.3)`` by ``0.30000001192092896``, ``numpy.int64(12)`` by
+    ``12``), so that a setting read from an array or a sweep's grid is the same setting and
+    ``describe()`` stays JSON."""
+    for item in dataclasses.fields(settings):  # type: ignore[arg-type]
+        value = getattr(settings, item.name)
+        if isinstance(value, np.generic) and not isinstance(value, (np.str_, np.bytes_)):
+            object.__setattr__(settings, item.name, value.item())
+
+
 def damping_pair(name: str, value: object) -> tuple[float, float]:
     """``value`` as a (low, high) pair of damping ratios with ``0 < low <= high < 1``, as
     floats; a ValueError naming ``name`` otherwise (a tuple or list of two real numbers)."""
@@ -107,6 +122,7 @@ def check_settings(
     ``"fixed"``, a ``bank_memory`` field an integer >= 1,
     a ``gain_tolerance`` field (in ``non_negative``) below 1 (a relative half-width).
     """
+    python_numbers(settings)
     for name in integers:
         require_int(name, getattr(settings, name))
     for name in non_negative:
@@ -117,10 +133,6 @@ def check_settings(
         value = getattr(settings, name)
         if not number_at_least(value, 0.0) or value == 0:
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    for name in (*integers, *non_negative, *positive):  # numpy scalars as Python numbers
-        value = getattr(settings, name)
-        if hasattr(value, "item") and not isinstance(value, (int, float)):
-            object.__setattr__(settings, name, value.item())
     for name in ("robust_bank", "shortcut"):
         flag = getattr(settings, name, True)
         if not isinstance(flag, bool):

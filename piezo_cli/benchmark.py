@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import time
 from pathlib import Path
@@ -57,12 +58,19 @@ def _option(text: str) -> tuple[str, str, object]:
 
 
 def _number(text: str) -> int | float | None:
-    """``text`` as an int, else as a float; None if it is neither."""
+    """``text`` as an int, else as a float; None if it is neither. A non-finite number is
+    refused: the run's JSON, which records the options, has no NaN or infinity."""
     for kind in (int, float):
         try:
-            return kind(text)
+            value = kind(text)
         except ValueError:
-            pass
+            continue
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(
+                f"{text.strip()!r} is not a finite number; an option's value is a finite "
+                "number, true/false, none or text"
+            )
+        return value
     return None
 
 
@@ -224,6 +232,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _config(args: argparse.Namespace, policies: tuple[str, ...]):
     from benchmarks.runner import BenchmarkConfig
 
+    if args.draws is not None and "random-plants" not in args.plants:
+        raise CommandLineError(
+            "--draws sets the random-plants table's plants; add random-plants to --plants, or "
+            "leave --draws out"
+        )
     try:
         return BenchmarkConfig(
             controllers=tuple(c for c in args.controllers if c not in COMMITTED_POLICIES),
@@ -541,13 +554,19 @@ def identify_models(
     return {"identification_s": round(time.perf_counter() - start, 1)}
 
 
-_RESULTS = ("benchmark.json", "benchmark.md")
+def _results() -> tuple[str, ...]:
+    """The files a finished run writes: an earlier run's are removed before this one starts,
+    so that a figure this run does not draw is not taken for its own."""
+    from benchmarks.figures import FIGURES
+
+    return ("benchmark.json", "benchmark.md", *FIGURES)
 
 
 def _checkpoint(args: argparse.Namespace, out, config, model_dir):
     """The run's checkpoint in ``out``: resumed with ``--resume``, else started afresh.
 
-    The results of an earlier run in ``out`` are removed and the folder is marked incomplete
+    The results of an earlier run in ``out`` (its report, JSON and figures) are removed and the
+    folder is marked incomplete
     until this run writes its own, so that neither a kill that nothing can catch (SIGKILL) nor
     an interruption leaves a report that looks finished.
     """
@@ -566,7 +585,7 @@ def _checkpoint(args: argparse.Namespace, out, config, model_dir):
     total = len(config.runs())
     if args.resume:
         print(f"resuming: {len(checkpoint.finished)} of {total} groups done in {checkpoint.path}")
-    for name in _RESULTS:
+    for name in _results():
         (out / name).unlink(missing_ok=True)
     mark_incomplete(out, "piezo benchmark", "has not finished", hint=_resume_hint(checkpoint))
     return checkpoint

@@ -82,6 +82,38 @@ class KilledWorker:
         return {"name": "KilledWorker", "inner": "mpc"}
 
 
+class Broken:
+    """A user's controller with one fault, chosen by ``fault``: ``"act"`` raises at step 30,
+    ``"nan-action"`` returns NaN there, ``"build"`` raises when built, ``"describe"``
+    describes itself with what JSON has no type for; any other value: none, and numpy values
+    in its description (which are converted)."""
+
+    def __init__(self, model: Any, env: Any, *, fault: str) -> None:
+        if fault == "build":
+            raise RuntimeError("cannot build")
+        self.fault, self.steps = fault, 0
+
+    def reset(self, observation: Any) -> None:
+        self.steps = 0
+
+    def act(self, observation: Any) -> Any:
+        import numpy as np
+
+        self.steps += 1
+        if self.steps == 30 and self.fault == "act":
+            raise RuntimeError("boom at step 30")
+        if self.steps == 30 and self.fault == "nan-action":
+            return np.array([np.nan])
+        return np.zeros(1)
+
+    def describe(self) -> dict:
+        import numpy as np
+
+        if self.fault == "describe":
+            return {"handle": object()}
+        return {"name": "Broken", "gains": np.arange(3), "ms": np.float32(1.5)}
+
+
 def after_beside(folder: str, timeout_s: float = 60.0) -> str:
     """A prerequisite that finishes only once a task beside it has left ``beside`` in
     ``folder`` (so it can finish only if the pool runs that task while it runs), then leaves

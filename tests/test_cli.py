@@ -252,6 +252,18 @@ def no_output_folder(monkeypatch: pytest.MonkeyPatch) -> None:
         (["benchmark", "--model", MODEL, "--option", "mpc.shortcut=no"], ["shortcut", "'no'"]),
         (["benchmark", "--model", MODEL, "--option", "nmpc.shortcut=none"], ["shortcut"]),
         (["benchmark", "--model", MODEL, "--controllers", "policy"], ["--policies DIR"]),
+        (
+            ["benchmark", "--model", MODEL, "--plants", "nominal,nominal"],
+            ["plants must be distinct", "nominal more than once"],
+        ),
+        (
+            ["benchmark", "--model", MODEL, "--references", "steps,steps"],
+            ["references must be distinct"],
+        ),
+        (
+            ["benchmark", "--model", MODEL, "--plants", "nominal", "--draws", "3"],
+            ["--draws sets the random-plants"],
+        ),
         (["identify", "--features", "bouc-wen", "--rate", "on"], ["features='play'"]),
         (["identify", "--records", "/nonexistent/records"], ["records.json: missing"]),
         (["identify", "--split", "0.5"], ["--split applies to --records"]),
@@ -280,6 +292,9 @@ def test_an_option_of_comma_separated_numbers_is_a_tuple():
     )
     assert _option("pid.damping_range=1,2") == ("pid", "damping_range", (1, 2))
     assert _option("mine.label=a,b") == ("mine", "label", "a,b")  # not all numbers: text
+    for text in ("mpc.rate_weight=nan", "mpc.rate_weight=inf", "pid.damping_range=0.01,nan"):
+        with pytest.raises(argparse.ArgumentTypeError, match="not a finite number"):
+            _option(text)
 
 
 @pytest.mark.parametrize("name", ["PL140", "PL140.10", "pl140", "PL112.10"])

@@ -213,6 +213,22 @@ def test_numpy_numbers_are_settings_as_python_numbers():
 
 
 @pytest.mark.parametrize(
+    ("name", "options"),
+    [
+        ("pid", {"ms_max": np.float32(1.5)}),
+        ("pid-ff", {"antiwindup_gain": np.float64(0.5), "derivative": np.bool_(True)}),
+        ("mpc", {"prediction_horizon": np.int64(30), "rate_weight": np.float32(0.25)}),
+        ("nmpc", {"horizon": np.int64(12)}),
+    ],
+)
+def test_describe_is_json_with_numpy_settings(env, name, options):
+    import json
+
+    description = controllers.make(name, MODEL_DIR, env, **options).describe()
+    json.dumps(description, allow_nan=False)
+
+
+@pytest.mark.parametrize(
     ("name", "model"), [("mpc", MODEL_DIR), ("nmpc", MODEL_DIR), ("mpc", "plant")]
 )
 def test_a_reused_controller_equals_a_fresh_one(env, name, model):

@@ -254,6 +254,48 @@ def test_a_worker_lost_for_good_stops_the_run_in_one_line(tmp_path, capsys):
     assert multiprocessing.active_children() == []
 
 
+@pytest.mark.parametrize(
+    ("fault", "line"),
+    [
+        ("act", "the row 'broken' failed on the nominal plant: RuntimeError: boom at step 30"),
+        (
+            "nan-action",
+            "the row 'broken' failed on the nominal plant: ValueError: the env refused the "
+            "action of 'Broken' at step",
+        ),
+        ("build", "the row 'broken' failed on the nominal plant: RuntimeError: cannot build"),
+        ("describe", "broken: describe() cannot be written as JSON: object"),
+    ],
+)
+def test_a_users_faulty_row_stops_the_run_in_one_line_naming_it(fault, line, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = [*ARGV, "--controllers", "broken=faulty:Broken", "--plants", "nominal"]
+    assert main([*argv, "--option", f"broken.fault={fault}", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"piezo benchmark: {line}"), err
+
+
+def test_an_earlier_runs_figures_do_not_stay_in_the_output_folder(tmp_path):
+    """A figure this run does not draw must not be left from an earlier run in the same
+    folder: the report would link it as this run's."""
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "adaptation.png").write_bytes(b"an earlier run's figure")
+    (out / "notes.txt").write_text("the user's own file")
+    argv = [*ARGV, "--controllers", "pid-ff", "--plants", "nominal", "--out", str(out)]
+    assert main(argv) == 0
+    assert not (out / "adaptation.png").exists()
+    assert (out / "notes.txt").read_text() == "the user's own file"
+
+
+def test_numpy_values_in_a_users_description_are_written_as_numbers(tmp_path):
+    out = tmp_path / "out"
+    argv = [*ARGV, "--controllers", "broken=faulty:Broken", "--plants", "nominal"]
+    assert main([*argv, "--option", "broken.fault=none", "--out", str(out)]) == 0
+    described = json.loads((out / "benchmark.json").read_text())["controllers"]["broken"]
+    assert described["gains"] == [0, 1, 2] and described["ms"] == 1.5
+
+
 # -- resume ------------------------------------------------------------------------------------
 
 

@@ -113,7 +113,7 @@ class WrongShape(Bare):
 
 
 def test_an_action_the_env_refuses_names_the_controller_and_the_step(env):
-    with pytest.raises(ValueError, match=r"the env refused 'wrong-shape''s action at step 2: "
+    with pytest.raises(ValueError, match=r"the env refused the action of 'wrong-shape' at step 2: "
                        r"action must have shape \(1,\)"):
         controllers.run_episode(env, WrongShape(), seed=0, max_steps=10)
 

@@ -520,6 +520,30 @@ def test_the_reference_checks_say_when_they_apply_and_whether_this_run_does(bend
     assert "PL140's default run" not in section
 
 
+@pytest.mark.parametrize(
+    ("settings", "fragment"),
+    [
+        ({"steps": 500}, "its episodes are 500 steps, not 2 s"),
+        ({"preview": 5}, "its preview is 5 samples, not 20"),
+        ({"controller_options": {"mpc": {"rate_weight": 1000.0}}}, "it sets options of mpc"),
+    ],
+)
+def test_the_reference_checks_do_not_judge_a_run_that_is_not_the_default(settings, fragment):
+    """A run with shorter episodes, another preview or a row's own settings is not the run
+    the checks were set on: they do not apply, and the report says why."""
+    from benchmarks.reference_checks import check_targets, checks_apply, reference_checks_section
+
+    result = _result(("mpc", "pid-notch"), ("sine-10Hz",), ("nominal",))
+    result.config = dataclasses.replace(result.config, **settings)
+    assert not checks_apply(result)
+    section = "\n".join(reference_checks_section(check_targets(result), result))
+    assert f"this run is on the PL140 at dt = 1 ms, but {fragment}" in section
+    assert "so they do not apply" in section
+    default = {"steps": 2000, "preview": 20, "controller_options": {}}
+    result.config = dataclasses.replace(result.config, **default)
+    assert checks_apply(result)  # whole 2 s episodes given as steps are the default run
+
+
 def test_the_oracle_ratio_table_divides_each_cell_by_the_oracles():
     from benchmarks.report import oracle_ratio_table
     from benchmarks.verdict import cell_index
