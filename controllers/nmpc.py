@@ -235,6 +235,7 @@ class NonlinearMPC(PredictiveController):
         self._upper = np.full(settings.horizon, self._u_max)
         self._kernel, self._kernel_build = self._iteration_kernel()
         self._gain = self._gain_estimate()
+        self._reach = static_reach(self.model, self._u_max)
         if self._kernel is None and settings.solver == "rti":
             # The numpy path's iterations run the horizon: built here, not inside a step.
             # (ipopt builds its own NLP; the horizon then serves only predict_deflection().)
@@ -300,6 +301,10 @@ class NonlinearMPC(PredictiveController):
     def _act(self, observation: np.ndarray) -> float:
         if self._gain is not None:
             observation = self._learn_gain(observation)
+        low, high = self._reach
+        reference = observation[1:]
+        if reference.min() < low or reference.max() > high:  # the drive cannot hold it
+            observation = np.concatenate((observation[:1], np.clip(reference, low, high)))
         estimate = self.observer.correct(float(observation[0]))
         if self._kernel is not None:
             low, high = self._slew_window()
@@ -607,3 +612,31 @@ class NonlinearMPC(PredictiveController):
             "observer": self.observer_description(),
             "native": self.native_code(),
         }
+
+
+def static_reach(model: Any, u_max: float) -> tuple[float, float]:
+    """The deflections (um, the model's) the drive can hold: the linear part's static gain
+    times the nonlinearity's output after a ramp from rest to each end of the drive range and
+    a hold there (the top and the bottom of the major loop).
+
+    :class:`NonlinearMPC` plans toward a reference clamped to it. Its finite horizon has no
+    terminal cost, so a level beyond it, which no input holds, makes a swing through the
+    first resonance look cheaper within the horizon than the held limit: unclamped, it switched
+    between the drive's ends and rang the mode (``docs/controllers.md``). A reference within
+    it is left as it is, to the bit."""
+    a, b, c = model.a, np.ravel(model.b), np.ravel(model.c)
+    gain = float(c @ np.linalg.solve(np.eye(a.shape[0]) - a, b))
+    ends = []
+    for end in (-u_max, u_max):
+        state = model.nonlinearity.initial_state()
+        z = 0.0
+        for u in np.r_[np.linspace(0.0, end, REACH_RAMP), np.full(REACH_RAMP, end)]:
+            z, state = model.nonlinearity.step(float(u), state)
+        ends.append(gain * z)
+    return min(ends), max(ends)
+
+
+REACH_RAMP = 200
+"""Samples of :func:`static_reach`'s ramp and of its hold: a slow ramp and a hold long enough
+for a memory feature to reach its level at the drive's end (every play and Bouc-Wen state of a
+monotone input has, at the latest, when the input stops moving)."""

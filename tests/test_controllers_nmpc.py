@@ -225,9 +225,11 @@ def test_a_failing_second_sqp_iteration_keeps_the_first_iterate(model, env):
 
 
 def test_constrained_qps_on_the_bender_equal_bounded_least_squares(env):
-    """Default settings, the reference beyond reach (the drive bound binds in every QP):
-    each QP DAQP solves (P updated in its workspace) against scipy's bounded least squares."""
+    """Default settings, the reference beyond reach and not clamped to it (the drive bound binds
+    in every QP of that chattering regime): each QP DAQP solves (P updated in its workspace)
+    against scipy's bounded least squares."""
     controller = controllers.make("nmpc", MODEL_DIR, env)
+    controller._reach = (-np.inf, np.inf)  # the reference unclamped: the bound binds in every QP
     reference = np.r_[np.full(60, -1300.0), np.full(100, 1300.0)]  # about 1030 um at 30 V
     obs, _ = env.reset(seed=0, options={"reference": reference})
     controller.reset(obs)
@@ -317,3 +319,22 @@ def test_while_the_gain_stays_the_models_the_nmpc_steps_as_without_learning(env)
     until = moved[0] if moved.size else len(gains)
     assert until > 0
     np.testing.assert_array_equal(first.voltage_V[:until], second.voltage_V[:until])
+
+
+def test_a_level_the_drive_cannot_hold_is_held_at_the_limit_not_rung(env):
+    """A constant reference beyond the static reach (the model's deflection after a ramp to
+    the drive's end and a hold there): the NMPC settles at that reach, as the linear MPC
+    settles at the drive limit, instead of switching between the drive's ends through the
+    first resonance. A reference within it is not touched (the clamp's path is not taken)."""
+    from controllers.nmpc import static_reach
+
+    controller = controllers.make("nmpc", MODEL_DIR, env)
+    low, high = static_reach(controller.model, 30.0)
+    assert low < 0.0 < high
+    episode = controllers.run_episode(
+        env, controller, seed=0, reference=np.full(621, 3000.0), max_steps=600
+    )
+    u, y = episode.voltage_V, episode.deflection_um
+    assert np.count_nonzero(np.diff(np.sign(u))) == 0  # no swing between the drive's ends
+    assert y.max() < 1.1 * high  # no ringing beyond the reach
+    assert abs(np.mean(y[-100:]) - high) < 0.05 * high  # held at the reach
