@@ -552,6 +552,8 @@ def bench_gap_table(result: BenchmarkResult) -> str:
 def _effort_table(result: BenchmarkResult, plant: str) -> str:
     nominal = [e for e in result.episodes if e["plant"] == plant]
     rows = [c for c in result.config.rows if any(e["controller"] == c for e in nominal)]
+    if not rows:
+        return ""  # the caller says that no episode ran on the plant
     columns = [
         "RMS voltage (V)",
         "voltage TV (V)",

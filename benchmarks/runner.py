@@ -268,13 +268,15 @@ class BenchmarkConfig:
         from controllers.registry import resolve_controller
 
         for controller, options in self.controller_options.items():
-            if controller not in self.controller_rows:
+            if controller not in self.rows:
                 raise ValueError(
                     f"options given for {controller!r}, which is not benchmarked (rows: "
-                    f"{', '.join(self.controller_rows)})"
+                    f"{', '.join(self.rows)})"
                 )
             if controller in self.entry_points:
                 check_factory_options(self.entry_points[controller], options)
+            elif controller in self.policy_folders:
+                resolve_controller("policy", options)
             else:
                 resolve_controller(controller.removesuffix("-oracle"), options)
 

@@ -629,6 +629,10 @@ def run(args: argparse.Namespace) -> int:
     own, own_left_out = _policies(args.policies, args.bender, args.dt)
     chosen = {os.path.realpath(p): p for p in (*committed, *own)}  # a folder named twice runs once
     policies, left_out = tuple(chosen.values()), {**left_out, **own_left_out}
+    if left_out and not policies and all(c in COMMITTED_POLICIES for c in args.controllers):
+        raise CommandLineError(  # the run would be empty: say why, not only that it is
+            "no controller to run: " + policies_line(policies, left_out)
+        )
     config = _config(args, policies)
     _check_identification(args)
     _check_backend(args)

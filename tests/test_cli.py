@@ -253,6 +253,16 @@ def no_output_folder(monkeypatch: pytest.MonkeyPatch) -> None:
         (["benchmark", "--model", MODEL, "--option", "nmpc.shortcut=none"], ["shortcut"]),
         (["benchmark", "--model", MODEL, "--controllers", "policy"], ["--policies DIR"]),
         (
+            ["benchmark", "--model", MODEL, "--controllers", "mpc,ppo",
+             "--option", "ppo-seed0.gain=2"],
+            ["unknown option(s) ['gain'] for controller 'policy'", "valid: initial_voltage"],
+        ),
+        (
+            ["benchmark", "--bender", "PL127", "--model", str(ROOT / "docs" / "benchmark-PL127"
+             / "model"), "--controllers", "ppo"],
+            ["no controller to run: policies: left out ppo-seed0", "dt = 0.00025 s"],
+        ),
+        (
             ["benchmark", "--model", MODEL, "--plants", "nominal,nominal"],
             ["plants must be distinct", "nominal more than once"],
         ),

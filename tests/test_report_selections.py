@@ -619,3 +619,11 @@ def test_the_native_code_line_names_what_ran_in_numpy_and_why():
     assert native_code_line(SimpleNamespace(controllers={"pid": {}})).startswith(
         "Native code: none"
     )
+
+
+def test_a_run_without_the_nominal_plant_says_so_instead_of_an_empty_effort_table():
+    from benchmarks.report import _effort_table
+
+    result = _result(("mpc",), ("sine-10Hz",), ("damping-0.01",))
+    assert _effort_table(result, "nominal") == ""
+    assert _effort_table(result, "damping-0.01").startswith("| controller (damping-0.01,")
