@@ -624,8 +624,7 @@ def static_reach(model: Any, u_max: float) -> tuple[float, float]:
     first resonance look cheaper within the horizon than the held limit: unclamped, it switched
     between the drive's ends and rang the mode (``docs/controllers.md``). A reference within
     it is left as it is, to the bit."""
-    a, b, c = model.a, np.ravel(model.b), np.ravel(model.c)
-    gain = float(c @ np.linalg.solve(np.eye(a.shape[0]) - a, b))
+    gain = model.dc_gain
     ends = []
     for end in (-u_max, u_max):
         state = model.nonlinearity.initial_state()

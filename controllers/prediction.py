@@ -302,6 +302,15 @@ class PredictionModel:
         """Length of the linear state."""
         return int(self.a.shape[0])
 
+    def steady_state_per_z(self) -> np.ndarray:
+        """(n,) the linear state a constant z of 1 equivalent V holds: ``(I - A)^-1 B``."""
+        return np.linalg.solve(np.eye(self.n_states) - self.a, self.b[:, 0])
+
+    @property
+    def dc_gain(self) -> float:
+        """The linear part's static gain (um per equivalent V): ``C (I - A)^-1 B``."""
+        return float(self.c[0] @ self.steady_state_per_z())
+
     @property
     def native(self) -> list[Any]:
         """The nonlinearity's native builds (:class:`controllers.native.codegen.NativeBuild`;
@@ -403,7 +412,7 @@ class PredictionModel:
         memory = self.nonlinearity.initial_state()
         if abs(y0) <= noise_bound_um:
             return SteadyStart(np.zeros(self.n_states), 0.0, 0.0, memory)
-        per_z = np.linalg.solve(np.eye(self.n_states) - self.a, self.b[:, 0])
+        per_z = self.steady_state_per_z()
         z0 = y0 / float(self.c[0] @ per_z)
         held = self.nonlinearity.inverse(z0, memory)
         return SteadyStart(per_z * held.z, held.z, held.u, held.state)

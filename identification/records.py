@@ -699,9 +699,9 @@ def _read_columns(
                 if missing:
                     raise RecordsError(f"{path}: missing array(s) {', '.join(missing)}")
                 columns = {c: np.asarray(data[c], dtype=float) for c in names}
+        except RecordsError:
+            raise
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
-            if isinstance(error, RecordsError):
-                raise
             raise RecordsError(
                 f"{path}: not an NPZ of numeric arrays {', '.join(names)} ({error})"
             ) from None
