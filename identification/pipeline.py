@@ -172,7 +172,7 @@ def identify(
     env = env if env is not None else identification_env(config)
     dt = sample_time(env)
     config = config.at_sample_time(dt)
-    with _runner(jobs, runner) as runner:  # the helper's imports overlap the experiment
+    with _runner(jobs, runner) as runner:  # the helper's start-up overlaps the experiment
         records = records_from_env(env, experiment_inputs(config, dt), config.seed)
         true_plant = env.unwrapped.model.state_space()
         return _identify(records, config, log, true_plant=true_plant, runner=runner)
@@ -367,7 +367,7 @@ def _identify_steps(
     seeds, dt = step_seeds(config.seed), records.dt
     u_prbs, y_prbs = records.records["prbs"]
     log("a_prbs_experiment", _prbs_line(config, records, y_prbs))
-    est = estimate_arx(u_prbs, y_prbs, config, dt=dt)
+    est = estimate_arx(u_prbs, y_prbs, config, dt=dt, runner=runner)
     log("b_arx_estimation", _arx_line(est))
     refinement = None
     if config.refinement == "output-error":

@@ -1,7 +1,8 @@
 """Where the independent computations of one identification run: :func:`step_runner`.
 
-Two steps hold computations that do not depend on each other:
+Three steps hold computations that do not depend on each other:
 
+- step b fits the ARX part at every candidate order (:func:`identification.steps.estimate_arx`);
 - step e trains one network per candidate feature set, each from its own seed on the same
   data (:func:`identification.steps.fit_nonlinearity`);
 - step e' refines the chosen network and then, depending on what that refinement shows, also
@@ -28,9 +29,10 @@ the helper has not started.
 A :class:`StepRunner` runs such a computation "beside" the main line. With one job it is
 computed here, when its result is first asked for (a computation the decision does not need is
 never computed: the work is what it was before there was a runner). With two or more, a
-:class:`piezo_parallel.helper.Helper` process, started when the run starts so that its imports
-(torch above all) overlap the experiment and step b, computes it while this process computes the
-main line; one whose decision falls the other way is withdrawn.
+:class:`piezo_parallel.helper.Helper` process, started when the run starts so that its start-up
+overlaps the experiment, computes it while this process computes the main line; one whose
+decision falls the other way is withdrawn. The helper fits step b's smaller orders first, then
+imports torch and makes its first training (its warm-up) while this process ends steps b-d.
 
 The model is the same to the bit whatever the jobs: every computation is deterministic (float64,
 one torch thread, its own seeded generators), reads nothing another one writes, and gets the
@@ -114,10 +116,14 @@ class StepRunner:
     ----------
     helper : piezo_parallel.helper.Helper, optional
         The process that computes :meth:`beside` calls; None computes them here, lazily.
+    warm_up : callable, optional
+        A module-level function the helper runs, its outcome discarded, when
+        :meth:`warm_up_helper` is first called.
     """
 
-    def __init__(self, helper: Any | None = None) -> None:
+    def __init__(self, helper: Any | None = None, warm_up: Callable[[], Any] | None = None) -> None:
         self._helper = helper
+        self._warm_up = warm_up if helper is not None else None
 
     @property
     def parallel(self) -> bool:
@@ -130,6 +136,16 @@ class StepRunner:
         it starts at once (step e' then shares its objective with it,
         :mod:`identification.nls.record_terms`)."""
         return self._helper is not None and self._helper.idle
+
+    def warm_up_helper(self) -> None:
+        """Queue the helper's warm-up behind what was asked of it so far (once; nothing
+        without a helper or a warm-up). Step b calls it once its orders are queued: the helper
+        fits some of them while this process fits the others, then imports torch and makes its
+        first training while this process finishes steps b to d (before, its warm-up ran first
+        and it sat idle through part of step b)."""
+        warm_up, self._warm_up = self._warm_up, None
+        if warm_up is not None:
+            self._helper.withdraw_later(self._helper.submit(warm_up))
 
     def beside(self, function: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
         """``function(*args, **kwargs)`` (module-level) on the helper, or here when first
@@ -154,8 +170,9 @@ def step_runner(jobs: int = 1, warm_up: Callable[[], Any] | None = None) -> Iter
         Processes the run may use (>= 1): 1 computes everything here; 2 or more start one
         helper (module docstring).
     warm_up : callable, optional
-        A module-level function the helper runs first, while this process starts the run
-        (:func:`identification.steps.warm_up`: its imports and torch's first training).
+        A module-level function the helper runs when the run asks for it
+        (:meth:`StepRunner.warm_up_helper`, which step b calls behind its orders):
+        :func:`identification.steps.warm_up`, its imports and torch's first training.
     """
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be an integer >= 1 (processes to use), got {jobs!r}")
@@ -164,5 +181,5 @@ def step_runner(jobs: int = 1, warm_up: Callable[[], Any] | None = None) -> Iter
         return
     from piezo_parallel.helper import Helper
 
-    with Helper(warm_up=warm_up) as helper:
-        yield StepRunner(helper)
+    with Helper() as helper:
+        yield StepRunner(helper, warm_up)

@@ -303,7 +303,12 @@ def excite_prbs(
 
 
 def estimate_arx(
-    u: np.ndarray, y: np.ndarray, config: IdentificationConfig, *, dt: float
+    u: np.ndarray,
+    y: np.ndarray,
+    config: IdentificationConfig,
+    *,
+    dt: float,
+    runner: StepRunner | None = None,
 ) -> ArxEstimate:
     """Step b: the ARX part by the uniform-noise Bayesian estimator, order by held-out fit.
 
@@ -312,19 +317,23 @@ def estimate_arx(
     larger order: the higher bending modes it captures barely show in a PRBS free run, but they
     shrink the equation-error bound r and so the error of z_hat. The chosen order is then
     refitted on the whole record (with the Chebyshev and least-squares cross-checks).
+
+    ``runner`` (:mod:`identification.runner`; default: all here) may fit the orders beside each
+    other: the helper takes them from the smallest, this process from the largest (the
+    slowest), the same estimates to the bit; the helper's warm-up for step e is queued behind
+    them (:meth:`~identification.runner.StepRunner.warm_up_helper`).
     """
+    runner = StepRunner() if runner is None else runner
     split = (3 * len(u)) // 4
-    scores, candidates = {}, {}
-    for n in config.orders:
-        candidate = fit_arx(
-            u[:split], y[:split], na=n, nb=n, dt=dt, method="bayes-uniform", record_history=False
-        )
-        sim = candidate.simulate(u)
-        stable = candidate.is_stable() and np.all(np.isfinite(sim))
-        scores[n] = (
-            float(fit_metrics(y[split:], sim[split:])["fit_percent"]) if stable else -math.inf
-        )
-        candidates[n] = candidate
+    pending = {n: runner.beside(_fit_order, u, y, n, split, dt) for n in config.orders}
+    runner.warm_up_helper()
+    if runner.parallel:
+        for n in reversed(config.orders):
+            if not pending[n].take_back():
+                break
+            pending[n].result()
+    candidates = {n: pending[n].result() for n in config.orders}
+    scores = {n: _held_out_fit(candidate, u, y, split) for n, candidate in candidates.items()}
     best_fit = max(scores.values())
     order = max(n for n, fit in scores.items() if fit >= best_fit - ORDER_TIE_PERCENT)
     fits = {
@@ -339,6 +348,21 @@ def estimate_arx(
         fits["least-squares"],
         candidates,
     )
+
+
+def _fit_order(u: np.ndarray, y: np.ndarray, n: int, split: int, dt: float) -> ARXModel:
+    """Step b for one order: the bayes-uniform ARX(n, n) on the first ``split`` samples."""
+    return fit_arx(
+        u[:split], y[:split], na=n, nb=n, dt=dt, method="bayes-uniform", record_history=False
+    )
+
+
+def _held_out_fit(candidate: ARXModel, u: np.ndarray, y: np.ndarray, split: int) -> float:
+    """Free-run fit (%) of ``candidate`` on the samples from ``split`` on (-inf: unstable)."""
+    sim = candidate.simulate(u)
+    if not (candidate.is_stable() and np.all(np.isfinite(sim))):
+        return -math.inf
+    return float(fit_metrics(y[split:], sim[split:])["fit_percent"])
 
 
 def refine_linear_part(est: ArxEstimate, u: np.ndarray, y: np.ndarray) -> LinearRefinement:

@@ -59,6 +59,44 @@ def _assert_same_model(a: HammersteinModel, b: HammersteinModel) -> None:
     assert _without_times(a.nls.training) == _without_times(b.nls.training)
 
 
+def test_step_b_orders_beside_each_other_are_the_estimates_of_one_process(beside):
+    """Step b's orders fitted here one by one, and the smaller ones on the helper: the same
+    candidates, held-out scores, order and final estimates, to the bit. A runner queues its
+    helper's warm-up once, behind the orders."""
+    from identification.arx import ARXModel
+    from identification.steps import estimate_arx
+
+    rng = np.random.default_rng(4)
+    u = rng.choice([-10.0, 10.0], 1200)
+    plant = ARXModel([1.2, -0.5], [0.3, 0.1], dt=1e-3)
+    y = plant.simulate(u) + rng.uniform(-0.02, 0.02, u.size)
+    config = IdentificationConfig(orders=(1, 2, 3, 4))
+    _idle(beside)
+    here, there = (estimate_arx(u, y, config, dt=1e-3, runner=r) for r in _both(beside))
+    assert here.order == there.order and here.order_scores == there.order_scores
+    for a, b in [(here.model, there.model), (here.chebyshev, there.chebyshev)] + [
+        (here.candidates[n], there.candidates[n]) for n in config.orders
+    ]:
+        np.testing.assert_array_equal(
+            np.r_[a.a, a.b, a.noise_bound], np.r_[b.a, b.b, b.noise_bound]
+        )
+
+    asked: list[str] = []
+
+    class _Helper:
+        def submit(self, function, *args):
+            asked.append(getattr(function, "__name__", "call"))
+            return len(asked)
+
+        def withdraw_later(self, ticket):
+            pass
+
+    runner = StepRunner(_Helper(), warm_up)
+    runner.warm_up_helper()
+    runner.warm_up_helper()
+    assert asked == ["warm_up"]
+
+
 def test_step_e_candidates_beside_each_other_are_the_networks_of_one_process(beside):
     """The three candidate feature sets trained here one by one, and two of them on the
     helper: the same networks, selection scores and choice."""
