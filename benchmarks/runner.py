@@ -113,8 +113,9 @@ class BenchmarkConfig:
     references : tuple of str
         Names in :data:`benchmarks.references.REFERENCES`.
     plants : tuple of str
-        Names in :data:`PLANTS`; ``"nominal"`` runs every reference, the others
-        :data:`ROBUSTNESS_REFERENCES` with :data:`ROBUSTNESS_CONTROLLERS`.
+        Names in :data:`PLANTS`; ``"nominal"`` runs every reference and controller, the
+        others (the robustness plants) those selected by :attr:`every_reference` and
+        :attr:`every_controller`.
     seed : int
         Env seed (sensor noise) and seed of the random references.
     steps : int or None
@@ -155,6 +156,16 @@ class BenchmarkConfig:
         Sample time of every env of the benchmark (s); None (the default): the bender's,
         :func:`benchmarks.plants.sample_time`. Resolved at construction, as ``steps``. The
         model must have been identified at it.
+    every_reference : bool
+        Whether the robustness plants run every reference of :attr:`references` (True) or
+        only those among :data:`ROBUSTNESS_REFERENCES` (among
+        :data:`benchmarks.plants.MONTE_CARLO_REFERENCES` on the drawn plants, random-plants
+        and box-corners): the default, which keeps the default run's time. ``piezo
+        benchmark`` sets it when ``--references`` is given.
+    every_controller : bool
+        Whether the robustness plants run every row (True) or only the controllers among
+        :data:`ROBUSTNESS_CONTROLLERS`, the policies and a user's rows (the default).
+        ``piezo benchmark`` sets it when ``--controllers`` is given.
     """
 
     controllers: tuple[str, ...] = DEFAULT_CONTROLLERS
@@ -172,6 +183,8 @@ class BenchmarkConfig:
     seeds: int = 1
     dt: float | None = None
     identification_seeds: int = 1
+    every_reference: bool = False
+    every_controller: bool = False
 
     def __post_init__(self) -> None:
         for name in ("controllers", "references", "plants"):
@@ -209,6 +222,25 @@ class BenchmarkConfig:
             raise ValueError(f"unknown backend {self.backend!r}; valid: {', '.join(BACKENDS)}")
         self._check_policies()
         self._check_options()
+        for name in ("every_reference", "every_controller"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        self._check_plants_run()
+
+    def _check_plants_run(self) -> None:
+        """Refuse a selected plant on which none of the selected rows and references runs
+        (a robustness plant runs a subset of them unless every_reference or every_controller
+        says otherwise): it would leave its section of the report empty without a word."""
+        ran = {plant for plant, _, _ in self.groups()}
+        for plant in (p for p in self.plants if p not in ran):
+            subset = MONTE_CARLO_REFERENCES if plant in DRAWN_PLANTS else ROBUSTNESS_REFERENCES
+            raise ValueError(
+                f"the {plant} plant would run nothing: it runs the references "
+                f"{', '.join(subset)} with the controllers {', '.join(ROBUSTNESS_CONTROLLERS)}, "
+                "the policies and your own rows unless every_reference / every_controller "
+                "(piezo benchmark: --references / --controllers given) ask for all of those "
+                "selected"
+            )
 
     def _check_controllers(self) -> None:
         """Built-in names (also as NAME-oracle) and entry points that import; unique rows."""
@@ -352,13 +384,13 @@ class BenchmarkConfig:
         """(plant, controller, references) of every group, in report order."""
         out = []
         for plant in self.plants:
-            nominal = plant == "nominal"
+            every = plant == "nominal"
             chosen = MONTE_CARLO_REFERENCES if plant in DRAWN_PLANTS else ROBUSTNESS_REFERENCES
-            refs = self.references if nominal else tuple(r for r in self.references if r in chosen)
+            refs = tuple(r for r in self.references if every or self.every_reference or r in chosen)
             robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders, *self.entry_points)
             for controller in self.rows:
                 # On a distribution of plants an oracle runs each draw's own model.
-                if refs and (nominal or controller in robust):
+                if refs and (every or self.every_controller or controller in robust):
                     out.append((plant, controller, refs))
         return out
 

@@ -76,8 +76,13 @@ def _number(text: str) -> int | float | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``piezo benchmark``."""
-    from benchmarks.references import REFERENCES
-    from benchmarks.runner import DEFAULT_CONTROLLERS, PLANTS
+    from benchmarks.plants import MONTE_CARLO_REFERENCES
+    from benchmarks.runner import (
+        DEFAULT_CONTROLLERS,
+        PLANTS,
+        ROBUSTNESS_CONTROLLERS,
+        ROBUSTNESS_REFERENCES,
+    )
     from piezo_parallel.backends import DEFAULT_RETRIES, default_jobs
 
     parser.add_argument("--out", default="out/benchmark", metavar="DIR", help="output folder")
@@ -99,20 +104,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--controllers",
         type=_names,
-        default=(*DEFAULT_CONTROLLERS, *COMMITTED_POLICIES),  # the committed policies too
+        default=None,  # run(): the default controllers and the committed policies
         metavar="A,B",
         help="comma-separated controllers (NAME-oracle runs NAME on the true plant's model; "
         "also available: nmpc-ipopt, 20-60 ms per step); ppo and ppo-dr: the committed PPO "
         "policies (three seeds each, docs/policies; left out, with the reason, on a task they "
         "were not trained for); your own as package.module:Factory or "
-        "label=package.module:Factory (see examples/feedforward_pi.py)",
+        "label=package.module:Factory (see examples/feedforward_pi.py). Default: "
+        + ", ".join((*DEFAULT_CONTROLLERS, *COMMITTED_POLICIES))
+        + "; the robustness plants run "
+        + ", ".join(ROBUSTNESS_CONTROLLERS)
+        + ", the policies and your rows of them, unless this option names the rows: then "
+        "every plant runs them all",
     )
     parser.add_argument(
         "--references",
         type=_names,
-        default=tuple(REFERENCES),
+        default=None,  # run(): every reference
         metavar="A,B",
-        help="comma-separated references",
+        help="comma-separated references. Default: every one; the robustness plants run "
+        + ", ".join(ROBUSTNESS_REFERENCES)
+        + " of them (random-plants and box-corners: "
+        + ", ".join(MONTE_CARLO_REFERENCES)
+        + "), unless this option names the references: then every plant runs them all",
     )
     parser.add_argument(
         "--plants", type=_names, default=tuple(PLANTS), metavar="A,B", help="comma-separated plants"
@@ -253,6 +267,8 @@ def _config(args: argparse.Namespace, policies: tuple[str, ...]):
             seeds=args.seeds,
             dt=args.dt,
             identification_seeds=args.identification_seeds,
+            every_reference=args.every_reference,
+            every_controller=args.every_controller,
             **({} if args.draws is None else {"draws": args.draws}),
         )
     except ValueError as error:
@@ -623,6 +639,18 @@ def _left_behind(out, checkpoint, total: int, error: BaseException) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Check everything, identify (or load) the model, run the benchmark, write the report."""
+    from benchmarks.references import REFERENCES
+    from benchmarks.runner import DEFAULT_CONTROLLERS
+
+    # Named on the command line, the references and controllers run on every selected plant;
+    # left out, the robustness plants run their subsets (BenchmarkConfig.every_reference).
+    args.every_reference, args.every_controller = (
+        args.references is not None,
+        args.controllers is not None,
+    )
+    args.references = tuple(REFERENCES) if args.references is None else args.references
+    if args.controllers is None:  # the committed policies too
+        args.controllers = (*DEFAULT_CONTROLLERS, *COMMITTED_POLICIES)
     if args.dt is None and args.model is not None:
         args.dt = _model_dt(args.model)
     committed, left_out = _committed_policies(args.controllers, args.bender, args.dt)

@@ -13,7 +13,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from piezo_env.hysteresis import BoucWen, Hysteresis, PrandtlIshlinskii, bouc_wen_rows
+from piezo_env.hysteresis import (
+    BoucWen,
+    Hysteresis,
+    PrandtlIshlinskii,
+    RateDependentPrandtlIshlinskii,
+    bouc_wen_rows,
+)
 from piezo_env.operators import BoucWenBatch, play
 
 if TYPE_CHECKING:
@@ -55,8 +61,8 @@ class RowHysteresis:
 
     All rows are scaled copies of one nominal model
     (:func:`piezo_env.randomization.scale_hysteresis`): Bouc-Wen rows differ in k and alpha,
-    Prandtl-Ishlinskii rows in their weights. ``step(state, u)`` has the batched signature of
-    :meth:`piezo_env.hysteresis.Hysteresis.step` (state (N, size)).
+    Prandtl-Ishlinskii rows (rate-dependent ones too) in their weights. ``step(state, u)`` has
+    the batched signature of :meth:`piezo_env.hysteresis.Hysteresis.step` (state (N, size)).
     """
 
     def __init__(self, nominal: Hysteresis, num_envs: int) -> None:
@@ -65,7 +71,7 @@ class RowHysteresis:
         if isinstance(nominal, BoucWen):
             self._k = np.full(num_envs, nominal.k)
             self._ak = np.full(num_envs, nominal.alpha * nominal.k)
-        elif isinstance(nominal, PrandtlIshlinskii):
+        elif isinstance(nominal, (PrandtlIshlinskii, RateDependentPrandtlIshlinskii)):
             self._k = np.full(num_envs, nominal.linear_weight)
             self._w = np.tile(np.asarray(nominal.weights, dtype=float), (num_envs, 1))
             self._r = np.asarray(nominal.radii, dtype=float)
@@ -77,7 +83,7 @@ class RowHysteresis:
             self._k[i] = hysteresis.k
             self._ak[i] = hysteresis.alpha * hysteresis.k
             self._batch = None
-        elif isinstance(hysteresis, PrandtlIshlinskii):
+        elif isinstance(hysteresis, (PrandtlIshlinskii, RateDependentPrandtlIshlinskii)):
             self._k[i] = hysteresis.linear_weight
             self._w[i] = hysteresis.weights
 
@@ -92,4 +98,7 @@ class RowHysteresis:
             plays = play(state[:, 1:], u[:, None], self._r)
             new_state = np.concatenate([u[:, None], plays], axis=1)
             return new_state, self._k * u + np.einsum("ij,ij->i", plays, self._w)
+        if isinstance(nominal, RateDependentPrandtlIshlinskii):  # the plays move as the nominal's
+            new_state, _ = nominal.step(state, u)
+            return new_state, self._k * u + np.einsum("ij,ij->i", new_state[:, 2:], self._w)
         return nominal.step(state, u)

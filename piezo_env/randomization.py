@@ -32,7 +32,13 @@ import numpy as np
 from piezo_env.checks import require_number
 from piezo_env.datasheet import BenderDatasheet
 from piezo_env.fem import check_damping_ratio
-from piezo_env.hysteresis import BoucWen, Hysteresis, NoHysteresis, PrandtlIshlinskii
+from piezo_env.hysteresis import (
+    BoucWen,
+    Hysteresis,
+    NoHysteresis,
+    PrandtlIshlinskii,
+    RateDependentPrandtlIshlinskii,
+)
 
 __all__ = [
     "DRAW_ORDER",
@@ -194,24 +200,30 @@ def scale_hysteresis(hysteresis: Hysteresis, scale: float, u_max: float) -> Hyst
 
     Bouc-Wen: alpha times ``scale``, then k times c = E_nom / E (u_eff scales by c exactly when
     k does at fixed alpha, beta, gamma). Prandtl-Ishlinskii: play weights times ``scale``, then
-    every weight times c. ``u_max`` (V) is the rated voltage. Raises ValueError for a type it
-    cannot scale or a scaled map outside the accepted domain.
+    every weight times c. The rate-dependent Prandtl-Ishlinskii map is scaled as its
+    rate-independent twin (the same weights and base radii; its quasi-static loop), its rate
+    constant kept. ``u_max`` (V) is the rated voltage. Raises ValueError for a type it cannot
+    scale or a scaled map outside the accepted domain.
     """
     if isinstance(hysteresis, NoHysteresis):
         return hysteresis
-    peak = major_loop_peak(hysteresis, u_max)
     if isinstance(hysteresis, BoucWen):
+        peak = major_loop_peak(hysteresis, u_max)
         raw = dataclasses.replace(hysteresis, alpha=hysteresis.alpha * scale)
         c = peak / major_loop_peak(raw, u_max)
         return dataclasses.replace(raw, k=hysteresis.k * c)
-    if isinstance(hysteresis, PrandtlIshlinskii):
+    if isinstance(hysteresis, (PrandtlIshlinskii, RateDependentPrandtlIshlinskii)):
+        static = PrandtlIshlinskii(hysteresis.linear_weight, hysteresis.radii, hysteresis.weights)
         weights = tuple(w * scale for w in hysteresis.weights)
-        raw = dataclasses.replace(hysteresis, weights=weights)
-        c = peak / major_loop_peak(raw, u_max)
+        c = major_loop_peak(static, u_max) / major_loop_peak(
+            dataclasses.replace(static, weights=weights), u_max
+        )
         return dataclasses.replace(
-            raw, linear_weight=hysteresis.linear_weight * c, weights=tuple(w * c for w in weights)
+            hysteresis,
+            linear_weight=hysteresis.linear_weight * c,
+            weights=tuple(w * c for w in weights),
         )
     raise ValueError(
-        f"domain randomisation scales Bouc-Wen, Prandtl-Ishlinskii or no hysteresis, got "
-        f"{type(hysteresis).__name__}; pass randomize=None or hysteresis_strength=0"
+        f"domain randomisation scales Bouc-Wen, Prandtl-Ishlinskii (rate-dependent too) or no "
+        f"hysteresis, got {type(hysteresis).__name__}; pass randomize=None"
     )

@@ -30,7 +30,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from piezo_env.hysteresis import Hysteresis, NoHysteresis, PrandtlIshlinskii
+from piezo_env.hysteresis import (
+    Hysteresis,
+    NoHysteresis,
+    PrandtlIshlinskii,
+    RateDependentPrandtlIshlinskii,
+)
 from piezo_env.randomization import DomainRandomization, major_loop_peak, scale_hysteresis
 
 if TYPE_CHECKING:
@@ -47,6 +52,11 @@ def _effective_voltage_sup(hysteresis: Hysteresis, strongest: float, u_max: floa
     if isinstance(hysteresis, NoHysteresis):
         return u_max
     scale_hysteresis(hysteresis, strongest, u_max)  # raises outside the accepted domain
+    if isinstance(hysteresis, RateDependentPrandtlIshlinskii):
+        # Its bound at every rate is its rate-independent twin's, w_0 u_max + sum w_i
+        # (u_max - r_i)+ (RateDependentPrandtlIshlinskii), the twin's major-loop peak, which
+        # the drawn maps keep (scale_hysteresis).
+        return hysteresis.max_effective_voltage(u_max)
     peak = major_loop_peak(hysteresis, u_max)
     if isinstance(hysteresis, PrandtlIshlinskii):
         return peak

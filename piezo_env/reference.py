@@ -6,7 +6,8 @@ reset under a seed gives the same reference.
 
 ``"random"`` (the default) picks one of the shapes below with random parameters:
 
-- ``"steps"``: random levels held 50..400 samples (RAND of the paper, in um),
+- ``"steps"``: random levels held 50..400 ms (RAND of the paper: 50..400 samples at its 1 ms;
+  in um),
 - ``"sine"`` / ``"triangle"``: a frequency drawn log-uniform in the band, random phase,
 - ``"multisine"``: 5 tones spread over the band with random phases.
 
@@ -14,8 +15,11 @@ The band is 0.5..20 Hz by default (:data:`DEFAULT_BAND`); the env option
 ``TaskConfig.reference_band`` sets another (checked by :func:`check_reference_band`).
 
 Amplitudes are 20..80 % of the stroke, so every reference is reachable inside the drive range.
-An episode's reference is a :class:`ReferenceStream`: segments of 2048 samples, each a fresh
-draw, as many as the episode needs. Drawing (:func:`draw_reference`) and rendering
+Every duration is in time, not samples, so that a reference is a function of time whatever the
+sample time (the same seed draws the same shape, frequency and hold at 1 ms and at 0.1 ms).
+An episode's reference is a :class:`ReferenceStream`: segments of :data:`SEGMENT_S` (2.048 s,
+longer than the 2 s episodes of the benchmark), each a fresh draw, as many as the episode
+needs. Drawing (:func:`draw_reference`) and rendering
 (:func:`render_references`) are split so that the vector env renders the references of all
 sub-envs that reset together in one batch; the shapes are those of piezo_env.signals
 (random_hold, sine, triangle, multisine), rendered element-wise so that a batch and a single
@@ -35,7 +39,7 @@ __all__ = [
     "DEFAULT_BAND",
     "REFERENCE_NAMES",
     "REFERENCE_SHAPES",
-    "SEGMENT",
+    "SEGMENT_S",
     "ReferenceDraw",
     "ReferenceStream",
     "check_reference_array",
@@ -43,6 +47,7 @@ __all__ = [
     "draw_reference",
     "make_reference",
     "render_references",
+    "segment_samples",
 ]
 
 REFERENCE_SHAPES = ("steps", "sine", "triangle", "multisine")
@@ -99,7 +104,7 @@ class ReferenceDraw:
     levels : ndarray or None
         Step levels (um), one per hold period, for ``"steps"``.
     hold : int
-        Samples per step level.
+        Samples per step level (50..400 ms at the draw's sample time).
     tone_phases : ndarray or None
         Phases (rad) of the multisine tones.
     low_frequency : float
@@ -145,8 +150,8 @@ def draw_reference(
         )
     amplitude = stroke_um * rng.uniform(0.2, 0.8)
     frequency = math.exp(rng.uniform(math.log(f_min), math.log(f_max)))
-    if kind == "steps":
-        hold = int(rng.integers(50, 401))
+    if kind == "steps":  # held 50..400 ms: samples at 1 ms, the paper's RAND
+        hold = max(1, round(int(rng.integers(50, 401)) * 1e-3 / dt))
         levels = rng.uniform(-amplitude, amplitude, size=-(-n // hold))
         return ReferenceDraw(kind, amplitude, frequency, levels=levels, hold=hold)
     if kind == "multisine":
@@ -247,14 +252,20 @@ def check_reference_array(spec: object) -> np.ndarray:
     return values
 
 
-SEGMENT = 2048
-"""Samples per drawn segment of a named reference."""
+SEGMENT_S = 2.048
+"""Duration (s) of one drawn segment of a named reference: 2048 samples at 1 ms."""
+
+
+def segment_samples(dt: float) -> int:
+    """Samples of one reference segment at the sample time ``dt`` (s): :data:`SEGMENT_S` in
+    whole samples (2048 at 1 ms, 8192 at 0.25 ms)."""
+    return max(1, round(SEGMENT_S / dt))
 
 
 class ReferenceStream:
     """The reference of one episode (um, float32), drawn lazily in segments.
 
-    A named reference draws ``SEGMENT`` samples at a time from the env's generator: the first
+    A named reference draws :func:`segment_samples` at a time from the env's generator: the first
     segment at reset, each further one at the step whose preview first reaches past the samples
     drawn so far, so an episode of any length has a reference and the draws happen at the same
     moments in the single and the vector env. An array reference is used as given and its last
@@ -295,7 +306,7 @@ class ReferenceStream:
         if self._name is not None:
             if first is None:
                 first = make_reference(
-                    self._name, SEGMENT, dt=dt, stroke_um=stroke_um, rng=rng, band=band
+                    self._name, segment_samples(dt), dt=dt, stroke_um=stroke_um, rng=rng, band=band
                 )
             self._values = np.asarray(first, dtype=np.float32)
         else:
@@ -319,12 +330,13 @@ class ReferenceStream:
             if self._name is None:
                 extra = np.full(max(missing, len(self._values)), self._values[-1], np.float32)
             else:
-                count = -(-missing // SEGMENT)
+                segment = segment_samples(self._dt)
+                count = -(-missing // segment)
                 extra = np.concatenate(
                     [
                         make_reference(
                             self._name,
-                            SEGMENT,
+                            segment,
                             dt=self._dt,
                             stroke_um=self._stroke,
                             rng=self._rng,

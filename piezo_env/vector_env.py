@@ -34,7 +34,12 @@ from piezo_env.blas import single_blas_thread
 from piezo_env.checks import require_int
 from piezo_env.plant_rows import RowHysteresis, padded_layout, scaled_step_matrix_t
 from piezo_env.randomization import PLANT_INFO_KEYS
-from piezo_env.reference import SEGMENT, ReferenceStream, draw_reference, render_references
+from piezo_env.reference import (
+    ReferenceStream,
+    draw_reference,
+    render_references,
+    segment_samples,
+)
 from piezo_env.task import (
     DEFAULT_HORIZON,
     NOISE_BLOCK,
@@ -148,6 +153,10 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         self._y = np.zeros(n)  # true tip deflection (um)
         self._q_rot = np.zeros(n)  # rotation part of the charge, Gamma theta_tip (uC)
 
+    def _segments(self, n: int) -> int:
+        """``n`` samples rounded up to whole reference segments."""
+        return -(-n // self._segment) * self._segment
+
     def _setup_buffers(self) -> None:
         """Generators, reference and noise buffers, step counters, lockstep bookkeeping."""
         n = self.num_envs
@@ -155,7 +164,8 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         # References and noise are stored sample-major, (time, env): in lockstep one step reads
         # one contiguous row. Without a time limit the reference buffer grows when needed.
         horizon = DEFAULT_HORIZON if self.max_episode_steps is None else self.max_episode_steps
-        self._ref_len = _segments(horizon + self.preview + 1)
+        self._segment = segment_samples(self.model.dt)
+        self._ref_len = self._segments(horizon + self.preview + 1)
         self._ref = np.zeros((self._ref_len, n), dtype=np.float32)
         self._ref_filled = np.zeros(n, dtype=np.int64)
         self._streams: list[ReferenceStream | None] = [None] * n
@@ -327,7 +337,7 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         return [
             draw_reference(
                 spec,
-                SEGMENT,
+                self._segment,
                 dt=model.dt,
                 stroke_um=model.stroke_um,
                 rng=self._rngs[i],
@@ -339,7 +349,8 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
     def _start_references(self, rows: np.ndarray, spec: object, draws: list[Any]) -> None:
         """The reference streams of ``rows`` and their first samples in the buffer."""
         if draws:  # rendered together: one batch, the same samples as one at a time
-            first = render_references(draws, SEGMENT, dt=self.model.dt).astype(np.float32)
+            first = render_references(draws, self._segment, dt=self.model.dt)
+            first = first.astype(np.float32)
             streams = [
                 self.task.reference_stream(spec, self._rngs[i], first=row)
                 for i, row in zip(rows, first, strict=True)
@@ -348,7 +359,7 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
             streams = [self.task.reference_stream(spec, None) for _ in rows]
         for i, stream in zip(rows, streams, strict=True):
             self._streams[i] = stream
-        values = np.array([stream.ensure(SEGMENT)[: self._ref_len] for stream in streams])
+        values = np.array([stream.ensure(self._segment)[: self._ref_len] for stream in streams])
         self._write_columns(self._ref, rows, values, values.shape[1])
         self._ref_filled[rows] = values.shape[1]
         self._ref_filled_min = int(self._ref_filled.min())
@@ -419,7 +430,7 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
 
     def _grow_references(self, n: int) -> None:
         """Make the reference buffer hold at least ``n`` samples per env (doubling)."""
-        grown = np.zeros((_segments(max(n, 2 * self._ref_len)), self.num_envs), np.float32)
+        grown = np.zeros((self._segments(max(n, 2 * self._ref_len)), self.num_envs), np.float32)
         grown[: self._ref_len] = self._ref
         self._ref, self._ref_len = grown, len(grown)
 
@@ -483,8 +494,3 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
             info[key] = value
             info["_" + key] = self._all_true.copy()
         return info
-
-
-def _segments(n: int) -> int:
-    """``n`` samples rounded up to whole reference segments."""
-    return -(-n // SEGMENT) * SEGMENT

@@ -107,6 +107,7 @@ def test_every_drawn_plant_stays_inside_the_stated_tolerances():
         ({}, 1.2),
         ({"creep": True}, 1.25),
         ({"hysteresis": "prandtl-ishlinskii", "bender": "PL122"}, 1.6),
+        ({"hysteresis": "rate-dependent"}, 1.2),
     ],
 )
 def test_observation_bound_covers_every_corner_of_the_range(settings, slack):
@@ -144,10 +145,17 @@ def test_observations_stay_inside_the_space_under_bang_bang_at_each_resonance():
         assert peak > 8 * info["plant"]["free_deflection_um"]  # resonance really was excited
 
 
-def test_single_env_equals_the_vector_env_across_resets():
-    """Sub-env i equals the single env seeded seed + i: draws, obs, rewards, info, plants."""
+@pytest.mark.parametrize("hysteresis", ["bouc-wen", "rate-dependent"])
+def test_single_env_equals_the_vector_env_across_resets(hysteresis):
+    """Sub-env i equals the single env seeded seed + i: draws, obs, rewards, info, plants
+    (each drawn plant's hysteresis scaled, the rate-dependent one's too)."""
     n, steps, seed = 4, 900, 5
-    kwargs = {"randomize": True, "deflection_limit": 2500.0, "max_episode_steps": 250}
+    kwargs = {
+        "randomize": True,
+        "deflection_limit": 2500.0,
+        "max_episode_steps": 250,
+        "hysteresis": hysteresis,
+    }
     native = gym.make_vec(ENV_ID, num_envs=n, vectorization_mode="vector_entry_point", **kwargs)
     single = gym.make(ENV_ID, **kwargs)
     sync = gym.vector.SyncVectorEnv([lambda: copy.deepcopy(single) for _ in range(n)])
@@ -201,3 +209,23 @@ def test_both_env_checkers_pass_with_randomisation():
         warnings.simplefilter("always")
         sb3_checker.check_env(gym.make(ENV_ID, randomize=True, preview=3), warn=True)
     assert all(_RESCALE_HINT in str(w.message) for w in caught)
+
+
+def test_a_drawn_rate_dependent_map_is_its_rate_independent_twin_scaled_at_the_same_rate():
+    """Scaled as the Prandtl-Ishlinskii map with its weights and base radii (the same weights
+    to the bit), with its rate constant and sample time kept: its quasi-static loop scales
+    as the twin's and its major-loop peak, the observation bound's, stays."""
+    from piezo_env.hysteresis import RateDependentPrandtlIshlinskii
+    from piezo_env.randomization import scale_hysteresis
+
+    nominal = RateDependentPrandtlIshlinskii.for_voltage(30.0, dt=2.5e-4)
+    twin = PrandtlIshlinskii(nominal.linear_weight, nominal.radii, nominal.weights)
+    for scale in (0.7, 1.3):
+        drawn, twin_drawn = (scale_hysteresis(h, scale, 30.0) for h in (nominal, twin))
+        kept = (drawn.rate_time, drawn.dt, drawn.radii)
+        assert kept == (nominal.rate_time, 2.5e-4, nominal.radii)
+        assert drawn.weights == twin_drawn.weights
+        assert drawn.linear_weight == twin_drawn.linear_weight
+        assert major_loop_peak(twin_drawn, 30.0) == pytest.approx(major_loop_peak(twin, 30.0))
+        bound = nominal.max_effective_voltage(30.0)
+        assert drawn.max_effective_voltage(30.0) == pytest.approx(bound)

@@ -13,16 +13,18 @@ import piezo_env  # noqa: F401  (registers the ids)
 from piezo_env.reference import (
     DEFAULT_BAND,
     REFERENCE_SHAPES,
-    SEGMENT,
+    SEGMENT_S,
     ReferenceStream,
     check_reference_band,
     draw_reference,
     render_references,
+    segment_samples,
 )
 from piezo_env.task import TaskConfig
 from piezo_env.vector_env import PiezoBenderVectorEnv
 
 DT = 1e-3
+SEGMENT = segment_samples(DT)
 
 
 def _signal_of(draw, n):
@@ -57,6 +59,25 @@ def test_batch_rendering_equals_single_rendering_bitwise():
     single = np.array([render_references([d], SEGMENT, dt=DT)[0] for d in draws])
     assert np.array_equal(batch, single)
     assert {d.shape for d in draws} == set(REFERENCE_SHAPES)
+
+
+@pytest.mark.parametrize("shape", REFERENCE_SHAPES)
+def test_a_named_reference_is_a_function_of_time_whatever_the_sample_time(shape):
+    """The same seed at 1 ms and at 0.25 ms (the PL127's rate) and 0.1 ms (the PL112's):
+    the same reference at the shared instants over a whole 2 s episode, with no segment
+    boundary inside it (segments and step holds are durations, not sample counts). The
+    multisine is scaled to its peak over the samples, which a finer grid finds a little
+    higher."""
+    assert segment_samples(DT) * DT == pytest.approx(SEGMENT_S) and SEGMENT_S > 2.0
+    coarse = ReferenceStream(shape, dt=DT, stroke_um=450.0, bound=5e4, rng=np.random.default_rng(9))
+    coarse = coarse.ensure(2000)[:2000].astype(float)
+    for factor in (4, 10):
+        fine = ReferenceStream(
+            shape, dt=DT / factor, stroke_um=450.0, bound=5e4, rng=np.random.default_rng(9)
+        )
+        fine = fine.ensure(2000 * factor)[: 2000 * factor : factor].astype(float)
+        tolerance = 0.01 * np.abs(coarse).max() if shape == "multisine" else 1e-3
+        np.testing.assert_allclose(fine, coarse, rtol=0, atol=tolerance, err_msg=f"x{factor}")
 
 
 def test_stream_extends_by_fresh_segments_and_arrays_hold_their_last_value():
