@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -434,3 +435,62 @@ def test_the_pid_describes_an_infinite_margin_as_none(monkeypatch):
 def test_a_reference_the_sample_time_cannot_carry_is_named_with_the_fix():
     with pytest.raises(ValueError, match=r"'sine-1Hz' cannot be sampled at dt = 0.7 s.*--ref"):
         make_reference("sine-1Hz", 10, dt=0.7, seed=0)
+
+
+def test_the_robustness_plants_run_what_the_selection_names_and_refuse_to_run_nothing():
+    """By default a robustness plant runs its subsets of the references and rows (the default
+    run's budget); every_reference / every_controller (piezo benchmark: --references /
+    --controllers given) run all of those selected on it. A plant that would run nothing is
+    refused, with the subsets and the switches named."""
+    subset = BenchmarkConfig(
+        controllers=("pid", "mpc"), references=("chirp", "steps"), plants=("nominal", "creep")
+    )
+    assert ("creep", "mpc", ("steps",)) in subset.groups()
+    assert all(c != "pid" for p, c, _ in subset.groups() if p == "creep")
+    every = dataclasses.replace(subset, every_reference=True, every_controller=True)
+    assert [g for g in every.groups() if g[0] == "creep"] == [
+        ("creep", "pid", ("chirp", "steps")),
+        ("creep", "mpc", ("chirp", "steps")),
+    ]
+    with pytest.raises(ValueError, match=r"box-corners plant would run nothing.*every_reference"):
+        BenchmarkConfig(controllers=("mpc",), references=("chirp",), plants=("box-corners",))
+    with pytest.raises(ValueError, match="would run nothing"):
+        BenchmarkConfig(controllers=("pid",), references=("steps",), plants=("creep",))
+    corners = BenchmarkConfig(
+        controllers=("pid",),
+        references=("chirp",),
+        plants=("box-corners",),
+        every_reference=True,
+        every_controller=True,
+    )
+    assert corners.groups() == [("box-corners", "pid", ("chirp",))]
+    with pytest.raises(ValueError, match="every_reference must be True or False"):
+        dataclasses.replace(corners, every_reference="yes")
+
+
+def test_the_command_line_names_make_every_plant_run_them(monkeypatch):
+    """piezo benchmark: --references / --controllers given set every_reference /
+    every_controller; left out, the subsets stand (the run stops once its config is made)."""
+    from piezo_cli import benchmark as command
+    from piezo_cli.main import main
+
+    class Made(Exception):
+        pass
+
+    made, real = [], command._config
+
+    def capture(args, policies):
+        made.append(real(args, policies))
+        raise Made
+
+    monkeypatch.setattr(command, "_config", capture)
+    for argv, expected in (
+        ([], (False, False)),
+        (["--references", "chirp"], (True, False)),
+        (["--controllers", "pid"], (False, True)),
+    ):
+        with pytest.raises(Made):
+            main(["benchmark", "--plants", "nominal,creep", *argv])
+        assert (made[-1].every_reference, made[-1].every_controller) == expected
+    assert made[0].references == made[2].references and len(made[0].references) > 1
+    assert "ppo-seed0" in made[0].rows and made[1].controllers == made[0].controllers
