@@ -203,13 +203,18 @@ class PiezoBenderEnv(TaskAttributes, gym.Env[np.ndarray, np.ndarray]):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        super().reset(seed=seed)
         options = dict(options or {})
-        voltage = check_reset_options(options, self._u_max)
+        voltage = check_reset_options(options, self._u_max)  # checked before anything changes
+        spec = episode_reference(options, self._reference_spec)
+        given = None  # an array reference is checked (and made) now, a named one drawn below
+        if spec is not None and not isinstance(spec, str):
+            given = self.task.reference_stream(spec, None)
+        super().reset(seed=seed)
         plant_info = self._draw_plant() if self.task.randomization is not None else None
         self._plant.reset(voltage)
-        spec = episode_reference(options, self._reference_spec)
-        self._reference = None if spec is None else self.task.reference_stream(spec, self.np_random)
+        if given is None and spec is not None:  # a named reference, drawn after the plant
+            given = self.task.reference_stream(spec, self.np_random)
+        self._reference = given
         self._t = 0
         self._ref_values = self._window_values()
         self._draw_noise()

@@ -135,6 +135,7 @@ def draw_reference(
     ``band`` (Hz, see :func:`check_reference_band`) bounds the sine, triangle and multisine
     frequencies; the number of draws from ``rng`` does not depend on it.
     """
+    steps_only = kind == "steps"  # steps use no frequency: any band will do
     if kind == "random":
         kind = REFERENCE_SHAPES[int(rng.integers(len(REFERENCE_SHAPES)))]
     if kind not in REFERENCE_SHAPES:
@@ -142,6 +143,8 @@ def draw_reference(
             f"unknown reference {kind!r}; use one of {REFERENCE_NAMES} or an array (um)"
         )
     f_min, f_max = band[0], min(band[1], 0.25 / dt)
+    if steps_only:
+        f_max = max(f_max, f_min)  # drawn as for the other shapes (the same draws), unused
     if f_max < f_min:  # only the default band gets here: a given one was checked at dt
         raise ValueError(
             f"the reference band {band[0]:g}-{band[1]:g} Hz, cut to 0.25/dt = {f_max:g} Hz "

@@ -191,6 +191,9 @@ class PiezoBenderVectorEnv(TaskAttributes, VectorEnv):
         seeds = self._seeds(seed)
         options = dict(options or {})
         initial = check_reset_options(options, self._u_max)  # before anything changes
+        spec = episode_reference(options, self._reference_spec)
+        if spec is not None and not isinstance(spec, str):  # an array is checked now too
+            self.task.reference_stream(spec, None)
         if seed is not None:
             self._rngs = [seeding.np_random(s)[0] for s in seeds]
         self._prev_done[:] = False

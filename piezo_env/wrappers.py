@@ -297,6 +297,12 @@ def action_to_voltage(action: np.ndarray, u_max: float) -> np.ndarray:
     return (np.clip(a, -1.0, 1.0) * np.float64(u_max)).astype(np.float32)
 
 
+def _action_clipped(action: np.ndarray) -> np.ndarray:
+    """Where an action of [-1, 1] lies outside it (its voltage is clipped to the drive range:
+    the env's ``info["saturated"]``)."""
+    return np.abs(np.asarray(action, dtype=np.float64)) > 1.0
+
+
 class ObservationHistory:
     """The past voltages (V) and measured errors (um) of n envs, newest first.
 
@@ -402,6 +408,8 @@ class TrackingObservation(gym.Wrapper, gym.utils.RecordConstructorArgs):
             )
         voltage = voltage.reshape(1)
         raw, reward, terminated, truncated, info = self.env.step(voltage)
+        if "saturated" in info:  # the action clipped here is the drive the amplifier clipped
+            info["saturated"] = bool(info["saturated"]) or bool(_action_clipped(action).any())
         self._history.push(slice(None), raw, info.get("voltage_V", float(voltage[0])))
         return self._history.observe(raw[None])[0], reward, terminated, truncated, info
 
@@ -450,6 +458,9 @@ class TrackingObservationVector(VectorWrapper):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         voltages = action_to_voltage(actions, self.config.u_max).reshape(self.num_envs, 1)
         raw, reward, terminated, truncated, info = self.env.step(voltages)
+        if "saturated" in info:  # as the single wrapper: a clipped action saturated the drive
+            clipped = _action_clipped(actions).reshape(self.num_envs, -1).any(axis=1)
+            info["saturated"] = np.logical_or(info["saturated"], clipped)
         applied = np.asarray(info.get("voltage_V", voltages[:, 0]), dtype=np.float64)
         running = ~self._done
         if running.all():

@@ -69,3 +69,29 @@ def test_datasheet_density_and_dt_refuse_non_numbers():
         bender_parameters("PL140", density="heavy")
     with pytest.raises(ValueError, match=r"dt \(s\) must be a finite number > 0"):
         PiezoBenderModel(dt=-1e-3)
+
+
+@pytest.mark.parametrize("vector", [False, True])
+def test_a_refused_reset_leaves_the_episode_as_it_was(vector):
+    """A reference beyond reach (or a bad option) raises before the reset changes anything:
+    the episode goes on from where it was, as if the call had not been made."""
+    import gymnasium as gym
+
+    kwargs = {"noise_bound": 0.0, "randomize": True}
+    make = (
+        (lambda: gym.make_vec("piezo_env:PiezoBender-v0", num_envs=2, **kwargs))
+        if vector
+        else (lambda: gym.make("piezo_env:PiezoBender-v0", **kwargs))
+    )
+    refused, untouched = make(), make()
+    action = np.full((2, 1) if vector else (1,), 20.0, np.float32)
+    for env in (refused, untouched):
+        env.reset(seed=3)
+        for _ in range(100):
+            env.step(action)
+    for bad in ({"reference": np.array([1e9])}, {"initial_voltage": 99.0}):
+        with pytest.raises(ValueError):
+            refused.reset(seed=7, options=bad)
+    for _ in range(20):
+        got, want = refused.step(action), untouched.step(action)
+        np.testing.assert_array_equal(got[0], want[0])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import piezo_env  # noqa: F401  (registers the ids)
-from piezo_env.reference import SEGMENT
+from piezo_env.reference import segment_samples
 from piezo_env.task import NOISE_BLOCK
 from piezo_env.vector_env import PiezoBenderVectorEnv
 
@@ -84,7 +84,8 @@ def test_vector_env_matches_sync_vector_env_info_included(amplitudes, kwargs):
             ended_alone += int(0 < done.sum() < n)
             length[done] = -1  # the next step is the autoreset
     _assert_same_records(records_n, records_s)
-    assert longest > SEGMENT > NOISE_BLOCK  # an episode crossed the refill and the segment
+    # An episode crossed the refill and the segment.
+    assert longest > segment_samples(1e-3) > NOISE_BLOCK
     if len(set(amplitudes)) > 1:
         assert ended_alone >= 10  # partial resets
     else:

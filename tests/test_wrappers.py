@@ -154,14 +154,17 @@ def test_single_wrapper_equals_the_vector_wrapper_env_by_env():
     done = [False] * n
     for _ in range(100):  # two autoresets
         actions = rng.uniform(-1.2, 1.2, (n, 1)).astype(np.float32)
-        obs, _, terminated, truncated, _ = vec.step(actions)
+        obs, _, terminated, truncated, info = vec.step(actions)
         for i, env in enumerate(singles):
             if done[i]:
                 single = env.reset()[0]
                 done[i] = False
             else:
-                single, _, term, trunc, _ = env.step(actions[i])
+                single, _, term, trunc, single_info = env.step(actions[i])
                 done[i] = term or trunc
+                # An action beyond [-1, 1] is a drive the amplifier clips: saturated.
+                clipped = abs(float(actions[i, 0])) > 1.0
+                assert single_info["saturated"] == bool(info["saturated"][i]) == clipped
             np.testing.assert_array_equal(single, obs[i])
             assert done[i] == bool(terminated[i] or truncated[i])
 
