@@ -327,11 +327,12 @@ class ARXModel:
         The state is what the ARX equation reads, so it is known from data:
         ``x_t = [y_t, y_t-1 .. y_t-na+1, u_t-1 .. u_t-nb+1]`` (output unit, input unit), and
         ``x_t+1 = A x_t + B u_t``, ``y_t = C x_t`` (D = 0: y_t depends on u_t-1 and older).
-        It has ``max(na, 1) + nb - 1`` states; the states beyond the transfer function's order
-        are pure delays (eigenvalues at 0), so the realization is stabilizable and detectable.
+        It has ``max(na, 1) + max(nb, 1) - 1`` states; the states beyond the transfer
+        function's order are pure delays (eigenvalues at 0), so the realization is stabilizable
+        and detectable (with nb = 0 the input does not enter: B = 0).
         """
         na, nb = max(self.na, 1), self.nb
-        n = na + nb - 1
+        n = na + max(nb, 1) - 1
         a = np.zeros((n, n))
         b = np.zeros((n, 1))
         a[0, : self.na] = self.a

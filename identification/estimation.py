@@ -71,17 +71,27 @@ def fit_least_squares(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1
 def fit_chebyshev(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1.0) -> ARXModel:
     """Exact MAP estimate under uniform noise: the Chebyshev (L-infinity) ARX fit.
 
-    Solves ``min r s.t. -r <= y_t - psi_t^T theta <= r`` as one LP with HiGHS. The constraint
-    matrix has two rows per sample but only ``na + nb + 1`` columns, so its rows are full; it is
-    handed over in CSR form, HiGHS's own layout, to avoid a dense copy inside. Columns are scaled to
-    unit peak before solving so that the solver tolerances mean the same for any units.
+    Solves ``min r s.t. -r <= y_t - psi_t^T theta <= r`` as one LP with HiGHS, for the
+    correction delta to the least-squares estimate theta_ls: ``theta = theta_ls + delta``, the
+    least-squares residuals e_t taking the place of y_t. Scaled by their peak r_ls (and the
+    columns of psi by theirs), the LP's optimum lies in [r_min / r_ls, 1] with r_min >= r_ls /
+    sqrt(m) (m samples), so HiGHS's absolute tolerances (about 1e-7) are relative to the noise
+    bound, not to the output's level: solved for y directly, a noise bound below 1e-7 of the
+    output's peak (a small noise, or an input offset) came out up to twice the minimum. The
+    constraint matrix has two rows per sample but only ``na + nb + 1`` columns, so its rows are
+    full; it is handed over in CSR form, HiGHS's own layout, to avoid a dense copy inside.
+    Noise-free data (r_ls = 0) give the exact fit with a zero bound.
     """
     u, y = _check_data(u, y, na, nb)
     psi, target = regressors(u, y, na, nb)
+    theta_ls = np.linalg.lstsq(psi, target, rcond=None)[0]
+    residual = target - psi @ theta_ls
+    r_ls = float(np.max(np.abs(residual)))
+    if r_ls == 0.0:
+        return ARXModel(theta_ls[:na], theta_ls[na:], noise_bound=0.0, dt=dt, method="chebyshev")
     column_scale = np.abs(psi).max(axis=0)
-    output_scale = np.abs(target).max()
     psi_n = psi / column_scale
-    target_n = target / output_scale
+    target_n = residual / r_ls
     m, p = psi_n.shape
     ones = np.ones((m, 1))
     a_ub = scipy.sparse.csr_array(np.block([[psi_n, -ones], [-psi_n, -ones]]))
@@ -97,8 +107,10 @@ def fit_chebyshev(u: Any, y: Any, *, na: int = 2, nb: int = 2, dt: float = 1.0) 
     )
     if res.status != 0:
         raise RuntimeError(f"the Chebyshev LP did not solve: {res.message}")
-    theta = res.x[:p] * output_scale / column_scale
+    theta = theta_ls + res.x[:p] * r_ls / column_scale
     bound = float(np.max(np.abs(target - psi @ theta)))
+    if bound > r_ls:  # the LP's tolerance cannot make it worse than its starting point
+        theta, bound = theta_ls, r_ls
     return ARXModel(theta[:na], theta[na:], noise_bound=bound, dt=dt, method="chebyshev")
 
 
@@ -162,13 +174,38 @@ def _fit_bayes_uniform(
         options["record_history"] = True
     u, y = _check_data(u, y, na, nb)
     estimator = BayesUniformEstimator(na, nb, dt=dt, **options)
+    rows = y.size - max(na, nb)
+    if rows < estimator.n_init:
+        raise ValueError(
+            f"too few samples for bayes-uniform: it starts from its first n_init = "
+            f"{estimator.n_init} regression rows, so an ARX({na},{nb}) needs at least "
+            f"{estimator.n_init + max(na, nb)} samples, {y.size} given (pass a smaller n_init, "
+            f">= {na + nb + 1}, or use method='chebyshev')"
+        )
     estimator.update_many(u, y)
     if not estimator.initialized:
-        raise ValueError(
-            "the data never bounded the noise-bound support (not persistently exciting)"
-        )
+        raise ValueError(_never_bounded(u, y, na, nb))
     model = estimator.model()
     return _steady_mean(model, steady_fraction) if point_estimate == "mean" else model
+
+
+def _never_bounded(u: np.ndarray, y: np.ndarray, na: int, nb: int) -> str:
+    """Why the bayes-uniform estimator never bounded its noise-bound support: data an ARX
+    model fits without noise (the support of 1/r is unbounded), or data that do not excite it.
+    "Without noise": a least-squares residual within 1e-6 of the output's peak, ten times the
+    default feasibility tolerance (1e-7) of HiGHS, which solves the estimator's LPs on data
+    scaled to unit peak, so below it the LPs cannot resolve the bound."""
+    psi, target = regressors(u, y, na, nb)
+    theta = np.linalg.lstsq(psi, target, rcond=None)[0]
+    r_ls, peak = float(np.max(np.abs(target - psi @ theta))), float(np.max(np.abs(target)))
+    if r_ls <= 1e-6 * peak:
+        return (
+            f"the data fit an ARX({na},{nb}) with (almost) no noise (largest least-squares "
+            f"residual {r_ls:.3g} against an output peak of {peak:.3g}): the uniform-noise "
+            "posterior needs a noise bound above the numbers' resolution; fit noise-free data "
+            "with method='chebyshev' or 'least-squares'"
+        )
+    return "the data never bounded the noise-bound support (not persistently exciting)"
 
 
 def _bayes_options(options: dict[str, Any]) -> tuple[str, float]:

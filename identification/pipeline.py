@@ -243,6 +243,14 @@ def identify_records(
     log = _StepLog(progress)
     if seed is not None:
         require_int("seed", seed, minimum=0)
+    if isinstance(records, (str, os.PathLike, Records)):
+        named = {"dt": dt, "drive_range_V": drive_range_V, "bender": bender}
+        given = [name for name, value in named.items() if value is not None]
+        if given:  # they would be ignored: the records say what they are
+            raise ValueError(
+                f"{', '.join(given)}: for arrays only; a records folder's manifest (or a "
+                "Records) holds the sample time, drive range and bender: leave them out"
+            )
     if isinstance(records, (str, os.PathLike)):
         records, config = read_records_folder(records, config, split=split)
     elif not isinstance(records, Records):

@@ -272,6 +272,12 @@ def records_from_arrays(
             )
         for column, values in (("voltage_V", u), ("deflection_um", y)):
             _check_finite(values, label, column, offset=0)
+            if values.size and np.ptp(values) == 0.0:  # a drive left off, a sensor unplugged
+                raise RecordsError(
+                    f"{label}: column {column} holds one value ({values[0]:g}) in all "
+                    f"{values.size} samples; a record to identify from must move both (check "
+                    "the drive and the sensor's cable and range)"
+                )
         _check_drive(u, low, high, label, offset=0)
         arrays[name] = (u, y)
     shared, lead_in = False, {}

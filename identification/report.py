@@ -104,7 +104,9 @@ def _scope_section(report: dict[str, Any]) -> list[str]:
     if rich == "random":
         params = config.get("rich_params") or {}
         hold_s = params["hold"] * env["dt_s"] if "hold" in params else RAND_HOLD_S
-        band = f" and references up to about {1.0 / hold_s:.0f} Hz (its band)"
+        # The held signal's band reaches 1 / hold; sampled, nothing beyond Nyquist, 1 / (2 dt).
+        top = min(1.0 / hold_s, 0.5 / env["dt_s"])
+        band = f" and references up to about {top:.0f} Hz (its band)"
     loops = {
         "random": "loops of every size",
         "decaying-multisine": "nested loops of every size",

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from identification.arx import ARXModel, regressors
+from identification.estimation import fit_arx
 
 DT = 1e-3
 
@@ -161,3 +162,53 @@ def test_state_space_matches_the_arx_recursion_and_transfer_function(na, nb):
         np.asarray(model.to_transfer_function()(z)).ravel(),
         rtol=1e-10,
     )
+
+
+@pytest.mark.parametrize(("noise", "offset"), [(1e-7, 0.0), (1e-6, 0.0), (0.03, 1e4)])
+def test_the_chebyshev_bound_is_the_minimum_whatever_the_noise_s_share_of_the_output(
+    noise, offset
+):
+    """The exact MAP's bound is the smallest largest residual, so at most the true
+    parameters' and least squares' (an independent upper bound each), also with a noise far
+    below the output's level or an input offset far above its swing (solved for y directly,
+    the LP's absolute tolerance made it up to twice the minimum)."""
+
+    rng = np.random.default_rng(0)
+    true = ARXModel([1.5, -0.7], [1.0, 0.5], noise_bound=noise)
+    u = offset + rng.choice([-1.0, 1.0], 3000)
+    y = true.simulate(u, rng=np.random.default_rng(1))
+    psi, target = regressors(u, y, 2, 2)
+    at_truth = np.max(np.abs(target - psi @ np.r_[true.a, true.b]))
+    exact = fit_arx(u, y, method="chebyshev")
+    ls = fit_arx(u, y, method="least-squares")
+    assert exact.noise_bound <= at_truth * (1 + 1e-9)
+    assert exact.noise_bound <= ls.noise_bound
+    assert exact.noise_bound > 0.9 * noise  # the uniform noise reaches near its bound
+
+
+def test_bayes_uniform_says_why_it_cannot_start():
+    """Noise-free data (an unbounded 1/r) and a record shorter than its start: each named,
+    where both used to read "not persistently exciting"; the exact fit takes the first."""
+    u = np.random.default_rng(0).choice([-1.0, 1.0], 500)
+    clean = ARXModel([1.5, -0.7], [1.0, 0.5]).simulate(u)
+    with pytest.raises(ValueError, match=r"with \(almost\) no noise.*method='chebyshev'"):
+        fit_arx(u, clean)
+    assert fit_arx(u, clean, method="chebyshev").noise_bound < 1e-12
+    noisy = ARXModel([1.5, -0.7], [1.0, 0.5], noise_bound=0.1).simulate(
+        u, rng=np.random.default_rng(1)
+    )
+    with pytest.raises(ValueError, match="needs at least 22 samples, 21 given"):
+        fit_arx(u[:21], noisy[:21])
+    assert fit_arx(u[:22], noisy[:22]).noise_bound > 0
+
+
+def test_an_input_free_arx_has_a_realization():
+    """nb = 0: the input does not enter (B = 0), the states are the past outputs."""
+    model = ARXModel([0.5, 0.2], [])
+    a, b, c, _ = model.state_space_matrices()
+    assert a.shape == (2, 2) and not b.any()
+    x, y = np.array([1.0, 0.0]), []
+    for _ in range(5):
+        y.append((c @ x).item())
+        x = a @ x
+    np.testing.assert_allclose(y, [1.0, 0.5, 0.45, 0.325, 0.2525])

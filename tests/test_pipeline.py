@@ -527,3 +527,19 @@ def test_hysteresis_figure_draws_closed_loops_as_wide_as_the_plants():
         widths.append((down - up) / np.ptp(z))
     assert 0 < widths[0] < widths[1] < widths[2]  # wider with the amplitude
     assert 0.08 < widths[2] < 0.18
+
+
+def test_the_scope_names_no_band_beyond_the_nyquist_frequency(short_default_run):
+    """A RAND held one sample at 10 ms reaches 1 / hold = 100 Hz as a held signal, but a
+    sampled record holds nothing beyond 1 / (2 dt) = 50 Hz: the scope says 50 Hz."""
+    import copy
+
+    from identification.report import markdown_report
+
+    report = copy.deepcopy(short_default_run.report)
+    report["environment"]["dt_s"] = 0.01
+    report["config"]["rich_signal"] = "random"
+    report["config"]["rich_params"] = {"hold": 1}
+    assert "references up to about 50 Hz (its band)" in markdown_report(report, [])
+    report["config"]["rich_params"] = {"hold": 10}
+    assert "references up to about 10 Hz (its band)" in markdown_report(report, [])

@@ -184,6 +184,23 @@ def test_nan_and_inf_are_refused(measured, tmp_path, capsys):
     assert "validation.csv, line 9" in err and "voltage_V" in err
 
 
+@pytest.mark.parametrize(("record", "column"), [("prbs", "voltage_V"), ("rich", "deflection_um")])
+def test_a_column_that_never_moves_is_refused_naming_its_file(
+    measured, tmp_path, capsys, record, column
+):
+    """A drive left off or a sensor unplugged: one value in the whole column."""
+    folder = _copy(measured, tmp_path)
+    path = folder / f"{record}.csv"
+    lines = path.read_text(encoding="utf-8").splitlines()
+    for k in range(2, len(lines) + 1):
+        _edit = lines[k - 1].split(",")
+        _edit[lines[0].split(",").index(column)] = "0.5"
+        lines[k - 1] = ",".join(_edit)
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    err = _refused(folder, tmp_path, capsys)
+    assert f"{record}.csv" in err and f"column {column} holds one value (0.5)" in err
+
+
 def test_a_missing_column_is_refused(measured, tmp_path, capsys):
     folder = _copy(measured, tmp_path)
     text = (folder / "selection.csv").read_text(encoding="utf-8")
@@ -415,3 +432,6 @@ def test_identify_records_refuses_bad_arguments_before_any_work():
         identify_records((u, y), split=0.7, **{**good, "dt": "0.001"})
     with pytest.raises(RecordsError, match="bender must name the bender"):
         identify_records((u, y), split=0.7, **{**good, "bender": 140})
+    for name, value in good.items():  # a folder's manifest says what they are: not ignored
+        with pytest.raises(ValueError, match=f"{name}: for arrays only"):
+            identify_records("no-such-folder", **{name: value})
