@@ -225,6 +225,13 @@ class BenchmarkConfig:
         for name in ("every_reference", "every_controller"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+            # Canonical: a switch that changes no group is off, so that two configurations
+            # that run the same episodes are equal (a checkpoint of one resumes the other).
+            if getattr(self, name):
+                on = self.groups()
+                object.__setattr__(self, name, False)
+                if self.groups() != on:
+                    object.__setattr__(self, name, True)
         self._check_plants_run()
 
     def _check_plants_run(self) -> None:

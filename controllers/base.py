@@ -15,6 +15,7 @@ the loop: the controller falls back to a safe input and counts it in :attr:`Cont
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -101,6 +102,8 @@ class Controller:
         self.task = task
         self.stats = self.stats_type()
         self._u_max = task.u_max
+        bound = task.observation_bound_um
+        self._observation_bound = math.inf if bound is None else bound  # the fused steps' check
 
     def reset(self, observation: Any) -> None:
         """Start an episode from its first observation (um); clears :attr:`stats`."""

@@ -62,6 +62,7 @@ __all__ = [
     "loop_is_stable",
     "modulus_margins",
     "output_feedback",
+    "plant_margins",
     "radii_matrix",
 ]
 
@@ -265,20 +266,8 @@ def modulus_margins(
         ``min_w |1 - G K(e^jw)|`` per filter (dimensionless).
     """
     gains = np.atleast_2d(gains)
-    m = a_aug.shape[0]
-    q = np.exp(1j * np.linspace(np.pi / points, np.pi, points))
-    resolvent = np.linalg.inv(q[:, None, None] * np.eye(m) - a_aug)  # R(q), (F, m, m)
-    r_b = resolvent @ b_aug  # (F, m)
-    model = r_b @ c_aug  # G(q) = c R B: the disturbance rows of B are zero
-    u_r = np.einsum("i,fij->fj", c_aug @ a_aug, resolvent)  # c A R
-    k_r = np.einsum("i,fij->fj", k_estimate, resolvent)  # k_e R
-    u_b, c_b, k_b = u_r @ b_aug, c_aug @ b_aug, k_r @ b_aug
-    u_l = u_r @ gains.T  # c A R L, (F, filters)
-    k_l = k_r @ gains.T  # k_e R L
-    k_s_l = k_l / (1.0 + u_l)  # k_e S L
-    # k_e S (I - L c) B = k_e R B - k_e S L (c A R B + c B)
-    k_s_b = k_b[:, None] - k_s_l * (u_b[:, None] + c_b)
-    controller = q[:, None] * k_s_l / (1.0 - k_previous / q[:, None] - k_s_b)
+    q = _frequencies(points)
+    model, controller = _responses(q, a_aug, b_aug, c_aug, gains, k_estimate, k_previous)
     margins = np.min(np.abs(1.0 - model[:, None] * controller), axis=0)
     a, b, c = a_aug[:n, :n], b_aug[:n], c_aug[:n]
     for k, gain in enumerate(gains):
@@ -286,3 +275,75 @@ def modulus_margins(
         if not loop_is_stable(feedback, a, b, c):
             margins[k] = 0.0
     return margins
+
+
+def _frequencies(points: int) -> np.ndarray:
+    """``points`` frequencies on the unit circle, (0, pi], Nyquist included."""
+    return np.exp(1j * np.linspace(np.pi / points, np.pi, points))
+
+
+def _responses(
+    q: np.ndarray,
+    a_aug: np.ndarray,
+    b_aug: np.ndarray,
+    c_aug: np.ndarray,
+    gains: np.ndarray,
+    k_estimate: np.ndarray,
+    k_previous: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """G(q) of the observer's own model (W,) and K(q) of each filter's controller (W, F)
+    (module docstring: one resolvent per frequency for the whole bank)."""
+    m = a_aug.shape[0]
+    resolvent = np.linalg.inv(q[:, None, None] * np.eye(m) - a_aug)  # R(q), (W, m, m)
+    r_b = resolvent @ b_aug  # (W, m)
+    model = r_b @ c_aug  # G(q) = c R B: the disturbance rows of B are zero
+    u_r = np.einsum("i,fij->fj", c_aug @ a_aug, resolvent)  # c A R
+    k_r = np.einsum("i,fij->fj", k_estimate, resolvent)  # k_e R
+    u_b, c_b, k_b = u_r @ b_aug, c_aug @ b_aug, k_r @ b_aug
+    u_l = u_r @ gains.T  # c A R L, (W, filters)
+    k_l = k_r @ gains.T  # k_e R L
+    k_s_l = k_l / (1.0 + u_l)  # k_e S L
+    # k_e S (I - L c) B = k_e R B - k_e S L (c A R B + c B)
+    k_s_b = k_b[:, None] - k_s_l * (u_b[:, None] + c_b)
+    controller = q[:, None] * k_s_l / (1.0 - k_previous / q[:, None] - k_s_b)
+    return model, controller
+
+
+def plant_margins(
+    a_aug: np.ndarray,
+    b_aug: np.ndarray,
+    c_aug: np.ndarray,
+    gains: np.ndarray,
+    k_estimate: np.ndarray,
+    k_previous: float,
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    points: int = FREQUENCY_POINTS,
+) -> np.ndarray:
+    """Modulus margin ``min_w |1 - G_p K(e^jw)|`` of each filter's loop on each of ``plants``
+    (the loops of :func:`radii_matrix`; the margin means something only where that loop is
+    stable).
+
+    Parameters
+    ----------
+    a_aug, b_aug, c_aug, gains, k_estimate, k_previous
+        As :func:`modulus_margins`.
+    plants : list of (a, b, c)
+        Linear parts (z -> y) the loop is closed around, each in any realization.
+    points : int
+        Frequencies on (0, pi], Nyquist included.
+
+    Returns
+    -------
+    numpy.ndarray
+        (filters, plants), dimensionless.
+    """
+    q = _frequencies(points)
+    _, controller = _responses(q, a_aug, b_aug, c_aug, np.atleast_2d(gains), k_estimate, k_previous)
+    out = np.empty((controller.shape[1], len(plants)))
+    for j, (a, b, c) in enumerate(plants):
+        n = a.shape[0]
+        plant = np.reshape(c, n) @ np.linalg.solve(
+            q[:, None, None] * np.eye(n) - a, np.broadcast_to(np.reshape(b, (n, 1)), (q.size, n, 1))
+        )[..., 0].T  # (W,)
+        out[:, j] = np.min(np.abs(1.0 - plant[:, None] * controller), axis=0)
+    return out

@@ -364,6 +364,8 @@ class LinearMPC(PredictiveController):
             or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
         ):
             observation = self.task.check_observation(observation)  # raises, or converts
+        elif not abs(observation[0]) <= self._observation_bound:  # a fault, or NaN: says which
+            self.task.check_observation(observation)
         fused.observation[:] = observation  # the kernel checks that every entry is finite
         u = self._act_fused(observation)
         stats = self.stats

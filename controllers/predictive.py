@@ -33,12 +33,12 @@ from controllers.condensed import (
     rate_hessian,
 )
 from controllers.gain import GainEstimate
-from controllers.loop import feedback_law, modulus_margins, radii_matrix
+from controllers.loop import feedback_law, modulus_margins, plant_margins, radii_matrix
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX, measurement_std
 from controllers.task import ControlTask
-from controllers.tolerance_box import ToleranceBox, vertex_models
+from controllers.tolerance_box import ToleranceBox, arx_of, datasheet_model, vertex_models
 from piezo_env.memo import ContentCache
 
 __all__ = [
@@ -95,47 +95,59 @@ def screen_bank(
     plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
 ) -> dict[str, Any]:
     """Let ``bank`` select only the filters whose unconstrained loop (feedback ``law``,
-    :func:`controllers.loop.feedback_law`) is stable on every one of ``plants`` and has a
-    sensitivity peak of at most :data:`controllers.settings.MS_MAX` on the bank's own model.
+    :func:`controllers.loop.feedback_law`) has a sensitivity peak of at most
+    :data:`controllers.settings.MS_MAX` on the bank's own model and on every one of ``plants``
+    (stable there too).
 
     Why. The bank selects the filter whose innovations are the most likely, which says nothing
     about whether the loop it closes is stable on the plant at hand; on a bender within the
     datasheet's tolerances whose resonance is off, the fast filters' loops can be unstable and
     their growing innovations make them still more likely. Screening on the box's vertices
-    removes those filters before the first sample, so that every loop the bank can close is
-    stable on every vertex of the box; the Ms bound keeps a margin for what the box's models
-    do not hold (higher modes beyond the identified order, hysteresis error). The check is at
-    the vertices (and the gain's midpoint), not a proof over the box's interior; the tests
-    check random interior plants as well.
+    removes those filters before the first sample. Stability alone on the vertices was not
+    enough: a filter whose loop was stable on every vertex with a modulus margin of 0.07 on
+    one (Ms 14: resonance and gain x1.2, damping 0.01) was the bank's prior, and a transient
+    that drove the drive to its ends (a sine switched on at 50 Hz, a random step) rang that
+    bender into a limit cycle between the drive's ends (68 % of the stroke) that the bank never
+    left. The margin is the distance of the loop's Nyquist curve from the critical point, so
+    Ms <= MS_MAX on every vertex keeps the loop stable under any gain change of the loop
+    between 1 / (1 + 1/Ms) and 1 / (1 - 1/Ms) (0.64-2.25 at Ms 1.8), which is what a drive
+    at its ends (a gain below 1) and the hysteresis's local slope (above or below) do to it;
+    it also covers what the box's models do not hold. The check is at the vertices (and the
+    gain's midpoint), not a proof over the box's interior; the tests check random interior
+    plants as well.
 
-    If no filter passes, the bank keeps the one of the smallest worst radius, and the result
-    says so (``robust`` False) and warns: the loop is then not known to be stable on the box.
+    If no filter passes, the bank keeps those that are stable on every vertex within the bound
+    on its own model, or else the one of the smallest worst radius, and the result says so
+    (``robust`` False) and warns: the loop is then not known to keep its margin on the box.
 
     Returns
     -------
     dict
         ``applied`` True, ``robust``, ``filters_kept``, ``filters``, ``worst_radius`` (the
-        largest spectral radius over the kept filters and the plants, -), ``ms_max``.
+        largest spectral radius over the kept filters and the plants, -), ``worst_margin``
+        (their smallest modulus margin over the plants, -), ``ms_max``.
     """
 
-    def compute() -> np.ndarray:
-        return radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants).max(
-            axis=1
-        )
+    def compute() -> tuple[np.ndarray, np.ndarray]:
+        args = (bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
+        return radii_matrix(*args).max(axis=1), plant_margins(*args).min(axis=1)
 
-    # A closed loop per filter and plant, and a frequency sweep per filter: kept by content,
-    # so the same bank screened with the same law on the same plants is screened once.
+    # A closed loop and a frequency sweep per filter and plant, and a sweep per filter on the
+    # model: kept by content, so the same bank screened with the same law on the same plants
+    # is screened once.
     parts = [bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants]
-    radii = _box_screens.get(parts, compute)
+    radii, on_plants = _box_screens.get(parts, compute)
     margins = filter_margins(bank, bank.gains, law)
-    admissible = (radii < 1.0) & (margins >= 1.0 / MS_MAX)
+    stable = (radii < 1.0) & (margins >= 1.0 / MS_MAX)
+    admissible = stable & (on_plants >= 1.0 / MS_MAX)
     robust = bool(admissible.any())
     if not robust:
-        admissible = radii == radii.min()
+        admissible = stable if stable.any() else radii == radii.min()
         warnings.warn(
-            f"no filter of the observer bank keeps the loop stable on every vertex of the "
-            f"tolerance box within Ms <= {MS_MAX} (smallest worst spectral radius "
-            f"{radii.min():.4f}); the bank keeps that filter alone",
+            f"no filter of the observer bank keeps Ms <= {MS_MAX} on every vertex of the "
+            f"tolerance box (largest smallest margin {on_plants[radii < 1.0].max(initial=0.0):.3f}"
+            f", smallest worst spectral radius {radii.min():.4f}); the bank keeps "
+            f"{int(admissible.sum())} filter(s) not known to keep that margin on the box",
             RuntimeWarning,
             stacklevel=3,
         )
@@ -146,8 +158,37 @@ def screen_bank(
         "filters_kept": int(admissible.sum()),
         "filters": int(admissible.size),
         "worst_radius": float(radii[admissible].max()),
+        "worst_margin": float(on_plants[admissible].min()),
         "ms_max": MS_MAX,
     }
+
+
+def datasheet_vertex_plants(
+    model: PredictionModel, task: ControlTask, boxes: list[ToleranceBox]
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The linear parts (a, b, c) of the vertices of ``boxes`` around ``model``'s, moved by the
+    datasheet's physics (:func:`controllers.tolerance_box.datasheet_model`, one order above
+    the model's, as the adaptive MPC's datasheet members). A vertex whose fit is unstable is
+    left out, and the screen's description counts it (``vertex_plants``)."""
+    arx = arx_of(model)
+    order = max(arx.na, arx.nb) + 1
+    plants = []
+    for box in boxes:
+        for vertex in box.vertices():
+            try:
+                member, _ = datasheet_model(
+                    arx,
+                    task.datasheet,
+                    vertex,
+                    damping_ratio=task.damping_ratio,
+                    order=order,
+                    n_elements=task.n_elements,
+                )
+            except ValueError:  # an unstable fit: no plant to screen on
+                continue
+            a, b, c, _ = member.state_space_matrices()
+            plants.append((a, b, c))
+    return plants
 
 
 class PredictiveController(Controller):
@@ -205,28 +246,49 @@ class PredictiveController(Controller):
 
     def box_plants(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """The linear parts (a, b, c) the observer bank's filters are screened on: the vertices
-        of the datasheet's tolerance box around the model
-        (:func:`controllers.tolerance_box.vertex_models`), at the gain factors ``1 - w``,
+        of the datasheet's tolerance box around the model, at the gain factors ``1 - w``,
         ``1`` and ``1 + w`` (w the datasheet's free-deflection tolerance: the plant's gain
         relative to the one the MPC predicts with lies between 1 and the plant's own, as the MPC
-        learns it, :mod:`controllers.gain`). Computed once, and kept by content
-        (:data:`BOX_PLANTS_KEPT`) for the next controller on the same model."""
+        learns it, :mod:`controllers.gain`), each vertex moved mode by mode
+        (:func:`controllers.tolerance_box.vertex_models`) and, when the task carries the
+        bender's datasheet, also by the datasheet's physics
+        (:func:`controllers.tolerance_box.datasheet_model`).
+
+        Why both. Mode by mode, a vertex keeps every mode the model holds as something else
+        where the nominal bender has it: the PL140's second mode at 1 kHz sampling (1.0 kHz,
+        folded onto 3 Hz) is a real pole of the identified model, and at resonance x1.2 it
+        folds onto 214 Hz, next to the first mode at 192 Hz. The datasheet's FE model moves
+        every mode and alias; the mode-by-mode vertices stay for a task without a datasheet.
+        Computed once, and kept by content (:data:`BOX_PLANTS_KEPT`) for the next controller
+        on the same model and task."""
         if self._box_plants is None:
-            model = self.model
+            model, task = self.model, self.task
+            box = ToleranceBox()
+            if not _has_mode(model):  # nothing to move but the gain
+                box = dataclasses.replace(box, resonance=0.0, damping=None)
+            boxes = [box]
+            matched = dataclasses.replace(box, gain=0.0)
+            if not matched.is_nominal:
+                boxes.append(matched)
+            physics = _has_mode(model) and task.datasheet is not None and bool(task.damping_ratio)
 
             def compute() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-                box = ToleranceBox()
-                if not _has_mode(model):  # nothing to move but the gain
-                    box = dataclasses.replace(box, resonance=0.0, damping=None)
-                models = [m for _, m in vertex_models(model, box, further_modes=True)]
-                matched = dataclasses.replace(box, gain=0.0)
-                if not matched.is_nominal:
-                    models += [m for _, m in vertex_models(model, matched, further_modes=True)]
-                return [(m.a, m.b, m.c) for m in models]
+                models = [m for b in boxes for _, m in vertex_models(model, b, further_modes=True)]
+                plants = [(m.a, m.b, m.c) for m in models]
+                if physics:
+                    plants += datasheet_vertex_plants(model, task, boxes)
+                return plants
 
-            # What vertex_models reads of the model, and the box's defaults.
+            # What the vertices read of the model and the task, and the box's defaults.
             parts = [model.a, model.b, model.c, model.dt, ToleranceBox()]
+            parts += [repr(task.datasheet), task.damping_ratio, task.n_elements]
             self._box_plants = _box_plants.get(parts, compute)
+            vertices = sum(len(b.vertices()) for b in boxes)
+            self.box_plant_counts = {
+                "mode_by_mode": vertices,
+                "datasheet": len(self._box_plants) - vertices,
+                "datasheet_asked": vertices if physics else 0,
+            }
         return self._box_plants
 
     def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
@@ -238,7 +300,8 @@ class PredictiveController(Controller):
             return {"applied": False, "why": "robust_bank=False"}
         if self.model.source != "identified":
             return {"applied": False, "why": "the model is the plant's own (oracle)"}
-        return screen_bank(observer, law, self.box_plants())
+        screen = screen_bank(observer, law, self.box_plants())
+        return {**screen, "vertex_plants": dict(self.box_plant_counts)}
 
     def _reset(self, observation: np.ndarray | None) -> None:
         y0 = 0.0 if observation is None else float(observation[0])

@@ -54,6 +54,13 @@ class ControlTask:
         See ``datasheet``.
     n_elements : int or None
         Beam elements of that FE model (None: not known).
+    observation_bound_um : float or None
+        The largest |entry| an observation can hold (um): the env's observation bound, a
+        proven bound of the deflection the drive can produce plus the sensor noise
+        (``env.unwrapped.task.bound``). A measurement beyond it is no deflection of this bender (a
+        sensor fault, a unit error) and is refused by :meth:`check_observation`: one such
+        sample would otherwise steer the observer's state far off and, through the QP's
+        bounds, the loop with it for the rest of the episode. None: not known, not checked.
     """
 
     dt: float
@@ -65,6 +72,7 @@ class ControlTask:
     datasheet: Any = None
     damping_ratio: float | None = None
     n_elements: int | None = None
+    observation_bound_um: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("dt", "u_max", "stroke_um"):
@@ -78,6 +86,10 @@ class ControlTask:
                 "gym.make('piezo_env:PiezoBender-v0', preview=20)"
             ) from None
         require_number("noise_bound_um", self.noise_bound_um, low=0.0)
+        if self.observation_bound_um is not None:
+            require_number(
+                "observation_bound_um", self.observation_bound_um, low=0.0, low_open=True
+            )
         if self.slew_limit is not None:
             require_number(
                 "slew_limit (V/s, or None)",
@@ -153,6 +165,7 @@ class ControlTask:
             datasheet=nominal.model.params.datasheet,
             damping_ratio=float(base.config.damping_ratio),
             n_elements=int(nominal.model.beam.n_elements),
+            observation_bound_um=float(base.observation_space.high[0]),
         )
 
     @property
@@ -180,10 +193,18 @@ class ControlTask:
                 f"observation must have shape ({self.observation_size},) = [y, r_t, r_t+1 .. "
                 f"r_t+{self.preview}] (um), got shape {obs.shape}"
             )
-        if not math.isfinite(obs.dot(self._ones)):
+        total = obs.dot(self._ones)
+        if not math.isfinite(total):
             bad = np.flatnonzero(~np.isfinite(obs))
             if bad.size:
                 raise ValueError(f"observation[{bad[0]}] = {obs[bad[0]]} is not finite")
+        bound = self.observation_bound_um
+        if bound is not None and not abs(obs[0]) <= bound:
+            raise ValueError(
+                f"observation[0] = {obs[0]:g} um lies beyond any deflection this bender can "
+                f"show (the env's observation bound {bound:g} um): a sensor fault or a unit "
+                "error; check the measurement before it reaches the controller"
+            )
         return obs
 
     @functools.cached_property

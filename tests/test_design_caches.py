@@ -167,8 +167,11 @@ def test_a_kept_box_screen_is_the_fresh_one_to_the_bit(mpc, monkeypatch) -> None
     np.testing.assert_array_equal(banks[0].admissible, banks[1].admissible)
     bank = banks[1]
     fresh = loop.radii_matrix(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
+    on_plants = loop.plant_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants)
     parts = [bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, plants]
-    assert np.array_equal(_kept(screens, parts), fresh.max(axis=1))
+    radii, kept_margins = _kept(screens, parts)
+    assert np.array_equal(radii, fresh.max(axis=1))
+    assert np.array_equal(kept_margins, on_plants.min(axis=1))
     fresh = loop.modulus_margins(bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, n=bank.n)
     kept = predictive.filter_margins(bank, bank.gains, law)
     assert np.array_equal(kept, fresh)
@@ -207,17 +210,20 @@ def test_box_screens_cannot_change_each_others_results(mpc, monkeypatch) -> None
     assert np.array_equal(predictive.filter_margins(bank, bank.gains, law), expected)
     parts = [bank.a_aug, bank.b_aug, bank.c_aug, bank.gains, *law, mpc.box_plants()]
     predictive.screen_bank(bank, law, mpc.box_plants())
-    radii = _kept(predictive._box_screens, parts)
-    expected = radii.copy()
+    radii, on_plants = _kept(predictive._box_screens, parts)
+    expected = radii.copy(), on_plants.copy()
     radii[:] = -1.0
-    assert np.array_equal(_kept(predictive._box_screens, parts), expected)
+    on_plants[:] = -1.0
+    again = _kept(predictive._box_screens, parts)
+    assert all(np.array_equal(x, y) for x, y in zip(again, expected, strict=True))
 
 
 def test_kept_box_plants_are_the_fresh_ones_to_the_bit(mpc, monkeypatch) -> None:
     cache = _fresh_cache(monkeypatch, predictive, "_box_plants")
 
-    def plants_of(model):
-        holder = types.SimpleNamespace(model=model, _box_plants=None)
+    def plants_of(model):  # a task without a datasheet: the mode-by-mode vertices alone
+        task = dataclasses.replace(mpc.task, datasheet=None)
+        holder = types.SimpleNamespace(model=model, task=task, _box_plants=None)
         return PredictiveController.box_plants(holder)
 
     first, again = plants_of(mpc.model), plants_of(mpc.model)
@@ -237,6 +243,12 @@ def test_kept_box_plants_are_the_fresh_ones_to_the_bit(mpc, monkeypatch) -> None
         plants_of(nudged)
     plants_of(dataclasses.replace(mpc.model, dt=np.nextafter(mpc.model.dt, 1.0)))
     assert cache.misses == 5
+    # With the bender's datasheet, every vertex a second time, moved by its physics.
+    with_physics = mpc.box_plants()
+    assert len(with_physics) == 24 and mpc.box_plant_counts["datasheet"] == 12
+    for (a, b, c), model in zip(with_physics, fresh, strict=False):
+        assert all(np.array_equal(x, y) for x, y in ((a, model.a), (b, model.b), (c, model.c)))
+    assert mpc.describe()["observer"]["box_screen"]["vertex_plants"] == mpc.box_plant_counts
 
 
 # -- generated code and the graphs it is generated from (controllers.native) -------------------

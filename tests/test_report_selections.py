@@ -149,11 +149,11 @@ SELECTIONS = {
     "robustness without nominal": (("mpc", "pid-ff"), ("sine-10Hz",), ("stiffness+20%",)),
     "robustness plant on a reference it does not run": (
         ("mpc",),
-        ("sine-1Hz",),
+        ("sine-1Hz", "sine-10Hz"),
         ("nominal", "creep"),
     ),
     "monte carlo only": (("mpc",), ("sine-10Hz",), ("random-plants",)),
-    "no pid": (("mpc", "nmpc"), ("steps",), ("nominal", "random-plants", "creep")),
+    "no pid": (("mpc", "nmpc"), ("steps", "sine-10Hz"), ("nominal", "random-plants", "creep")),
     "oracle only": (("mpc-oracle",), ("sine-10Hz",), ("nominal",)),
     "everything small": (
         ("pid", "pid-notch", "pid-ff", "mpc"),

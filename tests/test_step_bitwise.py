@@ -186,6 +186,27 @@ def test_check_observation_converts_and_refuses_as_before():
             task.check_observation(values)
 
 
+def test_a_measurement_beyond_the_env_s_bound_is_refused():
+    """One sensor glitch of 1e30 um used to steer the MPC's state so far off that the QP stayed
+    infeasible for the rest of the episode (the drive held at one end); a task read from an env
+    knows the env's observation bound and refuses it, saying what it is."""
+    env = gym.make("piezo_env:PiezoBender-v0", preview=2)
+    task = ControlTask.from_env(env)
+    assert task.observation_bound_um == float(env.observation_space.high[0])
+    obs, _ = env.reset(seed=0)
+    assert task.check_observation(obs) is not None
+    for glitch in (1e30, -2.0 * task.observation_bound_um):
+        bad = obs.astype(np.float64)
+        bad[0] = glitch
+        with pytest.raises(ValueError, match="beyond any deflection this bender can show"):
+            task.check_observation(bad)
+    bad = obs.astype(np.float64)
+    bad[0] = 1e30
+    mpc = controllers.make("mpc", "docs/benchmark/model", env)
+    with pytest.raises(ValueError, match="sensor fault"):
+        mpc.act(bad)
+
+
 class Scripted(Controller):
     """A controller whose step returns the next of ``outputs``."""
 
