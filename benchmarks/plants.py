@@ -176,7 +176,12 @@ the response as it is, so its 8 other corners repeat these."""
 
 
 def vertex_options(bender: str, vertex: tuple[float, float, float]) -> dict[str, Any]:
-    """``PiezoBender-v0`` keyword arguments of ``bender`` at one of the :data:`VERTICES`."""
+    """``PiezoBender-v0`` keyword arguments of ``bender`` at one of the :data:`VERTICES`.
+
+    No ``dt``: pass the nominal bender's, :func:`sample_time` (as the benchmark and the
+    corners study do). Left out, the env's default dt would follow the vertex's resonance
+    (the PL127 at resonance x0.8 gets 0.5 ms, not the nominal's 0.25 ms), and a controller
+    made for the nominal bender is refused there (:func:`controllers.run_episode`)."""
     from piezo_env import get_datasheet
 
     deflection, resonance, damping = vertex

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -94,7 +95,22 @@ def run_episode(
     Returns
     -------
     Episode
+
+    Raises
+    ------
+    ValueError
+        If the controller was made for another sample time than the env's (its ``task.dt``):
+        its model and gains mean per-sample things.
     """
+    task_dt = getattr(getattr(controller, "task", None), "dt", None)
+    env_dt = float(env.unwrapped.model.dt)
+    if isinstance(task_dt, float) and not math.isclose(task_dt, env_dt, rel_tol=1e-9):
+        raise ValueError(
+            f"the controller was made for dt = {task_dt:g} s and the env steps every {env_dt:g} "
+            "s: make the controller on an env of this sample time, or make this env with "
+            f"dt={task_dt:g} (a bender's default dt follows its datasheet's resonance, so a "
+            "bender of another resonance gets another default)"
+        )
     options = None if reference is None else {"reference": np.asarray(reference, float)}
     obs, _ = env.reset(seed=seed, options=options)
     controller.reset(obs)

@@ -299,3 +299,16 @@ def test_the_datasheet_member_of_an_identified_model_is_its_response_times_the_r
     assert np.max(np.abs(ratio - 1.0)) <= error * 1.01
     # and not the identified model itself: the corner moves the response by percents here
     assert np.max(np.abs(response(arx) / target - 1.0)) > 10 * error
+
+
+def test_a_controller_is_refused_on_an_env_of_another_sample_time():
+    """A vertex env made without dt takes the default of its own resonance (the PL127 at
+    resonance x0.8: 0.5 ms); the PL127's controller (0.25 ms) is refused there in one line,
+    where it used to run to 569 % of the stroke."""
+    nominal = gym.make("piezo_env:PiezoBender-v0", bender="PL127", preview=20)
+    mpc = ctl.make("mpc", PL127_MODEL, nominal)
+    soft = vertex_options("PL127", (0.8, 0.8, 0.01))
+    corner = gym.make("piezo_env:PiezoBender-v0", preview=20, **soft)
+    assert corner.unwrapped.model.dt != nominal.unwrapped.model.dt
+    with pytest.raises(ValueError, match=r"made for dt = 0.00025 s and the env steps every 0.0005"):
+        ctl.run_episode(corner, mpc, seed=0)
