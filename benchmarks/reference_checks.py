@@ -33,11 +33,14 @@ __all__ = [
 ]
 
 _PLANT_LIMITS = {
-    "damping-0.01": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
-    "damping-0.04": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.5, "multisine": 0.15},
+    "damping-0.01": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.7, "multisine": 0.15},
+    "damping-0.04": {"sine-10Hz": 0.07, "sine-50Hz": 0.3, "sine-100Hz": 0.7, "multisine": 0.15},
 }
 """Plant -> reference -> the largest ``mpc`` RMSE (% of the full stroke) expected there: plants
-whose hysteresis the model matches, off only in the first mode's damping."""
+whose hysteresis the model matches, off only in the first mode's damping. The sine-100Hz limits
+moved from 0.5 to 0.7 when the observer bank's screen came to ask for a margin on every vertex
+of the tolerance box (the default run went from 0.49 to 0.56 on damping-0.04;
+``benchmarks/results/design_measurements.md``)."""
 
 _MAX_ERROR_UM = 6.0
 """The largest ``mpc`` max error (um) expected on a smooth nominal reference: above the 4.5 um
