@@ -340,10 +340,14 @@ def plant_margins(
     q = _frequencies(points)
     _, controller = _responses(q, a_aug, b_aug, c_aug, np.atleast_2d(gains), k_estimate, k_previous)
     out = np.empty((controller.shape[1], len(plants)))
-    for j, (a, b, c) in enumerate(plants):
-        n = a.shape[0]
-        plant = np.reshape(c, n) @ np.linalg.solve(
-            q[:, None, None] * np.eye(n) - a, np.broadcast_to(np.reshape(b, (n, 1)), (q.size, n, 1))
-        )[..., 0].T  # (W,)
-        out[:, j] = np.min(np.abs(1.0 - plant[:, None] * controller), axis=0)
+    for order in sorted({plant[0].shape[0] for plant in plants}):  # one batch per order
+        index = [j for j, plant in enumerate(plants) if plant[0].shape[0] == order]
+        a = np.array([plants[j][0] for j in index])  # (P, n, n)
+        b = np.array([np.reshape(plants[j][1], order) for j in index])  # (P, n)
+        c = np.array([np.reshape(plants[j][2], order) for j in index])
+        pencil = q[None, :, None, None] * np.eye(order) - a[:, None]  # (P, W, n, n)
+        rhs = np.broadcast_to(b[:, None, :, None], (*pencil.shape[:3], 1))
+        response = np.einsum("pn,pwn->pw", c, np.linalg.solve(pencil, rhs)[..., 0])  # G_p(q)
+        distance = np.abs(1.0 - response[:, :, None] * controller[None])  # (P, W, filters)
+        out[:, index] = distance.min(axis=1).T
     return out

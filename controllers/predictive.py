@@ -172,22 +172,30 @@ def datasheet_vertex_plants(
     left out, and the screen's description counts it (``vertex_plants``)."""
     arx = arx_of(model)
     order = max(arx.na, arx.nb) + 1
+    shapes: dict[tuple[float, Any], tuple[np.ndarray, np.ndarray, np.ndarray] | None] = {}
     plants = []
     for box in boxes:
         for vertex in box.vertices():
-            try:
-                member, _ = datasheet_model(
-                    arx,
-                    task.datasheet,
-                    vertex,
-                    damping_ratio=task.damping_ratio,
-                    order=order,
-                    n_elements=task.n_elements,
-                )
-            except ValueError:  # an unstable fit: no plant to screen on
-                continue
-            a, b, c, _ = member.state_space_matrices()
-            plants.append((a, b, c))
+            # One fit per resonance and damping: the free deflection scales the FE response
+            # (and the fit, whose error is relative) by the vertex's gain alone.
+            key = (vertex.resonance, vertex.damping)
+            if key not in shapes:
+                try:
+                    member, _ = datasheet_model(
+                        arx,
+                        task.datasheet,
+                        dataclasses.replace(vertex, gain=1.0),
+                        damping_ratio=task.damping_ratio,
+                        order=order,
+                        n_elements=task.n_elements,
+                    )
+                    a, b, c, _ = member.state_space_matrices()
+                    shapes[key] = (a, b, c)
+                except ValueError:  # an unstable fit: no plant to screen on (counted)
+                    shapes[key] = None
+            shape = shapes[key]
+            if shape is not None:
+                plants.append((shape[0], shape[1] * vertex.gain, shape[2]))
     return plants
 
 
