@@ -240,7 +240,7 @@ class BenchmarkConfig:
         says otherwise): it would leave its section of the report empty without a word."""
         ran = {plant for plant, _, _ in self.groups()}
         for plant in (p for p in self.plants if p not in ran):
-            subset = MONTE_CARLO_REFERENCES if plant in DRAWN_PLANTS else ROBUSTNESS_REFERENCES
+            subset = _plant_references(plant)
             raise ValueError(
                 f"the {plant} plant would run nothing: it runs the references "
                 f"{', '.join(subset)} with the controllers {', '.join(ROBUSTNESS_CONTROLLERS)}, "
@@ -392,7 +392,7 @@ class BenchmarkConfig:
         out = []
         for plant in self.plants:
             every = plant == "nominal"
-            chosen = MONTE_CARLO_REFERENCES if plant in DRAWN_PLANTS else ROBUSTNESS_REFERENCES
+            chosen = _plant_references(plant)
             refs = tuple(r for r in self.references if every or self.every_reference or r in chosen)
             robust = (*ROBUSTNESS_CONTROLLERS, *self.policy_folders, *self.entry_points)
             for controller in self.rows:
@@ -400,6 +400,11 @@ class BenchmarkConfig:
                 if refs and (every or self.every_controller or controller in robust):
                     out.append((plant, controller, refs))
         return out
+
+
+def _plant_references(plant: str) -> tuple[str, ...]:
+    """The references a robustness plant runs unless every_reference asks for all."""
+    return MONTE_CARLO_REFERENCES if plant in DRAWN_PLANTS else ROBUSTNESS_REFERENCES
 
 
 def _row_name(entry: str) -> str:

@@ -272,13 +272,14 @@ class PredictiveController(Controller):
         if self._box_plants is None:
             model, task = self.model, self.task
             box = ToleranceBox()
-            if not _has_mode(model):  # nothing to move but the gain
+            has_mode = _has_mode(model)
+            if not has_mode:  # nothing to move but the gain
                 box = dataclasses.replace(box, resonance=0.0, damping=None)
             boxes = [box]
             matched = dataclasses.replace(box, gain=0.0)
             if not matched.is_nominal:
                 boxes.append(matched)
-            physics = _has_mode(model) and task.datasheet is not None and bool(task.damping_ratio)
+            physics = has_mode and task.datasheet is not None and bool(task.damping_ratio)
 
             def compute() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
                 models = [m for b in boxes for _, m in vertex_models(model, b, further_modes=True)]

@@ -153,6 +153,18 @@ class StepRunner:
         call = partial(function, *args, **kwargs)
         return _There(self._helper, call) if self._helper is not None else _Here(call)
 
+    def take_back_from_last(self, pending: list[Pending]) -> None:
+        """Compute here, from the last, the ones of ``pending`` (queued on the helper in order)
+        the helper has not started, until it has started one: the helper works from the
+        first, this process from the last, and neither waits for the other longer than one
+        computation. Nothing to do without a helper (each is computed when asked for)."""
+        if not self.parallel:
+            return
+        for item in reversed(pending):
+            if not item.take_back():
+                break
+            item.result()
+
     @staticmethod
     def here(function: Callable[..., Any], *args: Any, **kwargs: Any) -> Pending:
         """``function(*args, **kwargs)`` in this process, when first asked for."""

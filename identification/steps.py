@@ -327,11 +327,7 @@ def estimate_arx(
     split = (3 * len(u)) // 4
     pending = {n: runner.beside(_fit_order, u, y, n, split, dt) for n in config.orders}
     runner.warm_up_helper()
-    if runner.parallel:
-        for n in reversed(config.orders):
-            if not pending[n].take_back():
-                break
-            pending[n].result()
+    runner.take_back_from_last([pending[n] for n in config.orders])
     candidates = {n: pending[n].result() for n in config.orders}
     scores = {n: _held_out_fit(candidate, u, y, split) for n, candidate in candidates.items()}
     best_fit = max(scores.values())
@@ -478,10 +474,7 @@ def fit_nonlinearity(
     pending = {f: runner.beside(_fit_candidate, f, *data) for f in candidates}
     if runner.parallel:
         warm_up()
-        for features in reversed(candidates):
-            if not pending[features].take_back():
-                break
-            pending[features].result()
+    runner.take_back_from_last([pending[f] for f in candidates])
     fitted, scores = {}, {}
     for features in candidates:
         fitted[features], scores[features] = pending[features].result()
