@@ -32,15 +32,23 @@ the residuals' correlation (:attr:`controllers.gain.GainEstimate.independent_fra
 
 Robust over the set. The data still allow every member the likelihood-ratio test does not
 reject (:meth:`AdaptiveMPC.plausible`). When the controller is built, the unconstrained loop of
-each member's MPC with each filter of its observer bank is closed around each member, gains
-matched, and its spectral radius kept (:meth:`AdaptiveMPC.filter_radii`; a filter whose loop on
-its own member exceeds the sensitivity bound :data:`controllers.settings.MS_MAX` is never
-used). At every sample the bank in use may select only the filters whose loop is stable on
-every member the data still allow, and the MPC swaps only to a member that has such a filter.
-At the first sample that is every member of the box, so the first sample is safe on any bender
-the datasheet allows; as the data rule members out, faster filters become allowed and the loop
-tends to the one the true plant's model would close. :meth:`AdaptiveMPC.loop_radii` (each
-member's prior filter) stays for reports.
+each member's MPC with each filter of its observer bank is closed around each grid point's
+plants, gains matched: its member and, when the task carries the datasheet, its twin moved by
+the datasheet's physics (:meth:`AdaptiveMPC.screen_plants`), and the loops' spectral radii are
+kept (:meth:`AdaptiveMPC.filter_screen`). A filter whose loop exceeds the sensitivity bound
+:data:`controllers.settings.MS_MAX` on its own grid point (its member or that point's twin) is
+never used: the margin is what keeps a loop whose drive saturates, which lowers its gain, out
+of a limit cycle (:func:`controllers.predictive.screen_bank`). At every sample the bank in use
+may select only the filters whose loop is also stable on every grid point the data still
+allow, and the MPC swaps only to a member that has such a filter; when the data leave the
+member in use without one, it swaps to the best-fitting member that has one. (Nominal margin,
+robust stability: the margin asked on every point the data allow would hold, on a 10 Hz sine,
+which never narrows the set, the filters that keep it on the whole box all episode, too slow
+for a drawn bender's hysteresis: ``benchmarks/results/design_measurements.md``.) At the first
+sample that is every member of the box, so the first sample is safe on any bender the
+datasheet allows; as the data rule members out, faster filters become allowed and the loop
+tends to the one the true plant's model would close.
+:meth:`AdaptiveMPC.loop_radii` (each member's prior filter) stays for reports.
 
 Bounded work. Everything a member's MPC needs (condensed prediction, QP matrices, the observer
 bank's gains, a QP workspace, the loop radii) is built when the controller is, and the QP
@@ -81,7 +89,7 @@ from controllers.base import ControllerStats
 from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
 from controllers.gain import GainEstimate
-from controllers.loop import feedback_law, radii_matrix
+from controllers.loop import feedback_law, plant_margins, radii_matrix
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer, rescale_states
@@ -130,13 +138,14 @@ TRACE_EVERY = 20
 """Samples between the records of :attr:`AdaptiveStats.trace` (for figures only)."""
 
 SCREENS_KEPT = 8
-"""Sets' stability screens kept by content (:meth:`AdaptiveMPC.filter_radii`), one per
+"""Sets' stability screens kept by content (:meth:`AdaptiveMPC.filter_screen`), one per
 identified model and settings. A benchmark worker meets up to six models (three
 identification seeds, on the nominal bender and on the bench): 8 keeps them all."""
 
 _screens = ContentCache(SCREENS_KEPT)
 _member_sets = ContentCache(SCREENS_KEPT)  # the "modes" sets' members: one per screen
 _loop_radii = ContentCache(SCREENS_KEPT)  # :meth:`AdaptiveMPC.loop_radii`, as many
+_twin_sets = ContentCache(SCREENS_KEPT)  # the grid points' datasheet twins, as many
 
 
 @dataclass(frozen=True)
@@ -289,6 +298,22 @@ def _set_members(arx: list[ARXModel]) -> dict[str, Any]:
     }
 
 
+def _moved_by_datasheet(
+    arx: ARXModel, task: ControlTask, point: tuple[float, float], order: int
+) -> tuple[ARXModel, float]:
+    """:func:`controllers.tolerance_box.datasheet_model` of ``arx`` at a grid point (frequency
+    factor, damping ratio), its gain unchanged, with the task's datasheet and beam."""
+    alpha, zeta = point
+    return datasheet_model(
+        arx,
+        task.datasheet,
+        Vertex(1.0, alpha, zeta),
+        damping_ratio=task.damping_ratio,
+        order=order,
+        n_elements=task.n_elements,
+    )
+
+
 @dataclass
 class _Member:
     """One model of the set and what the MPC needs to predict with it."""
@@ -361,6 +386,10 @@ class AdaptiveMPC(LinearMPC):
         self._member_hz = members["resonances_hz"]
         self._member_gains = members["static_gains"]
         self._check_shared_state()
+        self.twin_class: str | None = None
+        """The model class of the grid points' twins (``"datasheet"`` or ``"modes"``), None
+        when the screen has no second class (a task without a datasheet)."""
+        self._twins = self._twin_models(arx, task, settings)
         self._members: list[_Member] = []
         self._bindings: list[np.ndarray] = []
         self._plausible_key: bytes | None = None
@@ -387,15 +416,8 @@ class AdaptiveMPC(LinearMPC):
             method=arx.method,
         )
         members, errors = [first], []
-        for alpha, z in self._grid[1:]:
-            member, error = datasheet_model(
-                arx,
-                task.datasheet,
-                Vertex(1.0, alpha, z),
-                damping_ratio=task.damping_ratio,
-                order=order,
-                n_elements=task.n_elements,
-            )
+        for point in self._grid[1:]:
+            member, error = _moved_by_datasheet(arx, task, point, order)
             # The same static gain to the last bit: a swap carries the state over.
             member = ARXModel(
                 member.a,
@@ -408,6 +430,48 @@ class AdaptiveMPC(LinearMPC):
             errors.append(error)
         self.fit_error = max(errors)
         return members
+
+    def _twin_models(
+        self, arx: ARXModel, task: ControlTask, settings: AdaptiveMPCSettings
+    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+        """Each grid point's linear part (a, b, c) in the model class the members are not in:
+        for the ``"modes"`` set the datasheet's physics
+        (:func:`controllers.tolerance_box.datasheet_model`, when the task carries the
+        datasheet; None where the fit is unstable), for the ``"datasheet"`` set the modes
+        moved (:func:`controllers.tolerance_box.box_model`). Static gains as the members'.
+
+        Why. The members move only the first mode of the identified model; a bender at the same
+        grid point also moves its other modes, aliases included, and with them its damping
+        (the env's stiffness-proportional damping). On the PL128 at 2 kHz, with free
+        deflection x1.2, resonance x0.91 and damping 0.01, the data narrowed the set to one
+        member (resonance x0.88), and the bank's fastest filter allowed there (margin 0.61 on
+        that member) closed a loop with spectral radius 1.13 on that point's datasheet twin
+        and 1.15 on the bender's: a half-stroke 337 Hz sine rang it into a limit cycle
+        between the drive's ends (32 % of the stroke), which went on after the reference
+        stopped. A filter the set's loop may use is screened on both classes."""
+        grid = self._grid
+        if settings.member_set == "datasheet":
+            self.twin_class = "modes"
+            moved = [arx] + [box_model(arx, Vertex(1.0, alpha, z)) for alpha, z in grid[1:]]
+            return [m.state_space_matrices()[:3] for m in moved]
+        if task.datasheet is None or not task.damping_ratio:
+            return [None] * len(grid)
+        self.twin_class = "datasheet"
+        order = max(arx.na, arx.nb) + 1
+
+        def compute() -> list[tuple[np.ndarray, np.ndarray, np.ndarray] | None]:
+            twins: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
+            for point in grid:
+                try:
+                    twin, _ = _moved_by_datasheet(arx, task, point, order)
+                except ValueError:  # an unstable fit: the point is screened on its member
+                    twins.append(None)
+                    continue
+                twins.append(twin.state_space_matrices()[:3])
+            return twins
+
+        parts = [arx.a, arx.b, arx.dt, grid, repr(task.datasheet), task.damping_ratio]
+        return _twin_sets.get([*parts, task.n_elements], compute)
 
     def _check_shared_state(self) -> None:
         """The swap carries the observer's state over (module docstring), which needs every
@@ -452,10 +516,10 @@ class AdaptiveMPC(LinearMPC):
         pairs = zip(self._member_models[1:], self._member_arx[1:], strict=True)
         self._members = [offline, *(self._member(m, a) for m, a in pairs)]
         self._radii = self.loop_radii()
-        self._filter_radii = self.filter_radii()
-        # Per plant member, which (member, filter) loops are stable on it: (K plant, K, F),
+        self._filter_radii, self._filter_margins = self.filter_screen()
+        # Per grid point, which (member, filter) loops may run on it: (K point, K, F),
         # so that the set's test reads contiguous blocks (:meth:`_allow`).
-        self._stable_on = np.ascontiguousarray(np.moveaxis(self._filter_radii < 1.0, 2, 0))
+        self._robust_on = np.ascontiguousarray(np.moveaxis(self._robust(), 2, 0))
         fused = self._fused
         if fused is not None:
             # Read once, so that a swap writes the compiled step's table by one slice.
@@ -477,64 +541,93 @@ class AdaptiveMPC(LinearMPC):
 
     def _screen(self, observer: Any, law: tuple[np.ndarray, float]) -> dict[str, Any]:
         """The set screens its banks itself, as the data narrow it (:meth:`_allow`)."""
-        stable = self._filter_radii < 1.0  # (member, filter, plant member)
+        robust = self._robust()  # (member, filter, grid point)
         return {
             "applied": True,
             "dynamic": True,
-            "filters": int(stable.shape[1]),
-            "filters_kept_at_start": [int(n) for n in np.all(stable, axis=2).sum(axis=1)],
+            "filters": int(robust.shape[1]),
+            "filters_kept_at_start": [int(n) for n in np.all(robust, axis=2).sum(axis=1)],
             "ms_max": MS_MAX,
+            "twins": self.twin_class,
+            "twins_missing": int(sum(t is None for t in self._twins)),
         }
 
-    def filter_radii(self) -> np.ndarray:
-        """Spectral radius (-) of the unconstrained loop of each member's MPC with each filter
-        of its bank around each member, gains matched: (K, F, K); infinite for a filter whose
-        loop on its own member exceeds :data:`controllers.settings.MS_MAX` (never selected).
+    def _robust(self) -> np.ndarray:
+        """(K, F, K): the loop of member k's MPC with filter f keeps the modulus margin
+        1 / :data:`MS_MAX` on its own grid point and is stable on grid point p's plants
+        (member and twin; :meth:`filter_screen`)."""
+        return self._filter_radii < 1.0
 
-        Most of the controller's construction (K x F x K closed loops); kept by the content of
-        its inputs (:mod:`piezo_env.memo`), so the same set built again screens once."""
+    def screen_plants(self) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], list[int]]:
+        """The linear parts (a, b, c) the filters are screened on, gains matched: the K
+        members, then the grid points' twins in the other model class (:meth:`_twin_models`;
+        none where a point has none); and for each grid point the index of its twin in that
+        list (its member's where it has none)."""
         plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
+        twin_of = []
+        for index, twin in enumerate(self._twins):
+            if twin is not None:
+                plants.append(twin)
+            twin_of.append(index if twin is None else len(plants) - 1)
+        return plants, twin_of
+
+    def filter_screen(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each member's MPC with each filter of its bank: the spectral radius (-) of its loop
+        closed around each grid point's plants (:meth:`screen_plants`: the member and its twin,
+        the larger of the two), (K, F, K); and its modulus margin (-) on its own grid point
+        (the smaller on its member and its twin), (K, F). A filter whose margin there is
+        below 1 / :data:`controllers.settings.MS_MAX` is never selected (radius infinite).
+
+        Most of the controller's construction (K x F x 2K closed loops); kept by the content
+        of its inputs (:mod:`piezo_env.memo`), so the same set built again screens once."""
+        plants, twin_of = self.screen_plants()
+        count = len(self._members)
         banks = [(m, m.observer) for m in self._members]
         gains = [
             np.atleast_2d(b.gains if isinstance(b, ObserverBank) else b.gain) for _, b in banks
         ]
 
-        def compute() -> np.ndarray:
-            out = []
-            for (member, bank), filters in zip(banks, gains, strict=True):
+        def compute() -> tuple[np.ndarray, np.ndarray]:
+            radii_out, margins_out = [], []
+            for index, ((member, bank), filters) in enumerate(zip(banks, gains, strict=True)):
                 law = feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
-                # The sweep the description of this member's loop reads too.
+                # On its member: the sweep the description of this member's loop reads too.
                 margins = filter_margins(bank, filters, law)
-                radii = np.full((len(filters), len(plants)), np.inf)
+                loop = (bank.a_aug, bank.b_aug, bank.c_aug)
+                if twin_of[index] != index:
+                    twin = [plants[twin_of[index]]]
+                    margins = np.minimum(margins, plant_margins(*loop, filters, *law, twin)[:, 0])
                 within = margins >= 1.0 / MS_MAX
+                radii = np.full((len(filters), len(plants)), np.inf)
                 if within.any():
-                    radii[within] = radii_matrix(
-                        bank.a_aug, bank.b_aug, bank.c_aug, filters[within], *law, plants
-                    )
-                out.append(radii)
-            return np.array(out)
+                    radii[within] = radii_matrix(*loop, filters[within], *law, plants)
+                radii_out.append(np.maximum(radii[:, :count], radii[:, twin_of]))
+                margins_out.append(margins)
+            return np.array(radii_out), np.array(margins_out)
 
-        parts: list[Any] = [MS_MAX]
+        parts: list[Any] = [MS_MAX, plants, twin_of]
         for (member, bank), filters in zip(banks, gains, strict=True):
             parts += [member.hessian, member.q_matrix, bank.a_aug, bank.b_aug, bank.c_aug]
-            parts += [filters, bank.n, member.model.a, member.model.b, member.model.c]
+            parts += [filters, bank.n]
         return _screens.get(parts, compute)
 
-    def _allow(self, plausible: np.ndarray) -> np.ndarray:
-        """Which filters each member's loop may use given the members the data still allow
-        (K, F): stable on every one of them; the in-use member's bank is narrowed to its row
-        (or, when its row is empty, to its filter of the smallest worst radius, counted in
+    def _allow_bank(self, plausible: np.ndarray) -> None:
+        """Narrow the in-use member's bank to its row of the allowed filters (or, when its row
+        is empty, to its filter of the smallest worst radius on ``plausible``, or of the
+        largest margin on its own point when none keeps the margin there; counted in
         ``stats.adaptation["no_stable_filter"]``)."""
-        allowed = np.logical_and.reduce(self._stable_on[plausible], axis=0)
         bank = self.observer
         if isinstance(bank, ObserverBank):
-            row = allowed[self._member]
+            row = self._allowed[self._member]
             if not row.any():
                 worst = self._filter_radii[self._member][:, plausible].max(axis=1)
-                row = worst == worst.min()
+                if np.isfinite(worst.min()):
+                    row = worst == worst.min()
+                else:  # no filter keeps the margin on its own point: the nearest to it
+                    margins = self._filter_margins[self._member]
+                    row = margins == margins.max()
                 self.stats.adaptation["no_stable_filter"] += 1
             bank.allow(row)
-        return allowed
 
     def _member(self, model: PredictionModel, arx: ARXModel) -> _Member:
         samples = self.prediction_samples
@@ -617,15 +710,19 @@ class AdaptiveMPC(LinearMPC):
         self._narrow(np.arange(len(self._members)))
         self._trace()
 
-    def _narrow(self, plausible: np.ndarray) -> None:
+    def _narrow(self, plausible: np.ndarray, *, bank: bool = True) -> None:
         """The data now allow the members ``plausible``: the filters each member's loop may
-        use (:meth:`_allow`), the members the MPC may swap to, and the compiled step's copy of
-        both (:mod:`controllers.native.fused_step` tests with them)."""
+        use (K, F: stable on every one of them and on their twins), the
+        members the MPC may swap to, and the compiled step's copy of both
+        (:mod:`controllers.native.fused_step` tests with them); with ``bank``, the in-use
+        member's bank is narrowed too (:meth:`_allow_bank`)."""
         if plausible.size == 0:  # every misfit NaN: the gain estimate has failed
             raise RuntimeError(f"{self.name}: no member of the set fits the data (NaN misfits)")
         self._plausible_key = plausible.tobytes()
-        self._allowed = self._allow(plausible)
+        self._allowed = np.logical_and.reduce(self._robust_on[plausible], axis=0)
         self._swappable = np.flatnonzero(self._allowed.any(axis=1))
+        if bank:
+            self._allow_bank(plausible)
         fused = self._fused
         if fused is not None:
             fused.plausible[:] = 0.0
@@ -651,19 +748,27 @@ class AdaptiveMPC(LinearMPC):
 
     def _select(self) -> None:
         """Narrow the banks to what the data allow, and swap to the best member when the tests
-        reject the one in use (module docstring; the compiled step runs the same tests and
-        calls this only when they may change something)."""
+        reject the one in use or the set leaves it no filter it may use (module
+        docstring; the compiled step runs the same tests and calls this whenever the set
+        changes or the tests may swap)."""
         plausible = self.plausible()
-        if plausible.tobytes() != self._plausible_key:
-            self._narrow(plausible)
         gain = self._gain
         misfit = gain.misfit
+        if plausible.tobytes() != self._plausible_key:
+            self._narrow(plausible, bank=False)
+            if not self._allowed[self._member].any() and self._swappable.size:
+                # The member in use has no filter whose loop is stable on what the data now
+                # allow: predict with the best-fitting member that has one.
+                allowed = self._swappable
+                self._swap(int(allowed[misfit[allowed].argmin()]), plausible)
+                return
+            self._allow_bank(plausible)
         noise = self._noise_variance
         member = self._member
         in_use = gain.count * gain.independent_fraction_of(member)
         if misfit[member] * in_use / noise <= chi2_upper(in_use):
             return  # the model in use explains the data to within the sensor noise
-        # Only members with a filter whose loop is stable on every member still allowed.
+        # Only members with a filter whose loop is stable on every point still allowed.
         allowed = self._swappable
         if allowed.size == 0:
             return
@@ -732,7 +837,7 @@ class AdaptiveMPC(LinearMPC):
         prior filter, or its single filter) around each member, gains matched: (K, K), row =
         the MPC's member, column = the plant's; below 1 where that loop is stable.
 
-        Kept by content as :meth:`filter_radii` is (a closed loop per member pair)."""
+        Kept by content as :meth:`filter_screen` is (a closed loop per member pair)."""
         plants = [(m.model.a, m.model.b, m.model.c) for m in self._members]
         loops = []
         for member in self._members:
@@ -758,7 +863,7 @@ class AdaptiveMPC(LinearMPC):
     def describe(self) -> dict:
         """The linear MPC's description plus the set: its members' first resonances and
         damping ratios, the worst spectral radius of :meth:`loop_radii`, and how many members
-        have no filter whose loop is stable on every member (:meth:`filter_radii`)."""
+        have no filter they may use on the whole box (:meth:`filter_screen`)."""
         out = super().describe()
         out["settings"] = asdict(self.settings)
         out["adaptation"] = {
@@ -776,8 +881,8 @@ class AdaptiveMPC(LinearMPC):
             "unstable_pairs": int(np.sum(self._radii >= 1.0)),
             "member_set": self.settings.member_set,
             "datasheet_fit_error": self.fit_error,
-            "members_without_a_filter_stable_on_the_set": int(
-                np.sum(~np.any(np.all(self._filter_radii < 1.0, axis=2), axis=1))
+            "members_without_a_filter_for_the_whole_box": int(
+                np.sum(~np.any(np.all(self._robust(), axis=2), axis=1))
             ),
         }
         return out

@@ -63,6 +63,7 @@ __all__ = [
     "modulus_margins",
     "output_feedback",
     "plant_margins",
+    "plant_responses",
     "radii_matrix",
 ]
 
@@ -204,34 +205,40 @@ def radii_matrix(
     numpy.ndarray
         (filters, plants): below 1 where that filter's loop is stable on that plant.
     """
-    orders = sorted({plant[0].shape[0] for plant in plants})
-    if len(orders) > 1:
-        out = np.empty((len(np.atleast_2d(gains)), len(plants)))
-        for order in orders:
-            index = [i for i, plant in enumerate(plants) if plant[0].shape[0] == order]
-            out[:, index] = radii_matrix(
-                a_aug, b_aug, c_aug, gains, k_estimate, k_previous, [plants[i] for i in index]
-            )
-        return out
     loops = [
         output_feedback(a_aug, b_aug, c_aug, gain, k_estimate, k_previous)
         for gain in np.atleast_2d(gains)
     ]
-    n = plants[0][0].shape[0]
     k = loops[0].a.shape[0]
-    a = np.array([p[0] for p in plants])  # (P, n, n)
-    b = np.array([np.reshape(p[1], n) for p in plants])  # (P, n)
-    c = np.array([np.reshape(p[2], n) for p in plants])
     ca = np.array([loop.a for loop in loops])  # (F, k, k)
     cb = np.array([loop.b for loop in loops])  # (F, k)
     cc = np.array([loop.c for loop in loops])
     cd = np.array([loop.d for loop in loops])  # (F,)
-    matrices = np.zeros((len(loops), len(plants), n + k, n + k))
-    matrices[:, :, :n, :n] = a[None] + cd[:, None, None, None] * (b[:, :, None] * c[:, None, :])
-    matrices[:, :, :n, n:] = b[None, :, :, None] * cc[:, None, None, :]
-    matrices[:, :, n:, :n] = cb[:, None, :, None] * c[None, :, None, :]
-    matrices[:, :, n:, n:] = ca[:, None]
-    return np.max(np.abs(np.linalg.eigvals(matrices)), axis=-1)
+    out = np.empty((len(loops), len(plants)))
+    for index, a, b, c in _batches(plants):  # (P, n, n), (P, n), (P, n)
+        n = a.shape[1]
+        matrices = np.zeros((len(loops), len(index), n + k, n + k))
+        matrices[:, :, :n, :n] = a[None] + cd[:, None, None, None] * (b[:, :, None] * c[:, None, :])
+        matrices[:, :, :n, n:] = b[None, :, :, None] * cc[:, None, None, :]
+        matrices[:, :, n:, :n] = cb[:, None, :, None] * c[None, :, None, :]
+        matrices[:, :, n:, n:] = ca[:, None]
+        out[:, index] = np.max(np.abs(np.linalg.eigvals(matrices)), axis=-1)
+    return out
+
+
+def _batches(
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> list[tuple[list[int], np.ndarray, np.ndarray, np.ndarray]]:
+    """The plants grouped by order, each group stacked for one batched solve: (their indices
+    in ``plants``, a (P, n, n), b (P, n), c (P, n))."""
+    out = []
+    for order in sorted({plant[0].shape[0] for plant in plants}):
+        index = [j for j, plant in enumerate(plants) if plant[0].shape[0] == order]
+        a = np.array([plants[j][0] for j in index])
+        b = np.array([np.reshape(plants[j][1], order) for j in index])
+        c = np.array([np.reshape(plants[j][2], order) for j in index])
+        out.append((index, a, b, c))
+    return out
 
 
 def modulus_margins(
@@ -309,6 +316,21 @@ def _responses(
     return model, controller
 
 
+def plant_responses(
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]], points: int = FREQUENCY_POINTS
+) -> np.ndarray:
+    """Frequency responses ``G_p(e^jw)`` (um per equivalent V) of ``plants`` (each (a, b, c),
+    z -> y, in any realization) at the margins' frequencies: (plants, points)."""
+    q = _frequencies(points)
+    out = np.empty((len(plants), points), dtype=complex)
+    for index, a, b, c in _batches(plants):  # one batched solve per order
+        order = a.shape[1]
+        pencil = q[None, :, None, None] * np.eye(order) - a[:, None]  # (P, W, n, n)
+        rhs = np.broadcast_to(b[:, None, :, None], (*pencil.shape[:3], 1))
+        out[index] = np.einsum("pn,pwn->pw", c, np.linalg.solve(pencil, rhs)[..., 0])
+    return out
+
+
 def plant_margins(
     a_aug: np.ndarray,
     b_aug: np.ndarray,
@@ -316,7 +338,7 @@ def plant_margins(
     gains: np.ndarray,
     k_estimate: np.ndarray,
     k_previous: float,
-    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | np.ndarray,
     points: int = FREQUENCY_POINTS,
 ) -> np.ndarray:
     """Modulus margin ``min_w |1 - G_p K(e^jw)|`` of each filter's loop on each of ``plants``
@@ -327,8 +349,10 @@ def plant_margins(
     ----------
     a_aug, b_aug, c_aug, gains, k_estimate, k_previous
         As :func:`modulus_margins`.
-    plants : list of (a, b, c)
-        Linear parts (z -> y) the loop is closed around, each in any realization.
+    plants : list of (a, b, c) or numpy.ndarray
+        Linear parts (z -> y) the loop is closed around, each in any realization, or their
+        :func:`plant_responses` at ``points`` (for loops of many controllers on the same
+        plants).
     points : int
         Frequencies on (0, pi], Nyquist included.
 
@@ -339,15 +363,8 @@ def plant_margins(
     """
     q = _frequencies(points)
     _, controller = _responses(q, a_aug, b_aug, c_aug, np.atleast_2d(gains), k_estimate, k_previous)
-    out = np.empty((controller.shape[1], len(plants)))
-    for order in sorted({plant[0].shape[0] for plant in plants}):  # one batch per order
-        index = [j for j, plant in enumerate(plants) if plant[0].shape[0] == order]
-        a = np.array([plants[j][0] for j in index])  # (P, n, n)
-        b = np.array([np.reshape(plants[j][1], order) for j in index])  # (P, n)
-        c = np.array([np.reshape(plants[j][2], order) for j in index])
-        pencil = q[None, :, None, None] * np.eye(order) - a[:, None]  # (P, W, n, n)
-        rhs = np.broadcast_to(b[:, None, :, None], (*pencil.shape[:3], 1))
-        response = np.einsum("pn,pwn->pw", c, np.linalg.solve(pencil, rhs)[..., 0])  # G_p(q)
-        distance = np.abs(1.0 - response[:, :, None] * controller[None])  # (P, W, filters)
-        out[:, index] = distance.min(axis=1).T
+    responses = plants if isinstance(plants, np.ndarray) else plant_responses(plants, points)
+    out = np.empty((controller.shape[1], responses.shape[0]))
+    for j, response in enumerate(responses):  # (W, filters) at a time: a bounded temporary
+        out[:, j] = np.abs(1.0 - response[:, None] * controller).min(axis=0)
     return out

@@ -56,8 +56,9 @@ MS_MAX = 1.8
 """Bound on the sensitivity peak Ms = 1 / (modulus margin) of every loop the controllers close
 on their own model (-): within Astrom and Murray's usual 1.2-2 (*Feedback Systems*, 2nd ed.,
 sec. 10.3), the margin left for what no model of the box holds (higher modes, hysteresis
-error). The PIDs are tuned to it; the MPCs' observer banks keep only filters within it
-(:func:`controllers.predictive.screen_bank`)."""
+error). The PIDs are tuned to it; the MPCs' observer banks keep only filters within it, on
+the box's vertices (:func:`controllers.predictive.screen_bank`) and, for the adaptive MPC, on
+each member's own grid point (:meth:`controllers.adaptive.AdaptiveMPC.filter_screen`)."""
 
 PROCESS_STD = 0.04
 """The observer's default input-referred process noise (equivalent V), both MPCs'.

@@ -72,6 +72,10 @@ def test_the_identified_arx_is_read_back_and_bad_settings_are_refused(nominal, c
     bare = dataclasses.replace(controllers.ControlTask.from_env(nominal), datasheet=None)
     with pytest.raises(ValueError, match="needs the bender's datasheet"):
         AdaptiveMPC(model, bare, AdaptiveMPCSettings(member_set="datasheet"))
+    # Without the datasheet the modes' set is screened on its members alone, and says so.
+    alone = AdaptiveMPC(model, bare)
+    assert (alone.screen["twins"], alone.screen["twins_missing"]) == (None, len(alone._members))
+    assert len(alone.screen_plants()[0]) == len(alone._members)
 
 
 def test_the_datasheet_set_holds_a_corner_near_the_true_plant_mpc(nominal, controller):
@@ -83,6 +87,9 @@ def test_the_datasheet_set_holds_a_corner_near_the_true_plant_mpc(nominal, contr
     datasheet = controllers.make("mpc-adaptive", MODEL_DIR, nominal, member_set="datasheet")
     described = datasheet.describe()["adaptation"]
     assert described["member_set"] == "datasheet"
+    # Each set's filters are screened on the other class too.
+    assert (datasheet.screen["twins"], controller.screen["twins"]) == ("modes", "datasheet")
+    assert controller.screen["twins_missing"] == 0
     assert described["datasheet_fit_error"] < 1e-3  # measured 2.6e-4
     oracle = controllers.make(
         "mpc", controllers.PredictionModel.from_plant(env.unwrapped.model), nominal
@@ -308,8 +315,10 @@ def test_a_plant_outside_the_model_class_is_no_worse_than_the_fixed_mpc(nominal,
 def test_the_bank_in_use_widens_as_the_data_narrow_the_set(nominal, controller):
     """At the first sample the bank in use may select only filters whose loop is stable on
     every member (and on the true vertex benders, which it never saw); once the data rule
-    members out, at least as many filters are allowed, each stable on what the data allow."""
+    members out, at least as many filters are allowed, each stable on what the data allow and
+    on their twins."""
     from controllers.loop import radii_matrix
+    from controllers.settings import MS_MAX
 
     env = vertex_env((1.2, 0.8, 0.04))
     obs, _ = env.reset(seed=0)
@@ -340,6 +349,8 @@ def test_the_bank_in_use_widens_as_the_data_narrow_the_set(nominal, controller):
     assert allowed.sum() >= start.sum()
     worst = controller._filter_radii[controller._member][:, plausible].max(axis=1)
     assert np.all(worst[allowed] < 1.0)
+    # and each keeps the margin on the member in use and on its twin.
+    assert np.all(controller._filter_margins[controller._member][allowed] >= 1.0 / MS_MAX)
 
 
 def test_a_swap_is_bumpless(controller):
@@ -386,7 +397,7 @@ def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypa
 
     monkeypatch.setattr(adaptive, "_screens", ContentCache(adaptive.SCREENS_KEPT))
     monkeypatch.setattr(adaptive, "_loop_radii", ContentCache(adaptive.SCREENS_KEPT))
-    radii = controller.filter_radii()  # computed into the fresh caches
+    radii, margins = controller.filter_screen()  # computed into the fresh caches
     loops = controller.loop_radii()
     np.testing.assert_array_equal(loops, controller._radii)  # the fresh loops, to the bit
     calls = []
@@ -397,17 +408,18 @@ def test_the_same_set_built_again_is_screened_once(nominal, controller, monkeypa
     again = controllers.make("mpc-adaptive", MODEL_DIR, nominal)
     assert calls == []
     np.testing.assert_array_equal(again._filter_radii, radii)
+    np.testing.assert_array_equal(again._filter_margins, margins)
     np.testing.assert_array_equal(again._radii, loops)
     again._filter_radii[:] = -1.0
     again._radii[:] = -1.0
-    np.testing.assert_array_equal(controller.filter_radii(), radii)
+    np.testing.assert_array_equal(controller.filter_screen()[0], radii)
     np.testing.assert_array_equal(controller.loop_radii(), loops)
     member = again._members[5]
     hessian = member.hessian.copy()
     hessian[0, 0] = np.nextafter(hessian[0, 0], np.inf)
     monkeypatch.setattr(member, "hessian", hessian)
     again.loop_radii()
-    again.filter_radii()
+    again.filter_screen()
     assert calls  # closed afresh
     assert (adaptive._loop_radii.misses, adaptive._screens.misses) == (2, 2)
 
@@ -465,3 +477,67 @@ def test_a_set_whose_members_do_not_share_the_state_is_refused(controller, monke
     monkeypatch.setattr(controller, "_member_gains", gains)
     with pytest.raises(ValueError, match="differ in static gain"):
         controller._check_shared_state()
+
+
+def test_a_sine_at_a_box_benders_resonance_does_not_ring_it_into_a_limit_cycle():
+    """The PL128 at its 2 kHz, free deflection x1.2, resonance x0.91, damping 0.01; a
+    half-stroke sine just above that bender's resonance (337 Hz), switched off at 1 s. The
+    data narrowed the set to one member (resonance x0.88), where the bank's fastest allowed
+    filter closed a loop stable on the member and unstable on the bender (its aliased modes
+    are not the member's): the tip rang between the drive's ends at +-433 um after the
+    reference stopped, 32 % of the stroke over the episode. The screen on the grid points'
+    datasheet twins with the margin holds it; once the sine stops the tip is quiet (the
+    sensor noise's few um) and the drive near zero. Four of this set's members have no filter
+    that holds the margin on the whole box; the MPC swaps to one of them at the second sample
+    (it has such a filter for the set then), and when the set changes at the third it swaps
+    away from it rather than run a filter that does not hold the margin
+    (``no_stable_filter`` stays 0)."""
+    from benchmarks.plants import sample_time, stroke_um, vertex_options
+
+    bender = "PL128"
+    dt = sample_time(bender)
+    steps, stroke = round(2.0 / dt), stroke_um(bender)
+    t = np.arange(steps + 21) * dt
+    sine = 0.5 * stroke * np.sin(2.0 * np.pi * 337.428 * t)
+    nominal = gym.make("piezo_env:PiezoBender-v0", bender=bender, preview=20, dt=dt)
+    controller = controllers.make(
+        "mpc-adaptive", str(Path(__file__).parent / "data" / "pl128-model"), nominal
+    )
+    assert controller.screen["twins"] == "datasheet"
+    corner = vertex_options(bender, (1.2, 0.91, 0.01))
+    env = gym.make(
+        "piezo_env:PiezoBender-v0", preview=20, dt=dt, max_episode_steps=steps, **corner
+    )
+    on = controllers.run_episode(env, controller, seed=0, reference=sine, stroke_um=stroke)
+    assert on.metrics["rmse_percent"] < 10.0  # the issue's bound of no divergence
+    stopped = np.where(t < 1.0, sine, 0.0)
+    off = controllers.run_episode(env, controller, seed=0, reference=stopped, stroke_um=stroke)
+    quiet = slice(-steps // 4, None)
+    assert np.ptp(np.asarray(off.deflection_um).ravel()[quiet]) / 2.0 < 5.0
+    assert np.max(np.abs(np.asarray(off.voltage_V).ravel()[quiet])) < 1.0
+    assert controller.stats.adaptation["no_stable_filter"] == 0
+
+
+def test_a_member_left_without_a_usable_filter_falls_back_to_its_best(controller, monkeypatch):
+    """The fallback the MPC takes only when no member of the set has a usable filter (it swaps
+    otherwise): the filter of the smallest worst radius on what the data allow, or, when no
+    filter keeps the margin on the member's own point (every radius infinite), the filter of
+    the largest margin there, never every filter; counted."""
+    member = controller._member
+    plausible = np.arange(len(controller._members))
+    radii = controller._filter_radii.copy()
+    radii[member, :, :] = np.inf
+    radii[member, 3, :] = 1.5
+    radii[member, 7, :] = 1.2
+    allowed = controller._allowed.copy()
+    allowed[member] = False
+    monkeypatch.setattr(controller, "_filter_radii", radii)
+    monkeypatch.setattr(controller, "_allowed", allowed)
+    count = controller.stats.adaptation["no_stable_filter"]
+    controller._allow_bank(plausible)
+    assert np.flatnonzero(controller.observer.admissible).tolist() == [7]
+    radii[member, :, :] = np.inf
+    controller._allow_bank(plausible)
+    margins = controller._filter_margins[member]
+    assert np.flatnonzero(controller.observer.admissible).tolist() == [int(np.argmax(margins))]
+    assert controller.stats.adaptation["no_stable_filter"] == count + 2

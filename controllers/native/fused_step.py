@@ -485,7 +485,7 @@ class FusedStep:
         the drive limit and the z rate.
     plausible, allowed : numpy.ndarray
         Per member, 1.0 where the adaptive MPC's last selection kept it plausible, and where
-        it has a filter stable on every plausible member.
+        it has a filter it may use on every plausible member (and its twin).
     """
 
     def __init__(
