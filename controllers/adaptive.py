@@ -100,6 +100,7 @@ from controllers.task import ControlTask
 from controllers.tolerance_box import (
     DAMPING_RANGE,
     RESONANCE_TOLERANCE,
+    UnstableFitError,
     Vertex,
     box_model,
     datasheet_model,
@@ -464,7 +465,7 @@ class AdaptiveMPC(LinearMPC):
             for point in grid:
                 try:
                     twin, _ = _moved_by_datasheet(arx, task, point, order)
-                except ValueError:  # an unstable fit: the point is screened on its member
+                except UnstableFitError:  # the point is screened on its member (counted)
                     twins.append(None)
                     continue
                 twins.append(twin.state_space_matrices()[:3])
@@ -575,7 +576,8 @@ class AdaptiveMPC(LinearMPC):
         """Each member's MPC with each filter of its bank: the spectral radius (-) of its loop
         closed around each grid point's plants (:meth:`screen_plants`: the member and its twin,
         the larger of the two), (K, F, K); and its modulus margin (-) on its own grid point
-        (the smaller on its member and its twin), (K, F). A filter whose margin there is
+        (the smaller on its member and its twin, 0 where either loop is unstable), (K, F). A
+        filter whose margin there is
         below 1 / :data:`controllers.settings.MS_MAX` is never selected (radius infinite).
 
         Most of the controller's construction (K x F x 2K closed loops); kept by the content
@@ -594,9 +596,11 @@ class AdaptiveMPC(LinearMPC):
                 # On its member: the sweep the description of this member's loop reads too.
                 margins = filter_margins(bank, filters, law)
                 loop = (bank.a_aug, bank.b_aug, bank.c_aug)
-                if twin_of[index] != index:
+                if twin_of[index] != index:  # and on its twin, 0 where that loop is unstable
                     twin = [plants[twin_of[index]]]
-                    margins = np.minimum(margins, plant_margins(*loop, filters, *law, twin)[:, 0])
+                    on_twin = plant_margins(*loop, filters, *law, twin)[:, 0]
+                    stable = radii_matrix(*loop, filters, *law, twin)[:, 0] < 1.0
+                    margins = np.minimum(margins, np.where(stable, on_twin, 0.0))
                 within = margins >= 1.0 / MS_MAX
                 radii = np.full((len(filters), len(plants)), np.inf)
                 if within.any():
@@ -613,19 +617,25 @@ class AdaptiveMPC(LinearMPC):
 
     def _allow_bank(self, plausible: np.ndarray) -> None:
         """Narrow the in-use member's bank to its row of the allowed filters (or, when its row
-        is empty, to its filter of the smallest worst radius on ``plausible``, or of the
-        largest margin on its own point when none keeps the margin there; counted in
-        ``stats.adaptation["no_stable_filter"]``)."""
+        is empty, to one filter: the one of the smallest worst radius on ``plausible``; when
+        none keeps the margin on its own point, the one of the largest margin there; when none
+        closes a stable loop there, the bank's fallback (the least process noise); counted in
+        ``stats.adaptation["no_stable_filter"]``). Reached only when no member has a usable
+        filter for the set (:meth:`_select` swaps otherwise), or at an episode's start when
+        the identified member has none for the whole box (none of the catalogue's models)."""
         bank = self.observer
         if isinstance(bank, ObserverBank):
             row = self._allowed[self._member]
             if not row.any():
                 worst = self._filter_radii[self._member][:, plausible].max(axis=1)
+                row = np.zeros(len(worst), dtype=bool)
+                margins = self._filter_margins[self._member]
                 if np.isfinite(worst.min()):
-                    row = worst == worst.min()
-                else:  # no filter keeps the margin on its own point: the nearest to it
-                    margins = self._filter_margins[self._member]
-                    row = margins == margins.max()
+                    row[int(np.argmin(worst))] = True
+                elif margins.max() > 0.0:  # none keeps the margin on its own point
+                    row[int(np.argmax(margins))] = True
+                else:  # none closes a stable loop there: the bank's own fallback
+                    row[bank.fallback] = True
                 self.stats.adaptation["no_stable_filter"] += 1
             bank.allow(row)
 

@@ -38,7 +38,13 @@ from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.settings import MS_MAX, measurement_std
 from controllers.task import ControlTask
-from controllers.tolerance_box import ToleranceBox, arx_of, datasheet_model, vertex_models
+from controllers.tolerance_box import (
+    ToleranceBox,
+    UnstableFitError,
+    arx_of,
+    datasheet_model,
+    vertex_models,
+)
 from piezo_env.memo import ContentCache
 
 __all__ = [
@@ -191,7 +197,7 @@ def datasheet_vertex_plants(
                     )
                     a, b, c, _ = member.state_space_matrices()
                     shapes[key] = (a, b, c)
-                except ValueError:  # an unstable fit: no plant to screen on (counted)
+                except UnstableFitError:  # no plant to screen on (counted)
                     shapes[key] = None
             shape = shapes[key]
             if shape is not None:

@@ -56,6 +56,7 @@ __all__ = [
     "MAX_ZETA",
     "RESONANCE_TOLERANCE",
     "ToleranceBox",
+    "UnstableFitError",
     "Vertex",
     "arx_of",
     "box_model",
@@ -292,6 +293,11 @@ def _fe_response(
     )
 
 
+class UnstableFitError(ValueError):
+    """:func:`datasheet_model`'s fit came out unstable: that point has no datasheet model (the
+    screens that meet it count it; any other error propagates)."""
+
+
 def datasheet_model(
     arx: ARXModel,
     datasheet: Any,
@@ -326,7 +332,7 @@ def datasheet_model(
 
     Raises
     ------
-    ValueError
+    UnstableFitError
         If the fit is unstable (a pole on or outside the unit circle).
     """
     from piezo_env.datasheet import get_datasheet
@@ -365,7 +371,7 @@ def datasheet_model(
         fitted_response = response
     fitted = ARXModel(theta[:order], theta[order:], dt=dt)
     if np.any(np.abs(fitted.poles()) >= 1.0):
-        raise ValueError(
+        raise UnstableFitError(
             f"the datasheet member at {vertex.label()} came out unstable (poles "
             f"{np.round(fitted.poles(), 4).tolist()}); use member_set='modes'"
         )
