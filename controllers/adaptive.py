@@ -94,7 +94,7 @@ from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
 from controllers.observer import ObserverBank, make_observer, rescale_states
 from controllers.prediction import PredictionModel, SteadyStart
-from controllers.predictive import filter_margins
+from controllers.predictive import filter_margins, task_datasheet_model
 from controllers.settings import MS_MAX, check_settings, damping_pair, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
@@ -103,7 +103,6 @@ from controllers.tolerance_box import (
     UnstableFitError,
     Vertex,
     box_model,
-    datasheet_model,
 )
 from identification.arx import ARXModel
 from identification.correction import first_mode_pole
@@ -299,22 +298,6 @@ def _set_members(arx: list[ARXModel]) -> dict[str, Any]:
     }
 
 
-def _moved_by_datasheet(
-    arx: ARXModel, task: ControlTask, point: tuple[float, float], order: int
-) -> tuple[ARXModel, float]:
-    """:func:`controllers.tolerance_box.datasheet_model` of ``arx`` at a grid point (frequency
-    factor, damping ratio), its gain unchanged, with the task's datasheet and beam."""
-    alpha, zeta = point
-    return datasheet_model(
-        arx,
-        task.datasheet,
-        Vertex(1.0, alpha, zeta),
-        damping_ratio=task.damping_ratio,
-        order=order,
-        n_elements=task.n_elements,
-    )
-
-
 @dataclass
 class _Member:
     """One model of the set and what the MPC needs to predict with it."""
@@ -418,7 +401,7 @@ class AdaptiveMPC(LinearMPC):
         )
         members, errors = [first], []
         for point in self._grid[1:]:
-            member, error = _moved_by_datasheet(arx, task, point, order)
+            member, error = task_datasheet_model(arx, task, Vertex(1.0, *point), order)
             # The same static gain to the last bit: a swap carries the state over.
             member = ARXModel(
                 member.a,
@@ -464,7 +447,7 @@ class AdaptiveMPC(LinearMPC):
             twins: list[tuple[np.ndarray, np.ndarray, np.ndarray] | None] = []
             for point in grid:
                 try:
-                    twin, _ = _moved_by_datasheet(arx, task, point, order)
+                    twin, _ = task_datasheet_model(arx, task, Vertex(1.0, *point), order)
                 except UnstableFitError:  # the point is screened on its member (counted)
                     twins.append(None)
                     continue

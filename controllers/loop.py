@@ -63,7 +63,6 @@ __all__ = [
     "modulus_margins",
     "output_feedback",
     "plant_margins",
-    "plant_responses",
     "radii_matrix",
 ]
 
@@ -316,7 +315,7 @@ def _responses(
     return model, controller
 
 
-def plant_responses(
+def _plant_responses(
     plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]], points: int = FREQUENCY_POINTS
 ) -> np.ndarray:
     """Frequency responses ``G_p(e^jw)`` (um per equivalent V) of ``plants`` (each (a, b, c),
@@ -338,7 +337,7 @@ def plant_margins(
     gains: np.ndarray,
     k_estimate: np.ndarray,
     k_previous: float,
-    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]] | np.ndarray,
+    plants: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     points: int = FREQUENCY_POINTS,
 ) -> np.ndarray:
     """Modulus margin ``min_w |1 - G_p K(e^jw)|`` of each filter's loop on each of ``plants``
@@ -349,10 +348,8 @@ def plant_margins(
     ----------
     a_aug, b_aug, c_aug, gains, k_estimate, k_previous
         As :func:`modulus_margins`.
-    plants : list of (a, b, c) or numpy.ndarray
-        Linear parts (z -> y) the loop is closed around, each in any realization, or their
-        :func:`plant_responses` at ``points`` (for loops of many controllers on the same
-        plants).
+    plants : list of (a, b, c)
+        Linear parts (z -> y) the loop is closed around, each in any realization.
     points : int
         Frequencies on (0, pi], Nyquist included.
 
@@ -363,7 +360,7 @@ def plant_margins(
     """
     q = _frequencies(points)
     _, controller = _responses(q, a_aug, b_aug, c_aug, np.atleast_2d(gains), k_estimate, k_previous)
-    responses = plants if isinstance(plants, np.ndarray) else plant_responses(plants, points)
+    responses = _plant_responses(plants, points)
     out = np.empty((controller.shape[1], responses.shape[0]))
     for j, response in enumerate(responses):  # (W, filters) at a time: a bounded temporary
         out[:, j] = np.abs(1.0 - response[:, None] * controller).min(axis=0)

@@ -41,10 +41,12 @@ from controllers.task import ControlTask
 from controllers.tolerance_box import (
     ToleranceBox,
     UnstableFitError,
+    Vertex,
     arx_of,
     datasheet_model,
     vertex_models,
 )
+from identification.arx import ARXModel
 from piezo_env.memo import ContentCache
 
 __all__ = [
@@ -54,6 +56,7 @@ __all__ = [
     "PredictiveController",
     "filter_margins",
     "screen_bank",
+    "task_datasheet_model",
 ]
 
 BOX_SCREENS_KEPT = 16
@@ -169,6 +172,22 @@ def screen_bank(
     }
 
 
+def task_datasheet_model(
+    arx: ARXModel, task: ControlTask, vertex: Vertex, order: int
+) -> tuple[ARXModel, float]:
+    """:func:`controllers.tolerance_box.datasheet_model` of ``arx`` at ``vertex``, with the
+    datasheet, first-mode damping and beam elements of ``task`` (a task read from a
+    ``PiezoBender-v0`` env carries them)."""
+    return datasheet_model(
+        arx,
+        task.datasheet,
+        vertex,
+        damping_ratio=task.damping_ratio,
+        order=order,
+        n_elements=task.n_elements,
+    )
+
+
 def datasheet_vertex_plants(
     model: PredictionModel, task: ControlTask, boxes: list[ToleranceBox]
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -187,14 +206,8 @@ def datasheet_vertex_plants(
             key = (vertex.resonance, vertex.damping)
             if key not in shapes:
                 try:
-                    member, _ = datasheet_model(
-                        arx,
-                        task.datasheet,
-                        dataclasses.replace(vertex, gain=1.0),
-                        damping_ratio=task.damping_ratio,
-                        order=order,
-                        n_elements=task.n_elements,
-                    )
+                    shape = dataclasses.replace(vertex, gain=1.0)
+                    member, _ = task_datasheet_model(arx, task, shape, order)
                     a, b, c, _ = member.state_space_matrices()
                     shapes[key] = (a, b, c)
                 except UnstableFitError:  # no plant to screen on (counted)
