@@ -595,3 +595,55 @@ def test_a_member_the_set_leaves_without_a_usable_filter_is_swapped_away(control
     assert controller.observer.admissible[controller._allowed[controller._member]].all()
     assert not controller.observer.admissible[~controller._allowed[controller._member]].any()
     assert controller.stats.adaptation["no_stable_filter"] == 0
+
+
+def test_a_grid_point_whose_datasheet_twin_is_unstable_is_screened_on_its_member(
+    nominal, monkeypatch
+):
+    """A grid point whose datasheet fit comes out unstable has no twin: its filters are
+    screened on its member alone (its twin index is its own), the description counts it, and
+    the other points keep their twins. A small set (5 % resonance, damping 0.02-0.04) keeps
+    the build short."""
+    import controllers.adaptive as adaptive
+    from controllers.tolerance_box import UnstableFitError
+    from piezo_env.memo import ContentCache
+
+    for name in ("_screens", "_member_sets", "_loop_radii", "_twin_sets"):
+        monkeypatch.setattr(adaptive, name, ContentCache(adaptive.SCREENS_KEPT))
+    original = adaptive.task_datasheet_model
+    asked = []
+
+    def unstable_at_the_top(arx, task, vertex, order):
+        asked.append((vertex.resonance, vertex.damping))
+        if vertex.resonance > 1.04 and vertex.damping > 0.03:
+            raise UnstableFitError("forced")
+        return original(arx, task, vertex, order)
+
+    monkeypatch.setattr(adaptive, "task_datasheet_model", unstable_at_the_top)
+    settings = AdaptiveMPCSettings(resonance_tolerance=0.05, damping_range=(0.02, 0.04))
+    model = controllers.PredictionModel.from_hammerstein(MODEL_DIR, 30.0)
+    built = AdaptiveMPC(model, controllers.ControlTask.from_env(nominal), settings)
+    grid = built._grid
+    missing = [i for i, (alpha, zeta) in enumerate(grid) if alpha > 1.04 and zeta > 0.03]
+    assert len(asked) == len(grid) and len(missing) == 1
+    assert (built.screen["twins"], built.screen["twins_missing"]) == ("datasheet", 1)
+    plants, twin_of = built.screen_plants()
+    count = len(built._members)
+    assert len(plants) == 2 * count - 1
+    assert twin_of[missing[0]] == missing[0]
+    assert all(twin_of[i] >= count for i in range(count) if i != missing[0])
+    # That point's radii are its member's alone: the loop closed on the member, to the bit.
+    radii, _ = built.filter_screen()
+    law_radii = adaptive.radii_matrix
+    k, checked = missing[0], 0
+    for index, member in enumerate(built._members):
+        bank = member.observer
+        law = adaptive.feedback_law(member.hessian, member.q_matrix, bank.a_aug.shape[0])
+        finite = np.isfinite(radii[index, :, k])
+        if finite.any():
+            alone = law_radii(
+                bank.a_aug, bank.b_aug, bank.c_aug, bank.gains[finite], *law, [plants[k]]
+            )[:, 0]
+            np.testing.assert_array_equal(radii[index, finite, k], alone)
+            checked += 1
+    assert checked == count  # every member has filters that keep the margin on its point

@@ -340,3 +340,34 @@ def test_a_bank_takes_its_ratios_as_any_sequence(monkeypatch) -> None:
     listed = ObserverBank(a, b, c, measurement_std=SIGMA, process_ratios=[0, 1])
     for got, want in zip(_bank_arrays(given), _bank_arrays(listed), strict=True):
         assert np.array_equal(got, want)
+
+
+def test_a_vertex_whose_datasheet_fit_is_unstable_is_left_out_and_counted(mpc, monkeypatch):
+    """A vertex moved by the datasheet's physics whose fit comes out unstable has no plant to
+    screen on: it is left out and the description counts it; any other error of the fit
+    propagates (a bad datasheet is not screened around)."""
+    from controllers.tolerance_box import UnstableFitError
+
+    original = predictive.task_datasheet_model
+
+    def unstable_above_nominal(arx, task, vertex, order):
+        if vertex.resonance > 1.0:
+            raise UnstableFitError("forced")
+        return original(arx, task, vertex, order)
+
+    def plants_with(fit):
+        _fresh_cache(monkeypatch, predictive, "_box_plants")
+        monkeypatch.setattr(predictive, "task_datasheet_model", fit)
+        holder = types.SimpleNamespace(model=mpc.model, task=mpc.task, _box_plants=None)
+        return PredictiveController.box_plants(holder), holder.box_plant_counts
+
+    plants, counts = plants_with(unstable_above_nominal)
+    # 12 vertices (8 of the box, 4 with the gain matched), half of them above the resonance.
+    assert counts == {"mode_by_mode": 12, "datasheet": 6, "datasheet_asked": 12}
+    assert len(plants) == 18
+
+    def broken(arx, task, vertex, order):
+        raise ValueError("a datasheet the FE model refuses")
+
+    with pytest.raises(ValueError, match="refuses"):
+        plants_with(broken)
