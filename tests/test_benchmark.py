@@ -343,6 +343,26 @@ def test_the_corners_study_previews_its_references_to_the_last_step(bender):
     assert np.all(np.diff(preview[-3:]) != 0.0)  # a 50 Hz sine still moving: nothing held
 
 
+def test_the_corners_study_scales_the_hysteresis_as_the_randomisation_does():
+    """``--hysteresis`` runs the vertices at a hysteresis strength: the hysteretic share alpha
+    times the scale at the same major-loop peak (:func:`scale_hysteresis`), the nominal
+    strength being the env's own map; a strength outside (0, 2) is refused."""
+    import gymnasium as gym
+
+    from benchmarks.studies.corners import main as corners_main
+    from benchmarks.studies.corners import vertex_env
+    from piezo_env.randomization import major_loop_peak
+
+    nominal = vertex_env((1.0, 1.0, 0.02)).unwrapped.model.hysteresis
+    default = gym.make("piezo_env:PiezoBender-v0").unwrapped.model.hysteresis
+    assert nominal == default
+    weak = vertex_env((0.8, 1.2, 0.01), hysteresis_scale=0.7).unwrapped.model.hysteresis
+    assert weak.alpha == pytest.approx(0.7 * nominal.alpha, rel=1e-12)
+    assert major_loop_peak(weak, 30.0) == pytest.approx(major_loop_peak(nominal, 30.0))
+    with pytest.raises(SystemExit):
+        corners_main(["--hysteresis", "2.5"])
+
+
 @pytest.mark.parametrize(
     ("controllers", "expected"),
     [
