@@ -777,8 +777,8 @@ def _check_finite(values: np.ndarray, label: str, column: str, *, offset: int) -
         k = int(bad[0])
         where = _where(k, offset)
         raise RecordsError(
-            f"{label}, {where}: column {column} is {values[k]!r}; every value must be a finite "
-            f"number ({bad.size} are not)"
+            f"{label}, {where}: column {column} is {float(values[k])!r}; every value must be a "
+            f"finite number ({bad.size} are not)"
         )
 
 
@@ -804,8 +804,8 @@ def _check_time(t: np.ndarray, dt: float, record: Path, manifest: Path, offset: 
     if back.size:
         k = int(back[0]) + 1
         raise RecordsError(
-            f"{record}, {_where(k, offset)}: time_s {t[k]!r} s does not increase (previous "
-            f"{t[k - 1]!r} s); the records must be sampled in time order"
+            f"{record}, {_where(k, offset)}: time_s {float(t[k])!r} s does not increase (previous "
+            f"{float(t[k - 1])!r} s); the records must be sampled in time order"
         )
     if t.size < 2:
         return
@@ -822,7 +822,8 @@ def _check_time(t: np.ndarray, dt: float, record: Path, manifest: Path, offset: 
     if uneven.size:
         k = int(uneven[0]) + 1
         raise RecordsError(
-            f"{record}, {_where(k, offset)}: time_s {t[k]!r} s is {steps[k - 1]:.9g} s after the "
-            f"previous sample, not dt = {dt:g} s (tolerance {TIME_TOLERANCE_S * 1e6:g} us): "
-            "the samples are not uniform (a lost or repeated sample?); record on a fixed clock"
+            f"{record}, {_where(k, offset)}: time_s {float(t[k])!r} s is {steps[k - 1]:.9g} s "
+            f"after the previous sample, not dt = {dt:g} s (tolerance "
+            f"{TIME_TOLERANCE_S * 1e6:g} us): the samples are not uniform (a lost or repeated "
+            "sample?); record on a fixed clock"
         )

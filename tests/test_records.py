@@ -164,6 +164,7 @@ def test_decreasing_time_is_refused(measured, tmp_path, capsys):
     _edit_line(folder / "rich.csv", 12, "time_s", "0.001")
     err = _refused(folder, tmp_path, capsys)
     assert "rich.csv, line 12" in err and "does not increase" in err
+    assert "time_s 0.001 s" in err and "np." not in err  # the number, not numpy's repr
 
 
 def test_non_uniform_time_is_refused(measured, tmp_path, capsys):
@@ -171,6 +172,7 @@ def test_non_uniform_time_is_refused(measured, tmp_path, capsys):
     _edit_line(folder / "prbs.csv", 40, "time_s", "0.038010")  # 10 us late
     err = _refused(folder, tmp_path, capsys)
     assert "prbs.csv, line 40" in err and "not uniform" in err
+    assert "time_s 0.03801 s" in err and "np." not in err
 
 
 def test_nan_and_inf_are_refused(measured, tmp_path, capsys):
@@ -178,6 +180,7 @@ def test_nan_and_inf_are_refused(measured, tmp_path, capsys):
     _edit_line(folder / "validation.csv", 7, "deflection_um", "nan")
     err = _refused(folder, tmp_path, capsys)
     assert "validation.csv, line 7" in err and "deflection_um" in err and "finite" in err
+    assert "deflection_um is nan;" in err
     _edit_line(folder / "validation.csv", 7, "deflection_um", "1.0")
     _edit_line(folder / "validation.csv", 9, "voltage_V", "inf")
     err = _refused(folder, tmp_path, capsys)
