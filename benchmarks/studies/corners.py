@@ -72,27 +72,30 @@ def vertex_env(
     **options: Any,
 ) -> Any:
     """``PiezoBender-v0`` on one vertex (free deflection, resonance, damping) of ``bender``'s
-    box, at the bender's benchmark sample time, for one 2 s episode; the nominal bender's
-    hysteresis with its hysteretic part times ``hysteresis_scale`` (-)."""
+    box, at the bender's benchmark sample time, for one 2 s episode; its hysteresis (the env's
+    default, or ``options["hysteresis"]``) with the hysteretic part times ``hysteresis_scale``
+    (-)."""
     import gymnasium as gym
 
-    from piezo_env.hysteresis import make_hysteresis
     from piezo_env.randomization import scale_hysteresis
 
     dt = sample_time(bender)
-    kwargs = vertex_options(bender, vertex)
+    kwargs = {**vertex_options(bender, vertex), **options}
+
+    def make() -> Any:
+        steps = round(EPISODE_S / dt)
+        return gym.make(
+            "piezo_env:PiezoBender-v0", preview=PREVIEW, dt=dt, max_episode_steps=steps, **kwargs
+        )
+
+    env = make()
     if hysteresis_scale != 1.0:
+        own = env.unwrapped.model.hysteresis
+        env.close()
         rated = kwargs["bender"].rated_voltage
-        nominal = make_hysteresis("bouc-wen", rated, dt=dt)
-        kwargs["hysteresis"] = scale_hysteresis(nominal, hysteresis_scale, rated)
-    return gym.make(
-        "piezo_env:PiezoBender-v0",
-        preview=PREVIEW,
-        dt=dt,
-        max_episode_steps=round(EPISODE_S / dt),
-        **kwargs,
-        **options,
-    )
+        kwargs["hysteresis"] = scale_hysteresis(own, hysteresis_scale, rated)
+        env = make()
+    return env
 
 
 def vertex_reference(name: str, bender: str = BENDER) -> np.ndarray:
