@@ -149,6 +149,12 @@ class MPCSettings:
         the datasheet's tolerance box and within :data:`controllers.settings.MS_MAX` on the
         model (:func:`controllers.predictive.screen_bank`); identified models only (the
         oracle's model is the plant).
+    initial_voltage : float or None
+        Voltage (V) the bender rests under at each reset, when it is known (an env reset with
+        ``initial_voltage``; within the drive range): the episode starts from the model at rest
+        under it, so that the first move's slew window is the amplifier's. None (the default):
+        estimated from the first measurement (:meth:`controllers.prediction.PredictionModel.
+        steady_start`: 0 V within the sensor's noise).
     """
 
     horizon: int = 20
@@ -167,6 +173,7 @@ class MPCSettings:
     shortcut: bool = True
     gain_tolerance: float = GAIN_TOLERANCE
     robust_bank: bool = True
+    initial_voltage: float | None = None
 
     def __post_init__(self) -> None:
         check_settings(

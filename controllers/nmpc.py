@@ -151,6 +151,9 @@ class NMPCSettings:
         :class:`controllers.mpc.MPCSettings`': the NMPC learns the gain inside [1 - w, 1 + w]
         from the first sample and tracks the reference over it (:meth:`NonlinearMPC._learn_gain`).
         0: predict with the model's gain.
+    initial_voltage : float or None
+        Voltage (V) the bender rests under at each reset, when it is known, as
+        :class:`controllers.mpc.MPCSettings`' (None: estimated from the first measurement).
     """
 
     horizon: int = 20
@@ -174,6 +177,7 @@ class NMPCSettings:
     ipopt_max_iter: int = 100
     ipopt_max_cpu_time: float = 1.0
     gain_tolerance: float = GAIN_TOLERANCE
+    initial_voltage: float | None = None
 
     def __post_init__(self) -> None:
         if self.solver not in _SOLVERS:

@@ -99,7 +99,12 @@ from controllers.pid_tuning import (
     tune_pid,
 )
 from controllers.prediction import PredictionModel
-from controllers.settings import GAIN_TOLERANCE, damping_pair, python_numbers
+from controllers.settings import (
+    GAIN_TOLERANCE,
+    check_initial_voltage,
+    damping_pair,
+    python_numbers,
+)
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
     DAMPING_RANGE,
@@ -227,6 +232,11 @@ class PIDController(Controller):
         With ``gain_tolerance=0``, ``resonance_tolerance=0`` and ``damping_range=None`` the loop
         is tuned on the nominal model alone (the faster loop that diverges on benders at the
         edges of the datasheet's tolerances)."""
+        initial_voltage: float | None = None
+        """Voltage (V) the bender rests under at each reset, when it is known (an env reset
+        with ``initial_voltage``; within the drive range): the loop starts from it, so that the
+        first move's slew window is the amplifier's. None: estimated from the first
+        measurement (:meth:`controllers.prediction.PredictionModel.steady_start`)."""
 
         def __post_init__(self) -> None:
             python_numbers(self)
@@ -247,6 +257,8 @@ class PIDController(Controller):
             require_number("derivative_filter_s", self.derivative_filter_s, low=0, low_open=True)
             require_number("antiwindup_gain", self.antiwindup_gain, low=0, high=1, low_open=True)
             require_number("inverse_regularization", self.inverse_regularization, low=0)
+            if self.initial_voltage is not None:
+                require_number("initial_voltage (or None)", self.initial_voltage)
 
     def __init__(
         self,
@@ -259,6 +271,7 @@ class PIDController(Controller):
         super().__init__(task)
         self.name = name
         self.settings = settings = settings or self.Settings()
+        check_initial_voltage(settings, task.u_max)
         self.model = model
         self.box = ToleranceBox(
             settings.gain_tolerance, settings.resonance_tolerance, settings.damping_range
@@ -309,7 +322,9 @@ class PIDController(Controller):
         """Start from the model's steady state that holds the first measurement (rest at 0 V
         within the noise bound; see :meth:`PredictionModel.steady_start`): a bumpless start
         after an env reset with ``initial_voltage``."""
-        start = self.model.steady_start(float(observation[0]), self.task.noise_bound_um)
+        start = self.model.steady_start(
+            float(observation[0]), self.task.noise_bound_um, self.settings.initial_voltage
+        )
         self._u_prev = float(np.float32(start.u))
         self._deriv = 0.0
         if self.settings.feedforward:

@@ -399,17 +399,27 @@ class PredictionModel:
             series, b, measured, plant.dt, nonlinearity, "plant", z_bounds, tip, error_bound_um
         )
 
-    def steady_start(self, y0: float, noise_bound_um: float) -> SteadyStart:
-        """The model at rest holding the first measured deflection ``y0`` (um).
+    def steady_start(
+        self, y0: float, noise_bound_um: float, voltage: float | None = None
+    ) -> SteadyStart:
+        """The model at rest holding the first measured deflection ``y0`` (um), or under a
+        known ``voltage`` (V).
 
         A controller sees only the observation; after an env reset with ``initial_voltage``
         the first measurement is the only sign that the bender is not at rest at 0 V. Within
         the sensor noise bound, rest at 0 V is the best estimate; beyond it, the steady state
         whose output is y0: z0 = y0 / (DC gain), x0 = (I - A)^-1 B z0, and the voltage that
         reaches z0 from the nonlinearity's initial memory (for rate-independent memory, the
-        state a slow approach to that voltage leaves).
+        state a slow approach to that voltage leaves). That voltage is only an estimate (the
+        sensor's noise and the model's gain error move it), and a first move planned from it
+        can step further than an amplifier's slew limit allows from the true one; a caller that
+        knows the voltage passes it, and the start is the model at rest under it (z0 the
+        nonlinearity's output for that voltage from its initial memory, x0 holding z0).
         """
         memory = self.nonlinearity.initial_state()
+        if voltage is not None:
+            z0, memory = self.nonlinearity.step(float(voltage), memory)
+            return SteadyStart(self.steady_state_per_z() * z0, float(z0), float(voltage), memory)
         if abs(y0) <= noise_bound_um:
             return SteadyStart(np.zeros(self.n_states), 0.0, 0.0, memory)
         per_z = self.steady_state_per_z()

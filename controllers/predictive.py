@@ -36,7 +36,7 @@ from controllers.gain import GainEstimate
 from controllers.loop import feedback_law, modulus_margins, plant_margins, radii_matrix
 from controllers.observer import ObserverBank, make_observer
 from controllers.prediction import PredictionModel, SteadyStart
-from controllers.settings import MS_MAX, measurement_std
+from controllers.settings import MS_MAX, check_initial_voltage, measurement_std
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
     ToleranceBox,
@@ -257,6 +257,7 @@ class PredictiveController(Controller):
             self.name = name
         self.model = model
         self.settings = settings = settings or self.Settings()
+        check_initial_voltage(settings, task.u_max)
         n_hor = settings.horizon
         self.prediction_samples = samples = self._prediction_samples(model, settings)
         self._phi, self._gamma = prediction_matrices(model.a, model.b, model.c_tracked, samples)
@@ -333,7 +334,8 @@ class PredictiveController(Controller):
 
     def _reset(self, observation: np.ndarray | None) -> None:
         y0 = 0.0 if observation is None else float(observation[0])
-        start = self.model.steady_start(y0, self.task.noise_bound_um)
+        voltage = getattr(self.settings, "initial_voltage", None)
+        start = self.model.steady_start(y0, self.task.noise_bound_um, voltage)
         # d starts at 0 even when y0 lies beyond the model's reach (the voltage holding it
         # clipped): the part left unexplained is then mostly that one sample's noise, and
         # starting d there makes the first 50 steps worse, not better (the plant starting at

@@ -20,6 +20,7 @@ __all__ = [
     "PROCESS_STD",
     "QP_SOLVERS",
     "USABLE_OSQP_STATUS",
+    "check_initial_voltage",
     "check_settings",
     "damping_pair",
     "measurement_std",
@@ -121,7 +122,9 @@ def check_settings(
     finite numbers > 0; a ``measurement_std`` field, when present, must be None or > 0 (um),
     ``robust_bank`` and ``shortcut`` fields True or False, an ``observer`` field ``"bank"`` or
     ``"fixed"``, a ``bank_memory`` field an integer >= 1,
-    a ``gain_tolerance`` field (in ``non_negative``) below 1 (a relative half-width).
+    a ``gain_tolerance`` field (in ``non_negative``) below 1 (a relative half-width), an
+    ``initial_voltage`` field None or a finite number (the controller checks it against its
+    drive range).
     """
     python_numbers(settings)
     for name in integers:
@@ -134,6 +137,9 @@ def check_settings(
         value = getattr(settings, name)
         if not number_at_least(value, 0.0) or value == 0:
             raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    voltage = getattr(settings, "initial_voltage", None)
+    if voltage is not None and not number_at_least(voltage, -math.inf):
+        raise ValueError(f"initial_voltage must be None or a finite number (V), got {voltage!r}")
     for name in ("robust_bank", "shortcut"):
         flag = getattr(settings, name, True)
         if not isinstance(flag, bool):
@@ -164,3 +170,13 @@ def measurement_std(setting: float | None, task: ControlTask) -> float:
     if setting is not None:
         return float(setting)
     return max(task.noise_bound_um / math.sqrt(3.0), 0.05)
+
+
+def check_initial_voltage(settings: object, u_max: float) -> None:
+    """Raise ValueError when an ``initial_voltage`` setting lies outside the drive range
+    +-``u_max`` (V): the env refuses such a reset too."""
+    voltage = getattr(settings, "initial_voltage", None)
+    if voltage is not None and not abs(voltage) <= u_max:
+        raise ValueError(
+            f"initial_voltage must lie within the drive range +-{u_max:g} V, got {voltage!r}"
+        )
