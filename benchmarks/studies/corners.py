@@ -77,25 +77,23 @@ def vertex_env(
     (-)."""
     import gymnasium as gym
 
+    from piezo_env.config import TaskConfig
+    from piezo_env.hysteresis import make_hysteresis
     from piezo_env.randomization import scale_hysteresis
 
     dt = sample_time(bender)
     kwargs = {**vertex_options(bender, vertex), **options}
-
-    def make() -> Any:
-        steps = round(EPISODE_S / dt)
-        return gym.make(
-            "piezo_env:PiezoBender-v0", preview=PREVIEW, dt=dt, max_episode_steps=steps, **kwargs
-        )
-
-    env = make()
-    if hysteresis_scale != 1.0:
-        own = env.unwrapped.model.hysteresis
-        env.close()
+    if hysteresis_scale != 1.0:  # the map the env would build, scaled
         rated = kwargs["bender"].rated_voltage
+        own = make_hysteresis(kwargs.get("hysteresis", TaskConfig.hysteresis), rated, dt=dt)
         kwargs["hysteresis"] = scale_hysteresis(own, hysteresis_scale, rated)
-        env = make()
-    return env
+    return gym.make(
+        "piezo_env:PiezoBender-v0",
+        preview=PREVIEW,
+        dt=dt,
+        max_episode_steps=round(EPISODE_S / dt),
+        **kwargs,
+    )
 
 
 def vertex_reference(name: str, bender: str = BENDER) -> np.ndarray:
