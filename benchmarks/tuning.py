@@ -338,15 +338,16 @@ def sweep(controller: str, model_dir: str, *, bender: str = "PL140", seed: int =
     benchmark does not run on a robustness plant, ``pid``, has only the nominal cells):
     ``{setting: {(plant, reference): rmse}}``. What the reader checks the choice against; the
     procedure never reads it."""
-    from benchmarks.runner import BenchmarkConfig, run_benchmark
+    from benchmarks.runner import ROBUSTNESS_CONTROLLERS, BenchmarkConfig, run_benchmark
 
     knob = KNOBS[controller]
+    plants = SWEEP_PLANTS if controller in ROBUSTNESS_CONTROLLERS else SWEEP_PLANTS[:1]
     out = {}
     for value in knob.grid:
         config = BenchmarkConfig(
             controllers=(controller,),
             references=SWEEP_REFERENCES,
-            plants=SWEEP_PLANTS,
+            plants=plants,
             seed=seed,
             bender=bender,
             controller_options={controller: {knob.option: value}},

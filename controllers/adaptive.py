@@ -1,10 +1,12 @@
 """Adaptive MPC over the set of benders the datasheet allows: learn which one from the data.
 
 A bender bought to a datasheet differs from the nominal one in its static gain (free deflection
-+-20 %), its first resonance (+-20 %) and that mode's damping (0.01-0.04). The fixed
-:class:`controllers.mpc.LinearMPC` learns the gain (:mod:`controllers.gain`); a resonance error
-it leaves to its observer, and near the resonance (a 50 Hz reference on a bender whose first
-mode lies 20 % low) that is its largest error on the box's corners
++-20 %, and the hysteresis strength's +-30 % moves the gain a linear model sees:
+:data:`controllers.settings.LEARNED_GAIN_TOLERANCE`), its first resonance (+-20 %) and that
+mode's damping (0.01-0.04). The fixed :class:`controllers.mpc.LinearMPC` learns the gain
+(:mod:`controllers.gain`); a resonance error it leaves to its observer, and near the
+resonance (a 50 Hz reference on a bender whose first mode lies 20 % low) that is its largest
+error on the box's corners
 (``benchmarks/results/corners.md``, sine-50Hz). :class:`AdaptiveMPC` learns the
 resonance and the damping too, with bounded work per sample.
 

@@ -1,8 +1,10 @@
 """The bender's static gain, learned from the first sample: a credible set inside the datasheet's.
 
 A bender bought to a datasheet differs from the nominal one mostly by a factor on its gain: the
-free deflection (deflection per volt) is specified to +-20 %, and at the frequencies a tracking
-reference lives at (well below the first resonance) a stiffer or softer, better or worse damped
+free deflection (deflection per volt) is specified to +-20 %, and the hysteresis strength's
++-30 % moves the gain a linear model sees by up to 9 % more (+-31 % together:
+:data:`controllers.settings.LEARNED_GAIN_TOLERANCE`). At the frequencies a tracking reference
+lives at (well below the first resonance) a stiffer or softer, better or worse damped
 bender looks, to first order, like the nominal one times a number. A model-based controller
 that predicts with the nominal gain leaves the error ``(g - 1) y_ref`` to its output
 disturbance, which follows a reference-shaped error only as fast as its observer, and a faster

@@ -60,7 +60,7 @@ from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
 from controllers.settings import (
     DISTURBANCE_STD,
-    GAIN_TOLERANCE,
+    LEARNED_GAIN_TOLERANCE,
     PROCESS_STD,
     check_settings,
 )
@@ -143,7 +143,9 @@ class MPCSettings:
         Relative half-width w (-) of the plant's static gain around the model's: the MPC
         learns the gain inside [1 - w, 1 + w] from the first sample and predicts with the
         point of its 95 % credible set nearest the model's (:mod:`controllers.gain`). Default:
-        the datasheet's +-20 % on the free deflection. 0: predict with the model's gain.
+        :data:`controllers.settings.LEARNED_GAIN_TOLERANCE`, the datasheet's +-20 % on the free
+        deflection with what its +-30 % on the hysteresis strength does to the gain. 0:
+        predict with the model's gain.
     robust_bank : bool
         Let the observer bank select only the filters whose loop is stable on every vertex of
         the datasheet's tolerance box and within :data:`controllers.settings.MS_MAX` on the
@@ -171,7 +173,7 @@ class MPCSettings:
     eps_rel: float = 1e-6
     max_iter: int = 1000
     shortcut: bool = True
-    gain_tolerance: float = GAIN_TOLERANCE
+    gain_tolerance: float = LEARNED_GAIN_TOLERANCE
     robust_bank: bool = True
     initial_voltage: float | None = None
 

@@ -12,7 +12,8 @@ Cost and constraints over ``u = (u_t .. u_t+N-1)`` (V), targets r_t+1 .. r_t+N (
                                                       (|u_t+k - u_t+k-1| <= S dt, slew limit)
 
 **The bender's static gain** (``gain_tolerance``, :mod:`controllers.gain`): a bender bought to
-the datasheet answers ``g`` times the model's deflection, g within +-20 %. The NMPC learns g from
+the datasheet answers ``g`` times the model's deflection, g within
+:data:`controllers.settings.LEARNED_GAIN_TOLERANCE`. The NMPC learns g from
 the first sample, as the linear MPC does, and tracks the reference over g (it reads the
 measurement and the preview over g: :meth:`NonlinearMPC._learn_gain`); nothing else changes.
 Without it, the model's gain error is left to the output-disturbance observer, which follows a
@@ -78,7 +79,12 @@ from controllers.native.codegen import NativeBuild
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
-from controllers.settings import DISTURBANCE_STD, GAIN_TOLERANCE, PROCESS_STD, check_settings
+from controllers.settings import (
+    DISTURBANCE_STD,
+    LEARNED_GAIN_TOLERANCE,
+    PROCESS_STD,
+    check_settings,
+)
 
 __all__ = ["KEPT", "NMPCSettings", "NonlinearMPC"]
 
@@ -176,7 +182,7 @@ class NMPCSettings:
     shortcut: bool = True
     ipopt_max_iter: int = 100
     ipopt_max_cpu_time: float = 1.0
-    gain_tolerance: float = GAIN_TOLERANCE
+    gain_tolerance: float = LEARNED_GAIN_TOLERANCE
     initial_voltage: float | None = None
 
     def __post_init__(self) -> None:
@@ -357,7 +363,7 @@ class NonlinearMPC(PredictiveController):
         scale (:meth:`controllers.observer.ObserverBank.rescale_output`). While the credible
         set holds the model's gain, g is exactly 1 and the step is the one without learning,
         to the bit. The observer keeps the sensor's noise level in um, so over g its noise model
-        is off by the factor g (within the datasheet's +-20 %), which the bank's noise levels,
+        is off by the factor g (within +-31 %), which the bank's noise levels,
         a grid of factors of 3, do not resolve."""
         gain = self._gain
         gain.update(float(observation[0]))

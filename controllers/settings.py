@@ -15,6 +15,7 @@ from piezo_env.randomization import DomainRandomization
 __all__ = [
     "DISTURBANCE_STD",
     "GAIN_TOLERANCE",
+    "LEARNED_GAIN_TOLERANCE",
     "MS_MAX",
     "OBSERVERS",
     "PROCESS_STD",
@@ -50,8 +51,19 @@ OBSERVERS = ("bank", "fixed")
 :class:`controllers.observer.DisturbanceObserver` with the settings' noise levels)."""
 
 GAIN_TOLERANCE = DomainRandomization().free_deflection
-"""Relative half-width of the bender's static gain the MPCs allow for (-): the datasheet's
-tolerance of the free deflection (deflection per volt), +-20 % (:mod:`controllers.gain`)."""
+"""Relative half-width of the bender's static gain the loops are screened and tuned on (-):
+the datasheet's tolerance of the free deflection (deflection per volt), +-20 %
+(:class:`controllers.tolerance_box.ToleranceBox`, the PIDs). The hysteresis strength moves
+the gain a linear model sees by a further factor of 0.92-1.09 (:data:`LEARNED_GAIN_TOLERANCE`),
+inside the 0.64-2.25 that a loop with Ms <= :data:`MS_MAX` on a vertex stays stable under
+(:func:`controllers.predictive.screen_bank`)."""
+
+LEARNED_GAIN_TOLERANCE = 0.3101
+"""Relative half-width of the interval the MPCs learn the bender's gain in (-): the datasheet's
+free deflection (+-20 %) times what its hysteresis strength (+-30 %) does to the gain a linear
+model of the nominal bender sees, up to x1.092 at small signals
+(:func:`piezo_env.randomization.gain_tolerance`: 0.31004, rounded up; :mod:`controllers.gain`).
+A learned gain confined to +-20 % stops short of such a bender's."""
 
 MS_MAX = 1.8
 """Bound on the sensitivity peak Ms = 1 / (modulus margin) of every loop the controllers close

@@ -42,11 +42,14 @@ from piezo_env.hysteresis import (
 
 __all__ = [
     "DRAW_ORDER",
+    "GAIN_AMPLITUDES",
     "PLANT_INFO_KEYS",
     "DomainRandomization",
     "PlantDraw",
+    "gain_tolerance",
     "major_loop_peak",
     "scale_hysteresis",
+    "strength_gain_range",
 ]
 
 DRAW_ORDER = (
@@ -67,6 +70,17 @@ PLANT_INFO_KEYS = (
     "hysteresis_scale",
 )
 """Keys of ``info["plant"]`` (:meth:`PlantDraw.info`), in its order: each carries its unit."""
+
+GAIN_AMPLITUDES = (1e-3, 1e-2, 0.1, 0.3, 1.0)
+"""Amplitudes (fractions of the rated voltage) of the sine cycles on which
+:func:`strength_gain_range` compares a scaled map's gain with its own: from the small-signal
+limit (every play stuck, the Bouc-Wen state at its reversal slope), where the strength moves
+the gain most, to the major loop, where the peak normalisation pins it."""
+
+SINE_SAMPLES = 64
+"""Samples per sine cycle in :func:`strength_gain_range` (-): the maps it compares are rate
+independent, so only the sequence of voltages matters, and 64 points resolve the cycle's
+reversals to 0.1 % of its amplitude."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -227,3 +241,68 @@ def scale_hysteresis(hysteresis: Hysteresis, scale: float, u_max: float) -> Hyst
         f"domain randomisation scales Bouc-Wen, Prandtl-Ishlinskii (rate-dependent too) or no "
         f"hysteresis, got {type(hysteresis).__name__}; pass randomize=None"
     )
+
+
+def strength_gain_range(
+    hysteresis: Hysteresis,
+    strength: float,
+    u_max: float,
+    amplitudes: tuple[float, ...] = GAIN_AMPLITUDES,
+) -> tuple[float, float]:
+    """(low, high) gain (-) of ``hysteresis`` with its strength scaled by ``1 - strength`` and
+    ``1 + strength`` (:func:`scale_hysteresis`, the randomisation's extremes), relative to its
+    own gain: the least-squares gain of the scaled map's output on the unscaled one's over the
+    third of three sine cycles about rest, at each amplitude of ``amplitudes`` (fractions of the
+    rated voltage ``u_max``, V).
+
+    Why it matters. The peak normalisation keeps the major loop's end where the datasheet puts
+    it, but a weaker loop is steeper and a stronger one flatter inside it: a linear model
+    identified on the nominal map sees a bender of another strength as one with another gain,
+    most at small signals (Bouc-Wen at +-30 %: x1.063 / x0.927; the three-play
+    Prandtl-Ishlinskii: x1.092 / x0.923), and the gain the model's free deflection allows must
+    hold that too (:func:`gain_tolerance`). The rate-dependent map is scaled as its quasi-static
+    twin, which this covers.
+    """
+    require_number("strength", strength, low=0.0, high=1.0, high_open=True)
+    phase = np.sin(2.0 * np.pi * np.arange(3 * SINE_SAMPLES) / SINE_SAMPLES)
+    low, high = math.inf, -math.inf
+    for scale in (1.0 - strength, 1.0 + strength):
+        scaled = scale_hysteresis(hysteresis, scale, u_max)
+        for amplitude in amplitudes:
+            u = amplitude * u_max * phase
+            own = _last_cycle(hysteresis, u)
+            other = _last_cycle(scaled, u)
+            gain = float(own @ other / (own @ own))
+            low, high = min(low, gain), max(high, gain)
+    return low, high
+
+
+def _last_cycle(hysteresis: Hysteresis, u: np.ndarray) -> np.ndarray:
+    """The map's output (V) over the last :data:`SINE_SAMPLES` of ``u``, its mean removed."""
+    state = hysteresis.initial_state()
+    out = np.empty(u.size)
+    for i, value in enumerate(u):
+        state, u_eff = hysteresis.step(state, float(value))
+        out[i] = float(u_eff)
+    last = out[-SINE_SAMPLES:]
+    return last - last.mean()
+
+
+def gain_tolerance(
+    randomization: DomainRandomization | None = None, rated_voltage: float = 30.0
+) -> float:
+    """Relative half-width (-) of the static gain that a linear model of the nominal bender
+    sees on the benders ``randomization`` draws (default: the datasheet's): the free deflection
+    ``1 -+ s`` times each hysteresis family's :func:`strength_gain_range`, as one interval
+    ``[1 - w, 1 + w]`` with ``w = max((1 + s) high - 1, 1 - (1 - s) low)`` over Bouc-Wen and
+    Prandtl-Ishlinskii. Their default calibrations scale with the rated voltage, and the ratio
+    does not depend on it (``rated_voltage``, V, only sets the scale)."""
+    spread = randomization or DomainRandomization()
+    s = spread.free_deflection
+    width = s
+    for family in (BoucWen, PrandtlIshlinskii):
+        low, high = strength_gain_range(
+            family.for_voltage(rated_voltage), spread.hysteresis_strength, rated_voltage
+        )
+        width = max(width, (1.0 + s) * high - 1.0, 1.0 - (1.0 - s) * low)
+    return width

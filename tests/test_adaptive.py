@@ -255,10 +255,11 @@ def test_a_swap_needs_no_riccati_equation_and_no_factorisation(nominal, controll
 
 def test_adaptation_on_the_corners_worst_for_the_fixed_mpc(nominal, controller):
     """The bender 20 % softer with its resonance 20 % low, damped 0.04, on the 50 Hz sine: the
-    MPC that learns only the gain keeps a resonance error of about 1 % of the stroke; the
-    adaptive one finds a member near the plant's resonance within the first 100 ms and ends
-    at a fraction of the fixed MPC's error (its banks keep only filters stable on the whole box,
-    so it does not reach the true-plant MPC's floor)."""
+    MPC that learns only the gain keeps a resonance error (0.39 % of the stroke over the
+    episode, 0.063 % over its second half, 2026-11-29); the adaptive one finds a member near
+    the plant's resonance within the first 100 ms and ends at a fraction of the fixed MPC's
+    error (its banks keep only filters stable on the whole box, so it does not reach the
+    true-plant MPC's floor)."""
     env = vertex_env((1.2, 0.8, 0.04))
     result = episode(env, controller)
     fixed = episode(env, controllers.make("mpc", MODEL_DIR, nominal))
@@ -266,7 +267,8 @@ def test_adaptation_on_the_corners_worst_for_the_fixed_mpc(nominal, controller):
     half = 100.0 * np.sqrt(np.mean(error[1000:] ** 2)) / 2000.0
     fixed_error = fixed.deflection_um - fixed.reference_um
     fixed_half = 100.0 * np.sqrt(np.mean(fixed_error[1000:] ** 2)) / 2000.0
-    assert result.metrics["rmse_percent"] < 0.5 < fixed.metrics["rmse_percent"]
+    assert result.metrics["rmse_percent"] < 0.5
+    assert result.metrics["rmse_percent"] < fixed.metrics["rmse_percent"]
     assert half < 0.25 * fixed_half
     plant_hz = env.unwrapped.model.params.datasheet.resonance
     assert controller.resonance_hz == pytest.approx(plant_hz, rel=0.1)

@@ -223,7 +223,9 @@ def test_credible_z_is_the_normal_quantile():
 def test_the_mpc_learns_a_softer_benders_gain(tolerance, limit):
     """The nominal bender's own model on a bender 20 % softer and 20 % slower (damping 0.04):
     with the nominal gain the MPC leaves a tracking error of several % of the stroke at 10 Hz;
-    learning the gain takes it under half a per cent, and the credible set holds 1.2."""
+    learning the gain takes it under half a per cent, and the credible set holds the bender's
+    gain relative to the model at 10 Hz (1.2 and a little more: the lower resonance lifts the
+    response at 10 Hz), which the datasheet's +-20 % alone would have cut off."""
     from benchmarks.references import make_reference
 
     nominal = gym.make("piezo_env:PiezoBender-v0", preview=20, max_episode_steps=2000)
@@ -240,7 +242,16 @@ def test_the_mpc_learns_a_softer_benders_gain(tolerance, limit):
     else:
         assert episode.metrics["rmse_percent"] < limit
         low, high = controller.gain_set
-        assert low <= 1.2 <= high + 1e-12
+        own = ctl.PredictionModel.from_plant(env.unwrapped.model)
+        model = controller.model
+        point = np.exp(2j * np.pi * 10.0 * 1e-3)
+
+        def response(m):
+            return (m.c @ np.linalg.solve(point * np.eye(m.a.shape[0]) - m.a, m.b)).item()
+
+        truth = abs(response(own)) / abs(response(model))
+        assert 1.2 < truth < 1.21
+        assert low <= truth <= high
         assert high - low < 0.05
 
 

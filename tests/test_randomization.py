@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import warnings
 
@@ -16,7 +17,14 @@ from piezo_env import DomainRandomization, TaskConfig
 from piezo_env.env import PiezoBenderEnv
 from piezo_env.hysteresis import BoucWen, PrandtlIshlinskii
 from piezo_env.parameters import cantilever_frequencies
-from piezo_env.randomization import DRAW_ORDER, PLANT_INFO_KEYS, PlantDraw, major_loop_peak
+from piezo_env.randomization import (
+    DRAW_ORDER,
+    PLANT_INFO_KEYS,
+    PlantDraw,
+    gain_tolerance,
+    major_loop_peak,
+    strength_gain_range,
+)
 from piezo_env.randomized_bound import randomized_deflection_bound_um
 from piezo_env.task import BenderTask, drawn_plant
 from piezo_env.vector_env import PiezoBenderVectorEnv
@@ -229,3 +237,72 @@ def test_a_drawn_rate_dependent_map_is_its_rate_independent_twin_scaled_at_the_s
         assert major_loop_peak(twin_drawn, 30.0) == pytest.approx(major_loop_peak(twin, 30.0))
         bound = nominal.max_effective_voltage(30.0)
         assert drawn.max_effective_voltage(30.0) == pytest.approx(bound)
+
+
+def _pi_peak_factor(hysteresis: PrandtlIshlinskii, scale: float, u_max: float) -> float:
+    """c of :func:`scale_hysteresis` in closed form: on the major loop every play sits at
+    u_max - r at +u_max, so the peak is ``w_0 u_max + sum w_i (u_max - r_i)``."""
+    reach = sum(w * (u_max - r) for w, r in zip(hysteresis.weights, hysteresis.radii, strict=True))
+    return (hysteresis.linear_weight * u_max + reach) / (
+        hysteresis.linear_weight * u_max + scale * reach
+    )
+
+
+def test_strength_gain_range_matches_the_small_signal_slopes_in_closed_form():
+    """Below its smallest play radius a Prandtl-Ishlinskii map is its linear weight, so the
+    scaled map's gain is the peak factor c alone; a Bouc-Wen map from rest has slope
+    k (1 - alpha), so the scaled one's is c (1 - s alpha) / (1 - alpha) of it (h, of order
+    alpha k a, shifts it by beta a, under 1e-4 at a = 1e-3 u_max)."""
+    u_max = 30.0
+    play = PrandtlIshlinskii.for_voltage(u_max)
+    low, high = strength_gain_range(play, 0.3, u_max, amplitudes=(0.05,))
+    assert low == pytest.approx(_pi_peak_factor(play, 1.3, u_max), rel=1e-12)
+    assert high == pytest.approx(_pi_peak_factor(play, 0.7, u_max), rel=1e-12)
+    bouc = BoucWen.for_voltage(u_max)
+    low, high = strength_gain_range(bouc, 0.3, u_max, amplitudes=(1e-3,))
+    for scale, value in ((1.3, low), (0.7, high)):
+        raw = dataclasses.replace(bouc, alpha=bouc.alpha * scale)
+        c = major_loop_peak(bouc, u_max) / major_loop_peak(raw, u_max)
+        assert value == pytest.approx(c * (1 - scale * bouc.alpha) / (1 - bouc.alpha), rel=1e-4)
+
+
+@pytest.mark.parametrize("family", [BoucWen, PrandtlIshlinskii])
+def test_every_strength_in_the_range_has_a_gain_inside_its_ends(family):
+    """The range is taken at the two extreme strengths: every strength between, at every
+    amplitude, must give a gain inside it (the gain moves monotonically with the strength)."""
+    u_max = 60.0
+    hysteresis = family.for_voltage(u_max)
+    low, high = strength_gain_range(hysteresis, 0.3, u_max)
+    for strength in (0.05, 0.1, 0.2):
+        inner = strength_gain_range(hysteresis, strength, u_max)
+        assert low - 1e-12 <= inner[0] and inner[1] <= high + 1e-12
+    assert low < 1.0 < high
+
+
+def test_gain_tolerance_holds_every_drawn_bender_and_the_constant_is_its_value():
+    """The MPCs' LEARNED_GAIN_TOLERANCE is the derivation's value rounded up; a bender drawn
+    anywhere in the box (free deflection and strength together) has a gain, relative to the
+    nominal map's, inside [1 - w, 1 + w] at every amplitude; without the strength's spread the
+    tolerance is the free deflection's alone; another rated voltage gives the same width."""
+    from controllers.settings import GAIN_TOLERANCE, LEARNED_GAIN_TOLERANCE, MS_MAX
+
+    w = gain_tolerance()
+    assert w <= LEARNED_GAIN_TOLERANCE < w + 1e-4
+    # The strength's factor beyond the screened box lies in the gain change a loop with
+    # Ms <= MS_MAX on a box vertex stays stable under (controllers.predictive.screen_bank).
+    assert (1 + LEARNED_GAIN_TOLERANCE) / (1 + GAIN_TOLERANCE) < 1 / (1 - 1 / MS_MAX)
+    assert (1 - LEARNED_GAIN_TOLERANCE) / (1 - GAIN_TOLERANCE) > 1 / (1 + 1 / MS_MAX)
+    assert gain_tolerance(rated_voltage=120.0) == pytest.approx(w, rel=1e-9)
+    assert gain_tolerance(DomainRandomization(hysteresis_strength=0.0)) == pytest.approx(0.2)
+    rng = np.random.default_rng(11)
+    for family in (BoucWen, PrandtlIshlinskii):
+        hysteresis = family.for_voltage(30.0)
+        for _ in range(4):
+            free, strength = rng.uniform(0.8, 1.2), rng.uniform(0.0, 0.3)
+            low, high = strength_gain_range(hysteresis, strength, 30.0)
+            assert 1 - w <= free * low and free * high <= 1 + w
+
+
+def test_strength_gain_range_refuses_a_strength_outside_zero_to_one():
+    with pytest.raises(ValueError, match="strength"):
+        strength_gain_range(BoucWen.for_voltage(30.0), 1.0, 30.0)

@@ -140,3 +140,29 @@ def test_every_knobs_default_is_the_controllers_shipped_default():
     for name, knob in KNOBS.items():
         settings = ctl.make(name, MODEL_DIR, env).settings
         assert getattr(settings, knob.option) == knob.default, name
+
+
+@pytest.mark.parametrize("controller", sorted(KNOBS))
+def test_every_knobs_sweep_is_a_benchmark_configuration_the_runner_accepts(
+    monkeypatch, controller
+):
+    """The sweep runs each knob's setting through ``run_benchmark`` with a configuration the
+    runner validates: a row the benchmark does not run on the robustness plant (``pid``) is
+    swept on the nominal plant alone, the others on both plants."""
+    import benchmarks.runner as runner
+    from benchmarks.tuning import SWEEP_PLANTS, SWEEP_REFERENCES, sweep
+
+    def fake_run(config, model_dir):
+        episodes = [
+            {"plant": plant, "reference": reference, "rmse_percent": 0.5}
+            for plant, _, references in config.groups()
+            for reference in references
+        ]
+        return runner.BenchmarkResult(config, episodes, {}, {}, {})
+
+    monkeypatch.setattr(runner, "run_benchmark", fake_run)
+    out = sweep(controller, "unused")
+    plants = SWEEP_PLANTS if controller in runner.ROBUSTNESS_CONTROLLERS else SWEEP_PLANTS[:1]
+    assert set(out) == set(KNOBS[controller].grid)
+    for cells in out.values():
+        assert set(cells) == {(p, r) for p in plants for r in SWEEP_REFERENCES}
