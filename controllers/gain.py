@@ -1,4 +1,4 @@
-"""The bender's static gain, learned from the first sample: a credible set inside the datasheet's.
+"""The bender's static gain, learned from the first sample: a credible set inside the tolerance.
 
 A bender bought to a datasheet differs from the nominal one mostly by a factor on its gain: the
 free deflection (deflection per volt) is specified to +-20 %, and the hysteresis strength's
@@ -13,10 +13,10 @@ observer excites the resonance it inverts. Knowing ``g`` instead makes the same 
 The model. The controller applies the hidden signal z (its nonlinearity's output); the nominal
 linear part driven by it from the episode's start gives ``s_t`` (um), and the plant answers::
 
-    y_t = g s_t + e_t,     g in [1 - w, 1 + w]   (w: the datasheet's relative tolerance)
+    y_t = g s_t + e_t,     g in [1 - w, 1 + w]   (w: the relative tolerance)
 
 where ``e_t`` holds the sensor noise and what the model gets wrong besides the gain. The
-estimate is the Bayesian one for a Gaussian prior on g (uniform over the datasheet interval:
+estimate is the Bayesian one for a Gaussian prior on g (uniform over ``[1 - w, 1 + w]``:
 mean 1, variance ``w^2 / 3``) and Gaussian ``e_t`` of unknown variance, which is estimated from
 the a-priori residuals ``y_t - g_hat s_t`` (floored at the sensor noise's variance)::
 
@@ -25,17 +25,19 @@ the a-priori residuals ``y_t - g_hat s_t`` (floored at the sensor noise's varian
 
 Each sample costs a few multiply-adds (three running sums): the work per step is bounded.
 
-The credible set is ``g_hat +- z_975 / sqrt(precision)`` (95 %) intersected with the datasheet
-interval. The controller predicts with the point of that set nearest to the nominal gain 1:
-while the data do not contradict the nominal model (1 lies in the set) nothing changes, so a
-nominal bender is controlled exactly as with the nominal gain; when they do, the model moves
-by no more than the data demand, and as the set shrinks it converges to ``g_hat``. That is
-what a credible set is for: acting on what the data establish, not on the noise of an estimate.
+The credible set is ``g_hat +- z_975 / sqrt(precision)`` (95 %) intersected with
+``[1 - w, 1 + w]``. The controller predicts with the point of that set nearest to the nominal
+gain 1: while the data do not contradict the nominal model (1 lies in the set) nothing changes,
+so a nominal bender is controlled as with the nominal gain while its data agree with it (early
+in an episode the set can leave 1 for a few samples, by an amount the prior's width moves);
+when they do, the model moves by no more than the data demand, and as the set shrinks it
+converges to ``g_hat``. That is what a credible set is for: acting on what the data establish,
+not on the noise of an estimate.
 
 Beside it, the exact set. With the sensor noise bounded, ``|e_t| <= r`` (the env's sensor noise
 is uniform on ``[-r, r]``), the gains that explain every sample so far are an interval, the
-support of the paper's uniform-noise posterior for this one parameter (uniform prior over the
-datasheet interval)::
+support of the paper's uniform-noise posterior for this one parameter (uniform prior over
+``[1 - w, 1 + w]``)::
 
     G_t = [1 - w, 1 + w]  intersected with  {g : |y_tau - g s_tau| <= r_tau, tau <= t}
 
@@ -110,7 +112,8 @@ class GainEstimate:
         shapes (n, n), (n, 1) or (n,), (1, n) or (n,) for one; (K, n, n), (K, n), (K, n)
         for K of the same state size.
     tolerance : float
-        Relative half-width w of the datasheet's gain interval (-), in (0, 1).
+        Relative half-width w of the gain interval (-), in (0, 1): the controllers'
+        :data:`controllers.settings.LEARNED_GAIN_TOLERANCE` by default.
     noise_std : float
         Standard deviation of the sensor noise (um), > 0: the floor of the residual's.
     noise_bound : float, optional
@@ -124,15 +127,15 @@ class GainEstimate:
     mean, std : numpy.ndarray
         (K,) posterior mean and standard deviation of each gain (-).
     low, high : numpy.ndarray
-        (K,) each gain's 95 % credible set within the datasheet interval (-).
+        (K,) each gain's 95 % credible set within ``[1 - w, 1 + w]`` (-).
     value : numpy.ndarray
         (K,) the point of each set nearest 1: the gain a controller predicts with (-).
     misfit : numpy.ndarray
         (K,) mean squared residual ``y - mean s`` over the samples so far (um^2): how well
         each linear part, at its estimated gain, explains the measurements.
     exact_low, exact_high : numpy.ndarray
-        (K,) each gain's exact set with the noise bound (module docstring), within the
-        datasheet interval; empty (``exact_low > exact_high``) once the data invalidate the
+        (K,) each gain's exact set with the noise bound (module docstring), within
+        ``[1 - w, 1 + w]``; empty (``exact_low > exact_high``) once the data invalidate the
         part at that bound (-).
     emptied_at : numpy.ndarray
         (K,) the sample (1 = the first) at which each exact set became empty; 0 while it is

@@ -467,7 +467,8 @@ class PredictiveController(Controller):
 
     @property
     def gain_set(self) -> tuple[float, float]:
-        """The gain's 95 % credible set within the datasheet's (-, relative to the model)."""
+        """The gain's 95 % credible set within the settings' ``gain_tolerance`` (-, relative to
+        the model)."""
         if self._gain is None:
             return (1.0, 1.0)
         return float(self._gain.low[self._member]), float(self._gain.high[self._member])

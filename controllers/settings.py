@@ -53,9 +53,9 @@ OBSERVERS = ("bank", "fixed")
 GAIN_TOLERANCE = DomainRandomization().free_deflection
 """Relative half-width of the bender's static gain the loops are screened and tuned on (-):
 the datasheet's tolerance of the free deflection (deflection per volt), +-20 %
-(:class:`controllers.tolerance_box.ToleranceBox`, the PIDs). The hysteresis strength moves
-the gain a linear model sees by a further factor of 0.92-1.09 (:data:`LEARNED_GAIN_TOLERANCE`),
-inside the 0.64-2.25 that a loop with Ms <= :data:`MS_MAX` on a vertex stays stable under
+(:class:`controllers.tolerance_box.ToleranceBox`, the PIDs). The MPCs' learned gain reaches
+further (:data:`LEARNED_GAIN_TOLERANCE`): 0.862-1.092 times a screened vertex's gain, inside the
+0.64-2.25 that a loop with Ms <= :data:`MS_MAX` on a vertex stays stable under
 (:func:`controllers.predictive.screen_bank`)."""
 
 LEARNED_GAIN_TOLERANCE = 0.3101
@@ -63,7 +63,8 @@ LEARNED_GAIN_TOLERANCE = 0.3101
 free deflection (+-20 %) times what its hysteresis strength (+-30 %) does to the gain a linear
 model of the nominal bender sees, up to x1.092 at small signals
 (:func:`piezo_env.randomization.gain_tolerance`: 0.31004, rounded up; :mod:`controllers.gain`).
-A learned gain confined to +-20 % stops short of such a bender's."""
+A learned gain confined to +-20 % stops short of such a bender's. Derived for the datasheet's
+spread; for another, pass ``gain_tolerance=gain_tolerance(spread)``."""
 
 MS_MAX = 1.8
 """Bound on the sensitivity peak Ms = 1 / (modulus margin) of every loop the controllers close

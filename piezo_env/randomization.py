@@ -260,8 +260,10 @@ def strength_gain_range(
     identified on the nominal map sees a bender of another strength as one with another gain,
     most at small signals (Bouc-Wen at +-30 %: x1.063 / x0.927; the three-play
     Prandtl-Ishlinskii: x1.092 / x0.923), and the gain the model's free deflection allows must
-    hold that too (:func:`gain_tolerance`). The rate-dependent map is scaled as its quasi-static
-    twin, which this covers.
+    hold that too (:func:`gain_tolerance`). The cycles are about rest and settled (the third):
+    the rate-dependent map, scaled as its quasi-static twin, gives the same range on settled
+    cycles, and a small cycle started from rest at 100 Hz and 1 ms sampling reaches x1.099 on
+    its third cycle before it settles to x1.091.
     """
     require_number("strength", strength, low=0.0, high=1.0, high_open=True)
     phase = np.sin(2.0 * np.pi * np.arange(3 * SINE_SAMPLES) / SINE_SAMPLES)
