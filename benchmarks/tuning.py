@@ -341,7 +341,7 @@ def sweep(controller: str, model_dir: str, *, bender: str = "PL140", seed: int =
     from benchmarks.runner import ROBUSTNESS_CONTROLLERS, BenchmarkConfig, run_benchmark
 
     knob = KNOBS[controller]
-    plants = SWEEP_PLANTS if controller in ROBUSTNESS_CONTROLLERS else SWEEP_PLANTS[:1]
+    plants = SWEEP_PLANTS if controller in ROBUSTNESS_CONTROLLERS else ("nominal",)
     out = {}
     for value in knob.grid:
         config = BenchmarkConfig(

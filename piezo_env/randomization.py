@@ -267,16 +267,13 @@ def strength_gain_range(
     """
     require_number("strength", strength, low=0.0, high=1.0, high_open=True)
     phase = np.sin(2.0 * np.pi * np.arange(3 * SINE_SAMPLES) / SINE_SAMPLES)
-    low, high = math.inf, -math.inf
-    for scale in (1.0 - strength, 1.0 + strength):
-        scaled = scale_hysteresis(hysteresis, scale, u_max)
-        for amplitude in amplitudes:
-            u = amplitude * u_max * phase
-            own = _last_cycle(hysteresis, u)
-            other = _last_cycle(scaled, u)
-            gain = float(own @ other / (own @ own))
-            low, high = min(low, gain), max(high, gain)
-    return low, high
+    extremes = [scale_hysteresis(hysteresis, s, u_max) for s in (1.0 - strength, 1.0 + strength)]
+    gains = []
+    for amplitude in amplitudes:
+        u = amplitude * u_max * phase
+        own = _last_cycle(hysteresis, u)
+        gains += [float(own @ _last_cycle(m, u) / (own @ own)) for m in extremes]
+    return min(gains), max(gains)
 
 
 def _last_cycle(hysteresis: Hysteresis, u: np.ndarray) -> np.ndarray:

@@ -162,7 +162,7 @@ def test_every_knobs_sweep_is_a_benchmark_configuration_the_runner_accepts(
 
     monkeypatch.setattr(runner, "run_benchmark", fake_run)
     out = sweep(controller, "unused")
-    plants = SWEEP_PLANTS if controller in runner.ROBUSTNESS_CONTROLLERS else SWEEP_PLANTS[:1]
+    plants = SWEEP_PLANTS if controller in runner.ROBUSTNESS_CONTROLLERS else ("nominal",)
     assert set(out) == set(KNOBS[controller].grid)
     for cells in out.values():
         assert set(cells) == {(p, r) for p in plants for r in SWEEP_REFERENCES}
