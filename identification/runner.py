@@ -17,11 +17,11 @@ Three steps hold computations that do not depend on each other:
   refinement to the helper, as step e's play choice does (the bench plant when step e chose
   Bouc-Wen features).
 
-Where nothing else runs beside, the helper would sit idle, so two computations use it in smaller
-pieces: every evaluation of a refinement's objective computes the longer training record's term
-there when the helper is idle at the refinement's start (:attr:`StepRunner.idle`,
-:mod:`identification.nls.record_terms`), and the figures of
-:func:`identification.outputs.write_outputs` are drawn on both processes. In step e every
+Where nothing else runs beside, the helper would sit idle; the figures of
+:func:`identification.outputs.write_outputs` are drawn on both processes then
+(:attr:`StepRunner.idle`). A refinement's objective is not shared: since its free run is the
+ARX recursion (:mod:`identification.nls.free_run`), an evaluation costs about what sending the
+parameters to the helper and its gradient back costs. In step e every
 candidate goes to the helper while this process imports torch and makes its first training,
 which it needs for step e' anyway; it then takes back (:meth:`Pending.take_back`) the candidates
 the helper has not started.
@@ -133,8 +133,7 @@ class StepRunner:
     @property
     def idle(self) -> bool:
         """Whether a helper is there and computes nothing now, so that a computation asked of
-        it starts at once (step e' then shares its objective with it,
-        :mod:`identification.nls.record_terms`)."""
+        it starts at once (the figures are then drawn on both processes)."""
         return self._helper is not None and self._helper.idle
 
     def warm_up_helper(self) -> None:

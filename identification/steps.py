@@ -664,9 +664,7 @@ def refine_nonlinearity(
         if config.rate == "auto" and learns_radii
         else None
     )
-    fit, refined, gain = _refine(
-        start, records, config, learn_rate=config.rate == "on", runner=runner
-    )
+    fit, refined, gain = _refine(start, records, config, learn_rate=config.rate == "on")
     rate_choice = None
     if rate_pending is not None and refined is not None:
         rate_choice = {
@@ -725,12 +723,10 @@ def _refine(
     config: IdentificationConfig,
     *,
     learn_rate: bool,
-    runner: StepRunner | None = None,
 ) -> tuple[NlsOutputErrorFit, HammersteinModel | None, float]:
     """Step e''s refinement of ``start`` on ``records``: the fit, the refined model with the
     gain moved to the linear part (None when its small-signal gain is not positive) and that
-    gain. A ``runner`` whose helper is idle evaluates one record's share of the objective
-    (the same model to the bit, :mod:`identification.nls.record_terms`)."""
+    gain."""
     hold = isinstance(start.nls.feature_map, PastInputFeatures)
     fit = refine_nls_output_error(
         start.nls,
@@ -740,7 +736,6 @@ def _refine(
         refine_linear=not hold,
         radius_iterations=RADIUS_ITERATIONS if config.play_radii == "learned" else 0,
         learn_rate=learn_rate,
-        beside=runner if runner is not None and runner.idle else None,
     )
     if hold:
         fit = replace(fit, linear_note=PAST_INPUTS_HOLD)

@@ -252,55 +252,8 @@ def test_a_rival_refined_here_refines_its_rate_dependent_variant_beside(beside):
     _same_refinement(here, there)
 
 
-@pytest.mark.parametrize("features", ["play", "rate-play", "past-inputs", "bouc-wen"])
-def test_step_e2_sharing_its_objective_with_the_helper_gives_the_fit_of_one_graph(beside, features):
-    """Step e''s network and joint stages with the longer record's term on the helper (and
-    with it computed here, as one job does): the fit of the objective as one graph, to the
-    bit, on two records of different lengths (so different grids) and every feature family
-    (a radius stage first for the plays, a rate constant too for rate-play)."""
-    from identification.arx import ARXModel
-    from identification.nls import fit_nls
-    from identification.nls.output_error import refine_nls_output_error
-    from piezo_env.operators import play_sequence
-
-    rng = np.random.default_rng(5)
-    arx = ARXModel([1.2, -0.5], [0.2, 0.1], dt=1e-3)
-    records = []
-    for holds in (150, 260):
-        u = np.repeat(rng.uniform(-30.0, 30.0, holds), 5)
-        plays, _ = play_sequence(u, np.array([7.0, 16.0]), np.zeros(2))
-        z = 0.7 * u + plays @ np.array([0.15, 0.15])
-        records.append((u, z, arx.simulate(z) + rng.uniform(-0.05, 0.05, u.size)))
-    family = "play" if features == "rate-play" else features
-    extra = {"n_play": 2} if family == "play" else {}
-    start = fit_nls(
-        np.concatenate([u for u, _, _ in records]),
-        np.concatenate([z for _, z, _ in records]),
-        features=family,
-        u_range=(-30.0, 30.0),
-        hidden=(2, 2),
-        max_epochs=20,
-        seed=0,
-        **extra,
-    )
-    kwargs = {
-        "max_iterations": 25,
-        "radius_iterations": 10 if family == "play" else 0,
-        "learn_rate": features == "rate-play",
-    }
-    data = [(u, y) for u, _, y in records]
-    one = refine_nls_output_error(start, arx, data, **kwargs)
-    for runner in (beside, StepRunner()):
-        split = refine_nls_output_error(start, arx, data, beside=runner, **kwargs)
-        _assert_same_model(
-            HammersteinModel(one.nls, one.arx), HammersteinModel(split.nls, split.arx)
-        )
-        assert one.stages == split.stages and one.rms_after == split.rms_after
-    assert one.stages[-1]["evaluations"] > 10  # the stages ran, not a start returned
-
-
 def test_the_runner_is_idle_only_when_its_helper_computes_nothing(beside):
-    """Step e' shares its objective only with a helper that would start at once."""
+    """The figures are drawn beside only on a helper that would start at once."""
     import time
 
     _idle(beside)
@@ -333,22 +286,3 @@ def test_a_runner_and_jobs_are_not_both_given(beside):
 
     with pytest.raises(ValueError, match="pass jobs or runner, not both"):
         identify(jobs=2, runner=beside)
-
-
-def test_identify_sharing_step_e2_with_the_helper_gives_the_model_of_one_process(beside):
-    """End to end with a helper that is idle in step e' (one feature set, no play rival or
-    rate variant beside): its objective is split by record, and the model is one process's."""
-    from short_runs import FAST, FAST_SEED
-
-    from identification.nls.record_terms import new_key
-    from identification.pipeline import identify
-
-    settings = {**FAST, "features": "bouc-wen"}
-    config = IdentificationConfig(seed=FAST_SEED, env_kwargs={"bender": "PL140"}, **settings)
-    here = identify(config=config)
-    _idle(beside)  # so that step e' shares its objective with it
-    first = new_key()
-    there = identify(config=config, runner=beside)
-    assert new_key() - first == 3  # the network and joint stages each split their objective
-    _assert_same_model(here.model, there.model)
-    assert _without_times(here.report["nls"]) == _without_times(there.report["nls"])

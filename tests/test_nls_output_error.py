@@ -12,7 +12,7 @@ from identification.config import IdentificationConfig
 from identification.features import PastInputFeatures
 from identification.nls import NLS
 from identification.nls.output_error import (
-    FreeRunGrid,
+    FreeRun,
     free_run_rms,
     move_gain,
     refine_nls_output_error,
@@ -83,17 +83,82 @@ def synthetic():
     return true, arx, records, start, start_arx, fixed, joint
 
 
+def _recursion(f: np.ndarray, b: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``y = B / (1 - A) z`` from rest by the difference equation, one sample at a time."""
+    y = np.zeros(z.size)
+    for t in range(z.size):
+        y[t] = sum(f[i] * y[t - 1 - i] for i in range(f.size) if t - 1 - i >= 0) + sum(
+            b[j] * z[t - 1 - j] for j in range(b.size) if t - 1 - j >= 0
+        )
+    return y
+
+
 def test_the_free_run_is_the_arx_recursion_from_rest():
-    """The spectral free run the refinement differentiates is scipy's filter B/(1 - A) from
-    rest, to rounding, on a record much longer than the resonance's decay."""
+    """The free run the refinement differentiates is the difference equation B/(1 - A) from
+    rest, to rounding."""
     torch = pytest.importorskip("torch")
-    z = np.random.default_rng(4).normal(0.0, 10.0, 5000)
-    expected = scipy.signal.lfilter(np.r_[0.0, B_TRUE], np.r_[1.0, -F_TRUE], z)
-    grid = FreeRunGrid(z.size, F_TRUE.size, B_TRUE.size, torch)
-    response = grid.response(torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE))
-    got = grid.free_run(torch.from_numpy(z), response).numpy()
-    np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
+    z = np.random.default_rng(4).normal(0.0, 10.0, 2000)
+    expected = _recursion(F_TRUE, B_TRUE, z)
+    run = FreeRun(z.size, F_TRUE.size, B_TRUE.size, torch)
+    response = run.response(torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE))
+    got = run.free_run(torch.from_numpy(z), response).numpy()
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
     np.testing.assert_allclose(ARXModel(F_TRUE, B_TRUE).simulate(z), expected, atol=1e-9)
+
+
+def test_the_free_runs_backward_pass_is_its_gradient():
+    """The hand-written adjoint of the recursion against central finite differences, in the
+    input and in both coefficient vectors (torch.autograd.gradcheck), with and without the
+    coefficients among the inputs that need a gradient."""
+    torch = pytest.importorskip("torch")
+    from identification.nls.free_run import free_run
+
+    rng = np.random.default_rng(7)
+    pole = 0.9 * np.exp(2j * np.pi * 0.1)
+    a = torch.tensor([2 * pole.real, -(abs(pole) ** 2), 0.05], dtype=torch.float64)
+    b = torch.tensor([0.3, -0.2, 0.1, 0.05], dtype=torch.float64)
+    z = torch.from_numpy(rng.normal(0.0, 1.0, 60))
+    for needs in ((True, True, True), (True, False, False), (False, True, False)):
+        inputs = [x.clone().requires_grad_(need) for x, need in zip((z, a, b), needs, strict=True)]
+        assert torch.autograd.gradcheck(free_run, inputs, eps=1e-6, atol=1e-8)
+
+
+def test_beyond_the_stability_boundary_the_free_run_is_the_spectral_product():
+    """A line search may probe an unstable linear part: its free run from rest overflows,
+    so the objective there is the product of spectra on a grid twice the record (numpy's FFT
+    here), finite; for a stable part the two agree to the wrap-around of its decay."""
+    torch = pytest.importorskip("torch")
+    z = np.random.default_rng(8).normal(0.0, 1.0, 3000)
+    size = 1 << (2 * z.size).bit_length()
+
+    def spectral(f: np.ndarray, b: np.ndarray) -> np.ndarray:
+        w = 2 * np.pi * np.arange(size // 2 + 1) / size
+        lag = lambda n: np.exp(-1j * np.outer(w, np.arange(1, n + 1)))  # noqa: E731
+        h = (lag(b.size) @ b) / (1.0 - lag(f.size) @ f)
+        return np.fft.irfft(np.fft.rfft(z, size) * h, size)[: z.size]
+
+    run = FreeRun(z.size, 2, 2, torch)
+    for radius in (1.02, 0.97):
+        pole = radius * np.exp(2j * np.pi * 0.05)
+        f = np.array([2 * pole.real, -(abs(pole) ** 2)])
+        got = run.free_run(
+            torch.from_numpy(z), run.response(torch.from_numpy(f), torch.from_numpy(B_TRUE))
+        ).numpy()
+        assert np.all(np.isfinite(got))
+        np.testing.assert_allclose(got, spectral(f, B_TRUE), atol=1e-9 * np.abs(got).max())
+    with np.errstate(over="ignore", invalid="ignore"):  # a double pole at 1.5 overflows
+        assert not np.all(np.isfinite(_recursion(np.array([3.0, -2.25]), B_TRUE, z)))
+
+
+def test_distinct_rows_spread_back_to_the_features():
+    from identification.nls.output_error import distinct_rows
+
+    x = np.repeat(np.random.default_rng(3).normal(size=(50, 3)), [1, 2, 5, 1, 3] * 10, axis=0)
+    x[36] = x[35]  # a run of one made equal to the run before: one row with it
+    rows, index = distinct_rows(x)
+    np.testing.assert_array_equal(rows[index], x)
+    assert np.all(np.any(rows[1:] != rows[:-1], axis=1))
+    assert rows.shape[0] == 49
 
 
 def test_refinement_recovers_the_true_hammerstein_output_to_the_noise_level(synthetic):

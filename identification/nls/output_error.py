@@ -15,11 +15,15 @@ sensor noise on ``y`` this is the maximum-likelihood (prediction-error) estimate
 Hammerstein output-error model, the standard refinement of a two-step Hammerstein estimate
 (Ljung, *System Identification*, 2nd ed., sections 5.2 and 7.3; Bai, Automatica 34 (3), 1998).
 
-The free run is computed as a product of spectra: ``G_ab`` evaluated on the grid of a real FFT
-at least twice the record's length (zero-padded), so the convolution is linear, not circular,
-and the infinite impulse response wraps around only by ``|p|^T`` of its slowest pole ``p``
-(negligible for a stable part). The figures this module returns are recomputed with the ARX
-recursion itself, so they do not rest on that approximation.
+The free run is the ARX recursion itself, differentiated by its exact adjoint (a filter run
+backwards in time; :class:`identification.nls.free_run.FreeRun`): a pass costs O(T (na +
+nb)), a few times less than the product of spectra on a zero-padded FFT grid this module used
+before, which cost O(T log T) per pass and dominated the refinement's time
+(``benchmarks/results/identification_speed.md``). Only a linear part beyond the stability
+boundary, which the joint stage's line search may probe, is evaluated on that grid: its free
+run from rest overflows, and the line search needs a finite value to back off from. A network
+whose input is held between samples (play and Bouc-Wen features under a held voltage) is
+evaluated once per run of equal features.
 
 The split of the gain between the two blocks is not identifiable from input-output data (``k``
 times the network and ``1/k`` times ``B`` give the same output); :func:`move_gain` restores the
@@ -54,6 +58,7 @@ from identification.features import (
     RatePlayFeatures,
     sequence_features,
 )
+from identification.nls.free_run import FreeRun
 from identification.nls.network import NLS
 from identification.nls.optimisation import torch_threads
 from identification.nls.play_radii import (
@@ -63,14 +68,6 @@ from identification.nls.play_radii import (
     radius_coordinates,
     rate_play_outputs,
     rate_play_runs,
-)
-from identification.nls.record_terms import (
-    FreeRunGrid,
-    RecordTerm,
-    close_term,
-    evaluate_term,
-    new_key,
-    open_term,
 )
 from identification.nls.torch_module import TorchNLS, load_torch
 
@@ -176,7 +173,6 @@ def refine_nls_output_error(
     radius_iterations: int = 0,
     learn_rate: bool = False,
     num_threads: int = 1,
-    beside: Any | None = None,
 ) -> NlsOutputErrorFit:
     """Refine ``NLS -> arx`` by minimising its free-run output error on ``records``.
 
@@ -204,13 +200,6 @@ def refine_nls_output_error(
         (:class:`identification.features.RatePlayFeatures`, ``dt`` the linear part's).
     num_threads : int
         Torch threads during the refinement (the previous setting is restored).
-    beside : object, optional
-        Where the network and joint stages may evaluate the longer of two records' terms
-        beside this process (an object with ``beside(function, *args)`` returning a pending
-        result, as :class:`identification.runner.StepRunner` with an idle helper): the same
-        numbers to the bit, in about the time of the longer record
-        (:mod:`identification.nls.record_terms`). None, other than two records or
-        ``num_threads`` other than 1: all here.
 
     Returns
     -------
@@ -241,7 +230,7 @@ def refine_nls_output_error(
     feature_map = nls.feature_map
     with torch_threads(num_threads):
         outputs = [torch.from_numpy(y) for _, y in data]
-        grids = [FreeRunGrid(y.size, arx.na, arx.nb, torch) for _, y in data]
+        grids = [FreeRun(y.size, arx.na, arx.nb, torch) for _, y in data]
         count = sum(y.size for _, y in data)
         module = TorchNLS.from_params(nls.arrays())
         a = torch.tensor(arx.a, dtype=torch.float64)
@@ -254,39 +243,33 @@ def refine_nls_output_error(
                 feature_map, module, data, targets, (a, b), radius_iterations
             )
             stages.append(stage)
-        with torch.no_grad():  # the features and their normalization stay fixed from here
-            inputs = [
-                module.input_of(
-                    torch.from_numpy(
-                        sequence_features(feature_map, u, feature_map.initial_state())[0]
-                    )
+        # The features and their normalization stay fixed from here. Consecutive samples with
+        # equal features (a held input leaves a play or Bouc-Wen state where it is) give the
+        # network the same output: it is evaluated once per such run and spread over the run.
+        inputs = []
+        with torch.no_grad():
+            for u, _ in data:
+                rows, index = distinct_rows(
+                    sequence_features(feature_map, u, feature_map.initial_state())[0]
                 )
-                for u, _ in data
-            ]
+                inputs.append((module.input_of(torch.from_numpy(rows)), torch.from_numpy(index)))
         held = [grid.response(a, b) for grid in grids]  # the linear part of the first stage
 
-        def objective(responses: Sequence[tuple[Any, Any]] | None = None) -> object:
+        def objective(responses: Sequence[tuple[Any, Any, bool]] | None = None) -> object:
             """Mean squared free-run error over the records; ``responses`` holds each record's
-            ``(B, 1 - A)`` when the stage holds the linear part (None: from ``a`` and ``b``)."""
+            :meth:`FreeRun.response` when the stage holds the linear part (None: from ``a``
+            and ``b``)."""
             total = 0
-            for i, (x, y, grid) in enumerate(zip(inputs, outputs, grids, strict=True)):
+            for i, ((x, index), y, grid) in enumerate(zip(inputs, outputs, grids, strict=True)):
                 response = grid.response(a, b) if responses is None else responses[i]
-                error = grid.free_run(module.output_of(x), response) - y
+                error = grid.free_run(module.output_of(x)[index], response) - y
                 total = total + (error * error).sum()
             return total / count
 
         def stage(parameters: list, linear: bool, iterations: int) -> dict:
-            """An L-BFGS stage on ``parameters`` (``linear``: ``a`` and ``b`` among them),
-            its objective by record beside this process where it can be, else as one graph."""
-            if beside is None or len(data) != 2 or num_threads != 1:
-                evaluate = _autograd(partial(objective, None if linear else held), torch)
-                return _lbfgs(parameters, evaluate, iterations, torch, count)
-            stage_data = (TorchNLS.to_params(module), inputs, outputs, a, b, count, linear)
-            split = _SplitObjective(parameters, stage_data, beside, torch)
-            try:
-                return _lbfgs(parameters, split.evaluate, iterations, torch, count)
-            finally:
-                split.close()
+            """An L-BFGS stage on ``parameters`` (``linear``: ``a`` and ``b`` among them)."""
+            evaluate = _autograd(partial(objective, None if linear else held), torch)
+            return _lbfgs(parameters, evaluate, iterations, torch, count)
 
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
@@ -516,6 +499,16 @@ def _rate_moves_a_play(
     return bool(np.any(at_edge & (rate[:, None] > 0.0)))
 
 
+def distinct_rows(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``features`` (T, n) that differ from the row before, and each sample's row
+    among them: ``rows[index]`` equals ``features`` exactly."""
+    features = np.asarray(features)
+    new_row = np.empty(features.shape[0], dtype=bool)
+    new_row[:1] = True
+    np.any(features[1:] != features[:-1], axis=1, out=new_row[1:])
+    return features[new_row], np.cumsum(new_row) - 1
+
+
 def _runs(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Starts of the runs of equal consecutive samples of ``u``, and each sample's run."""
     new_run = np.empty(u.size, dtype=bool)
@@ -574,54 +567,6 @@ def _autograd(objective: Callable[[], object], torch: Any) -> Callable[[bool], o
     return evaluate
 
 
-class _SplitObjective:
-    """The objective of :func:`_lbfgs` over two records, the longer one's term computed
-    ``beside`` (:mod:`identification.nls.record_terms`): the loss as one graph gives it,
-    ``(S_1 + S_2) / N``, and each parameter's gradient set to the sum of the two terms'.
-
-    ``stage_data``: the network's arrays at the stage's start, each record's normalized input
-    and output (torch tensors), ``a``, ``b``, ``N`` and whether the stage varies ``a`` and
-    ``b`` (then the last two of ``parameters``). :meth:`close` drops the term held beside.
-    """
-
-    def __init__(self, parameters: list, stage_data: tuple, beside: Any, torch: Any) -> None:
-        params, inputs, outputs, a, b, count, linear = stage_data
-        records = [(x.numpy(), y.numpy()) for x, y in zip(inputs, outputs, strict=True)]
-        there = int(np.argmax([y.size for _, y in records]))  # the longer record beside
-        arrays = (a.detach().numpy().copy(), b.detach().numpy().copy(), count, linear)
-        self._parameters, self._beside, self._torch, self._count = parameters, beside, torch, count
-        self._here = RecordTerm(params, *records[1 - there], *arrays)
-        self._key = new_key()
-        beside.beside(open_term, self._key, params, *records[there], *arrays).result()
-
-    def evaluate(self, grad: bool) -> object:
-        """The loss (a torch scalar); with ``grad``, each parameter's ``.grad`` set."""
-        torch = self._torch
-        values = [p.detach().numpy().copy() for p in self._parameters]
-        pending = self._beside.beside(evaluate_term, self._key, values, grad)  # runs meanwhile
-        sum_here, grad_here = self._here.evaluate(values, grad)
-        sum_there, grad_there = pending.result()
-        if grad:
-            for parameter, g_here, g_there in zip(
-                self._parameters, grad_here, grad_there, strict=True
-            ):
-                parameter.grad = torch.from_numpy(g_here) + torch.from_numpy(g_there)
-        total = torch.tensor(sum_here, dtype=torch.float64) + torch.tensor(
-            sum_there, dtype=torch.float64
-        )
-        return total / self._count
-
-    def close(self) -> None:
-        """Drop the term held beside (after the evaluation still pending there, if any); a
-        helper that is gone holds nothing."""
-        from piezo_parallel.pool import WorkerLost
-
-        try:
-            self._beside.beside(close_term, self._key).result()
-        except (WorkerLost, RuntimeError):  # lost, or closed by an interruption
-            pass
-
-
 def _lbfgs(
     parameters: list,
     evaluate: Callable[[bool], object],
@@ -631,7 +576,7 @@ def _lbfgs(
 ) -> dict[str, int | bool | str]:
     """Full-batch L-BFGS (strong Wolfe line search) on ``parameters``, the mean squared error
     over ``n_samples`` samples that ``evaluate(grad)`` returns (with ``grad``, each parameter's
-    ``.grad`` set too: :func:`_autograd`, :class:`_SplitObjective`), in windows of
+    ``.grad`` set too: :func:`_autograd`), in windows of
     :data:`STOP_WINDOW` iterations.
 
     A window is :data:`STOP_WINDOW` iterations or 1.25 times as many evaluations (torch's
