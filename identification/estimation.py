@@ -24,7 +24,13 @@ import scipy.sparse
 from identification.arx import ARXModel, check_io, regressors
 from identification.bayes_uniform import BayesUniformEstimator
 
-__all__ = ["METHODS", "fit_arx", "fit_chebyshev", "fit_least_squares"]
+__all__ = [
+    "METHODS",
+    "bayes_uniform_estimator",
+    "fit_arx",
+    "fit_chebyshev",
+    "fit_least_squares",
+]
 
 METHODS = ("bayes-uniform", "chebyshev", "least-squares")
 
@@ -172,6 +178,32 @@ def _fit_bayes_uniform(
     point_estimate, steady_fraction = _bayes_options(options)
     if point_estimate == "mean":
         options["record_history"] = True
+    model = bayes_uniform_estimator(u, y, na=na, nb=nb, dt=dt, **options).model()
+    return _steady_mean(model, steady_fraction) if point_estimate == "mean" else model
+
+
+def bayes_uniform_estimator(
+    u: Any, y: Any, *, na: int, nb: int, dt: float = 1.0, **options: Any
+) -> BayesUniformEstimator:
+    """The bayes-uniform estimator of an ARX(na, nb) model after the record ``(u, y)``.
+
+    What :func:`fit_arx` reads its ``"bayes-uniform"`` estimate from (``.model()``), for a
+    caller that goes on with more of the record: the estimator is recursive, so
+    ``update_many`` with the rest gives the whole record's estimate (``tests/test_arx.py``
+    holds it against the estimate of the whole record at once).
+
+    Parameters
+    ----------
+    u, y, na, nb, dt
+        As :func:`fit_arx`.
+    **options
+        :class:`~identification.bayes_uniform.BayesUniformEstimator` keywords.
+
+    Raises
+    ------
+    ValueError
+        As :func:`fit_arx`: data that cannot identify the model.
+    """
     u, y = _check_data(u, y, na, nb)
     estimator = BayesUniformEstimator(na, nb, dt=dt, **options)
     rows = y.size - max(na, nb)
@@ -185,8 +217,7 @@ def _fit_bayes_uniform(
     estimator.update_many(u, y)
     if not estimator.initialized:
         raise ValueError(_never_bounded(u, y, na, nb))
-    model = estimator.model()
-    return _steady_mean(model, steady_fraction) if point_estimate == "mean" else model
+    return estimator
 
 
 def _never_bounded(u: np.ndarray, y: np.ndarray, na: int, nb: int) -> str:

@@ -17,8 +17,9 @@ import gymnasium as gym
 import numpy as np
 
 from identification.arx import ARXModel
+from identification.bayes_uniform import BayesUniformEstimator
 from identification.config import ORDER_TIE_PERCENT, RADIUS_ITERATIONS, IdentificationConfig
-from identification.estimation import fit_arx
+from identification.estimation import bayes_uniform_estimator, fit_arx
 from identification.experiment import (
     collect,
     experiment_inputs,
@@ -315,8 +316,10 @@ def estimate_arx(
     Every order of ``config.orders`` is fitted to the first three quarters of the PRBS record
     and scored by free-run fit (%) on the last quarter; near-ties (ORDER_TIE_PERCENT) go to the
     larger order: the higher bending modes it captures barely show in a PRBS free run, but they
-    shrink the equation-error bound r and so the error of z_hat. The chosen order is then
-    refitted on the whole record (with the Chebyshev and least-squares cross-checks).
+    shrink the equation-error bound r and so the error of z_hat. The chosen order's estimator
+    then goes on over the last quarter: the estimator is recursive, so that is its estimate on
+    the whole record (to the bit where its blocks align, to rounding otherwise), for the
+    quarter's cost. The Chebyshev and least-squares cross-checks are fitted to the whole record.
 
     ``runner`` (:mod:`identification.runner`; default: all here) may fit the orders beside each
     other: the helper takes them from the smallest, this process from the largest (the
@@ -328,14 +331,17 @@ def estimate_arx(
     pending = {n: runner.beside(_fit_order, u, y, n, split, dt) for n in config.orders}
     runner.warm_up_helper()
     runner.take_back_from_last([pending[n] for n in config.orders])
-    candidates = {n: pending[n].result() for n in config.orders}
+    estimators = {n: pending[n].result() for n in config.orders}
+    candidates = {n: estimator.model() for n, estimator in estimators.items()}
     scores = {n: _held_out_fit(candidate, u, y, split) for n, candidate in candidates.items()}
     best_fit = max(scores.values())
     order = max(n for n, fit in scores.items() if fit >= best_fit - ORDER_TIE_PERCENT)
-    fits = {
-        method: fit_arx(u, y, na=order, nb=order, dt=dt, method=method)
-        for method in ("bayes-uniform", "chebyshev", "least-squares")
-    }
+    estimators[order].update_many(u[split:], y[split:])
+    fits = {"bayes-uniform": estimators[order].model()}
+    fits.update(
+        (method, fit_arx(u, y, na=order, nb=order, dt=dt, method=method))
+        for method in ("chebyshev", "least-squares")
+    )
     return ArxEstimate(
         fits["bayes-uniform"],
         order,
@@ -346,11 +352,13 @@ def estimate_arx(
     )
 
 
-def _fit_order(u: np.ndarray, y: np.ndarray, n: int, split: int, dt: float) -> ARXModel:
-    """Step b for one order: the bayes-uniform ARX(n, n) on the first ``split`` samples."""
-    return fit_arx(
-        u[:split], y[:split], na=n, nb=n, dt=dt, method="bayes-uniform", record_history=False
-    )
+def _fit_order(
+    u: np.ndarray, y: np.ndarray, n: int, split: int, dt: float
+) -> BayesUniformEstimator:
+    """Step b for one order: the bayes-uniform estimator of ARX(n, n) after the first
+    ``split`` samples, its history recorded (the figure of the chosen order's whole-record
+    estimate shows it)."""
+    return bayes_uniform_estimator(u[:split], y[:split], na=n, nb=n, dt=dt)
 
 
 def _held_out_fit(candidate: ARXModel, u: np.ndarray, y: np.ndarray, split: int) -> float:

@@ -202,6 +202,33 @@ def test_bayes_uniform_says_why_it_cannot_start():
     assert fit_arx(u[:22], noisy[:22]).noise_bound > 0
 
 
+@pytest.mark.parametrize("split", [1500, 1537, 2999])
+def test_the_bayes_uniform_estimator_continued_is_the_whole_record_s_estimate(split):
+    """Step b's chosen order goes on from the three-quarter record's estimator: the estimate,
+    its bound and its history equal those of the whole record at once (to rounding where a
+    reorientation period straddles the split); the history also holds the estimate at the
+    split, where the first record's last block ended."""
+    from identification.estimation import bayes_uniform_estimator
+
+    rng = np.random.default_rng(2)
+    true = ARXModel([1.5, -0.7], [1.0, 0.5], noise_bound=0.05)
+    u = rng.choice([-1.0, 1.0], 3000)
+    y = true.simulate(u, rng=np.random.default_rng(3))
+    whole = fit_arx(u, y, dt=1e-3)
+    estimator = bayes_uniform_estimator(u[:split], y[:split], na=2, nb=2, dt=1e-3)
+    estimator.update_many(u[split:], y[split:])
+    continued = estimator.model()
+    np.testing.assert_allclose(continued.theta, whole.theta, rtol=1e-12, atol=1e-12)
+    assert continued.noise_bound == pytest.approx(whole.noise_bound, rel=1e-12)
+    times = np.asarray(continued.history["t"])
+    shared = np.isin(times, whole.history["t"])
+    assert set(times[~shared]) <= {split - 2}  # rows counted: the first two samples fill them
+    for key, values in whole.history.items():
+        np.testing.assert_allclose(
+            np.asarray(continued.history[key])[shared], values, rtol=1e-12, atol=1e-12
+        )
+
+
 def test_an_input_free_arx_has_a_realization():
     """nb = 0: the input does not enter (B = 0), the states are the past outputs."""
     model = ARXModel([0.5, 0.2], [])
