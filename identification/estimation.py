@@ -202,8 +202,13 @@ def bayes_uniform_estimator(
     Raises
     ------
     ValueError
-        As :func:`fit_arx`: data that cannot identify the model.
+        As :func:`fit_arx`: data that cannot identify the model, or an unknown option.
     """
+    unknown = sorted(set(options) - set(_BAYES_OPTIONS))
+    if unknown:
+        raise ValueError(
+            f"unknown estimator option(s) {', '.join(unknown)}; valid: {', '.join(_BAYES_OPTIONS)}"
+        )
     u, y = _check_data(u, y, na, nb)
     estimator = BayesUniformEstimator(na, nb, dt=dt, **options)
     rows = y.size - max(na, nb)

@@ -121,12 +121,15 @@ def test_the_free_runs_backward_pass_is_its_gradient():
     for needs in ((True, True, True), (True, False, False), (False, True, False)):
         inputs = [x.clone().requires_grad_(need) for x, need in zip((z, a, b), needs, strict=True)]
         assert torch.autograd.gradcheck(free_run, inputs, eps=1e-6, atol=1e-8)
+    for n in (1, 2, 3):  # records shorter than the lags
+        inputs = [x.clone().requires_grad_(True) for x in (z[:n], a, b)]
+        assert torch.autograd.gradcheck(free_run, inputs, eps=1e-6, atol=1e-8)
 
 
-def test_beyond_the_stability_boundary_the_free_run_is_the_spectral_product():
-    """A line search may probe an unstable linear part: its free run from rest overflows,
-    so the objective there is the product of spectra on a grid twice the record (numpy's FFT
-    here), finite; for a stable part the two agree to the wrap-around of its decay."""
+def test_beyond_the_stability_boundary_the_free_run_is_the_recursion_until_it_overflows():
+    """A line search may probe an unstable linear part: there the objective is still the
+    recursion (a barrier growing as |p|^2n), until its squared error leaves float64's range;
+    then the product of spectra on a grid twice the record (numpy's FFT here), finite."""
     torch = pytest.importorskip("torch")
     z = np.random.default_rng(8).normal(0.0, 1.0, 3000)
     size = 1 << (2 * z.size).bit_length()
@@ -138,16 +141,34 @@ def test_beyond_the_stability_boundary_the_free_run_is_the_spectral_product():
         return np.fft.irfft(np.fft.rfft(z, size) * h, size)[: z.size]
 
     run = FreeRun(z.size, 2, 2, torch)
-    for radius in (1.02, 0.97):
-        pole = radius * np.exp(2j * np.pi * 0.05)
-        f = np.array([2 * pole.real, -(abs(pole) ** 2)])
-        got = run.free_run(
-            torch.from_numpy(z), run.response(torch.from_numpy(f), torch.from_numpy(B_TRUE))
-        ).numpy()
-        assert np.all(np.isfinite(got))
-        np.testing.assert_allclose(got, spectral(f, B_TRUE), atol=1e-9 * np.abs(got).max())
-    with np.errstate(over="ignore", invalid="ignore"):  # a double pole at 1.5 overflows
-        assert not np.all(np.isfinite(_recursion(np.array([3.0, -2.25]), B_TRUE, z)))
+
+    def through(f: np.ndarray) -> np.ndarray:
+        response = run.response(torch.from_numpy(f), torch.from_numpy(B_TRUE))
+        return run.free_run(torch.from_numpy(z), response).numpy()
+
+    mild = 1.02 * np.exp(2j * np.pi * 0.05)  # 1.02^3000: 6e25, no overflow
+    f = np.array([2 * mild.real, -(abs(mild) ** 2)])
+    expected = _recursion(f, B_TRUE, z)
+    assert np.abs(expected).max() > 1e20
+    np.testing.assert_allclose(through(f), expected, rtol=1e-9, atol=0)
+    far = 1.5 * np.exp(2j * np.pi * 0.05)  # 1.5^3000 overflows
+    f = np.array([2 * far.real, -(abs(far) ** 2)])
+    with np.errstate(over="ignore", invalid="ignore"):
+        assert not np.all(np.isfinite(_recursion(f, B_TRUE, z)))
+    got = through(f)
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, spectral(f, B_TRUE), atol=1e-9 * np.abs(got).max())
+
+
+def test_a_joint_stage_that_ends_beyond_the_finite_range_is_refused():
+    from identification.nls.output_error import _linear_refusal
+
+    start = ARXModel(F_TRUE, B_TRUE, dt=1e-3)
+    params = {"w": np.ones(3)}
+    assert _linear_refusal(start, F_TRUE, B_TRUE, params) is None
+    assert "non-finite" in _linear_refusal(start, np.array([np.nan, 0.1]), B_TRUE, params)
+    assert "non-finite" in _linear_refusal(start, F_TRUE, B_TRUE, {"w": np.array([np.inf])})
+    assert "unstable" in _linear_refusal(start, np.array([2.1, -1.1]), B_TRUE, params)
 
 
 def test_distinct_rows_spread_back_to_the_features():

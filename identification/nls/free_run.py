@@ -21,29 +21,36 @@ class FreeRun:
     """The ARX part's free run from rest on a record of ``n`` samples, ``y = B(q) / (1 - A(q))
     z``, differentiable in ``z``, ``a`` and ``b``.
 
-    A stable linear part runs the recursion itself with its exact adjoint (:func:`free_run`):
-    O(n (na + nb)) per pass. The joint stage's line search also probes linear parts beyond the
-    stability boundary, whose free run from rest grows without bound (it overflows within a
-    record); there the objective is the product of spectra ``irfft(Z * B / (1 - A))`` on a
-    zero-padded grid of at least twice the record's length, finite off the unit circle, which
-    equals the free run of a stable part to ``|p|^(2n)`` of its slowest pole ``p``, and gives
-    the line search a finite value to back off from (its strong-Wolfe interpolation turns an
-    infinite one into a NaN step)."""
+    The recursion itself with its exact adjoint (:func:`free_run`), O(n (na + nb)) per pass,
+    wherever its squared error is a float64 number: the true free run, continuous across the
+    stability boundary and growing as ``|p|^(2n)`` beyond it, a barrier to a line search that
+    probes there (the joint stage's may). A part so far beyond the boundary that it is not
+    (``4 sum y^2`` overflows; then ``sum (y - m)^2 <= 2 sum y^2 + 2 sum m^2`` can too, for a
+    measured record ``m``) is evaluated as the product of spectra ``irfft(Z * B / (1 - A))`` on
+    a zero-padded grid of at least twice the record's length, finite off the unit circle: a
+    value for the line search's interpolation, which an infinite one turns into a NaN step.
+    That value is the unstable poles' anticausal response and may be lower than the stable
+    side's; a stage that ends beyond the boundary is refused
+    (:func:`identification.nls.output_error.refine_nls_output_error`)."""
 
     def __init__(self, n: int, na: int, nb: int, torch: object) -> None:
         self.n, self.na, self.nb, self.torch = n, na, nb, torch
         self._spectral: tuple[int, Any, Any] | None = None
 
-    def response(self, a: object, b: object) -> tuple[object, object, bool]:
-        """The linear part ``(a, b)`` as :meth:`free_run` takes it, with whether it is stable
-        (a stage that holds it computes this once and passes it to every call)."""
-        return a, b, _is_stable(a.detach().numpy())
+    def response(self, a: object, b: object) -> tuple[object, object]:
+        """The linear part ``(a, b)`` as :meth:`free_run` takes it (a stage that holds it
+        passes the same pair to every call)."""
+        return a, b
 
-    def free_run(self, z: object, response: tuple[object, object, bool]) -> object:
+    def free_run(self, z: object, response: tuple[object, object]) -> object:
         """The free run (um) of ``z`` (equivalent V, a torch tensor of the record's length)
-        through ``response`` (:meth:`response`)."""
-        a, b, stable = response
-        return free_run(z, a, b) if stable else self._spectral_run(z, a, b)
+        through ``response = (a, b)`` (:meth:`response`)."""
+        a, b = response
+        y = free_run(z, a, b)
+        y_np = y.detach().numpy()
+        with np.errstate(over="ignore", invalid="ignore"):
+            representable = bool(np.isfinite(4.0 * (y_np @ y_np)))
+        return y if representable else self._spectral_run(z, a, b)
 
     def _spectral_run(self, z: Any, a: Any, b: Any) -> Any:
         torch = self.torch
@@ -62,11 +69,6 @@ class FreeRun:
         denominator = 1.0 - basis_a @ a.to(torch.complex128)
         spectrum = torch.fft.rfft(z, size) * numerator / denominator
         return torch.fft.irfft(spectrum, size)[: self.n]
-
-
-def _is_stable(a: np.ndarray) -> bool:
-    """Whether ``1 - A(q)`` of the coefficients ``a`` has every root inside the unit circle."""
-    return a.size == 0 or bool(np.max(np.abs(np.roots(np.r_[1.0, -a]))) < 1.0)
 
 
 _FREE_RUN: Any = None
@@ -100,7 +102,7 @@ def _free_run_function() -> Any:
     def lagged_products(x: np.ndarray, v: np.ndarray, lags: int) -> np.ndarray:
         """``sum_t x_t v_(t-k)`` for k = 1..lags."""
         n = x.size
-        return np.array([x[k:] @ v[: n - k] for k in range(1, lags + 1)])
+        return np.array([x[k:] @ v[: n - k] if k < n else 0.0 for k in range(1, lags + 1)])
 
     class _FreeRun(torch.autograd.Function):
         @staticmethod
@@ -120,8 +122,7 @@ def _free_run_function() -> Any:
                 grad_b = torch.from_numpy(lagged_products(g_np, v, b_np.size))
             if need_z or need_a:
                 h = np.convolve(g_np[::-1], np.r_[0.0, b_np])[: g_np.size]
-                w = scipy.signal.lfilter([1.0], np.r_[1.0, -a_np], h)[::-1]
-                w = np.ascontiguousarray(w)
+                w = scipy.signal.lfilter([1.0], np.r_[1.0, -a_np], h)[::-1].copy()
                 if need_z:
                     grad_z = torch.from_numpy(w)
                 if need_a:

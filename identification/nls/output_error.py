@@ -19,9 +19,9 @@ The free run is the ARX recursion itself, differentiated by its exact adjoint (a
 backwards in time; :class:`identification.nls.free_run.FreeRun`): a pass costs O(T (na +
 nb)), a few times less than the product of spectra on a zero-padded FFT grid this module used
 before, which cost O(T log T) per pass and dominated the refinement's time
-(``benchmarks/results/identification_speed.md``). Only a linear part beyond the stability
-boundary, which the joint stage's line search may probe, is evaluated on that grid: its free
-run from rest overflows, and the line search needs a finite value to back off from. A network
+(``benchmarks/results/design_measurements.md``). Only a linear part so far beyond the stability
+boundary that its free run overflows, which the joint stage's line search may probe, is still
+evaluated on that grid, to give the line search a finite value. A network
 whose input is held between samples (play and Bouc-Wen features under a held voltage) is
 evaluated once per run of equal features.
 
@@ -255,7 +255,7 @@ def refine_nls_output_error(
                 inputs.append((module.input_of(torch.from_numpy(rows)), torch.from_numpy(index)))
         held = [grid.response(a, b) for grid in grids]  # the linear part of the first stage
 
-        def objective(responses: Sequence[tuple[Any, Any, bool]] | None = None) -> object:
+        def objective(responses: Sequence[tuple[Any, Any]] | None = None) -> object:
             """Mean squared free-run error over the records; ``responses`` holds each record's
             :meth:`FreeRun.response` when the stage holds the linear part (None: from ``a``
             and ``b``)."""
@@ -284,13 +284,13 @@ def refine_nls_output_error(
         a_new, b_new = a.detach().numpy().copy(), b.detach().numpy().copy()
     linear, linear_note = arx, None
     if refine_linear:
-        candidate = ARXModel(
-            a_new, b_new, noise_bound=arx.noise_bound, dt=arx.dt, method=arx.method
-        )
-        linear_note = _linear_refusal(arx, candidate)
+        linear_note = _linear_refusal(arx, a_new, b_new, params)
         if linear_note is None:
+            candidate = ARXModel(
+                a_new, b_new, noise_bound=arx.noise_bound, dt=arx.dt, method=arx.method
+            )
             linear = _with_equation_error_bound(candidate, params, feature_map, nls, data)
-        else:  # the free-run objective has no stability barrier: keep the first stage
+        else:  # the line search may end beyond the stability boundary: keep the first stage
             params = network_only
     refined = NLS(feature_map, params, u_range=nls.u_range, training=nls.training)
     return NlsOutputErrorFit(
@@ -304,8 +304,18 @@ def refine_nls_output_error(
     )
 
 
-def _linear_refusal(start: ARXModel, candidate: ARXModel) -> str | None:
-    """Why the jointly refined linear part cannot be kept (None: it can)."""
+def _linear_refusal(
+    start: ARXModel, a: np.ndarray, b: np.ndarray, params: dict[str, np.ndarray]
+) -> str | None:
+    """Why the joint stage's end, the linear part ``(a, b)`` with the network ``params``,
+    cannot be kept (None: it can)."""
+    values = [a, b, *params.values()]
+    if not all(np.all(np.isfinite(value)) for value in values):
+        return (
+            "the joint stage's line search ended at non-finite values; its network-only stage "
+            "is kept"
+        )
+    candidate = ARXModel(a, b, noise_bound=start.noise_bound, dt=start.dt, method=start.method)
     if not candidate.is_stable():
         return "the joint stage ended at an unstable linear part; its network-only stage is kept"
     if start.is_minimum_phase() and not candidate.is_minimum_phase():
