@@ -171,6 +171,35 @@ def test_a_joint_stage_that_ends_beyond_the_finite_range_is_refused():
     assert "unstable" in _linear_refusal(start, np.array([2.1, -1.1]), B_TRUE, params)
 
 
+def test_the_free_runs_gradient_does_not_depend_on_the_blas_thread_count():
+    """The backward pass sums its lagged products without BLAS, whose dot product of a long
+    vector sums in an order that depends on its threads (OpenBLAS splits it above about
+    10,000 elements): the gradient, and so the refined model, is the same to the bit with one
+    BLAS thread as with the machine's default."""
+    import threadpoolctl
+
+    torch = pytest.importorskip("torch")
+    from identification.nls.free_run import free_run
+
+    rng = np.random.default_rng(11)
+    z0 = rng.normal(0.0, 1.0, 40_000)
+    g = torch.from_numpy(rng.normal(0.0, 1.0, z0.size))
+
+    def gradients() -> list[np.ndarray]:
+        z, a, b = (
+            torch.tensor(x, dtype=torch.float64, requires_grad=True)
+            for x in (z0, F_TRUE, B_TRUE)
+        )
+        free_run(z, a, b).backward(g)
+        return [x.grad.numpy().copy() for x in (z, a, b)]
+
+    default = gradients()
+    with threadpoolctl.threadpool_limits(1):
+        one = gradients()
+    for got, expected in zip(one, default, strict=True):
+        np.testing.assert_array_equal(got, expected)
+
+
 def test_distinct_rows_spread_back_to_the_features():
     from identification.nls.output_error import distinct_rows
 

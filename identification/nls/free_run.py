@@ -48,8 +48,9 @@ class FreeRun:
         a, b = response
         y = free_run(z, a, b)
         y_np = y.detach().numpy()
-        with np.errstate(over="ignore", invalid="ignore"):
-            representable = bool(np.isfinite(4.0 * (y_np @ y_np)))
+        with np.errstate(over="ignore", invalid="ignore"):  # numpy's sum, not a BLAS dot,
+            # whose threads would wait on a core that another process needs
+            representable = bool(np.isfinite(4.0 * np.add.reduce(y_np * y_np)))
         return y if representable else self._spectral_run(z, a, b)
 
     def _spectral_run(self, z: Any, a: Any, b: Any) -> Any:
@@ -100,9 +101,13 @@ def _free_run_function() -> Any:
     torch = load_torch()
 
     def lagged_products(x: np.ndarray, v: np.ndarray, lags: int) -> np.ndarray:
-        """``sum_t x_t v_(t-k)`` for k = 1..lags."""
+        """``sum_t x_t v_(t-k)`` for k = 1..lags, each summed by numpy's own reduction, not by
+        BLAS: a multi-threaded BLAS dot sums in an order that depends on its thread count,
+        and the identified model would then depend on the machine's cores."""
         n = x.size
-        return np.array([x[k:] @ v[: n - k] if k < n else 0.0 for k in range(1, lags + 1)])
+        return np.array(
+            [np.add.reduce(x[k:] * v[: n - k]) if k < n else 0.0 for k in range(1, lags + 1)]
+        )
 
     class _FreeRun(torch.autograd.Function):
         @staticmethod
