@@ -47,10 +47,11 @@ Solvers
     optimum (one N x N solve, exact when it meets every bound, which it does on smooth
     references). Two iterations are the default (one loses accuracy at input reversals);
     ``benchmarks/results/controller_latency.md`` has the step's cost. For the identified NLS
-    each iteration (linearization, QP matrices, unconstrained optimum) and the memory step
-    run as one compiled call each (:mod:`controllers.native.nmpc_step`; the QP solver stays
-    in Python); without a compiler the numpy path above runs, recorded in
-    ``describe()["native"]["nmpc_step"]``.
+    with the observer bank the whole step (the estimators' updates, the iterations'
+    linearizations, QP matrices and unconstrained optima, the memory step) runs as one
+    compiled call (:mod:`controllers.native.nmpc_step`); where an iteration's optimum leaves
+    the bounds, the QP solver runs here and a second call ends the step. Without a compiler
+    the numpy path above runs, recorded in ``describe()["native"]["nmpc_step"]``.
 ``"ipopt"`` (the reference)
     The full nonlinear program through ``casadi.nlpsol("ipopt")`` with exact derivatives,
     warm-started from the shifted plan, capped by ``ipopt_max_iter`` and
@@ -67,16 +68,19 @@ below OpenBLAS's threading threshold, so they run single-threaded without a thre
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
+from controllers.base import _clock
 from controllers.box_qp import box_qp, solver_version, within
-from controllers.mpc import float32_within
+from controllers.mpc import _FLOAT32, _FLOAT64, float32_within
 from controllers.native import nmpc_step
 from controllers.native.codegen import NativeBuild
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
+from controllers.observer import ObserverBank
 from controllers.prediction import IdentifiedNLS, PredictionModel, SteadyStart
 from controllers.predictive import PredictiveController
 from controllers.settings import (
@@ -246,6 +250,7 @@ class NonlinearMPC(PredictiveController):
         self._kernel, self._kernel_build = self._iteration_kernel()
         self._gain = self._gain_estimate()
         self._reach = static_reach(self.model, self._u_max)
+        self._fused_build = self._fused_record()
         if self._kernel is None and settings.solver == "rti":
             # The numpy path's iterations run the horizon: built here, not inside a step.
             # (ipopt builds its own NLP; the horizon then serves only predict_deflection().)
@@ -289,6 +294,25 @@ class NonlinearMPC(PredictiveController):
         )
         return kernel, build
 
+    def _fused_record(self) -> NativeBuild:
+        """Whether the whole step runs as one compiled call (``nmpc_step`` of
+        :mod:`controllers.native.nmpc_step`: the estimators' updates, the iterations while
+        their optima meet the bounds, the memory step) and why not: it needs the compiled
+        iteration, the observer bank and the gain estimate run by the compiled kernels.
+        Without it the same compiled iteration runs between the estimators' Python calls (the
+        same numbers, to the bit: ``tests/test_nmpc_fused.py``; a longer step)."""
+        kernel, observer, gain = self._kernel, self.observer, self._gain
+        why = None
+        if kernel is None:
+            why = "the iterations run in numpy (see nmpc_step)"
+        elif not isinstance(observer, ObserverBank) or observer._correct_native is None:
+            why = "the observer is not a bank run by the compiled kernels"
+        elif gain is not None and gain._update_native is None:
+            why = "the gain estimate is not run by the compiled kernels"
+        if why is not None:
+            return nmpc_step.unavailable(why, function="nmpc_fused")
+        return dataclasses.replace(self._kernel_build, function="nmpc_fused")
+
     def _start(self, start: SteadyStart) -> None:
         s = self.settings
         self._slew_step = self.task.slew_step
@@ -307,6 +331,75 @@ class NonlinearMPC(PredictiveController):
         self._plan = np.full(s.horizon, start.u)
         self._u_prev = float(np.float32(start.u))
         self._restart_gain(start.x)
+        if self._fused_build.compiled:
+            self._kernel.bind_estimators(
+                self.observer, self._gain, u_max=self._u_max, reach=self._reach
+            )
+
+    def act(self, observation: Any) -> np.ndarray:
+        """The base class's step (:meth:`controllers.predictive.PredictiveController.act`):
+        one compiled call where the step fits it (:meth:`_fused_record`; on the samples whose
+        iteration needs the QP, the QP solver runs here between two calls), else Python
+        around the compiled iteration."""
+        kernel = self._kernel
+        if kernel is None or not kernel.fused:
+            return super().act(observation)
+        start = _clock()
+        if (
+            type(observation) is not np.ndarray
+            or observation.shape != kernel.observation.shape
+            or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
+        ):
+            observation = self.task.check_observation(observation)  # raises, or converts
+        elif not abs(observation[0]) <= self._observation_bound:  # a fault, or NaN: says which
+            self.task.check_observation(observation)
+        kernel.observation[:] = observation  # the kernel checks that every entry is finite
+        u = self._act_fused(observation)
+        stats = self.stats
+        if not -self._u_max <= u <= self._u_max:  # as the base class
+            if u != u:
+                raise RuntimeError(f"{self.name} computed a NaN voltage")
+            u = self._u_max if u > 0 else -self._u_max
+            stats.saturated += 1
+        if stats.observer_fallback_step is None and kernel.scalars[nmpc_step.S_RUNAWAY] >= 0:
+            stats.observer_fallback_step = len(stats.compute_s)
+        action = np.empty(1, dtype=np.float32)
+        action[0] = u
+        stats.compute_s.append(_clock() - start)
+        return action
+
+    def _act_fused(self, observation: np.ndarray) -> float:
+        """:meth:`_act` by the compiled step; Python runs the QP where an iteration needs it."""
+        kernel = self._kernel
+        if self._memory is not kernel.memory:  # a new episode's memory, or the first step
+            kernel.memory[:] = self._memory
+            self._memory = kernel.memory
+        if self._plan is not kernel.plan:
+            kernel.plan[:] = self._plan
+            self._plan = kernel.plan
+        scalars = kernel.scalars
+        scalars[nmpc_step.S_G], scalars[nmpc_step.S_U_PREV] = self._g, self._u_prev
+        code = kernel.step()
+        if code == nmpc_step.NON_FINITE:
+            self.task.check_observation(observation)  # raises, naming the entry
+            raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")
+        self._g = float(scalars[nmpc_step.S_G])
+        stats = self.stats
+        if code == nmpc_step.INSIDE:
+            stats.iterations.append(0)
+            stats.status["unconstrained"] += 1
+        else:  # NEED_QP: the iterations from the first that needs it, then the step's end
+            shifted = kernel.shifted.copy()
+            plan, status, iterations = self._rti_from(code, int(kernel.dims[nmpc_step.D_DONE]))
+            stats.iterations.append(iterations)
+            stats.status[status] += 1
+            if plan is None:
+                stats.fallbacks += 1
+                plan = shifted
+            kernel.plan[:] = plan
+            kernel.finish()
+        self._u_prev = u = float(scalars[nmpc_step.S_U_APPLIED])
+        return u
 
     def _act(self, observation: np.ndarray) -> float:
         if self._gain is not None:
@@ -446,15 +539,19 @@ class NonlinearMPC(PredictiveController):
         kernel.scalars[nmpc_step.S_U_PREV] = self._u_prev
         kernel.prepare()
         shifted = kernel.u.copy()
-        plan, status, iterations = self._rti_compiled((self._lower, self._upper))
+        plan, status, iterations = self._rti_compiled()
         return plan, status, iterations, shifted
 
-    def _rti_compiled(
-        self, bounds: tuple[np.ndarray, np.ndarray]
-    ) -> tuple[np.ndarray | None, str, int]:
+    def _rti_compiled(self) -> tuple[np.ndarray | None, str, int]:
         """:meth:`_solve_rti` on the kernel's offset from the plan in ``kernel.u``."""
+        code, first = self._kernel.run()  # the iterations up to the first that needs the QP
+        return self._rti_from(code, first)
+
+    def _rti_from(self, code: int, first: int) -> tuple[np.ndarray | None, str, int]:
+        """:meth:`_rti_compiled` after the kernel's iterations ended with ``code`` at
+        iteration ``first`` (the plan or the iterate in ``kernel.u``)."""
         s, kernel = self.settings, self._kernel
-        code, first = kernel.run()  # the iterations up to the first that needs the QP
+        bounds = (self._lower, self._upper)
         if code == nmpc_step.INSIDE:
             return kernel.u.copy(), "unconstrained", 0
         u_bar = kernel.u.copy()
@@ -600,9 +697,14 @@ class NonlinearMPC(PredictiveController):
     # -- reports ------------------------------------------------------------------------------
 
     def native_code(self) -> dict[str, dict[str, Any]]:
-        """The base class's records and ``nmpc_step``: whether the compiled iteration runs
-        (:mod:`controllers.native.nmpc_step`), and why not."""
-        return {**super().native_code(), "nmpc_step": self._kernel_build.to_dict()}
+        """The base class's records, ``nmpc_step``: whether the compiled iteration runs
+        (:mod:`controllers.native.nmpc_step`), and why not, and ``nmpc_fused``: whether the
+        whole step runs as one compiled call (:meth:`_fused_record`), and why not."""
+        return {
+            **super().native_code(),
+            "nmpc_step": self._kernel_build.to_dict(),
+            "nmpc_fused": self._fused_build.to_dict(),
+        }
 
     def describe(self) -> dict[str, Any]:
         """Settings, model source, Jacobian path and observer bandwidth (JSON-safe)."""

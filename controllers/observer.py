@@ -760,8 +760,11 @@ def rescale_output_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, rati
     """In place, on rows ``[x; d (; s)]``: the output estimate C x + d times ``ratio`` with x
     kept (d takes the change). A slope s of d is scaled with it, which leaves out the change of
     C x between samples that d' now also carries: exact without a slope state (the nonlinear
-    MPC's observer, the one caller, has none)."""
-    output = estimates[:, :n] @ c_aug[:n]
+    MPC's observer, the one caller, has none). C x is summed left to right, as the NMPC's
+    compiled step sums it (:mod:`controllers.native.nmpc_step`), so both give the same bits."""
+    output = np.zeros(estimates.shape[0])
+    for j in range(n):
+        output += estimates[:, j] * c_aug[j]
     estimates[:, n] = ratio * (output + estimates[:, n]) - output
     estimates[:, n + 1 :] *= ratio
 

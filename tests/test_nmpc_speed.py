@@ -14,6 +14,7 @@ from benchmarks.references import make_reference
 from controllers.native import nmpc_step
 from controllers.native.codegen import NativeCodeError
 from controllers.native.nmpc_horizon import StructuredHorizon
+from controllers.nmpc import NonlinearMPC
 from piezo_env.amplifier import Amplifier
 
 MODEL_DIR = "docs/identify/model"
@@ -27,7 +28,14 @@ def env():
     environment.close()
 
 
-def build(env, *, compiled, **options):
+def build(env, *, compiled, fused=True, **options):
+    if compiled and not fused:  # the compiled iteration between the estimators' Python calls
+        with pytest.MonkeyPatch.context() as patch:
+            off = nmpc_step.unavailable("switched off by the test", function="nmpc_fused")
+            patch.setattr(NonlinearMPC, "_fused_record", lambda self: off)
+            c = controllers.make("nmpc", MODEL_DIR, env, **options)
+        assert c._kernel is None or not c._kernel.fused
+        return c
     if not compiled:
         with pytest.MonkeyPatch.context() as patch:
             off = nmpc_step.unavailable("switched off by the test")
@@ -154,25 +162,88 @@ def kernel_calls(controller, env, reference, steps):
     return calls
 
 
-def test_an_unconstrained_step_is_three_compiled_calls(env):
-    """The targets, offset and shifted plan in one call, every SQP iteration of a step in one
-    while the unconstrained optima meet the bounds (all steps of a half-stroke sine), and one
-    for the memory step."""
+def test_an_unconstrained_step_is_one_compiled_call(env):
+    """The estimators' updates, the targets, offset and shifted plan, every SQP iteration of a
+    step while the unconstrained optima meet the bounds (all steps of a half-stroke sine) and
+    the memory step: one call. Without the fused step, three (the estimators in between)."""
     c = build(env, compiled=True)
     calls = kernel_calls(c, env, make_reference("sine-50Hz", 221, dt=1e-3, seed=0), 200)
     assert c.stats.status["unconstrained"] == 200
-    assert calls == [3] * 200
+    assert calls == [1] * 200
+    assert c.describe()["native"]["nmpc_fused"]["compiled"]
+    c = build(env, compiled=True, fused=False)
+    assert kernel_calls(c, env, make_reference("sine-50Hz", 221, dt=1e-3, seed=0), 200) == [3] * 200
+    assert c.describe()["native"]["nmpc_fused"]["reason"] == "switched off by the test"
 
 
 def test_a_step_with_a_qp_makes_one_call_per_iteration_after_it(env):
-    """Beyond reach (the drive bound binds): the iterations up to the one that needs the QP
-    are one call, each later iteration one more (no early stop here: tolerance 0)."""
-    c = build(env, compiled=True, step_tolerance=0.0)
-    calls = kernel_calls(c, env, np.r_[np.full(30, -1300.0), np.full(30, 1300.0)], 40)
-    assert c.stats.status["solved"] > 0
-    # prepare, run (up to the QP), one iterate per later iteration, the memory step
-    assert all(3 <= n <= c.settings.sqp_iterations + 2 for n in calls)
-    assert max(calls) == c.settings.sqp_iterations + 2
+    """Beyond reach (the drive bound binds): the step up to the iteration that needs the QP is
+    one call, each later iteration one more, and the step's end one (no early stop here:
+    tolerance 0); without the fused step, the start and the memory step are calls of their
+    own and the iterations up to the QP one more."""
+    reference = np.r_[np.full(30, -1300.0), np.full(30, 1300.0)]
+    for fused in (True, False):
+        c = build(env, compiled=True, fused=fused, step_tolerance=0.0)
+        most = c.settings.sqp_iterations + (1 if fused else 2)  # the QP at the first iteration
+        calls = kernel_calls(c, env, reference, 40)
+        assert c.stats.status["solved"] > 0
+        # fused: 1 without a QP, else the step, the later iterations and the end; unfused:
+        # prepare, run (up to the QP), one iterate per later iteration, the memory step
+        allowed = {1, *range(2, most + 1)} if fused else set(range(3, most + 1))
+        assert set(calls) <= allowed
+        assert max(calls) == most
+
+
+@pytest.mark.parametrize(
+    "plant, reference_name",
+    [("corner", "sine-100Hz"), ("corner", "steps"), ("bench", "steps"), ("bench", "sine-50Hz")],
+)
+def test_the_fused_step_equals_the_unfused_one_in_closed_loop(env, plant, reference_name):
+    """The whole step in one call against the compiled iteration between the estimators'
+    Python calls: the same volts, plans, memory and records to the bit, on a box corner whose
+    gain the NMPC learns (g away from 1: the bank's output estimates rescaled) and on the
+    bench plant (slew limit: the first move's window, the QP's rate rows)."""
+    from benchmarks.plants import _bench
+    from benchmarks.studies.corners import vertex_env
+
+    if plant == "corner":
+        target = vertex_env((1.2, 0.8, 0.04))
+    else:
+        target = gym.make("piezo_env:PiezoBender-v0", preview=20, **_bench("PL140"))
+    steps = 600
+    reference = make_reference(reference_name, steps + 21, dt=1e-3, seed=0)
+    runs = []
+    for fused in (True, False):
+        c = build(env, compiled=True, fused=fused)
+        row = lambda c: np.r_[c._plan, c._memory, c._g]  # noqa: E731
+        runs.append(recorded_episode(c, target, reference, steps, row))
+        assert c._kernel.fused == fused
+    target.close()
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    for key in ("status", "fallbacks", "saturated", "observer_fallback_step"):
+        assert runs[0][2][key] == runs[1][2][key], key
+    assert np.any(runs[0][1][:, -1] != 1.0)  # the gain was learned away from the model's
+
+
+def test_the_fused_step_refuses_a_non_finite_observation_before_any_update(env):
+    """A NaN in the preview: the kernel finds it before the estimators move; the error names
+    the entry, as the base class's check does, and the next good observation gives the volts
+    of a controller that never saw the bad one."""
+    reference = make_reference("sine-10Hz", 221, dt=1e-3, seed=0)
+    good, bad = build(env, compiled=True), build(env, compiled=True)
+    obs, _ = env.reset(seed=0, options={"reference": reference})
+    good.reset(obs)
+    bad.reset(obs)
+    for _ in range(50):
+        u = good.act(obs)
+        assert bad.act(obs) == u
+        obs, *_ = env.step(u)
+    broken = obs.copy()
+    broken[5] = np.nan
+    with pytest.raises(ValueError, match=r"observation\[5\]"):
+        bad.act(broken)
+    assert bad.act(obs) == good.act(obs)
 
 
 def test_the_numpy_path_is_recorded_and_the_ipopt_reference_keeps_it(env):

@@ -14,7 +14,8 @@ of the first mode (``prediction_horizon="resonance"``). The adaptive MPC also ru
 adapts (the box's corner with its gain 20 % up, its resonance 20 % low, damping 0.04), and the
 MPCs run on the PL127 at its own 0.25 ms (model ``tests/data/pl127-model``; on its corner with
 gain and resonance 20 % up, damping 0.01). Beside it, in the same process: the QP solve alone,
-the nonlinearity inverse alone, and a CartPole-v1 step through ``gymnasium.make``, the
+the nonlinearity inverse alone, the NMPC with its step not fused (the compiled iteration
+between the estimators' Python calls), and a CartPole-v1 step through ``gymnasium.make``, the
 reference the ratios are taken against (absolute times on shared machines drift; ratios
 travel). IPOPT (``nmpc-ipopt``) runs a shorter episode. Writes
 ``benchmarks/results/controller_latency.md`` and the same numbers as
@@ -25,6 +26,7 @@ Run: ``python -m benchmarks.speed.controller_latency`` (a few minutes).
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import time
@@ -205,6 +207,26 @@ def stats(x: np.ndarray) -> tuple[str, str, str]:
     return tuple(f"{v:.1f}" for v in np.quantile(x, [0.5, 0.99, 1.0]))
 
 
+@contextlib.contextmanager
+def step_not_fused(unfused: bool):
+    """With ``unfused``, the NMPCs built inside run the compiled iteration between their
+    estimators' Python calls instead of the whole step in one call (the same volts: the row
+    measures what the fusion saves)."""
+    if not unfused:
+        yield
+        return
+    from controllers.native import nmpc_step
+    from controllers.nmpc import NonlinearMPC
+
+    record = nmpc_step.unavailable("not fused, for comparison", function="nmpc_fused")
+    original = NonlinearMPC._fused_record
+    NonlinearMPC._fused_record = lambda self: record
+    try:
+        yield
+    finally:
+        NonlinearMPC._fused_record = original
+
+
 def main() -> None:
     env = gym.make("piezo_env:PiezoBender-v0", preview=20)
     corner = vertex_env((1.2, 0.8, 0.04))
@@ -229,6 +251,7 @@ def main() -> None:
         ("mpc-adaptive", "mpc-adaptive", STEPS, {}),
         ("mpc-adaptive (corner x1.2, x0.8, 0.04)", "mpc-adaptive", STEPS, {"plant": corner}),
         ("nmpc", "nmpc", STEPS, {}),
+        ("nmpc (step not fused)", "nmpc", STEPS, {"unfused": True}),
         ("nmpc-ipopt", "nmpc-ipopt", IPOPT_STEPS, {}),
         ("mpc (PL127, 0.25 ms)", "mpc", steps127, pl127),
         ("mpc-adaptive (PL127, 0.25 ms)", "mpc-adaptive", steps127, pl127),
@@ -247,7 +270,8 @@ def main() -> None:
             options = dict(options)
             run_env = options.pop("env", env)
             try:
-                r = controller_times(run_env, name, steps, **options)
+                with step_not_fused(options.pop("unfused", False)):
+                    r = controller_times(run_env, name, steps, **options)
             except Exception as error:  # a missing optional solver must not hide the rest
                 rows.append([label, f"failed: {error}", *[""] * 9])
                 continue

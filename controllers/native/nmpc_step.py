@@ -13,6 +13,17 @@ does not goes back to Python's QP path, on the Hessian and vector computed here
 first, then the QP solver). ``nmpc_apply`` steps the memory with the applied volts and gives
 their z (the nonlinearity's ``step``).
 
+``nmpc_step`` is the whole step of :meth:`controllers.nmpc.NonlinearMPC._act` in one call: the
+gain estimate's and the observer bank's updates (the estimator kernels of
+:mod:`controllers.native.step_kernels`, in this translation unit), the observation over the
+learned gain and clipped to the static reach, ``nmpc_prepare``, ``nmpc_rti`` and, when every
+iteration stayed inside the bounds, ``nmpc_finish`` (the first move in the slew window rounded
+to float32, ``nmpc_apply``, the estimators' time updates; its cost against the unfused step's:
+``benchmarks/results/controller_latency.md``). Every operation is the Python step's on the
+same operands, the rescaling of the bank's output estimates by a new gain included (summed
+left to right on both paths), so the fused and the unfused steps give the same volts to the
+bit (``tests/test_nmpc_speed.py``).
+
 The sensitivities come by the chain rule through one step of the feature map: a casadi
 Function (:func:`partials_function`) gives the step's features, next state and their partial
 derivatives in the input and the state (the state ones sparse: for Bouc-Wen features, 2
@@ -67,6 +78,7 @@ from controllers.native.codegen import (
     generated_text,
 )
 from controllers.native.step_kernels import FLAGS
+from controllers.native.step_kernels import SOURCE as KERNELS
 from piezo_env.memo import ContentCache
 
 __all__ = [
@@ -79,8 +91,9 @@ __all__ = [
     "unavailable",
 ]
 
-INSIDE, NEED_QP, ERROR = range(3)
-"""Return codes of ``nmpc_iterate`` (``nmpc_apply`` returns INSIDE or ERROR)."""
+INSIDE, NEED_QP, ERROR, NON_FINITE = range(4)
+"""Return codes of ``nmpc_iterate`` (``nmpc_apply`` returns INSIDE or ERROR; ``nmpc_step``
+also NON_FINITE, for an observation with a NaN or an infinity)."""
 
 # Pointer table, integer dimensions and scalars: their indices (as the enums in STEP).
 (
@@ -88,16 +101,19 @@ INSIDE, NEED_QP, ERROR = range(3)
     P_OUT, P_SKIP, P_Z, P_JAC, P_HESSIAN, P_Q, P_U_NEW, P_LAYERS, P_G, P_G_NEXT, P_GRAD,
     P_JAC_Y, P_CONSTANT, P_FACTOR, P_ARG, P_RES, P_IW, P_W, P_STEP_U, P_STATE, P_TANGENTS,
     P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
-    P_DIMS, P_SIZES, P_SCALARS, P_OBSERVATION, P_ESTIMATE, P_PHI, P_PLAN, P_COUNT,
-) = range(45)  # fmt: skip
+    P_DIMS, P_SIZES, P_SCALARS, P_OBSERVATION, P_ESTIMATE, P_PHI, P_PLAN, P_SHIFTED,
+    P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, P_GAIN_B, P_BANK_DIMS,
+    P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST, P_BANK_COUNTERS,
+    P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_COUNT,
+) = range(64)  # fmt: skip
 (
     D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE, D_OBSERVATION,
-    D_LINEAR, D_COUNT,
-) = range(11)  # fmt: skip
+    D_LINEAR, D_HAS_GAIN, D_COUNT,
+) = range(12)  # fmt: skip
 (
     S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED, S_Z_APPLIED,
-    S_TOLERANCE, S_COUNT,
-) = range(10)  # fmt: skip
+    S_TOLERANCE, S_G, S_U_MAX, S_REACH_LOW, S_REACH_HIGH, S_RUNAWAY, S_COUNT,
+) = range(15)  # fmt: skip
 PARTIALS = ("F", "s_next", "dF_du", "ds_du", "dF_ds", "ds_ds")
 """Outputs of :func:`partials_function`, in order (the last two sparse)."""
 
@@ -114,13 +130,16 @@ enum { P_U, P_MEMORY, P_OFFSET, P_GAMMA, P_RATE_HESSIAN, P_LOWER, P_UPPER, P_WEI
        P_OUT, P_SKIP, P_Z, P_JAC, P_HESSIAN, P_Q, P_U_NEW, P_LAYERS, P_G, P_G_NEXT, P_GRAD,
        P_JAC_Y, P_CONSTANT, P_FACTOR, P_ARG, P_RES, P_IW, P_W, P_STEP_U, P_STATE, P_TANGENTS,
        P_TANGENTS_NEXT, P_COMBINED, P_FS_COLUMNS, P_FS_ROWS, P_SS_STARTS, P_SS_COLUMNS, P_SS_ORDER,
-       P_DIMS, P_SIZES, P_SCALARS, P_OBSERVATION, P_ESTIMATE, P_PHI, P_PLAN };
+       P_DIMS, P_SIZES, P_SCALARS, P_OBSERVATION, P_ESTIMATE, P_PHI, P_PLAN, P_SHIFTED,
+       P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, P_GAIN_B, P_BANK_DIMS,
+       P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST, P_BANK_COUNTERS,
+       P_BANK_COUNTS, P_BANK_A, P_BANK_B };
 enum { R_F, R_S_NEXT, R_DF_DU, R_DS_DU, R_DF_DS, R_DS_DS };
 enum { D_N, D_FEATURES, D_LAYERS, D_STATE, D_SHORTCUT, D_SLEW, D_ITERATIONS, D_DONE,
-       D_OBSERVATION, D_LINEAR };
+       D_OBSERVATION, D_LINEAR, D_HAS_GAIN };
 enum { S_W, S_RATE_WEIGHT, S_U_PREV, S_SLEW_STEP, S_OUT_BIAS, S_STEP, S_U_APPLIED,
-       S_Z_APPLIED, S_TOLERANCE };
-enum { INSIDE, NEED_QP, ERROR };
+       S_Z_APPLIED, S_TOLERANCE, S_G, S_U_MAX, S_REACH_LOW, S_REACH_HIGH, S_RUNAWAY };
+enum { INSIDE, NEED_QP, ERROR, NON_FINITE };
 
 #define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
 #define S(p) ((double *)(p)[P_SCALARS])
@@ -411,6 +430,103 @@ int nmpc_apply(void **p)
     S(p)[S_Z_APPLIED] = z;
     return INSIDE;
 }
+
+/* controllers.mpc.float32_within: u rounded to the float32 the plant receives, kept inside
+   [low, high]. numpy compares the float32 with the Python floats low and high as float32
+   (NEP 50: a Python float is weakly typed), and so does this. */
+static double float32_within(double u, double low, double high)
+{
+    float rounded = (float)u;
+    if (rounded > (float)high) rounded = nextafterf(rounded, -INFINITY);
+    else if (rounded < (float)low) rounded = nextafterf(rounded, INFINITY);
+    return (double)rounded;
+}
+
+/* The end of NonlinearMPC._act once the plan (P_PLAN) is chosen: its first move, clipped to
+   the first move's bounds (the slew window) and rounded to float32 within them, steps the
+   memory (nmpc_apply), the observer bank and the gain estimate (time updates with its z);
+   the volts in S_U_APPLIED and S_U_PREV. */
+int nmpc_finish(void **p)
+{
+    double *sc = S(p);
+    const double low = F(p, P_LOWER)[0], high = F(p, P_UPPER)[0];
+    sc[S_U_APPLIED] = float32_within(py_min(py_max(F(p, P_PLAN)[0], low), high), low, high);
+    if (nmpc_apply(p) == ERROR) return ERROR;
+    const double z = sc[S_Z_APPLIED];
+    bank_predict(p[P_BANK_DIMS], p[P_BANK_A], p[P_BANK_B], p[P_BANK_ST], z);
+    if (D(p, D_HAS_GAIN)) gain_advance(p[P_GAIN_DIMS], p[P_GAIN_A], p[P_GAIN_B], p[P_GAIN_X], z);
+    sc[S_U_PREV] = sc[S_U_APPLIED];
+    return INSIDE;
+}
+
+/* NonlinearMPC._act in one call, for the identified NLS with the observer bank: the
+   observation's check, the gain estimate's update and the observation over g
+   (NonlinearMPC._learn_gain: a new g rescales every filter's output estimate,
+   controllers.observer.rescale_output_states), the preview clipped to the static reach
+   (S_REACH_LOW, S_REACH_HIGH), the bank's measurement update (its runaway sample in
+   S_RUNAWAY), the first move's bounds (the slew window), nmpc_prepare (the shifted plan also
+   in P_SHIFTED, the fallback of a failed QP) and nmpc_rti. INSIDE: the plan went on to
+   nmpc_finish. NEED_QP: Python solves the QP of iteration D_DONE and calls nmpc_finish. */
+int nmpc_step(void **p)
+{
+    double *sc = S(p), *obs = F(p, P_OBSERVATION);
+    const int64_t size = D(p, D_OBSERVATION), n = D(p, D_N), n_x = D(p, D_LINEAR);
+    for (int64_t i = 0; i < size; ++i)
+        if (!isfinite(obs[i])) return NON_FINITE;
+    const int64_t *bank_dims = (const int64_t *)p[P_BANK_DIMS];
+    const int64_t filters = bank_dims[0], m = bank_dims[1];
+    double *est = F(p, P_BANK_ST);
+    if (D(p, D_HAS_GAIN)) {
+        gain_update(p[P_GAIN_DIMS], p[P_GAIN_PAR], p[P_GAIN_C], p[P_GAIN_X], p[P_GAIN_ST], obs[0]);
+        const int64_t k = ((const int64_t *)p[P_GAIN_DIMS])[0];
+        const double g = F(p, P_GAIN_ST)[9 * k];  /* value[0] */
+        if (g != sc[S_G]) {
+            const double ratio = sc[S_G] / g, *c = F(p, P_BANK_C);
+            for (int64_t f = 0; f < filters; ++f) {
+                double *e = est + f * m, output = 0.0;
+                for (int64_t j = 0; j < n_x; ++j) output += e[j] * c[j];
+                e[n_x] = ratio * (output + e[n_x]) - output;
+                for (int64_t j = n_x + 1; j < m; ++j) e[j] *= ratio;
+            }
+            sc[S_G] = g;
+        }
+        if (g != 1.0)
+            for (int64_t i = 0; i < size; ++i) obs[i] = obs[i] / g;
+    }
+    const double low = sc[S_REACH_LOW], high = sc[S_REACH_HIGH];
+    int beyond = 0;
+    for (int64_t i = 1; i < size; ++i)
+        if (obs[i] < low || obs[i] > high) beyond = 1;
+    if (beyond)  /* numpy's clip: minimum(maximum(r, low), high) */
+        for (int64_t i = 1; i < size; ++i) {
+            const double v = obs[i] > low ? obs[i] : low;
+            obs[i] = v < high ? v : high;
+        }
+    bank_correct(p[P_BANK_DIMS], p[P_BANK_PAR], F(p, P_BANK_C), p[P_BANK_GAINS], p[P_BANK_HLV],
+                 p[P_BANK_HIV], est, p[P_BANK_COUNTERS], p[P_BANK_COUNTS], obs[0]);
+    const int64_t *counters = (const int64_t *)p[P_BANK_COUNTERS];
+    sc[S_RUNAWAY] = (double)counters[3];
+    const double *selected = est + counters[0] * m;
+    double *estimate = F(p, P_ESTIMATE);
+    for (int64_t j = 0; j <= n_x; ++j) estimate[j] = selected[j];
+    double *lower = F(p, P_LOWER), *upper = F(p, P_UPPER);
+    const double u_max = sc[S_U_MAX];
+    if (D(p, D_SLEW)) {  /* PredictiveController._slew_window */
+        lower[0] = py_max(sc[S_U_PREV] - sc[S_SLEW_STEP], -u_max);
+        upper[0] = py_min(sc[S_U_PREV] + sc[S_SLEW_STEP], u_max);
+    } else {
+        lower[0] = -u_max;
+        upper[0] = u_max;
+    }
+    nmpc_prepare(p);
+    const double *u = F(p, P_U);
+    double *shifted = F(p, P_SHIFTED), *plan = F(p, P_PLAN);
+    for (int64_t i = 0; i < n; ++i) shifted[i] = u[i];
+    const int code = nmpc_rti(p);
+    if (code != INSIDE) return code;
+    for (int64_t i = 0; i < n; ++i) plan[i] = u[i];
+    return nmpc_finish(p);
+}
 """
 
 
@@ -456,7 +572,7 @@ def kernel_source(partials: Any) -> str:
     """The translation unit: the generated C of :func:`partials_function`'s Function
     (``nmpc_partials``) and the step."""
     generated = generated_text("nmpc_step.c", [partials])
-    return "\n".join((generated, STEP))
+    return "\n".join((generated, KERNELS, STEP))
 
 
 def compile_kernel(partials: Any) -> tuple[ctypes.CDLL | None, NativeBuild]:
@@ -464,9 +580,10 @@ def compile_kernel(partials: Any) -> tuple[ctypes.CDLL | None, NativeBuild]:
     return compile_source("nmpc_step", kernel_source(partials), flags=FLAGS, cache="kernels")
 
 
-def unavailable(reason: str) -> NativeBuild:
-    """The record of an NMPC whose iterations run in numpy, and why."""
-    return NativeBuild("nmpc_step", NUMPY, reason)
+def unavailable(reason: str, function: str = "nmpc_step") -> NativeBuild:
+    """The record of an NMPC whose iterations (``nmpc_step``), or whose step around them
+    (``nmpc_fused``), run in numpy and Python, and why."""
+    return NativeBuild(function, NUMPY, reason)
 
 
 def _ccs(sparsity: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -578,6 +695,7 @@ class IterationKernel:
                 0,
                 observation_size,
                 phi.shape[1],
+                0,  # D_HAS_GAIN: bind_estimators
             ],
             dtype=np.int64,
         )
@@ -595,6 +713,7 @@ class IterationKernel:
         self.hessian, self.q, self.u_new = np.zeros((n, n)), np.zeros(n), np.zeros(n)
         step_u, state = np.zeros(1), np.zeros(n_state)
         self.observation, self.plan = np.zeros(observation_size), np.zeros(n)
+        self.shifted = np.zeros(n)
         self.estimate = np.zeros(phi.shape[1] + 1)
         fs_columns, fs_rows = _ccs(partials.sparsity_out(4))
         ss_starts, ss_columns, ss_order = _crs(partials.sparsity_out(5))
@@ -639,6 +758,7 @@ class IterationKernel:
             P_ESTIMATE: self.estimate,
             P_PHI: np.ascontiguousarray(phi, dtype=np.float64),
             P_PLAN: self.plan,
+            P_SHIFTED: self.shifted,
         }
         for index, buffer in own.items():
             self._point(index, buffer)
@@ -648,7 +768,7 @@ class IterationKernel:
             raise ValueError("the partials Function's outputs do not match the feature map")
         pointer = self.table.ctypes.data
         functions = {}
-        for name in ("nmpc_iterate", "nmpc_apply", "nmpc_rti"):
+        for name in ("nmpc_iterate", "nmpc_apply", "nmpc_rti", "nmpc_step", "nmpc_finish"):
             function = getattr(library, name)
             function.argtypes, function.restype = [ctypes.c_void_p], ctypes.c_int
             functions[name] = function
@@ -656,6 +776,9 @@ class IterationKernel:
         self._iterate = lambda: functions["nmpc_iterate"](pointer)
         self._apply = lambda: functions["nmpc_apply"](pointer)
         self._rti = lambda: functions["nmpc_rti"](pointer)
+        self._step = lambda: functions["nmpc_step"](pointer)
+        self._finish = lambda: functions["nmpc_finish"](pointer)
+        self.fused = False  # bind_estimators: the bank's and the gain's arrays are bound
         prepare = library.nmpc_prepare
         prepare.argtypes, prepare.restype = [ctypes.c_void_p], None
         self._prepare = lambda: prepare(pointer)
@@ -695,11 +818,84 @@ class IterationKernel:
             raise RuntimeError("the compiled NMPC memory step's feature map failed")
         return float(self.scalars[S_Z_APPLIED])
 
-    def _point(self, index: int, buffer: np.ndarray) -> None:
+    def bind_estimators(
+        self,
+        bank: Any,
+        gain: Any,
+        *,
+        u_max: float,
+        reach: tuple[float, float],
+    ) -> None:
+        """Point :meth:`step` at an :class:`controllers.observer.ObserverBank`'s arrays and a
+        :class:`controllers.gain.GainEstimate`'s (None: no gain), both run by the compiled
+        kernels (:mod:`controllers.native.step_kernels`), with the drive limit ``u_max`` (V)
+        and the static reach (um, :func:`controllers.nmpc.static_reach`). The arrays stay
+        their owners' (the controller keeps them); called at each episode's start."""
+        n_x = int(self.dims[D_LINEAR])
+        if int(bank._dims[1]) < n_x + 1 or bank.c_aug.size != bank._dims[1]:
+            raise ValueError(f"the bank's estimates must hold [x; d] with x of size {n_x}")
+        buffers = {
+            P_BANK_DIMS: bank._dims,
+            P_BANK_PAR: bank._parameters,
+            P_BANK_C: bank._c_aug,
+            P_BANK_GAINS: bank._gains,
+            P_BANK_HLV: bank._half_log_var,
+            P_BANK_HIV: bank._half_inverse_var,
+            P_BANK_ST: bank._state,
+            P_BANK_COUNTERS: bank._counters,
+            P_BANK_COUNTS: bank.selection_counts,
+            P_BANK_A: bank._a_aug,
+            P_BANK_B: bank._b_aug,
+        }
+        self.dims[D_HAS_GAIN] = gain is not None
+        if gain is not None:
+            if gain.size != 1:
+                raise ValueError("the NMPC's gain estimate has one part")
+            dims, par = gain._kernel_data
+            buffers.update(
+                {
+                    P_GAIN_DIMS: dims,
+                    P_GAIN_PAR: par,
+                    P_GAIN_C: gain._c,
+                    P_GAIN_X: gain._x,
+                    P_GAIN_ST: gain._state,
+                    P_GAIN_A: gain._a,
+                    P_GAIN_B: gain._b,
+                }
+            )
+        for index, buffer in buffers.items():
+            self._point(index, buffer, keep=False)
+        self.scalars[S_U_MAX] = u_max
+        self.scalars[S_REACH_LOW], self.scalars[S_REACH_HIGH] = reach
+        self.fused = True
+
+    def step(self) -> int:
+        """The whole step from :attr:`observation` (``nmpc_step``, after
+        :meth:`bind_estimators`): :data:`INSIDE` (the volts in ``scalars[S_U_APPLIED]``),
+        :data:`NEED_QP` (iteration ``dims[D_DONE]`` needs the QP; then :meth:`finish`) or
+        :data:`NON_FINITE`; RuntimeError when the generated code reports an error."""
+        self.calls += 1
+        code = self._step()
+        if code == ERROR:
+            raise RuntimeError("the compiled NMPC step's feature map failed")
+        return code
+
+    def finish(self) -> float:
+        """The step's end for the plan in :attr:`plan` (``nmpc_finish``): its first move in
+        the window, rounded to float32, steps the memory and the estimators; the volts."""
+        self.calls += 1
+        if self._finish() == ERROR:
+            raise RuntimeError("the compiled NMPC memory step's feature map failed")
+        return float(self.scalars[S_U_APPLIED])
+
+    def _point(self, index: int, buffer: np.ndarray, *, keep: bool = True) -> None:
+        """Write ``buffer``'s address into the table (``keep``: hold a reference to it, for the
+        kernel's own buffers; the estimators' arrays are their owners')."""
         if not (buffer.flags.c_contiguous and buffer.dtype in (np.float64, np.int64)):
             raise ValueError(f"table entry {index}: needs a C-contiguous float64 or int64 array")
         self.table[index] = buffer.ctypes.data
-        self._keep.append(buffer)
+        if keep:
+            self._keep.append(buffer)
 
     def _casadi(
         self, library: ctypes.CDLL, function: Any, inputs: list[np.ndarray]
