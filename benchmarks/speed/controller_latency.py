@@ -207,6 +207,17 @@ def stats(x: np.ndarray) -> tuple[str, str, str]:
     return tuple(f"{v:.1f}" for v in np.quantile(x, [0.5, 0.99, 1.0]))
 
 
+CARTPOLE_BLOCK = 2000
+"""CartPole-v1 steps timed before and after each row's episode: about 15-30 ms, as long as the
+episode's own order of magnitude, so that both see the same state of a shared machine (whose
+speed was seen to change by 1.6-2x between blocks a second apart, `design_measurements.md`)."""
+
+
+def cartpole_block() -> float:
+    """Median step time (us) of :data:`CARTPOLE_BLOCK` CartPole-v1 steps through gym.make."""
+    return float(np.median(single_env_step_times("CartPole-v1", CARTPOLE_BLOCK))) * 1e6
+
+
 @contextlib.contextmanager
 def step_not_fused(unfused: bool):
     """With ``unfused``, the NMPCs built inside run the compiled iteration between their
@@ -265,31 +276,38 @@ def main() -> None:
     rows, record, fast_record, period_record = [], [], [], []
     with threadpool_limits(1):
         cart = single_env_step_times("CartPole-v1", 20_000) * 1e6
-        cart_median = float(np.median(cart))
+        blocks = []  # the CartPole blocks beside each row: its own reference
         for label, name, steps, options in runs:
             options = dict(options)
             run_env = options.pop("env", env)
+            before = cartpole_block()
             try:
                 with step_not_fused(options.pop("unfused", False)):
                     r = controller_times(run_env, name, steps, **options)
             except Exception as error:  # a missing optional solver must not hide the rest
-                rows.append([label, f"failed: {error}", *[""] * 9])
+                rows.append([label, f"failed: {error}", *[""] * 10])
                 continue
+            beside = 0.5 * (before + cartpole_block())
+            blocks.append(beside)
             median = float(np.median(r["step"]))
-            record.append(numbers(label, r["step"], r["dt"], cart_median, r["metrics"]))
+            entry = numbers(label, r["step"], r["dt"], beside, r["metrics"])
+            entry["cartpole_beside_us"] = beside
+            record.append(entry)
             rows.append(
                 [
                     label,
                     *stats(r["step"]),
                     f"{int(r['misses'][0])} of {r['step'].size}",
-                    f"{median / cart_median:.1f}",
-                    f"{np.quantile(r['step'], 0.99) / cart_median:.1f}",
+                    f"{beside:.1f}",
+                    f"{median / beside:.1f}",
+                    f"{np.quantile(r['step'], 0.99) / beside:.1f}",
                     stats(r["qp"])[0],
                     str(int(r["iterations"][0])),
                     stats(r["inverse"])[0],
                     f"{r['rmse'][0]:.3f}",
                 ]
             )
+        cart_median = float(np.median(blocks))
         fast, _ = ten_khz_rows(cart_median, fast_record)
         period, period_samples = ten_khz_rows(
             cart_median, period_record, prediction_horizon="resonance"
@@ -297,8 +315,13 @@ def main() -> None:
         machine = machine_line()  # inside the thread limit, as the header's
         lines = header("Controller latency (one BLAS thread)", __spec__.name)
     lines += [
-        f"CartPole-v1 step through gym.make, same run: median {cart_median:.1f} us, p99 "
-        f"{np.quantile(cart, 0.99):.1f} us. Episodes: 2 s, noise on, preview 20, half-stroke "
+        "CartPole-v1 step through gym.make, same run: each row's ratios are to the CartPole "
+        f"steps timed just before and just after its episode ({CARTPOLE_BLOCK} steps each, "
+        "the mean of the two medians: this machine's speed at that moment, which drifts by up "
+        f"to 2x over seconds on a shared host); their median over the rows {cart_median:.1f} "
+        f"us (the 10 kHz tables' reference), a long run of {cart.size} steps at the start: "
+        f"median {np.median(cart):.1f} us, p99 {np.quantile(cart, 0.99):.1f} us. Episodes: 2 "
+        "s, noise on, preview 20, half-stroke "
         f"50 Hz sine; PL140 at 1 ms ({STEPS} steps, {IPOPT_STEPS} for IPOPT), PL127 at "
         f"{dt127 * 1e3:g} ms ({steps127} steps). A deadline miss is a step whose compute time "
         "exceeded the sample time (1 ms; 0.25 ms on the PL127). The adaptive MPC updates the "
@@ -315,6 +338,7 @@ def main() -> None:
                 "step p99 (us)",
                 "step max (us)",
                 "deadline misses",
+                "CartPole step beside (us)",
                 "median / CartPole step",
                 "p99 / CartPole step",
                 "QP solve median (us)",
@@ -352,6 +376,7 @@ def main() -> None:
         "date": datetime.date.today().isoformat(),
         "machine": machine,
         "cartpole_median_us": cart_median,
+        "cartpole_long_run_median_us": float(np.median(cart)),
         "cartpole_p99_us": float(np.quantile(cart, 0.99)),
         "controllers": record,
         "mpc_10khz": fast_record,
