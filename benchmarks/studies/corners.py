@@ -39,7 +39,9 @@ Run: ``python -m benchmarks.studies.corners`` (about three minutes on 2 cores).
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -197,7 +199,7 @@ def main(argv: list[str] | None = None) -> None:
         title += ", hysteresis strength " + " and ".join(f"x{s:g}" for s in scales)
         options += " --hysteresis " + " ".join(f"{s:g}" for s in scales)
     lines = header(title, __spec__.name, options.strip())
-    lines += [__doc__.split("\n\nRun:")[0].split("\n\n", 1)[1], ""]
+    lines += [__doc__.split("\n\nRun:")[0].split("\n\n", 1)[1], "", model_line(model_dir), ""]
     for scale in scales:
         results = {vertex: run_vertex(vertex, bender, model_dir, scale) for vertex in VERTICES}
         for ref_name in REFERENCES_RUN:
@@ -205,6 +207,18 @@ def main(argv: list[str] | None = None) -> None:
             lines += [f"## {heading}", "", _table(results, ref_name), ""]
     name = "corners" if bender == BENDER else f"corners-{bender}"
     write_result(name + ("-hysteresis" if args.hysteresis else ""), lines)
+
+
+def model_line(model_dir: str) -> str:
+    """The identified model these tables ran: its bender and identification seed, and the
+    command that identifies it again (the rows move with the model's identification seed, so
+    a table names the seed it was made with)."""
+    meta = json.loads((Path(model_dir) / "model.json").read_text(encoding="utf-8"))["metadata"]
+    bender, seed = str(meta["bender"]).split(".")[0], meta["seed"]
+    return (
+        f"Model: identified on the {meta['bender']} with identification seed {seed} "
+        f"(`piezo identify --bender {bender} --seed {seed}` identifies it again)."
+    )
 
 
 def _table(results: dict[tuple[float, float, float], dict], ref_name: str) -> str:
