@@ -100,8 +100,8 @@ def test_the_free_run_is_the_arx_recursion_from_rest():
     z = np.random.default_rng(4).normal(0.0, 10.0, 2000)
     expected = _recursion(F_TRUE, B_TRUE, z)
     run = FreeRun(z.size, F_TRUE.size, B_TRUE.size, torch)
-    response = run.response(torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE))
-    got = run.free_run(torch.from_numpy(z), response).numpy()
+    got = run.free_run(torch.from_numpy(z), torch.from_numpy(F_TRUE), torch.from_numpy(B_TRUE))
+    got = got.numpy()
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
     np.testing.assert_allclose(ARXModel(F_TRUE, B_TRUE).simulate(z), expected, atol=1e-9)
 
@@ -143,8 +143,8 @@ def test_beyond_the_stability_boundary_the_free_run_is_the_recursion_until_it_ov
     run = FreeRun(z.size, 2, 2, torch)
 
     def through(f: np.ndarray) -> np.ndarray:
-        response = run.response(torch.from_numpy(f), torch.from_numpy(B_TRUE))
-        return run.free_run(torch.from_numpy(z), response).numpy()
+        a, b = torch.from_numpy(f), torch.from_numpy(B_TRUE)
+        return run.free_run(torch.from_numpy(z), a, b).numpy()
 
     mild = 1.02 * np.exp(2j * np.pi * 0.05)  # 1.02^3000: 6e25, no overflow
     f = np.array([2 * mild.real, -(abs(mild) ** 2)])
@@ -161,14 +161,22 @@ def test_beyond_the_stability_boundary_the_free_run_is_the_recursion_until_it_ov
 
 
 def test_a_joint_stage_that_ends_beyond_the_finite_range_is_refused():
-    from identification.nls.output_error import _linear_refusal
+    from identification.nls.output_error import _joint_end
 
-    start = ARXModel(F_TRUE, B_TRUE, dt=1e-3)
+    start = ARXModel(F_TRUE, B_TRUE, dt=1e-3, noise_bound=2.0)
     params = {"w": np.ones(3)}
-    assert _linear_refusal(start, F_TRUE, B_TRUE, params) is None
-    assert "non-finite" in _linear_refusal(start, np.array([np.nan, 0.1]), B_TRUE, params)
-    assert "non-finite" in _linear_refusal(start, F_TRUE, B_TRUE, {"w": np.array([np.inf])})
-    assert "unstable" in _linear_refusal(start, np.array([2.1, -1.1]), B_TRUE, params)
+    kept, why = _joint_end(start, F_TRUE, B_TRUE, params)
+    assert why is None and kept.noise_bound == 2.0 and kept.dt == 1e-3
+    np.testing.assert_array_equal(kept.a, F_TRUE)
+
+    def refusal(a, b, params):
+        kept, why = _joint_end(start, a, b, params)
+        assert kept is None
+        return why
+
+    assert "non-finite" in refusal(np.array([np.nan, 0.1]), B_TRUE, params)
+    assert "non-finite" in refusal(F_TRUE, B_TRUE, {"w": np.array([np.inf])})
+    assert "unstable" in refusal(np.array([2.1, -1.1]), B_TRUE, params)
 
 
 def test_the_free_runs_gradient_does_not_depend_on_the_blas_thread_count():

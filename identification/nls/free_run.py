@@ -37,15 +37,9 @@ class FreeRun:
         self.n, self.na, self.nb, self.torch = n, na, nb, torch
         self._spectral: tuple[int, Any, Any] | None = None
 
-    def response(self, a: object, b: object) -> tuple[object, object]:
-        """The linear part ``(a, b)`` as :meth:`free_run` takes it (a stage that holds it
-        passes the same pair to every call)."""
-        return a, b
-
-    def free_run(self, z: object, response: tuple[object, object]) -> object:
+    def free_run(self, z: object, a: object, b: object) -> object:
         """The free run (um) of ``z`` (equivalent V, a torch tensor of the record's length)
-        through ``response = (a, b)`` (:meth:`response`)."""
-        a, b = response
+        through the linear part ``(a, b)`` (torch tensors)."""
         y = free_run(z, a, b)
         y_np = y.detach().numpy()
         with np.errstate(over="ignore", invalid="ignore"):  # numpy's sum, not a BLAS dot,

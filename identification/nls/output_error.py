@@ -253,42 +253,34 @@ def refine_nls_output_error(
                     sequence_features(feature_map, u, feature_map.initial_state())[0]
                 )
                 inputs.append((module.input_of(torch.from_numpy(rows)), torch.from_numpy(index)))
-        held = [grid.response(a, b) for grid in grids]  # the linear part of the first stage
-
-        def objective(responses: Sequence[tuple[Any, Any]] | None = None) -> object:
-            """Mean squared free-run error over the records; ``responses`` holds each record's
-            :meth:`FreeRun.response` when the stage holds the linear part (None: from ``a``
-            and ``b``)."""
+        def objective() -> object:
+            """Mean squared free-run error over the records (through ``a`` and ``b``, held
+            where they do not require gradients)."""
             total = 0
-            for i, ((x, index), y, grid) in enumerate(zip(inputs, outputs, grids, strict=True)):
-                response = grid.response(a, b) if responses is None else responses[i]
-                error = grid.free_run(module.output_of(x)[index], response) - y
+            for (x, index), y, grid in zip(inputs, outputs, grids, strict=True):
+                error = grid.free_run(module.output_of(x)[index], a, b) - y
                 total = total + (error * error).sum()
             return total / count
 
-        def stage(parameters: list, linear: bool, iterations: int) -> dict:
-            """An L-BFGS stage on ``parameters`` (``linear``: ``a`` and ``b`` among them)."""
-            evaluate = _autograd(partial(objective, None if linear else held), torch)
-            return _lbfgs(parameters, evaluate, iterations, torch, count)
+        def stage(parameters: list, iterations: int) -> dict:
+            """An L-BFGS stage on ``parameters``."""
+            return _lbfgs(parameters, _autograd(objective, torch), iterations, torch, count)
 
         # The network first, the linear part held (the step e network is far from this
         # optimum, the step b' linear part close to it); then both together. Started at once,
         # L-BFGS meets the network's and the poles' very different curvatures and stalls.
-        stages.append(stage(list(module.parameters()), False, int(max_iterations)))
+        stages.append(stage(list(module.parameters()), int(max_iterations)))
         network_only = TorchNLS.to_params(module)
         if refine_linear:
             a.requires_grad_(True)
             b.requires_grad_(True)
-            stages.append(stage([*module.parameters(), a, b], True, int(max_iterations)))
+            stages.append(stage([*module.parameters(), a, b], int(max_iterations)))
         params = TorchNLS.to_params(module)
         a_new, b_new = a.detach().numpy().copy(), b.detach().numpy().copy()
     linear, linear_note = arx, None
     if refine_linear:
-        linear_note = _linear_refusal(arx, a_new, b_new, params)
-        if linear_note is None:
-            candidate = ARXModel(
-                a_new, b_new, noise_bound=arx.noise_bound, dt=arx.dt, method=arx.method
-            )
+        candidate, linear_note = _joint_end(arx, a_new, b_new, params)
+        if candidate is not None:
             linear = _with_equation_error_bound(candidate, params, feature_map, nls, data)
         else:  # the line search may end beyond the stability boundary: keep the first stage
             params = network_only
@@ -304,26 +296,29 @@ def refine_nls_output_error(
     )
 
 
-def _linear_refusal(
+def _joint_end(
     start: ARXModel, a: np.ndarray, b: np.ndarray, params: dict[str, np.ndarray]
-) -> str | None:
-    """Why the joint stage's end, the linear part ``(a, b)`` with the network ``params``,
-    cannot be kept (None: it can)."""
+) -> tuple[ARXModel | None, str | None]:
+    """The joint stage's end, the linear part ``(a, b)`` with the network ``params``: the
+    linear part as a model (with ``start``'s noise bound, dt and method) and None, or None and
+    why it cannot be kept."""
     values = [a, b, *params.values()]
     if not all(np.all(np.isfinite(value)) for value in values):
-        return (
+        return None, (
             "the joint stage's line search ended at non-finite values; its network-only stage "
             "is kept"
         )
     candidate = ARXModel(a, b, noise_bound=start.noise_bound, dt=start.dt, method=start.method)
     if not candidate.is_stable():
-        return "the joint stage ended at an unstable linear part; its network-only stage is kept"
+        return None, (
+            "the joint stage ended at an unstable linear part; its network-only stage is kept"
+        )
     if start.is_minimum_phase() and not candidate.is_minimum_phase():
-        return (
+        return None, (
             "the joint stage ended at a non-minimum-phase linear part; its network-only stage "
             "is kept"
         )
-    return None
+    return candidate, None
 
 
 def _with_equation_error_bound(
@@ -368,14 +363,13 @@ def _radius_stage(
     a, b = linear
     start = np.asarray(feature_map.radii)
     coordinates = torch.tensor(radius_coordinates(start), requires_grad=True)
-    held = [grid.response(a, b) for grid in grids]
 
     def objective() -> object:
         radii = radii_from_coordinates(coordinates)
         total = 0
-        records = zip(network_inputs(radii), spread, outputs, grids, held, strict=True)
-        for f, index, y, grid, response in records:
-            error = grid.free_run(module(f)[index], response) - y
+        records = zip(network_inputs(radii), spread, outputs, grids, strict=True)
+        for f, index, y, grid in records:
+            error = grid.free_run(module(f)[index], a, b) - y
             total = total + (error * error).sum()
         return total / count
 
@@ -402,8 +396,8 @@ def _learn_radii(
     rest = feature_map.initial_input
     # A held input leaves every play where it is, so the features (and the network's output)
     # are computed once per run of equal inputs and spread over the run.
-    runs = [_runs(u) for u, _ in data]
-    inputs = [torch.from_numpy(u[starts]) for (u, _), (starts, _) in zip(data, runs, strict=True)]
+    runs = [distinct_rows(u[:, None]) for u, _ in data]
+    inputs = [torch.from_numpy(rows[:, 0]) for rows, _ in runs]
     spread = [torch.from_numpy(index) for _, index in runs]
 
     def network_inputs(radii: Any) -> Iterator[Any]:
@@ -517,14 +511,6 @@ def distinct_rows(features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     new_row[:1] = True
     np.any(features[1:] != features[:-1], axis=1, out=new_row[1:])
     return features[new_row], np.cumsum(new_row) - 1
-
-
-def _runs(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Starts of the runs of equal consecutive samples of ``u``, and each sample's run."""
-    new_run = np.empty(u.size, dtype=bool)
-    new_run[0] = True
-    np.not_equal(u[1:], u[:-1], out=new_run[1:])
-    return np.flatnonzero(new_run), np.cumsum(new_run) - 1
 
 
 STOP_FRACTION = 0.01
