@@ -373,7 +373,7 @@ class LinearMPC(PredictiveController):
             or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
         ):
             observation = self.task.check_observation(observation)  # raises, or converts
-        elif not abs(observation[0]) <= self._observation_bound:  # a fault, or NaN: says which
+        elif not abs(observation.item(0)) <= self._observation_bound:  # a fault or NaN: why
             self.task.check_observation(observation)
         fused.observation[:] = observation  # the kernel checks that every entry is finite
         u = self._act_fused(observation)
@@ -660,7 +660,12 @@ def covering_samples(a: np.ndarray, dt: float, moves: int) -> int:
 def float32_within(u: float, low: float, high: float) -> float:
     """``u`` (V, inside ``[low, high]``) rounded to the float32 the plant receives, kept inside
     the window: rounding that steps out is replaced by the next float32 towards the inside
-    (one float32 step, 2e-6 V at 30 V, within the window whenever it is wider than that)."""
+    (one float32 step, 2e-6 V at 30 V, within the window whenever it is wider than that).
+
+    ``low`` and ``high`` are Python floats (:class:`controllers.task.ControlTask` makes its
+    numbers so), which numpy compares with the float32 in float32 (NEP 50): a voltage may
+    pass the window's edge by up to half a float32 step (1e-6 V at 30 V), far inside the
+    slew margin :data:`controllers.task.SLEW_MARGIN_V`. The compiled steps compare alike."""
     rounded = np.float32(u)
     if rounded > high:
         rounded = np.nextafter(rounded, np.float32(-np.inf))

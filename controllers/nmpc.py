@@ -300,7 +300,7 @@ class NonlinearMPC(PredictiveController):
         their optima meet the bounds, the memory step) and why not: it needs the compiled
         iteration, the observer bank and the gain estimate run by the compiled kernels.
         Without it the same compiled iteration runs between the estimators' Python calls (the
-        same numbers, to the bit: ``tests/test_nmpc_fused.py``; a longer step)."""
+        same numbers, to the bit: ``tests/test_nmpc_speed.py``; a longer step)."""
         kernel, observer, gain = self._kernel, self.observer, self._gain
         why = None
         if kernel is None:
@@ -351,7 +351,7 @@ class NonlinearMPC(PredictiveController):
             or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
         ):
             observation = self.task.check_observation(observation)  # raises, or converts
-        elif not abs(observation[0]) <= self._observation_bound:  # a fault, or NaN: says which
+        elif not abs(observation.item(0)) <= self._observation_bound:  # a fault or NaN: why
             self.task.check_observation(observation)
         kernel.observation[:] = observation  # the kernel checks that every entry is finite
         u = self._act_fused(observation)
@@ -379,11 +379,13 @@ class NonlinearMPC(PredictiveController):
             self._plan = kernel.plan
         scalars = kernel.scalars
         scalars[nmpc_step.S_G], scalars[nmpc_step.S_U_PREV] = self._g, self._u_prev
-        code = kernel.step()
+        try:
+            code = kernel.step()
+        finally:  # the gain (and the bank's scale) moved before any error the kernel reports
+            self._g = float(scalars[nmpc_step.S_G])
         if code == nmpc_step.NON_FINITE:
             self.task.check_observation(observation)  # raises, naming the entry
             raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")
-        self._g = float(scalars[nmpc_step.S_G])
         stats = self.stats
         if code == nmpc_step.INSIDE:
             stats.iterations.append(0)

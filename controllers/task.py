@@ -97,6 +97,16 @@ class ControlTask:
                 low=2.0 * SLEW_MARGIN_V / self.dt,
                 low_open=True,
             )
+        # Python floats whatever number type a caller passed (numpy's float64, say): the
+        # controllers' voltage windows are Python floats then, which numpy compares with a
+        # float32 voltage in float32, as their compiled steps do (controllers.mpc.
+        # float32_within).
+        for name in ("dt", "u_max", "stroke_um", "noise_bound_um", "slew_limit"):
+            value = getattr(self, name)
+            if value is not None:
+                object.__setattr__(self, name, float(value))
+        if self.observation_bound_um is not None:
+            object.__setattr__(self, "observation_bound_um", float(self.observation_bound_um))
 
     @property
     def slew_step(self) -> float | None:

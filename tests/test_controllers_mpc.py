@@ -564,3 +564,23 @@ def test_pid_oracles_build_behind_a_sensor_and_pid_ff_steers_the_tip(name):
     assert np.isfinite(errors).all()
     if name == "pid-ff":
         assert errors[0] <= 1.05 * errors[1]
+
+
+def test_the_task_holds_its_numbers_as_python_floats():
+    """A task made with numpy scalars holds Python floats: the voltage windows built from them
+    stay Python floats, which numpy compares with a float32 voltage in float32, as the
+    compiled steps do (:func:`controllers.mpc.float32_within`); a numpy float64 window would
+    compare in float64 on the numpy path only."""
+    task = ControlTask(
+        dt=np.float64(1e-3),
+        u_max=np.float32(30.0),
+        stroke_um=np.int64(100),
+        preview=10,
+        noise_bound_um=np.float64(1.0),
+        slew_limit=np.float64(9000.0),
+        observation_bound_um=np.float32(1500.0),
+    )
+    names = ("dt", "u_max", "stroke_um", "noise_bound_um", "slew_limit", "observation_bound_um")
+    for name in names:
+        assert type(getattr(task, name)) is float, name
+    assert type(task.slew_step) is float

@@ -195,35 +195,69 @@ def test_a_step_with_a_qp_makes_one_call_per_iteration_after_it(env):
 
 
 @pytest.mark.parametrize(
-    "plant, reference_name",
-    [("corner", "sine-100Hz"), ("corner", "steps"), ("bench", "steps"), ("bench", "sine-50Hz")],
+    "plant, reference_name, variant",
+    [
+        ("corner", "sine-100Hz", None),
+        ("corner", "steps", None),
+        ("corner", "sine-50Hz", "no gain"),
+        ("nominal", "multisine", "fall back"),
+        ("bench", "steps", None),
+        ("bench", "sine-50Hz", None),
+    ],
 )
-def test_the_fused_step_equals_the_unfused_one_in_closed_loop(env, plant, reference_name):
+def test_the_fused_step_equals_the_unfused_one_in_closed_loop(
+    env, plant, reference_name, variant
+):
     """The whole step in one call against the compiled iteration between the estimators'
-    Python calls: the same volts, plans, memory and records to the bit, on a box corner whose
-    gain the NMPC learns (g away from 1: the bank's output estimates rescaled) and on the
-    bench plant (slew limit: the first move's window, the QP's rate rows)."""
+    Python calls: the same volts, plans, memory, learned gain, bank state and records (every
+    step's QP iterations included) to the bit, on a box corner whose gain the NMPC learns (g
+    away from 1: the bank's output estimates rescaled), on the bench plant with the NMPC
+    built for its slew limit (the first move's window, the QP's rate rows), without a gain
+    estimate (``gain_tolerance=0``), and with the bank's runaway guard made to fall back
+    mid-episode (the step it happened recorded alike)."""
     from benchmarks.plants import _bench
     from benchmarks.studies.corners import vertex_env
 
+    home = env
     if plant == "corner":
         target = vertex_env((1.2, 0.8, 0.04))
+    elif plant == "bench":
+        target = home = gym.make("piezo_env:PiezoBender-v0", preview=20, **_bench("PL140"))
     else:
-        target = gym.make("piezo_env:PiezoBender-v0", preview=20, **_bench("PL140"))
+        target = env
+    options = {"gain_tolerance": 0.0} if variant == "no gain" else {}
     steps = 600
     reference = make_reference(reference_name, steps + 21, dt=1e-3, seed=0)
-    runs = []
+    runs, controllers_ = [], []
     for fused in (True, False):
-        c = build(env, compiled=True, fused=fused)
-        row = lambda c: np.r_[c._plan, c._memory, c._g]  # noqa: E731
+        c = build(home, compiled=True, fused=fused, **options)
+        assert (c.task.slew_step is not None) == (plant == "bench")
+
+        def row(c):
+            if variant == "fall back" and len(c.stats.compute_s) == 40:
+                c.observer.fall_back()
+            state = c.observer._state
+            return np.r_[c._plan, c._memory, c._g, c._u_prev, state]
+
         runs.append(recorded_episode(c, target, reference, steps, row))
+        controllers_.append(c)
         assert c._kernel.fused == fused
-    target.close()
+    if target is not env:
+        target.close()
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
     np.testing.assert_array_equal(runs[0][1], runs[1][1])
     for key in ("status", "fallbacks", "saturated", "observer_fallback_step"):
         assert runs[0][2][key] == runs[1][2][key], key
-    assert np.any(runs[0][1][:, -1] != 1.0)  # the gain was learned away from the model's
+    assert controllers_[0].stats.iterations == controllers_[1].stats.iterations
+    gain = runs[0][1][:, controllers_[0].settings.horizon + controllers_[0]._memory.size]
+    if variant == "no gain":
+        assert np.all(gain == 1.0)
+    elif plant == "corner":
+        assert np.any(gain != 1.0)  # the bank's output estimates were rescaled
+    if variant == "fall back":
+        assert runs[0][2]["observer_fallback_step"] == 40
+    if reference_name == "steps":
+        assert runs[0][2]["status"].get("solved", 0) > 0  # the QP path ran
 
 
 def test_the_fused_step_refuses_a_non_finite_observation_before_any_update(env):

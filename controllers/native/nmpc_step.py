@@ -865,6 +865,7 @@ class IterationKernel:
             )
         for index, buffer in buffers.items():
             self._point(index, buffer, keep=False)
+        self._bound = buffers  # held while bound: the table never points at freed memory
         self.scalars[S_U_MAX] = u_max
         self.scalars[S_REACH_LOW], self.scalars[S_REACH_HIGH] = reach
         self.fused = True
