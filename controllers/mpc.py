@@ -45,7 +45,6 @@ holding the first measurement) are the nonlinear MPC's too: :mod:`controllers.pr
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -366,28 +365,11 @@ class LinearMPC(PredictiveController):
         fused = self._fused
         if fused is None:
             return super().act(observation)
-        start = time.perf_counter()
-        if (
-            type(observation) is not np.ndarray
-            or observation.shape != fused.observation.shape
-            or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
-        ):
-            observation = self.task.check_observation(observation)  # raises, or converts
-        elif not abs(observation.item(0)) <= self._observation_bound:  # a fault or NaN: why
-            self.task.check_observation(observation)
-        fused.observation[:] = observation  # the kernel checks that every entry is finite
-        u = self._act_fused(observation)
-        stats = self.stats
-        if not -self._u_max <= u <= self._u_max:  # as the base class
-            if u != u:
-                raise RuntimeError(f"{self.name} computed a NaN voltage")
-            u = self._u_max if u > 0 else -self._u_max
-            stats.saturated += 1
-        if stats.observer_fallback_step is None and fused.scalars[fused_step.S_RUNAWAY] >= 0:
-            stats.observer_fallback_step = len(stats.compute_s)
-        action = np.array([u], dtype=np.float32)
-        stats.compute_s.append(time.perf_counter() - start)
-        return action
+        return self._act_compiled(observation, fused.observation, self._runaway)
+
+    def _runaway(self) -> float:
+        """The observer bank's runaway sample as the compiled step last read it (< 0: none)."""
+        return self._fused.scalars[fused_step.S_RUNAWAY]
 
     def _act_fused(self, observation: np.ndarray) -> float:
         """:meth:`_act` by the compiled step; Python runs what leaves it (the QP, the numpy
@@ -447,12 +429,7 @@ class LinearMPC(PredictiveController):
         """The plan, the memory and the scalars Python may have replaced, into the compiled
         step's buffers (the attributes then are those buffers)."""
         fused = self._fused
-        if self._plan is not fused.plan:
-            fused.plan[:] = self._plan
-            self._plan = fused.plan
-        if self._memory is not fused.memory:
-            fused.memory[:] = self._memory
-            self._memory = fused.memory
+        self._into_buffers(fused.plan, fused.memory)
         scalars = fused.scalars
         scalars[fused_step.S_G], scalars[fused_step.S_Z_PREV] = self._g, self._z_prev
         scalars[fused_step.S_U_PREV] = self._u_prev
@@ -598,9 +575,6 @@ class LinearMPC(PredictiveController):
             "qp_solver": solver_version(self.settings.qp_solver),
             "native": self.native_code(),
         }
-
-
-_FLOAT32, _FLOAT64 = np.dtype(np.float32), np.dtype(np.float64)
 
 
 def unconstrained_law(hessian: np.ndarray, q_matrix: np.ndarray) -> np.ndarray:

@@ -74,9 +74,8 @@ from typing import Any
 
 import numpy as np
 
-from controllers.base import _clock
 from controllers.box_qp import box_qp, solver_version, within
-from controllers.mpc import _FLOAT32, _FLOAT64, float32_within
+from controllers.mpc import float32_within
 from controllers.native import nmpc_step
 from controllers.native.codegen import NativeBuild
 from controllers.native.nmpc_horizon import GenericHorizon, StructuredHorizon, horizon_function
@@ -344,39 +343,16 @@ class NonlinearMPC(PredictiveController):
         kernel = self._kernel
         if kernel is None or not kernel.fused:
             return super().act(observation)
-        start = _clock()
-        if (
-            type(observation) is not np.ndarray
-            or observation.shape != kernel.observation.shape
-            or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
-        ):
-            observation = self.task.check_observation(observation)  # raises, or converts
-        elif not abs(observation.item(0)) <= self._observation_bound:  # a fault or NaN: why
-            self.task.check_observation(observation)
-        kernel.observation[:] = observation  # the kernel checks that every entry is finite
-        u = self._act_fused(observation)
-        stats = self.stats
-        if not -self._u_max <= u <= self._u_max:  # as the base class
-            if u != u:
-                raise RuntimeError(f"{self.name} computed a NaN voltage")
-            u = self._u_max if u > 0 else -self._u_max
-            stats.saturated += 1
-        if stats.observer_fallback_step is None and kernel.scalars[nmpc_step.S_RUNAWAY] >= 0:
-            stats.observer_fallback_step = len(stats.compute_s)
-        action = np.empty(1, dtype=np.float32)
-        action[0] = u
-        stats.compute_s.append(_clock() - start)
-        return action
+        return self._act_compiled(observation, kernel.observation, self._runaway)
+
+    def _runaway(self) -> float:
+        """The observer bank's runaway sample as the compiled step last read it (< 0: none)."""
+        return self._kernel.scalars[nmpc_step.S_RUNAWAY]
 
     def _act_fused(self, observation: np.ndarray) -> float:
         """:meth:`_act` by the compiled step; Python runs the QP where an iteration needs it."""
         kernel = self._kernel
-        if self._memory is not kernel.memory:  # a new episode's memory, or the first step
-            kernel.memory[:] = self._memory
-            self._memory = kernel.memory
-        if self._plan is not kernel.plan:
-            kernel.plan[:] = self._plan
-            self._plan = kernel.plan
+        self._into_buffers(kernel.plan, kernel.memory)
         scalars = kernel.scalars
         scalars[nmpc_step.S_G], scalars[nmpc_step.S_U_PREV] = self._g, self._u_prev
         try:

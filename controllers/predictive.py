@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from controllers.base import Controller
+from controllers.base import Controller, _clock
 from controllers.condensed import (
     blocking_matrix,
     check_well_posed,
@@ -48,6 +48,8 @@ from controllers.tolerance_box import (
 )
 from identification.arx import ARXModel
 from piezo_env.memo import ContentCache
+
+_FLOAT32, _FLOAT64 = np.dtype(np.float32), np.dtype(np.float64)
 
 __all__ = [
     "BOX_PLANTS_KEPT",
@@ -353,6 +355,52 @@ class PredictiveController(Controller):
             if getattr(self.observer, "runaway_at", None) is not None:
                 stats.observer_fallback_step = len(stats.compute_s) - 1
         return action
+
+    def _act_compiled(self, observation: Any, buffer: np.ndarray, runaway: Any) -> np.ndarray:
+        """:meth:`act` around a compiled step (the linear MPC's and the NMPC's fused calls,
+        :meth:`_act_fused`): the observation checked as the base class checks it, but for a
+        float array of the right shape only its measurement against the observation bound (the
+        compiled step refuses a non-finite entry before it moves anything), copied into the
+        step's ``buffer``; the volts held in the drive range, the compute time recorded, and
+        the observer bank's fallback step from ``runaway()`` (its runaway sample, < 0: none)."""
+        start = _clock()
+        if (
+            type(observation) is not np.ndarray
+            or observation.shape != buffer.shape
+            or (observation.dtype is not _FLOAT32 and observation.dtype is not _FLOAT64)
+        ):
+            observation = self.task.check_observation(observation)  # raises, or converts
+        elif not abs(observation.item(0)) <= self._observation_bound:  # a fault or NaN: why
+            self.task.check_observation(observation)
+        buffer[:] = observation
+        u = self._act_fused(observation)
+        stats = self.stats
+        if not -self._u_max <= u <= self._u_max:  # as the base class
+            if u != u:
+                raise RuntimeError(f"{self.name} computed a NaN voltage")
+            u = self._u_max if u > 0 else -self._u_max
+            stats.saturated += 1
+        if stats.observer_fallback_step is None and runaway() >= 0:
+            stats.observer_fallback_step = len(stats.compute_s)
+        action = np.empty(1, dtype=np.float32)  # as np.array([u], dtype=np.float32)
+        action[0] = u
+        stats.compute_s.append(_clock() - start)
+        return action
+
+    def _act_fused(self, observation: np.ndarray) -> float:
+        """The volts of one step by the subclass's compiled step (:meth:`_act_compiled`)."""
+        raise NotImplementedError
+
+    def _into_buffers(self, plan: np.ndarray, memory: np.ndarray) -> None:
+        """The plan and the nonlinearity's memory, which Python may have replaced (a new
+        episode, the numpy path), copied into the compiled step's buffers ``plan`` and
+        ``memory``; the attributes then are those buffers, which the step updates in place."""
+        if self._plan is not plan:
+            plan[:] = self._plan
+            self._plan = plan
+        if self._memory is not memory:
+            memory[:] = self._memory
+            self._memory = memory
 
     def feedback_law(self) -> tuple[np.ndarray, float]:
         """``(k_e, k_z)``: the unconstrained first move's gains on the observer's estimate and
