@@ -636,14 +636,15 @@ def float32_within(u: float, low: float, high: float) -> float:
     the window: rounding that steps out is replaced by the next float32 towards the inside
     (one float32 step, 2e-6 V at 30 V, within the window whenever it is wider than that).
 
-    ``low`` and ``high`` are Python floats (:class:`controllers.task.ControlTask` makes its
-    numbers so), which numpy compares with the float32 in float32 (NEP 50): a voltage may
-    pass the window's edge by up to half a float32 step (1e-6 V at 30 V), far inside the
-    slew margin :data:`controllers.task.SLEW_MARGIN_V`. The compiled steps compare alike."""
+    The window's ends are compared as float32 too, explicitly: numpy's own promotion of a
+    float32 against a Python float differs between numpy 1 (float64) and 2 (float32, NEP 50),
+    and the compiled steps compare in float32. So a voltage may pass the window's edge by up
+    to half a float32 step (1e-6 V at 30 V), far inside the slew margin
+    :data:`controllers.task.SLEW_MARGIN_V`."""
     rounded = np.float32(u)
-    if rounded > high:
+    if rounded > np.float32(high):
         rounded = np.nextafter(rounded, np.float32(-np.inf))
-    elif rounded < low:
+    elif rounded < np.float32(low):
         rounded = np.nextafter(rounded, np.float32(np.inf))
     return float(rounded)
 

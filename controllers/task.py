@@ -98,9 +98,8 @@ class ControlTask:
                 low_open=True,
             )
         # Python floats whatever number type a caller passed (numpy's float64, say): the
-        # controllers' voltage windows are Python floats then, which numpy compares with a
-        # float32 voltage in float32, as their compiled steps do (controllers.mpc.
-        # float32_within).
+        # controllers' arithmetic on them then does not depend on numpy's promotion rules,
+        # which changed between numpy 1 and 2 (controllers.mpc.float32_within).
         for name in ("dt", "u_max", "stroke_um", "noise_bound_um", "slew_limit"):
             value = getattr(self, name)
             if value is not None:

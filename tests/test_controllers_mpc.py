@@ -567,10 +567,8 @@ def test_pid_oracles_build_behind_a_sensor_and_pid_ff_steers_the_tip(name):
 
 
 def test_the_task_holds_its_numbers_as_python_floats():
-    """A task made with numpy scalars holds Python floats: the voltage windows built from them
-    stay Python floats, which numpy compares with a float32 voltage in float32, as the
-    compiled steps do (:func:`controllers.mpc.float32_within`); a numpy float64 window would
-    compare in float64 on the numpy path only."""
+    """A task made with numpy scalars holds Python floats, so that the controllers' arithmetic
+    on them does not hang on numpy's promotion rules (numpy 1 and 2 differ)."""
     task = ControlTask(
         dt=np.float64(1e-3),
         u_max=np.float32(30.0),
@@ -584,3 +582,18 @@ def test_the_task_holds_its_numbers_as_python_floats():
     for name in names:
         assert type(getattr(task, name)) is float, name
     assert type(task.slew_step) is float
+
+
+def test_float32_within_compares_the_window_in_float32_under_any_numpy():
+    """The window's ends are rounded to float32 before the comparison, whatever numpy's
+    promotion of a float32 against a Python or numpy float64 (numpy 1: float64; numpy 2:
+    float32): a voltage that rounds to the float32 of the window's end stays there (past the
+    end by less than half a float32 step), as in the compiled steps."""
+    from controllers.mpc import float32_within
+
+    high = 12.7456689
+    end = float(np.float32(high))
+    assert end > high  # the end's float32 lies beyond the end
+    assert float32_within(high, -30.0, high) == end
+    assert float32_within(high, -30.0, np.float64(high)) == end
+    assert float32_within(-high, np.float64(-high), 30.0) == -end

@@ -432,8 +432,7 @@ int nmpc_apply(void **p)
 }
 
 /* controllers.mpc.float32_within: u rounded to the float32 the plant receives, kept inside
-   [low, high]. numpy compares the float32 with the Python floats low and high as float32
-   (NEP 50: a Python float is weakly typed), and so does this. */
+   [low, high], the ends compared as float32 (as the Python function does explicitly). */
 static double float32_within(double u, double low, double high)
 {
     float rounded = (float)u;
