@@ -8,7 +8,9 @@ mode's damping (0.01-0.04). The fixed :class:`controllers.mpc.LinearMPC` learns 
 resonance (a 50 Hz reference on a bender whose first mode lies 20 % low) that is its largest
 error on the box's corners
 (``benchmarks/results/corners.md``, sine-50Hz). :class:`AdaptiveMPC` learns the
-resonance and the damping too, with bounded work per sample.
+resonance and the damping too, and the hysteresis strength (+-30 %, :mod:`controllers.drive`:
+each member predicts with its learned drive ``theta_z z + theta_u u`` and inverts that mixed
+map), with bounded work per sample.
 
 The set. The identified model's first bending mode is moved over a grid that covers the
 datasheet's tolerance box (:func:`controllers.tolerance_box.box_model`: frequency factor
@@ -22,7 +24,10 @@ from a member than the mode's own half-power bandwidth (:func:`resonance_points`
 
 Which member. Every member runs, from the episode's start, on the z the controller applied,
 with its own gain learned (:class:`controllers.gain.GainEstimate` over all members at once: a
-few multiply-adds per member and sample). Each member's misfit is its mean squared residual at
+few multiply-adds per member and sample), and beside it its drive
+(:class:`controllers.drive.DriveEstimate`, which the member predicts with). The gain's misfits
+choose the member: the drive's two parameters fit a wrong resonance's phase at a sine's
+frequency too, and would keep a wrong member. Each member's misfit is its mean squared residual at
 its estimated gain. The MPC predicts with the member in use until the data reject it: a
 likelihood-ratio test of the member in use against the best one,
 ``(misfit_in_use - misfit_best) t / misfit_best > chi2_0.95(2)`` (:data:`SWITCH_CHI2`: two
@@ -90,14 +95,21 @@ import numpy as np
 from controllers.base import ControllerStats
 from controllers.box_qp import BoxQP
 from controllers.condensed import check_well_posed, prediction_matrices
+from controllers.drive import DriveEstimate
 from controllers.gain import GainEstimate
 from controllers.loop import feedback_law, plant_margins, radii_matrix
 from controllers.mpc import LinearMPC, MPCSettings, unconstrained_law
 from controllers.native import fused_step
-from controllers.observer import ObserverBank, make_observer, rescale_states
+from controllers.observer import ObserverBank, make_observer, rescale_states, shift_states
 from controllers.prediction import PredictionModel, SteadyStart
 from controllers.predictive import filter_margins, task_datasheet_model
-from controllers.settings import MS_MAX, check_settings, damping_pair, measurement_std
+from controllers.settings import (
+    MS_MAX,
+    STRENGTH_TOLERANCE,
+    check_settings,
+    damping_pair,
+    measurement_std,
+)
 from controllers.task import ControlTask
 from controllers.tolerance_box import (
     DAMPING_RANGE,
@@ -165,6 +177,10 @@ class AdaptiveMPCSettings(MPCSettings):
         datasheet's +-20 %.
     damping_range : tuple of float
         (low, high) first-mode damping ratios the set covers (-): the datasheet box's.
+    strength_tolerance : float
+        As :class:`controllers.mpc.MPCSettings`'s; its own default, the datasheet's +-30 % on
+        the hysteresis strength (:data:`STRENGTH_TOLERANCE`): each member learns its drive,
+        the gain and the strength together (:mod:`controllers.drive`).
     member_set : str
         How a member is made from the identified model: ``"modes"`` (the default) moves its
         modes (:func:`controllers.tolerance_box.box_model`); ``"datasheet"`` applies the ratio
@@ -180,6 +196,7 @@ class AdaptiveMPCSettings(MPCSettings):
     rate_weight: float = 1e-2
     resonance_tolerance: float = RESONANCE_TOLERANCE
     damping_range: tuple[float, float] = DAMPING_RANGE
+    strength_tolerance: float = STRENGTH_TOLERANCE
     member_set: str = "modes"
 
     def __post_init__(self) -> None:
@@ -639,14 +656,12 @@ class AdaptiveMPC(LinearMPC):
             return super()._fused_addresses()
         return self._bindings[self._member]
 
-    def _gain_estimate(self) -> GainEstimate:
+    def _gain_estimate(self) -> GainEstimate | DriveEstimate:
         models = self._member_models
-        return GainEstimate(
+        return self._estimate_for(
             np.array([m.a for m in models]),
             np.array([m.b[:, 0] for m in models]),
             np.array([m.c[0] for m in models]),
-            tolerance=self.settings.gain_tolerance,
-            **self._gain_noise(),
         )
 
     def _use(self, index: int) -> None:
@@ -783,7 +798,13 @@ class AdaptiveMPC(LinearMPC):
         # one exact product (the realization's output row is [1, 0, ...]), so it is the
         # same number the whole bank's rescale gives.
         estimate = old.estimate[None].copy()
-        rescale_states(estimate, old.c_aug, old.n, 1.0 / self._g)
+        if self._mix is not None:  # to the drive (1, 0): x moved by the model's states' change
+            xz, xu = self._gain.states(self._member)
+            shift_states(estimate, old.c_aug, old.n, (1.0 - self._g) * xz - self._b * xu)
+            self._b = 0.0
+            self._mix.set_parameters((1.0, 0.0))
+        else:
+            rescale_states(estimate, old.c_aug, old.n, 1.0 / self._g)
         estimate = estimate[0]
         self._plan = self._plan / self._g
         self._use(index)

@@ -51,9 +51,10 @@ from typing import Any
 import numpy as np
 
 from controllers.box_qp import DAQP_STATUS, BoxQP, box_qp, solver_version, within
+from controllers.drive import DriveEstimate
 from controllers.native import daqp_box, fused_step
 from controllers.native.codegen import NativeBuild
-from controllers.native.compiled_inverse import STATUS_NAMES
+from controllers.native.compiled_inverse import STATUS_NAMES, CompiledInverse, MixedMap
 from controllers.observer import ObserverBank
 from controllers.prediction import SteadyStart
 from controllers.predictive import PredictiveController
@@ -145,6 +146,11 @@ class MPCSettings:
         :data:`controllers.settings.LEARNED_GAIN_TOLERANCE`, the datasheet's +-20 % on the free
         deflection with what its +-30 % on the hysteresis strength does to the gain. 0:
         predict with the model's gain.
+    strength_tolerance : float
+        Relative half-width r (-) of the bender's hysteresis strength around the model's, in
+        [0, 1). > 0: the MPC learns the drive ``theta_z z + theta_u u`` (the gain and the
+        strength, :mod:`controllers.drive`) instead of the gain alone, plans in it and inverts
+        the mixed map (identified models only); 0 (the default): the gain alone.
     robust_bank : bool
         Let the observer bank select only the filters whose loop is stable on every vertex of
         the datasheet's tolerance box and within :data:`controllers.settings.MS_MAX` on the
@@ -173,6 +179,7 @@ class MPCSettings:
     max_iter: int = 1000
     shortcut: bool = True
     gain_tolerance: float = LEARNED_GAIN_TOLERANCE
+    strength_tolerance: float = 0.0
     robust_bank: bool = True
     initial_voltage: float | None = None
 
@@ -180,9 +187,25 @@ class MPCSettings:
         check_settings(
             self,
             integers=("horizon", "max_iter"),
-            non_negative=("rate_weight", "process_std", "slope_std", "gain_tolerance"),
+            non_negative=(
+                "rate_weight",
+                "process_std",
+                "slope_std",
+                "gain_tolerance",
+                "strength_tolerance",
+            ),
             positive=("disturbance_std", "eps_abs", "eps_rel"),
         )
+        if not self.strength_tolerance < 1.0:
+            raise ValueError(
+                f"strength_tolerance must be < 1 (a relative half-width), got "
+                f"{self.strength_tolerance!r}"
+            )
+        if self.strength_tolerance > 0 and self.gain_tolerance == 0:
+            raise ValueError(
+                "strength_tolerance > 0 learns the drive with its gain: give gain_tolerance "
+                "> 0 too, or strength_tolerance=0"
+            )
         value = self.prediction_horizon
         if value is not None and value != "resonance":
             require_int("prediction_horizon", value)
@@ -223,10 +246,26 @@ class LinearMPC(PredictiveController):
         self._slew_step = self.task.slew_step
         self._n_rows = settings.horizon
         self._gain = self._gain_estimate()
+        self._mix = self._mixed_inverse()
         if self._slew_step is not None:
             self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
             self._n_rows = 2 * settings.horizon - 1
         self._fused, self._fused_build = self._fused_step()
+
+    def _mixed_inverse(self) -> CompiledInverse | None:
+        """The inverse of the mixed drive ``theta_z z + theta_u u`` where the strength is
+        learned (:class:`controllers.native.compiled_inverse.MixedMap`, generated C; its
+        parameters set at each change of the drive), else None."""
+        if not isinstance(self._gain, DriveEstimate):
+            return None
+        nls = getattr(self.model.nonlinearity, "nls", None)
+        if nls is None:
+            raise ValueError(
+                f"{self.name}: strength_tolerance > 0 learns the hysteresis strength of an "
+                f"identified model's network; the {self.model.source} model has none (pass "
+                "strength_tolerance=0)"
+            )
+        return CompiledInverse(MixedMap(nls), self.model.nonlinearity.u_range)
 
     def _fused_step(self) -> tuple[fused_step.FusedStep | None, NativeBuild]:
         """The compiled step (:mod:`controllers.native.fused_step`) where this MPC's step fits
@@ -242,7 +281,8 @@ class LinearMPC(PredictiveController):
             why = f"the nonlinearity ({self.model.source}) has no compiled inverse"
         if why is not None:
             return None, fused_step.unavailable(why)
-        compiled = self.model.nonlinearity._inverse
+        # A learned drive inverts the mixed map (its parameters are the drive's).
+        compiled = self.model.nonlinearity._inverse if self._mix is None else self._mix
         library, build = fused_step.compile_step(compiled)
         if library is None:
             return None, build
@@ -331,7 +371,11 @@ class LinearMPC(PredictiveController):
         self._z_prev = start.z  # the model's input (g z, equivalent V)
         self._z_applied = start.z  # the nonlinearity's output (equivalent V)
         self._u_prev = float(np.float32(start.u))
-        self._restart_gain(start.x)
+        self._u_applied = start.u  # the voltage the nonlinearity's memory last took (V)
+        self._restart_gain(start.x, start.u)
+        self._b = 0.0  # the drive's theta_u (V^-1 equivalent V; 0 without a drive estimate)
+        if self._mix is not None:
+            self._mix.set_parameters((1.0, 0.0))
         self._bind_fused()
 
     def _update_gain(self, y: float) -> None:
@@ -340,7 +384,11 @@ class LinearMPC(PredictiveController):
             return
         self._gain.update(y)
         self._select()
-        self._set_gain(float(self._gain.value[self._member]))
+        if self._mix is not None:
+            gain, member = self._gain, self._member
+            self._set_drive(float(gain.theta_z[member]), float(gain.theta_u[member]))
+        else:
+            self._set_gain(float(self._gain.value[self._member]))
 
     def _select(self) -> None:
         """Choose the linear part to predict with (one here: see the adaptive MPC)."""
@@ -357,6 +405,28 @@ class LinearMPC(PredictiveController):
         self._g = g
         if self._slew_step is not None:
             self._qp.set_rate(g * self.z_rate)
+
+    def _set_drive(self, a: float, b: float) -> None:
+        """Predict with the drive ``a z + b u`` from now on (:mod:`controllers.drive`): the
+        observer's states move by the change of the model's states for the inputs applied
+        since the episode's start (its output estimate kept), the plan scales with a, and the
+        last input is the new drive of the last voltage."""
+        if a == self._g and b == self._b:
+            return
+        xz, xu = self._gain.states(self._member)
+        self.observer.shift_input((a - self._g) * xz + (b - self._b) * xu)
+        self._plan = self._plan * (a / self._g)
+        self._g, self._b = a, b
+        self._z_prev = a * self._z_applied + b * self._u_applied
+        self._mix.set_parameters((a, b))
+        if self._slew_step is not None:
+            self._qp.set_rate(self._drive_rate())
+
+    def _drive_rate(self) -> float:
+        """The drive's change per sample that the slew limit allows at least (equivalent V):
+        the map's smallest slope times a, plus b, times the slew step (positive on the drive
+        estimate's box, :class:`controllers.drive.DriveEstimate`)."""
+        return self._g * self.z_rate + self._b * self._slew_step
 
     def act(self, observation: Any) -> np.ndarray:
         """The base class's step (:meth:`controllers.base.Controller.act`): one compiled call
@@ -385,8 +455,13 @@ class LinearMPC(PredictiveController):
         if code == fused_step.NON_FINITE:
             self.task.check_observation(observation)  # raises, naming the entry
             raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")
-        g = scalars[fused_step.S_G]
-        if g != self._g and self._slew_step is not None:  # the rate rows of a QP run here
+        g, b = scalars[fused_step.S_G], scalars[fused_step.S_B]
+        if self._mix is not None and (g != self._g or b != self._b):
+            self._g, self._b = g, b
+            self._mix.set_parameters((g, b))
+            if self._slew_step is not None:
+                self._qp.set_rate(self._drive_rate())
+        elif g != self._g and self._slew_step is not None:  # the rate rows of a QP run here
             self._qp.set_rate(g * self.z_rate)
         self._g, self._z_prev = g, scalars[fused_step.S_Z_PREV]
         stats = self.stats
@@ -403,6 +478,8 @@ class LinearMPC(PredictiveController):
         if code == fused_step.DONE:
             stats.inverse[STATUS_NAMES[int(scalars[fused_step.S_INVERSE_STATUS])]] += 1
             self._z_applied = scalars[fused_step.S_Z_APPLIED]
+            if self._mix is not None:
+                self._u_applied = scalars[fused_step.S_U_APPLIED]
             self._z_prev = scalars[fused_step.S_Z_PREV]
             self._u_prev = scalars[fused_step.S_U_PREV]  # u itself with a slew limit
             return scalars[fused_step.S_U]
@@ -433,6 +510,10 @@ class LinearMPC(PredictiveController):
         scalars = fused.scalars
         scalars[fused_step.S_G], scalars[fused_step.S_Z_PREV] = self._g, self._z_prev
         scalars[fused_step.S_U_PREV] = self._u_prev
+        scalars[fused_step.S_Z_APPLIED] = self._z_applied
+        if self._mix is not None:
+            scalars[fused_step.S_B], scalars[fused_step.S_U_APPLIED] = self._b, self._u_applied
+            fused.inverse_inputs[5][:] = fused.reach_inputs[3][:] = (self._g, self._b)
 
     def _act(self, observation: np.ndarray) -> float:
         y = float(observation[0])
@@ -445,6 +526,8 @@ class LinearMPC(PredictiveController):
     def _convert(self, z_model: float) -> float:
         """The first move of the model's input g z (equivalent V) to volts, and the time
         updates with the z the nonlinearity produced."""
+        if self._mix is not None:
+            return self._convert_drive(z_model)
         z_target = z_model / self._g
         if self._slew_step is not None:
             return self._act_slewing(z_target)
@@ -457,12 +540,36 @@ class LinearMPC(PredictiveController):
         self._applied(z)
         return u
 
-    def _applied(self, z: float) -> None:
-        """Time updates with the hidden signal z the nonlinearity produced (equivalent V)."""
-        if self._gain is not None:
-            self._gain.advance(z)
+    def _convert_drive(self, w: float) -> float:
+        """:meth:`_convert` with a learned drive: the mixed map inverted to ``w`` (equivalent
+        V), kept inside the slew window where there is one."""
+        inverse = self._mix.solve(w, self._memory)
+        self.stats.inverse[inverse.status] += 1
+        u = float(np.float32(inverse.u))
+        low, high = self._slew_window()
+        if low <= u <= high:
+            self._memory = inverse.state
+            z = (inverse.z - self._b * inverse.u) / self._g  # the network's own output
+        else:  # the inverse's tolerance or float32 rounding at the window's edge
+            u = float32_within(min(max(u, low), high), low, high)
+            z, self._memory = self.model.nonlinearity.step(u, self._memory)
+            self.stats.inverse["slew-window"] += 1
+        self._applied(z, u)
+        self._u_prev = u
+        return u
+
+    def _applied(self, z: float, u: float | None = None) -> None:
+        """Time updates with the hidden signal z the nonlinearity produced (equivalent V) and,
+        with a learned drive, the voltage u (V) that produced it."""
         self._z_applied = z
-        self._z_prev = self._g * z
+        if self._mix is not None:
+            self._gain.advance(z, u)
+            self._u_applied = u
+            self._z_prev = self._g * z + self._b * u
+        else:
+            if self._gain is not None:
+                self._gain.advance(z)
+            self._z_prev = self._g * z
         self.observer.predict(self._z_prev)
 
     def _act_slewing(self, z_target: float) -> float:
@@ -490,17 +597,20 @@ class LinearMPC(PredictiveController):
         stacked[:n] = estimate
         stacked[n:-1] = targets
         stacked[-1] = self._z_prev
-        if self._slew_step is None:
-            low, high = self.model.nonlinearity.reachable(self._memory)
-        else:
-            low, high = self._reachable_in_window()
         g = self._g
-        bounds = (g, self.model.z_bounds)
-        if bounds != self._later_bounds:  # the later moves' bounds change with g only
-            z_min, z_max = bounds[1]
-            self._lower[1:], self._upper[1:] = g * z_min, g * z_max
-            self._later_bounds = bounds
-        self._lower[0], self._upper[0] = g * low, g * high
+        if self._mix is not None:
+            self._drive_bounds()
+        else:
+            if self._slew_step is None:
+                low, high = self.model.nonlinearity.reachable(self._memory)
+            else:
+                low, high = self._reachable_in_window()
+            bounds = (g, self.model.z_bounds)
+            if bounds != self._later_bounds:  # the later moves' bounds change with g only
+                z_min, z_max = bounds[1]
+                self._lower[1:], self._upper[1:] = g * z_min, g * z_max
+                self._later_bounds = bounds
+            self._lower[0], self._upper[0] = g * low, g * high
         if self.settings.shortcut:
             plan = self._unconstrained @ stacked
             if within(plan, self._lower, self._upper) and self._rates_within(plan):
@@ -510,6 +620,21 @@ class LinearMPC(PredictiveController):
                 self._duals = None  # no bound is active: the optimal multipliers are zero
                 return float(plan[0])
         return self._solve_constrained(stacked)
+
+    def _drive_bounds(self) -> None:
+        """The QP's bounds with a learned drive ``a z + b u``: the first move's the mixed
+        map's reachable range (in the slew window where there is one), the later ones' the
+        drive at z's bounds and the drive range's ends (z's bounds are taken at the range's
+        ends, on the major loop and the first branches)."""
+        g, b = self._g, self._b
+        low, high = self._mix.reachable(self._memory, self._slew_window())
+        bounds = (g, b, self.model.z_bounds)
+        if bounds != self._later_bounds:
+            (z_min, z_max), u_max = self.model.z_bounds, self._u_max
+            ends = sorted((g * z_min - b * u_max, g * z_max + b * u_max))
+            self._lower[1:], self._upper[1:] = ends
+            self._later_bounds = bounds
+        self._lower[0], self._upper[0] = low, high
 
     def _solve_constrained(self, stacked: np.ndarray) -> float:
         """The QP's first move g z_t (equivalent V) for the vector ``stacked`` and the bounds
@@ -544,7 +669,8 @@ class LinearMPC(PredictiveController):
         limit)."""
         if self._slew_step is None:
             return True
-        return bool(np.all(np.abs(np.diff(plan)) <= self._g * self.z_rate))
+        rate = self._g * self.z_rate if self._mix is None else self._drive_rate()
+        return bool(np.all(np.abs(np.diff(plan)) <= rate))
 
     def native_code(self) -> dict[str, dict[str, Any]]:
         """The base class's records, ``mpc_step``: whether the compiled step runs

@@ -194,6 +194,12 @@ class DisturbanceObserver:
         and d takes the change of the output estimate C x + d."""
         rescale_output_states(self.estimate[None, :], self.c_aug, self.n, ratio)
 
+    def shift_input(self, dx: np.ndarray) -> None:
+        """The model's past inputs are now others (a new drive estimate,
+        :mod:`controllers.drive`), whose states differ by ``dx``: x moves by it, and d takes
+        the difference so that the output estimate C x + d stays where it is."""
+        shift_states(self.estimate[None, :], self.c_aug, self.n, dx)
+
     def slowest_pole_hz(self, dt: float) -> float:
         """Decay rate of the slowest observer pole, -ln|p| / (2 pi dt) (Hz), for reports.
 
@@ -721,6 +727,10 @@ class ObserverBank:
         """Every filter's :meth:`DisturbanceObserver.rescale_output`."""
         rescale_output_states(self._estimates, self.c_aug, self.n, ratio)
 
+    def shift_input(self, dx: np.ndarray) -> None:
+        """Every filter's :meth:`DisturbanceObserver.shift_input`."""
+        shift_states(self._estimates, self.c_aug, self.n, dx)
+
     def slowest_pole_hz(self, dt: float) -> float:
         """The prior filter's slowest-pole decay rate (Hz), for reports; see
         :meth:`DisturbanceObserver.slowest_pole_hz`."""
@@ -754,6 +764,16 @@ def rescale_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: floa
     output = estimates[:, :n] @ c_aug[:n]
     estimates[:, :n] *= ratio
     estimates[:, n] -= (ratio - 1.0) * output
+
+
+def shift_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, dx: np.ndarray) -> None:
+    """In place, on rows ``[x; d (; s)]``: x plus ``dx`` ((n,)), d less C dx (summed left to
+    right, as the linear MPC's compiled step sums it, :mod:`controllers.native.fused_step`)."""
+    output = 0.0
+    for j in range(n):
+        output += float(dx[j]) * float(c_aug[j])
+    estimates[:, :n] += dx
+    estimates[:, n] -= output
 
 
 def rescale_output_states(estimates: np.ndarray, c_aug: np.ndarray, n: int, ratio: float) -> None:

@@ -32,6 +32,7 @@ from controllers.condensed import (
     qp_matrices,
     rate_hessian,
 )
+from controllers.drive import DriveEstimate, slope_range
 from controllers.gain import GainEstimate
 from controllers.loop import feedback_law, modulus_margins, plant_margins, radii_matrix
 from controllers.observer import ObserverBank, make_observer
@@ -76,7 +77,17 @@ feedback law. A benchmark worker meets up to six identified models, each with th
 laws on its bank and the adaptive MPC's 34 members' (the one in use when it is described),
 and the oracles of its plants (two per plant, 12 plants): 6 x 36 + 24 = 240."""
 
+SLOPES_KEPT = 16
+"""Models whose nonlinearity's slope range is kept (:meth:`PredictiveController.model_slopes`:
+about 2,000 steps of the map each)."""
+
+SLOPE_SAMPLES = 240
+"""Samples per full-stroke leg of :meth:`PredictiveController.model_slopes`' triangle (0.25 V
+per sample at +-30 V): a secant's slope differs from the map's at its ends by the curvature
+times the step, below 1 % of the slope on the identified maps at this step."""
+
 _box_screens = ContentCache(BOX_SCREENS_KEPT)
+_slopes_kept = ContentCache(SLOPES_KEPT)
 _box_plants = ContentCache(BOX_PLANTS_KEPT)
 _margins = ContentCache(MARGINS_KEPT)
 
@@ -479,17 +490,43 @@ class PredictiveController(Controller):
         """Set the plan and the solver for an episode that starts at ``start``."""
         raise NotImplementedError
 
-    def _gain_estimate(self) -> GainEstimate | None:
-        """The gain estimate of the model (None with ``gain_tolerance`` 0)."""
+    def _gain_estimate(self) -> GainEstimate | DriveEstimate | None:
+        """The gain estimate of the model (None with ``gain_tolerance`` 0), or with a
+        ``strength_tolerance`` the drive's (:mod:`controllers.drive`)."""
         settings = self.settings
         if settings.gain_tolerance == 0:
             return None
-        return GainEstimate(
-            self.model.a,
-            self.model.b,
-            self.model.c,
+        return self._estimate_for(self.model.a, self.model.b, self.model.c)
+
+    def _estimate_for(
+        self, a: np.ndarray, b: np.ndarray, c: np.ndarray
+    ) -> GainEstimate | DriveEstimate:
+        """The gain's estimate over the linear parts ``(a, b, c)``, or the drive's where the
+        settings learn the hysteresis strength too."""
+        settings = self.settings
+        strength = getattr(settings, "strength_tolerance", 0.0)
+        if strength == 0:
+            return GainEstimate(a, b, c, tolerance=settings.gain_tolerance, **self._gain_noise())
+        return DriveEstimate(
+            a,
+            b,
+            c,
             tolerance=settings.gain_tolerance,
+            strength=strength,
+            slopes=self.model_slopes(),
             **self._gain_noise(),
+        )
+
+    def model_slopes(self) -> tuple[float, float]:
+        """The model's nonlinearity's smallest and largest slope dz/du (equivalent V per V,
+        :func:`controllers.drive.slope_range`, at 1/240 of the drive range per sample), kept
+        by content."""
+        nonlinearity = self.model.nonlinearity
+        content = getattr(nonlinearity, "content", None)
+        step = (nonlinearity.u_range[1] - nonlinearity.u_range[0]) / SLOPE_SAMPLES
+        return _slopes_kept.get_or_compute(
+            None if content is None else ["slopes", *content(), nonlinearity.u_range, step],
+            lambda: slope_range(nonlinearity, step),
         )
 
     def _gain_noise(self) -> dict[str, float]:
@@ -501,11 +538,14 @@ class PredictiveController(Controller):
             "noise_bound": self.task.noise_bound_um + self.model.error_bound_um,
         }
 
-    def _restart_gain(self, x0: np.ndarray) -> None:
-        """The gain back at the model's (1), learned afresh from the model's state ``x0``."""
+    def _restart_gain(self, x0: np.ndarray, u0: float = 0.0) -> None:
+        """The gain back at the model's (1), learned afresh from the model's state ``x0``
+        (at rest under the voltage ``u0``, V)."""
         self._g = 1.0
         self._member = 0  # which linear part of the gain estimate the MPC predicts with
-        if self._gain is not None:
+        if isinstance(self._gain, DriveEstimate):
+            self._gain.reset(x0, u0)
+        elif self._gain is not None:
             self._gain.reset(x0)
 
     @property

@@ -66,6 +66,11 @@ model of the nominal bender sees, up to x1.092 at small signals
 A learned gain confined to +-20 % stops short of such a bender's. Derived for the datasheet's
 spread; for another, pass ``gain_tolerance=gain_tolerance(spread)``."""
 
+STRENGTH_TOLERANCE = DomainRandomization().hysteresis_strength
+"""Relative half-width of the bender's hysteresis strength that the adaptive MPC learns (-):
+the datasheet's +-30 % (:class:`piezo_env.randomization.DomainRandomization`, which scales
+the hysteretic part at the same major-loop peak; :mod:`controllers.drive`)."""
+
 MS_MAX = 1.8
 """Bound on the sensitivity peak Ms = 1 / (modulus margin) of every loop the controllers close
 on their own model (-): within Astrom and Murray's usual 1.2-2 (*Feedback Systems*, 2nd ed.,

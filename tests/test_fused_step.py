@@ -61,13 +61,15 @@ def episode(controller, plant, reference):
 def test_compiled_step_equals_the_numpy_step_in_closed_loop(env, corner, name, reference_name):
     """The same voltages; the doubles inside differ only where the plan's product and the
     gain's rescaling sum in another order than numpy's BLAS (measured: at most 3.1e-12
-    equivalent V in z over these episodes; the float32 volts were bitwise equal)."""
+    equivalent V in z over these episodes with the gain, 2.3e-11 in the first move with the
+    adaptive MPC's learned drive, on the QP's samples; the float32 volts were bitwise
+    equal)."""
     reference = make_reference(reference_name, 1521, dt=1e-3, seed=0)
     fused = episode(build(name, env, fused=True), corner, reference)
     numpy_step = episode(build(name, env, fused=False), corner, reference)
     np.testing.assert_array_max_ulp(fused[0], numpy_step[0], maxulp=1)
     assert np.mean(fused[0] == numpy_step[0]) > 0.999
-    np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-11)
+    np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-10)
     for key in ("status", "inverse", "fallbacks", "saturated", "observer_fallback_step"):
         assert fused[2][key] == numpy_step[2][key], key
     # The same warm starts: a QP starts from the last active set unless the last plan was
@@ -109,7 +111,7 @@ def test_compiled_step_with_a_slew_limit_equals_the_numpy_step(
     fused = episode(build(name, slewing, fused=True), env, reference)
     numpy_step = episode(build(name, slewing, fused=False), env, reference)
     np.testing.assert_array_max_ulp(fused[0], numpy_step[0], maxulp=1)
-    np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-11)
+    np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-10)
     for key in ("status", "inverse", "fallbacks", "saturated", "observer_fallback_step"):
         assert fused[2][key] == numpy_step[2][key], key
     assert fused[3].stats.iterations == numpy_step[3].stats.iterations

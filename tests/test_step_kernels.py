@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import controllers
+import controllers.drive as drive_module
 import controllers.gain as gain_module
 import controllers.observer as observer_module
 from benchmarks.references import make_reference
@@ -31,6 +32,7 @@ def numpy_only(monkeypatch: pytest.MonkeyPatch) -> None:
         return None, NativeBuild("step_kernels", NUMPY, "switched off by the test")
 
     monkeypatch.setattr(gain_module, "kernels_for", switched_off)
+    monkeypatch.setattr(drive_module, "kernels_for", switched_off)
     monkeypatch.setattr(observer_module, "kernels_for", switched_off)
 
 

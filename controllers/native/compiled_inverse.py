@@ -72,6 +72,7 @@ __all__ = [
     "OUT_OF_RANGE",
     "CompiledInverse",
     "InverseMap",
+    "MixedMap",
     "NLSMap",
     "as_map",
     "inverse_function",
@@ -164,6 +165,37 @@ class NLSMap(InverseMap):
         network = self.nls.to_numpy()
         low, high = network(self.nls.feature_map.candidates(np.array(u_range), state))
         return float(low), float(high)
+
+
+class MixedMap(NLSMap):
+    """The identified NLS's output mixed with its input, ``a z(u; s) + b u`` (equivalent V),
+    ``(a, b)`` the generated functions' parameter input (:attr:`parameters`): the drive of a
+    bender whose hysteresis strength differs from the identified one
+    (:mod:`controllers.drive`). Increasing wherever ``a z' + b > 0``; the caller keeps (a, b)
+    there (:class:`controllers.drive.DriveEstimate` bounds them so)."""
+
+    def __init__(self, nls: Any, a: float = 1.0, b: float = 0.0) -> None:
+        super().__init__(nls)
+        self.parameters = np.array([a, b], dtype=float)
+
+    def casadi_z(self, u: Any, s: Any, p: Any) -> tuple[Any, Any]:
+        z, new_state = super().casadi_z(u, s, p)
+        return p[0] * z + p[1] * u, new_state
+
+    def content(self) -> list[Any]:
+        """The NLS's content, marked as mixed ((a, b) are inputs, not content)."""
+        return ["mixed", *super().content()]
+
+    def solve_inverse(
+        self, z_target: float, state: np.ndarray, u_range: tuple[float, float]
+    ) -> InverseResult:
+        a, b = self.parameters
+        return self.nls.solve_inverse(z_target, state, u_range=u_range, mix=(a, b))
+
+    def ends(self, state: np.ndarray, u_range: tuple[float, float]) -> tuple[float, float]:
+        low, high = super().ends(state, u_range)
+        a, b = self.parameters
+        return float(a * low + b * u_range[0]), float(a * high + b * u_range[1])
 
 
 def nls_content(nls: Any) -> list[Any]:
@@ -453,6 +485,15 @@ class CompiledInverse:
             self._reachable.inputs[1][0], self._reachable.inputs[2][0] = self.u_range
             self._reachable.inputs[3][:] = self.map.parameters
             self._ends = [o.reshape(-1) for o in self._reachable.outputs]
+
+    def set_parameters(self, parameters: Any) -> None:
+        """Invert the map at new :attr:`InverseMap.parameters` (the same count) from now on:
+        the generated functions take them as an input, so nothing is compiled again."""
+        self.map.parameters[:] = parameters
+        if self._function is not None:
+            self._function.inputs[5][:] = self.map.parameters
+        if self._reachable is not None:
+            self._reachable.inputs[3][:] = self.map.parameters
 
     @property
     def compiled(self) -> bool:

@@ -106,17 +106,17 @@ DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT = range(6)
     P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
     P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
     P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_Q_MATRIX,
-    P_QP, P_QP_SOLVE, P_SCRATCH, P_COUNT,
-) = range(42)  # fmt: skip
+    P_QP, P_QP_SOLVE, P_SCRATCH, P_GAIN_XU, P_DRIVE_PAR, P_DRIVE_ST, P_COUNT,
+) = range(45)  # fmt: skip
 (
     D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN, D_MEMBER,
-    D_SHORTCUT, D_SELECTS, D_SLEW, D_COUNT,
-) = range(13)  # fmt: skip
+    D_SHORTCUT, D_SELECTS, D_SLEW, D_DRIVE, D_COUNT,
+) = range(14)  # fmt: skip
 (
     S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS, S_RUNAWAY,
     S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_DUALS_ANY, S_QP_RAN, S_QP_FLAG,
-    S_QP_ITERATIONS, S_U_PREV, S_SLEW_STEP, S_U_MAX, S_Z_RATE, S_COUNT,
-) = range(21)  # fmt: skip
+    S_QP_ITERATIONS, S_U_PREV, S_SLEW_STEP, S_U_MAX, S_Z_RATE, S_B, S_U_APPLIED, S_COUNT,
+) = range(23)  # fmt: skip
 BANK_SLOTS = np.array(
     [
         P_BANK_DIMS, P_BANK_PAR, P_BANK_C, P_BANK_GAINS, P_BANK_HLV, P_BANK_HIV, P_BANK_ST,
@@ -132,12 +132,13 @@ enum { P_OBS, P_GAIN_DIMS, P_GAIN_PAR, P_GAIN_C, P_GAIN_X, P_GAIN_ST, P_GAIN_A, 
        P_BANK_COUNTERS, P_BANK_COUNTS, P_BANK_A, P_BANK_B, P_UNCONSTRAINED, P_STACKED, P_PLAN,
        P_LOWER, P_UPPER, P_MEMORY, P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W, P_REACH_ARG,
        P_REACH_RES, P_REACH_IW, P_REACH_W, P_DIMS, P_SCALARS, P_PLAUSIBLE, P_ALLOWED, P_Q_MATRIX,
-       P_QP, P_QP_SOLVE, P_SCRATCH };
+       P_QP, P_QP_SOLVE, P_SCRATCH, P_GAIN_XU, P_DRIVE_PAR, P_DRIVE_ST };
 enum { D_OBS, D_STATES, D_ESTIMATE, D_MOVES, D_SAMPLES, D_COLUMNS, D_MEMORY, D_HAS_GAIN,
-       D_MEMBER, D_SHORTCUT, D_SELECTS, D_SLEW };
+       D_MEMBER, D_SHORTCUT, D_SELECTS, D_SLEW, D_DRIVE };
 enum { S_G, S_Z_PREV, S_Z_APPLIED, S_U, S_Z_MODEL, S_Z_MIN, S_Z_MAX, S_INVERSE_STATUS,
        S_RUNAWAY, S_NOISE_VARIANCE, S_SWITCH_CHI2, S_NORMAL_95, S_DUALS_ANY, S_QP_RAN,
-       S_QP_FLAG, S_QP_ITERATIONS, S_U_PREV, S_SLEW_STEP, S_U_MAX, S_Z_RATE };
+       S_QP_FLAG, S_QP_ITERATIONS, S_U_PREV, S_SLEW_STEP, S_U_MAX, S_Z_RATE, S_B,
+       S_U_APPLIED };
 enum { DONE, NON_FINITE, NEED_QP, NEED_INVERSE, ERROR, NEED_SELECT };
 
 #define D(p, i) (((const int64_t *)(p)[P_DIMS])[i])
@@ -158,7 +159,7 @@ static void slew_window(void **p, double *low, double *high)
     *high = py_min(sc[S_U_PREV] + step, u_max);
 }
 
-/* The observation's check (non-finite entries) and the gain estimate's update. */
+/* The observation's check (non-finite entries) and the gain (or drive) estimate's update. */
 int fused_begin(void **p)
 {
     const double *obs = F(p, P_OBS);
@@ -166,26 +167,37 @@ int fused_begin(void **p)
         if (!isfinite(obs[i])) return NON_FINITE;
     if (D(p, D_HAS_GAIN))
         gain_update(p[P_GAIN_DIMS], p[P_GAIN_PAR], p[P_GAIN_C], p[P_GAIN_X], p[P_GAIN_ST], obs[0]);
+    if (D(p, D_DRIVE))
+        drive_update(p[P_GAIN_DIMS], p[P_DRIVE_PAR], p[P_GAIN_C], p[P_GAIN_X], p[P_GAIN_XU],
+                     p[P_DRIVE_ST], obs[0]);
     return DONE;
 }
 
-/* controllers.mpc.LinearMPC._applied: time updates with the z the nonlinearity produced. */
-static void applied(void **p, double z)
+/* controllers.mpc.LinearMPC._applied: time updates with the z the nonlinearity produced (and
+   with a learned drive the volts u that produced it). */
+static void applied(void **p, double z, double u)
 {
     double *sc = S(p);
     if (D(p, D_HAS_GAIN)) gain_advance(p[P_GAIN_DIMS], p[P_GAIN_A], p[P_GAIN_B], p[P_GAIN_X], z);
     sc[S_Z_APPLIED] = z;
-    sc[S_Z_PREV] = sc[S_G] * z;
+    if (D(p, D_DRIVE)) {
+        gain_advance(p[P_GAIN_DIMS], p[P_GAIN_A], p[P_GAIN_B], p[P_GAIN_XU], u);
+        sc[S_U_APPLIED] = u;
+        sc[S_Z_PREV] = sc[S_G] * z + sc[S_B] * u;
+    } else {
+        sc[S_Z_PREV] = sc[S_G] * z;
+    }
     bank_predict(p[P_BANK_DIMS], p[P_BANK_A], p[P_BANK_B], p[P_BANK_ST], sc[S_Z_PREV]);
 }
 
-/* The first move z_model (g z, in S_Z_MODEL) to volts: the compiled inverse from the memory,
-   then the time updates (LinearMPC._act after _solve). */
+/* The first move z_model (g z, in S_Z_MODEL; with a learned drive g z + b u, which the mixed
+   map's inverse takes as it is) to volts: the compiled inverse from the memory, then the time
+   updates (LinearMPC._act after _solve, or LinearMPC._convert_drive). */
 int fused_finish(void **p)
 {
     double *sc = S(p), *memory = F(p, P_MEMORY);
     const int64_t n_memory = D(p, D_MEMORY);
-    double z_target = sc[S_Z_MODEL] / sc[S_G];
+    double z_target = D(p, D_DRIVE) ? sc[S_Z_MODEL] : sc[S_Z_MODEL] / sc[S_G];
     if (!isfinite(z_target)) return NEED_INVERSE;
     double **arg = (double **)p[P_INV_ARG], **res = (double **)p[P_INV_RES];
     arg[0][0] = z_target;
@@ -204,7 +216,10 @@ int fused_finish(void **p)
     sc[S_INVERSE_STATUS] = status;
     sc[S_U] = u;
     for (int64_t i = 0; i < n_memory; ++i) memory[i] = res[3][i];
-    applied(p, res[1][0]);
+    if (D(p, D_DRIVE))  /* the network's own output at the solution */
+        applied(p, (res[1][0] - sc[S_B] * res[0][0]) / sc[S_G], u);
+    else
+        applied(p, res[1][0], u);
     return DONE;
 }
 
@@ -213,6 +228,47 @@ static double np_clip(double x, double lo, double hi)
 {
     double m = x > lo ? x : lo;
     return m < hi ? m : hi;
+}
+
+/* The rate rows' bound: g z_rate, with a learned drive g z_rate + b S dt
+   (LinearMPC._drive_rate). */
+static double drive_rate(const double *sc, int64_t drive)
+{
+    return drive ? sc[S_G] * sc[S_Z_RATE] + sc[S_B] * sc[S_SLEW_STEP] : sc[S_G] * sc[S_Z_RATE];
+}
+
+/* controllers.mpc.LinearMPC._set_drive with (a, b) = the drive estimate's theta of the member
+   in use: every filter's x moves by the change of the model's states, d takes C dx (summed
+   left to right, as controllers.observer.shift_states), the plan scales with a, z_t-1 is the
+   new drive of the last input, and the mixed map's inverse and reachable range take (a, b). */
+static void set_drive(void **p, double *est, int64_t filters, int64_t n, int64_t m,
+                      const double *c)
+{
+    double *sc = S(p), *plan = F(p, P_PLAN);
+    const int64_t k = ((const int64_t *)p[P_GAIN_DIMS])[0], member = D(p, D_MEMBER);
+    const int64_t moves = D(p, D_MOVES);
+    const double *st = F(p, P_DRIVE_ST);
+    const double a = st[8 * k + member], b = st[9 * k + member];
+    if (a == sc[S_G] && b == sc[S_B]) return;
+    const double *xz = F(p, P_GAIN_X) + member * n, *xu = F(p, P_GAIN_XU) + member * n;
+    double dx[MAX_STATES], output = 0.0;
+    for (int64_t j = 0; j < n; ++j) dx[j] = (a - sc[S_G]) * xz[j] + (b - sc[S_B]) * xu[j];
+    for (int64_t j = 0; j < n; ++j) output += dx[j] * c[j];
+    for (int64_t f = 0; f < filters; ++f) {
+        double *e = est + f * m;
+        for (int64_t j = 0; j < n; ++j) e[j] += dx[j];
+        e[n] -= output;
+    }
+    const double ratio = a / sc[S_G];
+    for (int64_t i = 0; i < moves; ++i) plan[i] = plan[i] * ratio;
+    sc[S_G] = a;
+    sc[S_B] = b;
+    sc[S_Z_PREV] = a * sc[S_Z_APPLIED] + b * sc[S_U_APPLIED];
+    double **inv = (double **)p[P_INV_ARG], **reach = (double **)p[P_REACH_ARG];
+    inv[5][0] = a;
+    inv[5][1] = b;
+    reach[3][0] = a;
+    reach[3][1] = b;
 }
 
 /* controllers.mpc.LinearMPC._solve_constrained: the box QP for the vector and bounds that
@@ -236,7 +292,7 @@ static int fused_qp(void **p)
         qp->qp.bupper[i] = upper[i];
     }
     if (D(p, D_SLEW)) {  /* the rate rows |v_k - v_k-1| <= g z_rate (BoxQP.set_rate) */
-        const double rate = sc[S_G] * sc[S_Z_RATE];
+        const double rate = drive_rate(sc, D(p, D_DRIVE));
         for (int64_t i = moves; i < qp->qp.m; ++i) {
             qp->qp.blower[i] = -rate;
             qp->qp.bupper[i] = rate;
@@ -274,7 +330,9 @@ int fused_solve(void **p)
     const int64_t filters = bank_dims[0];
     double *est = F(p, P_BANK_ST), *plan = F(p, P_PLAN);
     const double *obs = F(p, P_OBS), *c = F(p, P_BANK_C);
-    if (D(p, D_HAS_GAIN)) {
+    if (D(p, D_DRIVE)) {
+        set_drive(p, est, filters, n, m, c);
+    } else if (D(p, D_HAS_GAIN)) {
         const int64_t k = ((const int64_t *)p[P_GAIN_DIMS])[0];
         double g = F(p, P_GAIN_ST)[9 * k + D(p, D_MEMBER)];
         if (g != sc[S_G]) {
@@ -316,9 +374,21 @@ int fused_solve(void **p)
     if (!(low <= high)) { double t = low; low = high; high = t; }
     double *lower = F(p, P_LOWER), *upper = F(p, P_UPPER);
     const double g = sc[S_G];
-    for (int64_t i = 1; i < moves; ++i) { lower[i] = g * sc[S_Z_MIN]; upper[i] = g * sc[S_Z_MAX]; }
-    lower[0] = g * low;
-    upper[0] = g * high;
+    if (D(p, D_DRIVE)) {  /* LinearMPC._drive_bounds: the mixed map's range is the drive's */
+        double first = g * sc[S_Z_MIN] - sc[S_B] * sc[S_U_MAX];
+        double last = g * sc[S_Z_MAX] + sc[S_B] * sc[S_U_MAX];
+        if (last < first) { double t = first; first = last; last = t; }
+        for (int64_t i = 1; i < moves; ++i) { lower[i] = first; upper[i] = last; }
+        lower[0] = low;
+        upper[0] = high;
+    } else {
+        for (int64_t i = 1; i < moves; ++i) {
+            lower[i] = g * sc[S_Z_MIN];
+            upper[i] = g * sc[S_Z_MAX];
+        }
+        lower[0] = g * low;
+        upper[0] = g * high;
+    }
     if (!D(p, D_SHORTCUT)) return fused_qp(p);
     /* the unconstrained optimum -P^-1 q, summed left to right, tested against the box (in
        scratch: outside it, the QP's warm start and fallback are the last plan, as in Python) */
@@ -334,7 +404,7 @@ int fused_solve(void **p)
         if (!(sum >= lower[i] && sum <= upper[i])) inside = 0;
     }
     if (inside && D(p, D_SLEW)) {  /* LinearMPC._rates_within */
-        const double rate = g * sc[S_Z_RATE];
+        const double rate = drive_rate(sc, D(p, D_DRIVE));
         for (int64_t i = 1; i < moves; ++i)
             if (!(fabs(candidate[i] - candidate[i - 1]) <= rate)) inside = 0;
     }
@@ -518,6 +588,7 @@ class FusedStep:
             (D_SELECTS, "selects"),
         ):
             self.dims[index] = sizes[key]
+        self.scalars[S_U_MAX] = u_range[1]  # the drive bounds' (a learned drive's) and the slew's
         if slew is not None:
             self.dims[D_SLEW] = 1
             scalars = self.scalars
@@ -538,9 +609,11 @@ class FusedStep:
         self.inverse_inputs = self._casadi(inverse, (P_INV_ARG, P_INV_RES, P_INV_IW, P_INV_W))
         self.inverse_inputs[2][0], self.inverse_inputs[3][0] = u_range
         self.inverse_inputs[5][:] = parameters
-        reach_inputs = self._casadi(reachable, (P_REACH_ARG, P_REACH_RES, P_REACH_IW, P_REACH_W))
-        reach_inputs[1][0], reach_inputs[2][0] = u_range
-        reach_inputs[3][:] = parameters
+        self.reach_inputs = self._casadi(
+            reachable, (P_REACH_ARG, P_REACH_RES, P_REACH_IW, P_REACH_W)
+        )
+        self.reach_inputs[1][0], self.reach_inputs[2][0] = u_range
+        self.reach_inputs[3][:] = parameters
         pointer = self.table.ctypes.data
         functions = {}
         for name in ("fused_begin", "fused_solve", "fused_finish", "fused_step"):
@@ -571,22 +644,30 @@ class FusedStep:
         return buffers.inputs
 
     def bind_gain(self, gain: Any, member: int) -> None:
-        """Point at a :class:`controllers.gain.GainEstimate`'s arrays (None: no gain)."""
+        """Point at a :class:`controllers.gain.GainEstimate`'s or a
+        :class:`controllers.drive.DriveEstimate`'s arrays (None: no gain)."""
         self.dims[D_HAS_GAIN] = gain is not None
         self.dims[D_MEMBER] = member
+        drive = hasattr(gain, "theta_u")
+        self.dims[D_DRIVE] = drive
         if gain is None:
             return
-        dims, par = gain._kernel_data
+        estimate = gain.gain if drive else gain  # a drive runs beside its gain estimate
+        dims, par = estimate._kernel_data
         for index, buffer in (
             (P_GAIN_DIMS, dims),
             (P_GAIN_PAR, par),
-            (P_GAIN_C, gain._c),
-            (P_GAIN_X, gain._x),
-            (P_GAIN_ST, gain._state),
-            (P_GAIN_A, gain._a),
-            (P_GAIN_B, gain._b),
+            (P_GAIN_C, estimate._c),
+            (P_GAIN_X, estimate._x),
+            (P_GAIN_ST, estimate._state),
+            (P_GAIN_A, estimate._a),
+            (P_GAIN_B, estimate._b),
         ):
             self._point(index, buffer, keep=False)
+        if drive:
+            self._point(P_GAIN_XU, gain._xu, keep=False)
+            self._point(P_DRIVE_PAR, gain._kernel_data[1], keep=False)
+            self._point(P_DRIVE_ST, gain._state, keep=False)
 
     def bank_addresses(
         self,

@@ -104,6 +104,82 @@ void gain_update(const int64_t *dims, const double *par, const double *c, const 
     }
 }
 
+/* controllers.drive.DriveEstimate._project: the box's point nearest (t1, t2) in the metric
+   [[p11, p12], [p12, p22]]; box = {z_low, z_high, r_low, r_high}. */
+static void drive_project(double *t1, double *t2, double p11, double p12, double p22,
+                          const double *box)
+{
+    const double zl = box[0], zh = box[1], rl = box[2], rh = box[3];
+    const double det = p11 * p22 - p12 * p12;
+    const double c11 = p22 / det, c12 = -p12 / det, c22 = p11 / det;
+    double cand[9][2] = {{zl, rl * zl}, {zl, rh * zl}, {zh, rl * zh}, {zh, rh * zh}};
+    const double edges[4][3] = {{1.0, 0.0, zl}, {1.0, 0.0, zh}, {-rl, 1.0, 0.0}, {-rh, 1.0, 0.0}};
+    for (int e = 0; e < 4; ++e) {
+        const double a0 = edges[e][0], a1 = edges[e][1], c = edges[e][2];
+        const double ca0 = c11 * a0 + c12 * a1, ca1 = c12 * a0 + c22 * a1;
+        const double f = (a0 * *t1 + a1 * *t2 - c) / (a0 * ca0 + a1 * ca1);
+        cand[4 + e][0] = *t1 - ca0 * f;
+        cand[4 + e][1] = *t2 - ca1 * f;
+    }
+    cand[8][0] = *t1;  /* itself, when it lies on the box */
+    cand[8][1] = *t2;
+    double bz = cand[0][0], bu = cand[0][1], best = INFINITY;
+    for (int i = 0; i < 9; ++i) {
+        const double z = cand[i][0], u = cand[i][1], tol = 1e-12 * (1.0 + fabs(z));
+        const int inside = zl - tol <= z && z <= zh + tol && rl * z - tol <= u && u <= rh * z + tol;
+        const double dz = z - *t1, du = u - *t2;
+        const double distance = dz * (p11 * dz + p12 * du) + du * (p12 * dz + p22 * du);
+        if (inside && distance < best) { bz = z; bu = u; best = distance; }
+    }
+    *t1 = bz;
+    *t2 = bu;
+}
+
+/* controllers.drive.DriveEstimate.update (after the gain estimate's): K parts of order n.
+   dims = {K, n}; par = {prior z, prior u, variance floor, theta_z low, high, ratio low, high,
+   chi2_2 95 %}; st = {s_ss, s_sv, s_vv, s_sy, s_vy, s_ee, mean_z, mean_u, theta_z, theta_u}
+   (K each), then (unused), count. */
+void drive_update(const int64_t *dims, const double *par, const double *c, const double *xz,
+                  const double *xu, double *st, double y)
+{
+    const int64_t K = dims[0], n = dims[1];
+    const double p1 = par[0], p2 = par[1], floor_ = par[2], chi2 = par[7];
+    double *s_ss = st, *s_sv = st + K, *s_vv = st + 2 * K, *s_sy = st + 3 * K;
+    double *s_vy = st + 4 * K, *s_ee = st + 5 * K, *mean_z = st + 6 * K, *mean_u = st + 7 * K;
+    double *theta_z = st + 8 * K, *theta_u = st + 9 * K, *count = st + 10 * K + 1;
+    *count += 1.0;
+    for (int64_t k = 0; k < K; ++k) {
+        double s = c[k * n] * xz[k * n], v = c[k * n] * xu[k * n];
+        for (int64_t j = 1; j < n; ++j) {
+            s += c[k * n + j] * xz[k * n + j];
+            v += c[k * n + j] * xu[k * n + j];
+        }
+        double r = y - (mean_z[k] * s + mean_u[k] * v);
+        s_ee[k] += r * r;
+        s_ss[k] += s * s;
+        s_sv[k] += s * v;
+        s_vv[k] += v * v;
+        s_sy[k] += s * y;
+        s_vy[k] += v * y;
+        double variance = np_max(s_ee[k] / *count, floor_);
+        double p11 = p1 + s_ss[k] / variance, p12 = s_sv[k] / variance;
+        double p22 = p2 + s_vv[k] / variance;
+        double r1 = p1 + s_sy[k] / variance, r2 = s_vy[k] / variance;
+        double det = p11 * p22 - p12 * p12;
+        double m1 = (p22 * r1 - p12 * r2) / det, m2 = (p11 * r2 - p12 * r1) / det;
+        mean_z[k] = m1;
+        mean_u[k] = m2;
+        double d1 = 1.0 - m1, d2 = -m2;
+        double q = p11 * d1 * d1 + 2.0 * p12 * d1 * d2 + p22 * d2 * d2;
+        double reach = q > chi2 ? sqrt(chi2 / np_max(q, 1e-300)) : 1.0;
+        double t1 = m1 + reach * d1, t2 = m2 + reach * d2;
+        if (!(par[3] <= t1 && t1 <= par[4] && par[5] * t1 <= t2 && t2 <= par[6] * t1))
+            drive_project(&t1, &t2, p11, p12, p22, par + 3);
+        theta_z[k] = t1;
+        theta_u[k] = t2;
+    }
+}
+
 /* controllers.gain.GainEstimate.advance: x_k <- a_k x_k + b_k z, K parts of order n. */
 void gain_advance(const int64_t *dims, const double *a, const double *b, double *x, double z)
 {
@@ -192,6 +268,7 @@ _P = ctypes.c_void_p
 _SIGNATURES = {
     "gain_update": [_P] * 5 + [ctypes.c_double],
     "gain_advance": [_P] * 4 + [ctypes.c_double],
+    "drive_update": [_P] * 6 + [ctypes.c_double],
     "bank_correct": [_P] * 9 + [ctypes.c_double],
     "bank_predict": [_P] * 4 + [ctypes.c_double],
 }

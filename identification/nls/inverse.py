@@ -55,6 +55,7 @@ class InverseMixin:
         u_guess: float | None = None,
         n_grid: int = 17,
         xtol: float = 1e-7,
+        mix: tuple[float, float] | None = None,
     ) -> NLSInverse:
         """Voltage giving ``z_target`` from the memory ``state``, with a status.
 
@@ -84,6 +85,10 @@ class InverseMixin:
             touches goes unnoticed.
         xtol : float, optional
             Estimated voltage error (V) below which the iteration stops.
+        mix : (float, float), optional
+            ``(a, b)``: invert ``a z(u) + b u`` instead of ``z(u)`` (``z_target`` and the
+            returned ``z`` are then of the mixed map): the drive of a bender whose hysteresis
+            strength differs from the identified one (:mod:`controllers.drive`).
 
         Returns
         -------
@@ -101,6 +106,12 @@ class InverseMixin:
 
         def evaluate(u: np.ndarray) -> np.ndarray:
             return rows(candidates(u, s))
+
+        if mix is not None:
+            a, b = (as_scalar("mix", v) for v in mix)
+
+            def evaluate(u: np.ndarray) -> np.ndarray:
+                return a * rows(candidates(u, s)) + b * u
 
         guess = u_ref if u_guess is None else as_scalar("u_guess", u_guess)
         sol = solve_increasing(evaluate, target, grid, guess, u_ref=u_ref, xtol=xtol)
