@@ -684,8 +684,11 @@ class AdaptiveMPC(LinearMPC):
 
     @property
     def dc_gain(self) -> float:
-        """DC gain of the model in use, learned gain included (um per equivalent V)."""
-        return float(self._member_gains[self._member]) * self._g
+        """DC gain of the model in use, learned gain included (um per equivalent V; with a
+        learned drive, the gain estimated beside it: the gain a linear model of the network's
+        z sees, which theta_z alone is not)."""
+        gain = self._g if self._mix is None else float(self._gain.value[self._member])
+        return float(self._member_gains[self._member]) * gain
 
     @property
     def resonance_hz(self) -> float:

@@ -17,8 +17,8 @@ another strength and gain f is driven by::
 two numbers, and the identified nonlinearity (``z = N(u)`` in equivalent V: the linear
 weight there is kappa = w0 in z's units) stands for every strength once its input is mixed
 back in. Measured on the committed PL140 model: the plant's map at strength x0.7 and x1.3 is
-``theta_z z + theta_u u`` to 2e-4 V rms (out of 7-11 V), where a gain alone leaves 0.27-0.31 V
-(``benchmarks/results/design_measurements.md``).
+``theta_z z + theta_u u`` to at most 4e-4 V rms (out of 7-11 V), where a gain alone leaves
+0.23-0.31 V (``benchmarks/results/design_measurements.md``).
 
 The model. The nominal linear part driven by z gives ``s_t``, driven by u gives ``v_t`` (um),
 and the plant answers::
@@ -36,16 +36,24 @@ The prior: theta_0 = (1, 0), the identified bender; its box from the datasheet, 
 ``[1 - r, 1 + r]`` (r the strength's tolerance) and ``f c`` in ``[1 - w, 1 + w]`` (w the learned
 gain's, :data:`controllers.settings.LEARNED_GAIN_TOLERANCE`): theta_z in ``[(1 - w)(1 - r),
 (1 + w)(1 + r)]``, ``theta_u / theta_z = (1 - rho) kappa / rho`` in ``[-r kappa / (1 + r),
-r kappa / (1 - r)]``; each prior variance is that of a uniform over the box's widest side about
-the nominal value. kappa is not known from an identified map (one strength's data do not
+r kappa / (1 - r)]``. The prior variances are those of uniforms about the nominal value: theta_z's
+over the box's wider side, theta_u's over ``|theta_u| <= (1 + w) r kappa``, its physical bound
+``|f c (1 - rho) kappa|`` (the box's ratio bound times theta_z's reaches further).
+
+kappa is not known from an identified map (one strength's data do not
 separate its two parts), but the map's own slopes bound it (:func:`slope_range`: smallest
 z'_min, largest z'_max on the major loop). A Prandtl-Ishlinskii map's slope right after a
-reversal, all plays stuck, is its linear weight: kappa = z'_min. A Bouc-Wen map's (beta >=
-gamma, as accepted) starts each branch at ``k (1 - alpha)`` and rises towards k as h saturates,
-``k - z'`` decaying by ``exp(-(beta + gamma) du)``; a full-stroke branch (the env's
-calibration: ``(beta + gamma) 2 u_max = 2.8``) ends at more than half of that rise, so
-``kappa - z'_max <= z'_max - z'_min``. The box takes ``kappa <= 2 z'_max - z'_min``, a superset
-for both families.
+reversal, all plays stuck, is its linear weight: kappa = z'_min. A Bouc-Wen map (beta >= gamma,
+as accepted) starts each branch at its flattest, ``k (1 - 2 alpha beta / (beta + gamma))``, and
+rises towards k as h saturates: ``dh/du`` stays at ``alpha k + (beta - gamma) |h|`` while h has
+the sign opposite to the move, then ``k - z'`` decays as ``exp(-(beta + gamma) du)``; on a
+full-stroke branch of the env's calibration (``(beta + gamma) 2 u_max = 2.8``) less than a
+fifth of the rise is left at its end, so ``kappa - z'_max <= z'_max - z'_min``. The box takes
+``kappa <= 2 z'_max - z'_min``, a superset for both families; its slopes are one-sample secants
+at 0.25 V (:data:`controllers.predictive.SLOPE_SAMPLES`), within 0.03 % of finer ones on the
+identified maps. The gain's w already holds the strength's effect on the gain
+(:data:`controllers.settings.LEARNED_GAIN_TOLERANCE`), so the box counts it twice: wider than
+needed, never narrower.
 
 What the controller predicts with: the point of the 95 % credible ellipse
 ``(theta - m)' P (theta - m) <= chi2_2(0.95)`` nearest theta_0 in the posterior's own metric
@@ -81,8 +89,8 @@ def slope_range(nonlinearity: Any, step: float, legs: int = 3) -> tuple[float, f
     """Smallest and largest one-sample secant slope dz/du of ``nonlinearity`` at voltage steps
     ``step`` (V), on a full-stroke triangle (0 -> u_max -> u_min -> ..., ``legs`` legs) at
     ``step`` per sample: at every sample the secants to u +- step (within the drive range) from
-    the state there, right after each reversal included, where a hysteresis map is flattest
-    (play operators) or steepest (Bouc-Wen).
+    the state there, right after each reversal included, where a hysteresis map is flattest,
+    and at each branch's end, where a Bouc-Wen map is steepest.
 
     Raises
     ------
@@ -214,7 +222,7 @@ class DriveEstimate:
             self.theta_z,
             self.theta_u,
         ) = self._state[: 10 * k].reshape(10, k)
-        self._sums = self._state[10 * k :]  # (unused), count
+        self._sums = self._state[10 * k :]  # (a spare slot), count
         self._xz = gain._x  # the gain's linear parts, driven by z
         self._xu = np.zeros((k, n))
         self._update_drive = self._advance_u = None
@@ -259,6 +267,11 @@ class DriveEstimate:
     low = property(lambda self: self.gain.low, doc="The gain's credible set's low ends (K,).")
     high = property(lambda self: self.gain.high, doc="The gain's credible set's high ends.")
     misfit = property(lambda self: self.gain.misfit, doc="The gain estimate's misfits (K,).")
+
+    noise_bound = property(lambda self: self.gain.noise_bound, doc="The exact set's bound (um).")
+    exact_low = property(lambda self: self.gain.exact_low, doc="The gain's exact sets' low ends.")
+    exact_high = property(lambda self: self.gain.exact_high, doc="Their high ends (K,).")
+    emptied_at = property(lambda self: self.gain.emptied_at, doc="When each became empty.")
 
     def independent_fraction_of(self, index: int) -> float:
         """:meth:`controllers.gain.GainEstimate.independent_fraction_of`."""
@@ -375,10 +388,10 @@ class DriveEstimate:
         if self._advance_u is not None:
             self._advance_u(u)
             return
-        # Summed left to right over the state, as the compiled kernel sums.
+        # Summed left to right over the state from 0, as the compiled kernel sums.
         x = self._xu
-        following = self._a[:, :, 0] * x[:, None, 0]
-        for j in range(1, x.shape[1]):
+        following = np.zeros_like(x)
+        for j in range(x.shape[1]):
             following += self._a[:, :, j] * x[:, None, j]
         x[:] = following + self._b * u
 

@@ -51,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from controllers.box_qp import DAQP_STATUS, BoxQP, box_qp, solver_version, within
-from controllers.drive import DriveEstimate
+from controllers.drive import DriveEstimate, slope_range
 from controllers.native import daqp_box, fused_step
 from controllers.native.codegen import NativeBuild
 from controllers.native.compiled_inverse import STATUS_NAMES, CompiledInverse, MixedMap
@@ -265,6 +265,17 @@ class LinearMPC(PredictiveController):
                 f"identified model's network; the {self.model.source} model has none (pass "
                 "strength_tolerance=0)"
             )
+        if self._gain._a.shape[1] != self.observer.n:
+            raise RuntimeError(f"{self.name}: the drive's linear parts and the observer differ")
+        if self._slew_step is not None:
+            # The drive's rate g z_rate + b S dt >= g (z_rate + ratio_low S dt) on the box.
+            slope = smallest_slope(self.model.nonlinearity, self._slew_step)
+            if not slope + self._gain.ratio_bounds[0] > 0:
+                raise ValueError(
+                    f"{self.name}: at the slew step {self._slew_step:.3g} V the map's smallest "
+                    f"slope ({slope:.3g}) leaves the drive's rate bound not positive on the "
+                    "strength's box; lower strength_tolerance"
+                )
         return CompiledInverse(MixedMap(nls), self.model.nonlinearity.u_range)
 
     def _fused_step(self) -> tuple[fused_step.FusedStep | None, NativeBuild]:
@@ -546,16 +557,18 @@ class LinearMPC(PredictiveController):
         inverse = self._mix.solve(w, self._memory)
         self.stats.inverse[inverse.status] += 1
         u = float(np.float32(inverse.u))
-        low, high = self._slew_window()
-        if low <= u <= high:
-            self._memory = inverse.state
-            z = (inverse.z - self._b * inverse.u) / self._g  # the network's own output
-        else:  # the inverse's tolerance or float32 rounding at the window's edge
-            u = float32_within(min(max(u, low), high), low, high)
-            z, self._memory = self.model.nonlinearity.step(u, self._memory)
-            self.stats.inverse["slew-window"] += 1
-        self._applied(z, u)
-        self._u_prev = u
+        if self._slew_step is not None:
+            low, high = self._slew_window()
+            if not low <= u <= high:  # the inverse's tolerance or float32 rounding at an edge
+                u = float32_within(min(max(u, low), high), low, high)
+                z, self._memory = self.model.nonlinearity.step(u, self._memory)
+                self.stats.inverse["slew-window"] += 1
+                self._applied(z, u)
+                self._u_prev = u
+                return u
+            self._u_prev = u
+        self._memory = inverse.state
+        self._applied((inverse.z - self._b * inverse.u) / self._g, u)  # the network's own z
         return u
 
     def _applied(self, z: float, u: float | None = None) -> None:
@@ -679,6 +692,8 @@ class LinearMPC(PredictiveController):
         and why not. Both compiled: the QP is solved inside the step; only the second (a
         fixed observer, say): the C workspace is called from Python, one call per QP."""
         records = {**super().native_code(), "mpc_step": self._fused_build.to_dict()}
+        if self._mix is not None:  # the learned drive's inverse (controllers.drive)
+            records.update({f"mixed_{b.function}": b.to_dict() for b in self._mix.native})
         if self.settings.qp_solver == "daqp":
             records["daqp_box_qp"] = daqp_box.build_record().to_dict()
         return records
@@ -788,23 +803,4 @@ def smallest_slope(nonlinearity: Any, step: float, legs: int = 3) -> float:
     ValueError
         If a slope is not positive (the map is not increasing: no slew constraint in z).
     """
-    u_min, u_max = nonlinearity.u_range
-    n = max(1, math.ceil((u_max - u_min) / step))
-    path = [np.linspace(0.0, u_max, max(1, math.ceil(u_max / step)) + 1)[1:]]
-    for leg in range(legs - 1):
-        ends = (u_max, u_min) if leg % 2 == 0 else (u_min, u_max)
-        path.append(np.linspace(*ends, n + 1)[1:])
-    state = nonlinearity.initial_state()
-    slope = math.inf
-    for u in np.concatenate(path):
-        z, state = nonlinearity.step(float(u), state)
-        for other in (min(u + step, u_max), max(u - step, u_min)):
-            if other != u:
-                z_other = nonlinearity.step(float(other), state)[0]
-                slope = min(slope, (z_other - z) / (other - u))
-    if not slope > 0:
-        raise ValueError(
-            f"the nonlinearity's slope dz/du reaches {slope:.3g} along a full-stroke triangle: "
-            "it is not increasing, so the slew limit has no z rate equivalent"
-        )
-    return float(slope)
+    return slope_range(nonlinearity, step, legs)[0]

@@ -69,7 +69,8 @@ def test_compiled_step_equals_the_numpy_step_in_closed_loop(env, corner, name, r
     numpy_step = episode(build(name, env, fused=False), corner, reference)
     np.testing.assert_array_max_ulp(fused[0], numpy_step[0], maxulp=1)
     assert np.mean(fused[0] == numpy_step[0]) > 0.999
-    np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=1e-10)
+    tolerance = 1e-10 if name == "mpc-adaptive" else 1e-11
+    np.testing.assert_allclose(fused[1], numpy_step[1], rtol=0.0, atol=tolerance)
     for key in ("status", "inverse", "fallbacks", "saturated", "observer_fallback_step"):
         assert fused[2][key] == numpy_step[2][key], key
     # The same warm starts: a QP starts from the last active set unless the last plan was

@@ -30,9 +30,9 @@ own references (the PL140's scaled to its stroke), from a model identified on it
 The box's fourth tolerance, the hysteresis strength (+-30 %, as the env's randomisation draws
 it: :func:`piezo_env.randomization.scale_hysteresis`, the hysteretic part scaled at the same
 major-loop peak), is not a vertex of the table above: the identified model inverts the nominal
-strength, and no controller here learns it. ``--hysteresis 0.7 1.3`` runs the same vertices at
-those strengths instead and writes ``corners[-BENDER]-hysteresis.md``, so what the strength
-costs is measured, not assumed.
+strength; ``mpc-adaptive`` learns it (:mod:`controllers.drive`), the other rows do not.
+``--hysteresis 0.7 1.3`` runs the same vertices at those strengths instead and writes
+``corners[-BENDER]-hysteresis.md``, so what the strength costs is measured, not assumed.
 
 Run: ``python -m benchmarks.studies.corners`` (about three minutes on 2 cores).
 """

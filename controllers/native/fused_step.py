@@ -37,6 +37,13 @@ This is what keeps a 10 kHz loop within its deadline on the samples that need th
 DAQP's Python interface such a sample took 100-400 us after thousands that did not
 (``benchmarks/results/controller_latency.md``).
 
+With a learned drive (:mod:`controllers.drive`, the adaptive MPC's default) the step runs the
+drive estimate's update after the gain's, moves the observer bank's states when the drive of
+the member in use changes (:func:`controllers.observer.shift_states`), plans in the drive and
+inverts the mixed map (:class:`controllers.native.compiled_inverse.MixedMap`, whose generated
+functions take the drive as their parameter input), as :meth:`controllers.mpc.LinearMPC.
+_set_drive` and :meth:`~controllers.mpc.LinearMPC._convert_drive` do.
+
 With the amplifier's slew limit (the ``bench`` plant) the step does what
 :meth:`controllers.mpc.LinearMPC._solve` does then: the first move's z bounds are the map at
 the slew window's ends u_t-1 +- S dt (the same generated ``nls_reachable``, called with the
@@ -291,7 +298,7 @@ static int fused_qp(void **p)
         qp->qp.blower[i] = lower[i];
         qp->qp.bupper[i] = upper[i];
     }
-    if (D(p, D_SLEW)) {  /* the rate rows |v_k - v_k-1| <= g z_rate (BoxQP.set_rate) */
+    if (D(p, D_SLEW)) {  /* the rate rows |v_k - v_k-1| <= drive_rate (BoxQP.set_rate) */
         const double rate = drive_rate(sc, D(p, D_DRIVE));
         for (int64_t i = moves; i < qp->qp.m; ++i) {
             qp->qp.blower[i] = -rate;
@@ -318,6 +325,7 @@ static int fused_qp(void **p)
 }
 
 /* controllers.mpc.LinearMPC._set_gain with g = the gain estimate's value of the member in use
+   (with a learned drive, set_drive instead)
    (with a slew limit, fused_qp gives the QP its rate bound g z_rate), the bank's measurement
    update, the QP's vector and bounds, the unconstrained plan and its box (and rate) test;
    inside them, fused_finish. */
@@ -363,7 +371,7 @@ int fused_solve(void **p)
     for (int64_t j = seen; j < samples; ++j) stacked[m + j] = obs[D(p, D_OBS) - 1];
     stacked[m + samples] = sc[S_Z_PREV];
     /* the first move's bounds: the reachable range from the memory, sorted; the later moves'
-       the range over the drive range; all times g */
+       the range over the drive range; all times g (with a learned drive, the mixed map's) */
     double **arg = (double **)p[P_REACH_ARG], **res = (double **)p[P_REACH_RES];
     const double *memory = F(p, P_MEMORY);
     for (int64_t i = 0; i < D(p, D_MEMORY); ++i) arg[0][i] = memory[i];
@@ -528,7 +536,8 @@ class FusedStep:
         Drive range (V) the inverse searches.
     parameters : numpy.ndarray
         The inverse's parameter input (:attr:`controllers.native.compiled_inverse.
-        InverseMap.parameters`), written once.
+        InverseMap.parameters`): written here, and with a learned drive rewritten by the step
+        at each change of the drive (and by the caller after its own).
     sizes : dict
         ``observation``, ``states`` (n), ``estimate`` (n + disturbance states), ``moves``,
         ``samples``, ``columns``, ``memory``, ``shortcut`` (0 or 1), ``selects`` (1 for the
@@ -552,7 +561,8 @@ class FusedStep:
         the last QP's multipliers were not all zero (its warm start), and of this step's QP
         in C: 0 none, 1 solved, 2 no usable solution (the shifted plan), DAQP's exit flag and
         its iterations; with a slew limit u_t-1 (V, updated by a step that ends in C), S dt,
-        the drive limit and the z rate.
+        the drive limit and the z rate; with a learned drive its theta_u (``S_B``; theta_z is
+        g) and the volts last applied.
     plausible, allowed : numpy.ndarray
         Per member, 1.0 where the adaptive MPC's last selection kept it plausible, and where
         it has a filter it may use on every plausible member (and its twin).

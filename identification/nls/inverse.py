@@ -104,14 +104,11 @@ class InverseMixin:
             u_ref = self._default_u_ref(s, low, high)
         candidates, rows = self.feature_map.candidates, self._mlp.evaluate_rows
 
+        a, b = (1.0, 0.0) if mix is None else (as_scalar("mix", v) for v in mix)
+
         def evaluate(u: np.ndarray) -> np.ndarray:
-            return rows(candidates(u, s))
-
-        if mix is not None:
-            a, b = (as_scalar("mix", v) for v in mix)
-
-            def evaluate(u: np.ndarray) -> np.ndarray:
-                return a * rows(candidates(u, s)) + b * u
+            z = rows(candidates(u, s))
+            return z if mix is None else a * z + b * u
 
         guess = u_ref if u_guess is None else as_scalar("u_guess", u_guess)
         sol = solve_increasing(evaluate, target, grid, guess, u_ref=u_ref, xtol=xtol)
