@@ -814,7 +814,7 @@ class AdaptiveMPC(LinearMPC):
         self._g = 1.0
         self._z_prev = self._z_applied
         if self._slew_step is not None:
-            self._qp.set_rate(self.z_rate)
+            self._qp.set_rate(self._rate())
         observer = self.observer
         if isinstance(observer, ObserverBank):
             row = self._allowed[index]

@@ -69,14 +69,13 @@ acts.
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Any
 
 import numpy as np
 
 from controllers.gain import GainEstimate
-from controllers.native.step_kernels import kernels_for
+from controllers.native.step_kernels import bind, kernels_for
 
 __all__ = ["CREDIBLE_CHI2_2", "DriveEstimate", "slope_range"]
 
@@ -242,22 +241,10 @@ class DriveEstimate:
         )  # kept alive: the kernels hold their pointers
         if library is not None:
             dims, par = self._kernel_data
-            self._update_drive = functools.partial(
-                library.drive_update,
-                dims.ctypes.data,
-                par.ctypes.data,
-                self._c.ctypes.data,
-                self._xz.ctypes.data,
-                self._xu.ctypes.data,
-                self._state.ctypes.data,
+            self._update_drive = bind(
+                library.drive_update, dims, par, self._c, self._xz, self._xu, self._state
             )
-            self._advance_u = functools.partial(
-                library.gain_advance,
-                dims.ctypes.data,
-                self._a.ctypes.data,
-                self._b.ctypes.data,
-                self._xu.ctypes.data,
-            )
+            self._advance_u = bind(library.gain_advance, dims, self._a, self._b, self._xu)
         self.reset(np.zeros(n), 0.0)
 
     # The gain estimate's, for the adaptive MPC's selection and the report.

@@ -72,12 +72,11 @@ to each new scale (:meth:`controllers.observer.DisturbanceObserver.rescale_outpu
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 
-from controllers.native.step_kernels import kernels_for
+from controllers.native.step_kernels import bind, kernels_for
 
 __all__ = ["CREDIBLE_Z", "EXACT_WIDENING", "OBSERVATION_ROUNDING", "GainEstimate"]
 
@@ -217,21 +216,10 @@ class GainEstimate:
                 dtype=float,
             )
             self._kernel_data = (dims, par)  # kept alive: the kernels hold their pointers
-            self._update_native = functools.partial(
-                library.gain_update,
-                dims.ctypes.data,
-                par.ctypes.data,
-                self._c.ctypes.data,
-                self._x.ctypes.data,
-                self._state.ctypes.data,
+            self._update_native = bind(
+                library.gain_update, dims, par, self._c, self._x, self._state
             )
-            self._advance_native = functools.partial(
-                library.gain_advance,
-                dims.ctypes.data,
-                self._a.ctypes.data,
-                self._b.ctypes.data,
-                self._x.ctypes.data,
-            )
+            self._advance_native = bind(library.gain_advance, dims, self._a, self._b, self._x)
         self.reset(np.zeros(n))
 
     @property

@@ -246,10 +246,10 @@ class LinearMPC(PredictiveController):
         self._slew_step = self.task.slew_step
         self._n_rows = settings.horizon
         self._gain = self._gain_estimate()
-        self._mix = self._mixed_inverse()
         if self._slew_step is not None:
             self.z_rate = self._slew_step * smallest_slope(self.model.nonlinearity, self._slew_step)
             self._n_rows = 2 * settings.horizon - 1
+        self._mix = self._mixed_inverse()
         self._fused, self._fused_build = self._fused_step()
 
     def _mixed_inverse(self) -> CompiledInverse | None:
@@ -267,15 +267,15 @@ class LinearMPC(PredictiveController):
             )
         if self._gain._a.shape[1] != self.observer.n:
             raise RuntimeError(f"{self.name}: the drive's linear parts and the observer differ")
-        if self._slew_step is not None:
-            # The drive's rate g z_rate + b S dt >= g (z_rate + ratio_low S dt) on the box.
-            slope = smallest_slope(self.model.nonlinearity, self._slew_step)
-            if not slope + self._gain.ratio_bounds[0] > 0:
-                raise ValueError(
-                    f"{self.name}: at the slew step {self._slew_step:.3g} V the map's smallest "
-                    f"slope ({slope:.3g}) leaves the drive's rate bound not positive on the "
-                    "strength's box; lower strength_tolerance"
-                )
+        # The drive's rate g z_rate + b S dt >= g (z_rate + ratio_low S dt) on the box.
+        if self._slew_step is not None and not (
+            self.z_rate + self._gain.ratio_bounds[0] * self._slew_step > 0
+        ):
+            raise ValueError(
+                f"{self.name}: at the slew step {self._slew_step:.3g} V the map's smallest "
+                f"slope ({self.z_rate / self._slew_step:.3g}) leaves the drive's rate bound not "
+                "positive on the strength's box; lower strength_tolerance"
+            )
         return CompiledInverse(MixedMap(nls), self.model.nonlinearity.u_range)
 
     def _fused_step(self) -> tuple[fused_step.FusedStep | None, NativeBuild]:
@@ -415,7 +415,7 @@ class LinearMPC(PredictiveController):
         self._z_prev *= ratio
         self._g = g
         if self._slew_step is not None:
-            self._qp.set_rate(g * self.z_rate)
+            self._qp.set_rate(self._rate())
 
     def _set_drive(self, a: float, b: float) -> None:
         """Predict with the drive ``a z + b u`` from now on (:mod:`controllers.drive`): the
@@ -431,12 +431,13 @@ class LinearMPC(PredictiveController):
         self._z_prev = a * self._z_applied + b * self._u_applied
         self._mix.set_parameters((a, b))
         if self._slew_step is not None:
-            self._qp.set_rate(self._drive_rate())
+            self._qp.set_rate(self._rate())
 
-    def _drive_rate(self) -> float:
-        """The drive's change per sample that the slew limit allows at least (equivalent V):
-        the map's smallest slope times a, plus b, times the slew step (positive on the drive
-        estimate's box, :class:`controllers.drive.DriveEstimate`)."""
+    def _rate(self) -> float:
+        """The change per sample of the model's input that the slew limit allows at least
+        (equivalent V; slew limit only): g z_rate, and with a learned drive g z + b u the
+        map's smallest slope times g, plus b, times the slew step (b is 0 without one;
+        positive on the drive estimate's box, :class:`controllers.drive.DriveEstimate`)."""
         return self._g * self.z_rate + self._b * self._slew_step
 
     def act(self, observation: Any) -> np.ndarray:
@@ -466,15 +467,14 @@ class LinearMPC(PredictiveController):
         if code == fused_step.NON_FINITE:
             self.task.check_observation(observation)  # raises, naming the entry
             raise RuntimeError(f"{self.name}: the compiled step found a non-finite observation")
-        g, b = scalars[fused_step.S_G], scalars[fused_step.S_B]
-        if self._mix is not None and (g != self._g or b != self._b):
+        g, b = scalars[fused_step.S_G], scalars[fused_step.S_B]  # b stays 0 without a drive
+        if g != self._g or b != self._b:
             self._g, self._b = g, b
-            self._mix.set_parameters((g, b))
-            if self._slew_step is not None:
-                self._qp.set_rate(self._drive_rate())
-        elif g != self._g and self._slew_step is not None:  # the rate rows of a QP run here
-            self._qp.set_rate(g * self.z_rate)
-        self._g, self._z_prev = g, scalars[fused_step.S_Z_PREV]
+            if self._mix is not None:
+                self._mix.set_parameters((g, b))
+            if self._slew_step is not None:  # the rate rows of a QP run here
+                self._qp.set_rate(self._rate())
+        self._z_prev = scalars[fused_step.S_Z_PREV]
         stats = self.stats
         if code == fused_step.NEED_QP:
             scalars[fused_step.S_Z_MODEL] = self._solve_constrained(self._vector)
@@ -535,40 +535,29 @@ class LinearMPC(PredictiveController):
         )
 
     def _convert(self, z_model: float) -> float:
-        """The first move of the model's input g z (equivalent V) to volts, and the time
+        """The first move of the model's input (g z, or with a learned drive g z + b u;
+        equivalent V) to volts, kept inside the slew window where there is one, and the time
         updates with the z the nonlinearity produced."""
-        if self._mix is not None:
-            return self._convert_drive(z_model)
-        z_target = z_model / self._g
-        if self._slew_step is not None:
-            return self._act_slewing(z_target)
-        inverse = self.model.nonlinearity.inverse(z_target, self._memory)
+        if self._mix is None:
+            inverse = self.model.nonlinearity.inverse(z_model / self._g, self._memory)
+            z = inverse.z
+        else:  # the mixed map's inverse; its z less b u over g is the network's own
+            inverse = self._mix.solve(z_model, self._memory)
+            z = (inverse.z - self._b * inverse.u) / self._g
         self.stats.inverse[inverse.status] += 1
         # The plant gets float32 volts; rounding moves u by at most 1e-6 V (at 30 V), within
         # the inverse's own tolerance, so the memory state and z of the inverse stand.
         u = float(np.float32(inverse.u))
-        z, self._memory = inverse.z, inverse.state
-        self._applied(z)
-        return u
-
-    def _convert_drive(self, w: float) -> float:
-        """:meth:`_convert` with a learned drive: the mixed map inverted to ``w`` (equivalent
-        V), kept inside the slew window where there is one."""
-        inverse = self._mix.solve(w, self._memory)
-        self.stats.inverse[inverse.status] += 1
-        u = float(np.float32(inverse.u))
+        memory = inverse.state
         if self._slew_step is not None:
             low, high = self._slew_window()
             if not low <= u <= high:  # the inverse's tolerance or float32 rounding at an edge
                 u = float32_within(min(max(u, low), high), low, high)
-                z, self._memory = self.model.nonlinearity.step(u, self._memory)
+                z, memory = self.model.nonlinearity.step(u, self._memory)
                 self.stats.inverse["slew-window"] += 1
-                self._applied(z, u)
-                self._u_prev = u
-                return u
             self._u_prev = u
-        self._memory = inverse.state
-        self._applied((inverse.z - self._b * inverse.u) / self._g, u)  # the network's own z
+        self._memory = memory
+        self._applied(z, u)
         return u
 
     def _applied(self, z: float, u: float | None = None) -> None:
@@ -584,23 +573,6 @@ class LinearMPC(PredictiveController):
                 self._gain.advance(z)
             self._z_prev = self._g * z
         self.observer.predict(self._z_prev)
-
-    def _act_slewing(self, z_target: float) -> float:
-        """The inverse of ``z_target`` kept inside the slew window (slew limit only)."""
-        nonlinearity = self.model.nonlinearity
-        inverse = nonlinearity.inverse(z_target, self._memory)
-        self.stats.inverse[inverse.status] += 1
-        low, high = self._slew_window()
-        u = float(np.float32(inverse.u))
-        if low <= u <= high:
-            z, self._memory = inverse.z, inverse.state
-        else:  # the inverse's tolerance or float32 rounding at the window's edge
-            u = float32_within(min(max(u, low), high), low, high)
-            z, self._memory = nonlinearity.step(u, self._memory)
-            self.stats.inverse["slew-window"] += 1
-        self._applied(z)
-        self._u_prev = u
-        return u
 
     def _solve(self, estimate: np.ndarray, targets: np.ndarray) -> float:
         """First move of the model's input g z_t (equivalent V) of the QP for the estimate
@@ -682,8 +654,7 @@ class LinearMPC(PredictiveController):
         limit)."""
         if self._slew_step is None:
             return True
-        rate = self._g * self.z_rate if self._mix is None else self._drive_rate()
-        return bool(np.all(np.abs(np.diff(plan)) <= rate))
+        return bool(np.all(np.abs(np.diff(plan)) <= self._rate()))
 
     def native_code(self) -> dict[str, dict[str, Any]]:
         """The base class's records, ``mpc_step``: whether the compiled step runs

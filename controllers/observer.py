@@ -41,14 +41,13 @@ the benchmark's tables.
 
 from __future__ import annotations
 
-import functools
 import itertools
 from typing import Any
 
 import numpy as np
 import scipy.linalg
 
-from controllers.native.step_kernels import kernels_for
+from controllers.native.step_kernels import bind, kernels_for
 from controllers.riccati import filter_riccati, scipy_filter
 from controllers.settings import measurement_std
 from piezo_env.memo import ContentCache
@@ -529,25 +528,20 @@ class ObserverBank:
         self.native = [build]
         if library is None:
             return
-        pointer = self._dims.ctypes.data
-        self._correct_native = functools.partial(
+        self._correct_native = bind(
             library.bank_correct,
-            pointer,
-            self._parameters.ctypes.data,
-            self._c_aug.ctypes.data,
-            self._gains.ctypes.data,
-            self._half_log_var.ctypes.data,
-            self._half_inverse_var.ctypes.data,
-            self._state.ctypes.data,
-            self._counters.ctypes.data,
-            self.selection_counts.ctypes.data,
+            self._dims,
+            self._parameters,
+            self._c_aug,
+            self._gains,
+            self._half_log_var,
+            self._half_inverse_var,
+            self._state,
+            self._counters,
+            self.selection_counts,
         )
-        self._predict_native = functools.partial(
-            library.bank_predict,
-            pointer,
-            self._a_aug.ctypes.data,
-            self._b_aug.ctypes.data,
-            self._state.ctypes.data,
+        self._predict_native = bind(
+            library.bank_predict, self._dims, self._a_aug, self._b_aug, self._state
         )
 
     @property

@@ -42,7 +42,7 @@ drive estimate's update after the gain's, moves the observer bank's states when 
 the member in use changes (:func:`controllers.observer.shift_states`), plans in the drive and
 inverts the mixed map (:class:`controllers.native.compiled_inverse.MixedMap`, whose generated
 functions take the drive as their parameter input), as :meth:`controllers.mpc.LinearMPC.
-_set_drive` and :meth:`~controllers.mpc.LinearMPC._convert_drive` do.
+_set_drive` and :meth:`~controllers.mpc.LinearMPC._convert` do.
 
 With the amplifier's slew limit (the ``bench`` plant) the step does what
 :meth:`controllers.mpc.LinearMPC._solve` does then: the first move's z bounds are the map at
@@ -57,7 +57,7 @@ other QP workspace (OSQP, DAQP's Python interface: the QP solver runs, then ``fu
 converts its first move), an inverse the compiled Newton
 iteration hands back (a non-monotone map, a non-finite target: the numpy inverse runs), with
 a slew limit a first move whose float32 volts leave the window (Python clips it and steps the
-map there, :meth:`controllers.mpc.LinearMPC._act_slewing`), a
+map there, :meth:`controllers.mpc.LinearMPC._convert`), a
 non-finite observation (the base class's check raises, before any state changes), and for the
 adaptive MPC a sample on which its selection may change something (the set of plausible models
 or the model in use: Python then runs :meth:`controllers.adaptive.AdaptiveMPC._select` and
@@ -199,7 +199,7 @@ static void applied(void **p, double z, double u)
 
 /* The first move z_model (g z, in S_Z_MODEL; with a learned drive g z + b u, which the mixed
    map's inverse takes as it is) to volts: the compiled inverse from the memory, then the time
-   updates (LinearMPC._act after _solve, or LinearMPC._convert_drive). */
+   updates (LinearMPC._act after _solve: LinearMPC._convert). */
 int fused_finish(void **p)
 {
     double *sc = S(p), *memory = F(p, P_MEMORY);
@@ -214,7 +214,7 @@ int fused_finish(void **p)
     double status = res[2][0];
     if (status == 2.0) return NEED_INVERSE;
     const double u = (double)(float)res[0][0];  /* the float32 volts the plant receives */
-    if (D(p, D_SLEW)) {  /* LinearMPC._act_slewing: outside the window, Python clips */
+    if (D(p, D_SLEW)) {  /* LinearMPC._convert: outside the window, Python clips */
         double low, high;
         slew_window(p, &low, &high);
         if (!(low <= u && u <= high)) return NEED_INVERSE;
@@ -238,7 +238,7 @@ static double np_clip(double x, double lo, double hi)
 }
 
 /* The rate rows' bound: g z_rate, with a learned drive g z_rate + b S dt
-   (LinearMPC._drive_rate). */
+   (LinearMPC._rate). */
 static double drive_rate(const double *sc, int64_t drive)
 {
     return drive ? sc[S_G] * sc[S_Z_RATE] + sc[S_B] * sc[S_SLEW_STEP] : sc[S_G] * sc[S_Z_RATE];
@@ -548,7 +548,7 @@ class FusedStep:
         The step then takes the first move's z bounds over the slew window u_t-1 +- S dt
         (u_t-1 in the scalars, written by the caller), tests the unconstrained plan's rates,
         gives the QP its rate rows and hands a first move whose volts leave the window to
-        Python (``NEED_INVERSE``: :meth:`controllers.mpc.LinearMPC._act_slewing` clips it).
+        Python (``NEED_INVERSE``: :meth:`controllers.mpc.LinearMPC._convert` clips it).
 
     Attributes
     ----------

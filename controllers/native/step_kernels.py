@@ -33,7 +33,7 @@ from controllers.native.codegen import (
     native_policy,
 )
 
-__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "kernels", "kernels_for"]
+__all__ = ["FLAGS", "MAX_STATES", "SOURCE", "bind", "kernels", "kernels_for"]
 
 MAX_STATES = 64
 """Largest state size the kernels take (their time updates use a stack buffer of this size)."""
@@ -282,6 +282,13 @@ def _build(policy: str) -> tuple[ctypes.CDLL | None, NativeBuild]:
             function = getattr(library, name)
             function.argtypes, function.restype = argtypes, None
     return library, build
+
+
+def bind(function: Any, *arrays: Any) -> Any:
+    """``function`` (a kernel of the library) with the addresses of ``arrays`` as its leading
+    arguments: what remains is the per-sample scalars. The arrays must outlive the binding
+    (their owners keep them)."""
+    return functools.partial(function, *(array.ctypes.data for array in arrays))
 
 
 def kernels() -> tuple[Any, NativeBuild]:
